@@ -1,0 +1,32 @@
+# Two entry points for a fresh machine: `make demo` and `make test`.
+# Both run `setup` first; setup is idempotent (re-runs only when the pins change).
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+OUT    ?= out
+
+.PHONY: setup demo test paper bench bags clean
+
+setup: $(STAMP)
+
+$(STAMP): requirements.txt constraints.txt setup.py setup.cfg package.xml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt -c constraints.txt
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	touch $(STAMP)
+
+demo: setup
+	$(PY) -m tetra_gradiometer demo --out $(OUT)/demo
+
+test: setup
+	$(PY) -m pytest
+
+paper: setup
+	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper
+
+bench: setup
+	$(PY) bench/bench_solvers.py
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info

@@ -1,0 +1,33 @@
+"""ament_python build description (colcon on a real ROS 2 Jazzy install, or pip)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'tetra_gradiometer'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/bags', glob('bags/*.yaml')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='tetra_gradiometer maintainers',
+    maintainer_email='maintainers@tetra-gradiometer.invalid',
+    description='Vehicle magnetic interference compensation for a tetrahedral gradiometer',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'driver = tetra_gradiometer.nodes.driver:main',
+            'tensor = tetra_gradiometer.nodes.tensor:main',
+            'calibrator = tetra_gradiometer.nodes.calibrator:main',
+            'compensator = tetra_gradiometer.nodes.compensator:main',
+        ],
+    },
+)

@@ -1,0 +1,47 @@
+"""Boundary checks shared by the core: shapes and finiteness, with messages that say where."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Return ``value`` as a finite float64 array of ``shape`` (``None`` = any length).
+
+    Raises
+    ------
+    ValueError
+        Naming ``name``, the expected and actual shape, or the first non-finite index.
+    """
+    array = np.asarray(value, dtype=float)
+    if array.ndim != len(shape) or any(
+        want is not None and have != want for have, want in zip(array.shape, shape)
+    ):
+        want = '(' + ', '.join('N' if s is None else str(s) for s in shape) + ')'
+        raise ValueError(f'{name} must have shape {want}, got {array.shape}')
+    if not np.all(np.isfinite(array)):
+        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
+        raise ValueError(f'{name} has a non-finite value at index {bad}')
+    return array
+
+
+def as_fields(value: object, name: str = 'fields') -> np.ndarray:
+    """Sensor fields, shape (N, 4, 3), tesla."""
+    return as_array(value, name, (None, 4, 3))
+
+
+def as_tensors(value: object, name: str = 'tensors') -> np.ndarray:
+    """Gradient tensors, shape (N, 3, 3), T/m."""
+    return as_array(value, name, (None, 3, 3))
+
+
+def as_vectors(value: object, name: str = 'vectors') -> np.ndarray:
+    """Vectors, shape (N, 3)."""
+    return as_array(value, name, (None, 3))
+
+
+def same_length(**arrays: np.ndarray) -> int:
+    """Return the common first dimension of ``arrays`` or raise naming the mismatch."""
+    lengths = {name: len(a) for name, a in arrays.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f'sample counts differ: {lengths}')
+    return next(iter(lengths.values()))

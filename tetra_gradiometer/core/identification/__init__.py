@@ -1,0 +1,21 @@
+"""Identification of the interference parameters.
+
+==============================  ==========================================================
+``paper_ga``                    the paper's GA as printed (section 5)
+``constraint_lstsq``            the same objective solved exactly (rank <= 15 of 27)
+``known_gradient_lstsq``        true gradient known (trim manoeuvre): all parameters
+``pei_yeo_2009``                reference [8]: sensors mapped onto sensor 1, then differenced
+==============================  ==========================================================
+"""
+from .lstsq import (MAX_COVERAGE_CONDITION, MIN_SAMPLES, attitude_coverage, constraint_lstsq,
+                    constraint_objective, known_gradient_lstsq, paper_bounds)
+from .paper_ga import paper_ga
+from .pei_yeo import pei_yeo_2009
+from .result import (Calibration, IdentifiabilityError, ReferenceSensorCalibration,
+                     TensorCalibration)
+
+__all__ = [
+    'MAX_COVERAGE_CONDITION', 'MIN_SAMPLES', 'Calibration', 'IdentifiabilityError',
+    'ReferenceSensorCalibration', 'TensorCalibration', 'attitude_coverage', 'constraint_lstsq',
+    'constraint_objective', 'known_gradient_lstsq', 'paper_bounds', 'paper_ga', 'pei_yeo_2009',
+]

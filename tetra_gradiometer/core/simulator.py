@@ -1,0 +1,357 @@
+"""Mission simulator: a UUV carrying the tetrahedron through trim manoeuvres and survey
+lines over dipole targets in the Earth's field, with vehicle interference and noise.
+
+Frames: world ENU (x east, y north, z up); body REP 103 (x forward, y left, z up);
+attitude ``R`` rotates body vectors into the world (yaw about z from east, then pitch about
+y, then roll about x: ``Rotation.from_euler('ZYX', [yaw, pitch, roll])``).
+
+The background that magnetises the vehicle, ``B^b``, is the true (clean) field at sensor 1,
+in the body frame. With a clean sensor 1 the paper's assumption ``B^b = B_1'`` is then
+exact up to noise, and every modelling error comes from an effect switched on here.
+
+Truth: ``g_true`` is eq. 7 applied to the clean, noise-free fields (what a perfect
+instrument of this geometry reads: the compensation target); ``g_analytic`` is the exact
+gradient at the array centroid (it differs from ``g_true`` by the differencing truncation).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ._validate import as_array
+from .fields import dipole_field, dipole_gradient
+from .geometry import TetraGeometry, difference_tensor
+from .model import SensorInterference
+
+_DERIVATIVE_STEP_S = 1.0e-3
+
+
+@dataclass(frozen=True)
+class Dipole:
+    """A point dipole target: ``position`` (3,) m ENU, ``moment`` (3,) A m^2 ENU."""
+
+    position: np.ndarray
+    moment: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'position', as_array(self.position, 'dipole position', (3,)))
+        object.__setattr__(self, 'moment', as_array(self.moment, 'dipole moment', (3,)))
+
+
+@dataclass(frozen=True)
+class TrimManoeuvre:
+    """Heading turns with roll and pitch oscillations, flown on a circle around ``center``.
+
+    Parameters (units in the names): ``heading_rate_deg_s`` (0: straight), sinusoidal roll
+    and pitch of the given amplitude and period, ``speed_m_s`` along the track.
+    """
+
+    duration_s: float
+    center: tuple[float, float, float] = (0.0, 0.0, -50.0)
+    heading_rate_deg_s: float = 6.0
+    roll_amplitude_deg: float = 25.0
+    roll_period_s: float = 11.0
+    pitch_amplitude_deg: float = 20.0
+    pitch_period_s: float = 17.0
+    initial_heading_deg: float = 0.0
+    speed_m_s: float = 1.0
+
+    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position (N, 3) m and (yaw, pitch, roll) (N, 3) rad at segment-local times (s)."""
+        rate = np.radians(self.heading_rate_deg_s)
+        yaw = np.radians(self.initial_heading_deg) + rate * t
+        center = np.asarray(self.center, dtype=float)
+        if rate == 0.0:
+            offset = self.speed_m_s * t[:, None] * np.array([np.cos(yaw[0]), np.sin(yaw[0]), 0.0])
+        else:
+            radius = self.speed_m_s / abs(rate)
+            offset = radius * np.sign(rate) * np.column_stack([np.sin(yaw), -np.cos(yaw), 0 * t])
+        roll = np.radians(self.roll_amplitude_deg) * np.sin(2 * np.pi * t / self.roll_period_s)
+        pitch = np.radians(self.pitch_amplitude_deg) * np.sin(2 * np.pi * t / self.pitch_period_s)
+        return center + offset, np.column_stack([yaw, pitch, roll])
+
+
+@dataclass(frozen=True)
+class SurveyLine:
+    """Straight line from ``start`` to ``end`` (m, ENU) at ``speed_m_s``, heading along it,
+    with optional small roll/pitch sway (sea state)."""
+
+    start: tuple[float, float, float]
+    end: tuple[float, float, float]
+    speed_m_s: float = 2.0
+    roll_amplitude_deg: float = 0.0
+    pitch_amplitude_deg: float = 0.0
+    sway_period_s: float = 9.0
+
+    @property
+    def duration_s(self) -> float:
+        return float(np.linalg.norm(np.subtract(self.end, self.start)) / self.speed_m_s)
+
+    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        start, end = np.asarray(self.start, float), np.asarray(self.end, float)
+        direction = (end - start) / np.linalg.norm(end - start)
+        position = start + self.speed_m_s * t[:, None] * direction
+        yaw = np.full_like(t, np.arctan2(direction[1], direction[0]))
+        phase = 2 * np.pi * t / self.sway_period_s
+        roll = np.radians(self.roll_amplitude_deg) * np.sin(phase)
+        pitch = np.radians(self.pitch_amplitude_deg) * np.sin(0.61 * phase)
+        return position, np.column_stack([yaw, pitch, roll])
+
+
+Segment = TrimManoeuvre | SurveyLine
+
+
+@dataclass(frozen=True)
+class TemperatureProfile:
+    """``T(t) = mean + ramp * t / duration + amplitude * sin(2 pi t / period)``, degC."""
+
+    mean_c: float = 10.0
+    ramp_c: float = 4.0
+    amplitude_c: float = 1.0
+    period_s: float = 437.0
+
+    def __call__(self, t: np.ndarray, duration_s: float) -> np.ndarray:
+        return (self.mean_c + self.ramp_c * t / max(duration_s, 1e-9)
+                + self.amplitude_c * np.sin(2 * np.pi * t / self.period_s))
+
+
+@dataclass(frozen=True)
+class CurrentProfile:
+    """Battery current, A (negative while discharging): a base load plus thruster steps,
+    random levels every ``step_s`` seconds linearly joined (seeded by the scenario)."""
+
+    base_a: float = -8.0
+    step_amplitude_a: float = 6.0
+    step_s: float = 15.0
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Physical effects beyond the paper's model, each off (None) or with its magnitude.
+
+    Attributes
+    ----------
+    eddy_current : (4, 3, 3) seconds
+        ``B_i += E_i dB^b/dt`` (body-frame rate of the background field).
+    sensor_misalignment : (4, 3) rad
+        Rotation vector of each sensor's axes against the array frame.
+    time_skew_s : (4,) s
+        Each sensor's constant delay: its reading stamped ``t`` is the field at ``t - skew``.
+    thermal_drift : (4, 3) T/degC
+        Offset per degree away from the profile's mean temperature.
+    vehicle_current : (4, 3) T/A
+        Field per ampere of battery current.
+    """
+
+    eddy_current: np.ndarray | None = None
+    sensor_misalignment: np.ndarray | None = None
+    time_skew_s: np.ndarray | None = None
+    thermal_drift: np.ndarray | None = None
+    vehicle_current: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        shapes = {'eddy_current': (4, 3, 3), 'sensor_misalignment': (4, 3), 'time_skew_s': (4,),
+                  'thermal_drift': (4, 3), 'vehicle_current': (4, 3)}
+        for name, shape in shapes.items():
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, as_array(value, name, shape))
+
+    def active(self) -> list[str]:
+        """Names of the effects that are switched on."""
+        return [name for name in ('eddy_current', 'sensor_misalignment', 'time_skew_s',
+                                  'thermal_drift', 'vehicle_current') if getattr(self, name) is not None]
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything a simulated mission needs; SI units throughout.
+
+    Parameters
+    ----------
+    geometry : TetraGeometry
+    earth_field_enu : (3,) tesla
+    segments : sequence of TrimManoeuvre | SurveyLine, flown in order
+    sample_rate_hz : float
+    dipoles : sequence of Dipole
+    interference : SensorInterference
+        Per-sensor soft and hard iron (sensor 1 clean or not).
+    noise_t : float
+        White noise per sensor axis, tesla RMS.
+    effects : Effects
+    temperature : TemperatureProfile
+    current : CurrentProfile
+    """
+
+    geometry: TetraGeometry
+    earth_field_enu: np.ndarray
+    segments: tuple[Segment, ...]
+    sample_rate_hz: float = 10.0
+    dipoles: tuple[Dipole, ...] = ()
+    interference: SensorInterference = field(default_factory=SensorInterference.zero)
+    noise_t: float = 0.1e-9
+    effects: Effects = field(default_factory=Effects)
+    temperature: TemperatureProfile = field(default_factory=TemperatureProfile)
+    current: CurrentProfile = field(default_factory=CurrentProfile)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'earth_field_enu', as_array(self.earth_field_enu, 'earth_field_enu', (3,)))
+        object.__setattr__(self, 'segments', tuple(self.segments))
+        object.__setattr__(self, 'dipoles', tuple(self.dipoles))
+        if not self.segments:
+            raise ValueError('a scenario needs at least one segment')
+        if not self.sample_rate_hz > 0:
+            raise ValueError(f'sample_rate_hz must be positive, got {self.sample_rate_hz}')
+        if not self.noise_t >= 0:
+            raise ValueError(f'noise_t must be >= 0, got {self.noise_t}')
+
+    @property
+    def duration_s(self) -> float:
+        return float(sum(s.duration_s for s in self.segments))
+
+
+@dataclass(frozen=True)
+class MissionData:
+    """A simulated mission, sampled at ``t``; body-frame vectors unless named ``_enu``.
+
+    Attributes
+    ----------
+    t : (N,) s from the start
+    segment : (N,) index into ``Scenario.segments``
+    position_enu : (N, 3) m, body origin in the world
+    orientation_xyzw : (N, 4) quaternion rotating body vectors into ENU
+    b_background : (N, 3) T, true field at sensor 1 (``B^b``)
+    fields_true : (N, 4, 3) T, clean noise-free readings
+    fields_measured : (N, 4, 3) T, with interference, effects and noise
+    g_true : (N, 3, 3) T/m, eq. 7 on ``fields_true``
+    g_analytic : (N, 3, 3) T/m, exact gradient at the centroid
+    temperature_c : (N,) degC
+    current_a : (N,) A
+    """
+
+    t: np.ndarray
+    segment: np.ndarray
+    position_enu: np.ndarray
+    orientation_xyzw: np.ndarray
+    b_background: np.ndarray
+    fields_true: np.ndarray
+    fields_measured: np.ndarray
+    g_true: np.ndarray
+    g_analytic: np.ndarray
+    temperature_c: np.ndarray
+    current_a: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def select(self, mask: np.ndarray) -> MissionData:
+        """The samples where ``mask`` (bool (N,) or indices) selects."""
+        return MissionData(**{name: getattr(self, name)[mask] for name in self.__dataclass_fields__})
+
+
+def _pose(scenario: Scenario, t: np.ndarray) -> tuple[np.ndarray, Rotation, np.ndarray]:
+    """Position (N, 3), attitude, and segment index at absolute times ``t`` (s)."""
+    starts = np.cumsum([0.0] + [s.duration_s for s in scenario.segments])
+    index = np.clip(np.searchsorted(starts, t, side='right') - 1, 0, len(scenario.segments) - 1)
+    position, euler = np.empty((len(t), 3)), np.empty((len(t), 3))
+    for i, segment in enumerate(scenario.segments):
+        here = index == i
+        if np.any(here):
+            position[here], euler[here] = segment.pose(t[here] - starts[i])
+    return position, Rotation.from_euler('ZYX', euler), index
+
+
+def _world_field(scenario: Scenario, points: np.ndarray) -> np.ndarray:
+    total = np.broadcast_to(scenario.earth_field_enu, points.shape).copy()
+    for dipole in scenario.dipoles:
+        total += dipole_field(points, dipole.moment, dipole.position)
+    return total
+
+
+def _clean_fields(scenario: Scenario, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Rotation, np.ndarray]:
+    """Clean body-frame readings (N, 4, 3) T at times ``t``, plus position, attitude, segment."""
+    position, attitude, index = _pose(scenario, t)
+    n = len(t)
+    rotation = attitude.as_matrix()
+    points = position[:, None, :] + np.einsum('nij,sj->nsi', rotation, scenario.geometry.positions)
+    world = _world_field(scenario, points.reshape(-1, 3)).reshape(n, 4, 3)
+    body = np.einsum('nji,nsj->nsi', rotation, world)  # R^T B
+    return body, position, attitude, index
+
+
+def _current_function(scenario: Scenario, rng: np.random.Generator) -> Callable[[np.ndarray], np.ndarray]:
+    profile = scenario.current
+    knots = np.arange(0.0, scenario.duration_s + 2 * profile.step_s, profile.step_s) - profile.step_s
+    levels = profile.base_a + profile.step_amplitude_a * rng.uniform(-1.0, 1.0, len(knots))
+    return lambda t: np.interp(t, knots, levels)
+
+
+def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """Noise-free measured readings (N, 4, 3) T at times ``t``: interference and effects."""
+    fields, _, _, _ = _clean_fields(scenario, t)
+    background = fields[:, 0, :]
+    readings = scenario.interference.apply(fields, background)
+    effects = scenario.effects
+    if effects.eddy_current is not None:
+        step = _DERIVATIVE_STEP_S
+        rate = (_clean_fields(scenario, t + step)[0][:, 0] - _clean_fields(scenario, t - step)[0][:, 0]) / (2 * step)
+        readings += np.einsum('sij,nj->nsi', effects.eddy_current, rate)
+    if effects.thermal_drift is not None:
+        excess = scenario.temperature(t, scenario.duration_s) - scenario.temperature.mean_c
+        readings += excess[:, None, None] * effects.thermal_drift[None]
+    if effects.vehicle_current is not None:
+        readings += current(t)[:, None, None] * effects.vehicle_current[None]
+    if effects.sensor_misalignment is not None:
+        rotations = Rotation.from_rotvec(effects.sensor_misalignment).as_matrix()
+        readings = np.einsum('sij,nsj->nsi', rotations, readings)
+    return readings
+
+
+def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
+    """Fly ``scenario`` and return every sample.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    rng : numpy.random.Generator
+        Source of the noise and the current profile.
+    """
+    n = int(np.floor(scenario.duration_s * scenario.sample_rate_hz))
+    if n < 1:
+        raise ValueError('the scenario is shorter than one sample period')
+    t = np.arange(n) / scenario.sample_rate_hz
+    current = _current_function(scenario, rng)
+    fields_true, position, attitude, index = _clean_fields(scenario, t)
+    measured = _readings(scenario, t, current)
+    skew = scenario.effects.time_skew_s
+    if skew is not None:
+        for sensor in np.flatnonzero(skew):
+            measured[:, sensor] = _readings(scenario, t - skew[sensor], current)[:, sensor]
+    measured += rng.normal(0.0, scenario.noise_t, measured.shape) if scenario.noise_t > 0 else 0.0
+    centroid_world = position + attitude.apply(scenario.geometry.centroid)
+    g_world = np.zeros((n, 3, 3))
+    for dipole in scenario.dipoles:
+        g_world += dipole_gradient(centroid_world, dipole.moment, dipole.position)
+    rot = attitude.as_matrix()
+    return MissionData(
+        t=t, segment=index, position_enu=position, orientation_xyzw=attitude.as_quat(),
+        b_background=fields_true[:, 0, :].copy(), fields_true=fields_true, fields_measured=measured,
+        g_true=difference_tensor(fields_true, scenario.geometry),
+        g_analytic=np.einsum('nji,njk,nkl->nil', rot, g_world, rot),
+        temperature_c=scenario.temperature(t, scenario.duration_s), current_a=current(t),
+    )
+
+
+def random_interference(rng: np.random.Generator, *, k_scale: float = 5e-3, b_scale_t: float = 150e-9,
+                        reference_clean: bool = True) -> SensorInterference:
+    """Symmetric soft iron with entries uniform in ``±k_scale`` and hard iron uniform in
+    ``±b_scale_t`` (tesla) per sensor; sensor 1 zero when ``reference_clean``."""
+    k = rng.uniform(-k_scale, k_scale, (4, 3, 3))
+    k = 0.5 * (k + np.swapaxes(k, 1, 2))
+    b = rng.uniform(-b_scale_t, b_scale_t, (4, 3))
+    if reference_clean:
+        k[0], b[0] = 0.0, 0.0
+    return SensorInterference(k, b)
