@@ -1,0 +1,63 @@
+"""``python -m tetra_gradiometer <command> ...``: the command-line entry beside ``ros2 run``.
+
+Each command lives in its own module exposing ``add_arguments(parser)`` and
+``run(args) -> int``; only the chosen module is imported, so offline tools never load rclpy.
+Exit codes: 0 success, 1 bad input or data (one ``error:`` line on stderr), 2 usage.
+Set ``TETRA_DEBUG=1`` for a traceback instead of the one-line error.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    'paper': ('tetra_gradiometer.tools.paper', 'reproduce section 6 of Yu et al. 2014'),
+    'simulate': ('tetra_gradiometer.tools.simulate', 'simulate a mission into a rosbag2 file'),
+    'calibrate': ('tetra_gradiometer.tools.calibrate', 'identify the interference from a bag'),
+    'compensate': ('tetra_gradiometer.tools.compensate', 'compensate a bag into CSV (and a bag)'),
+    'discrepancy': ('tetra_gradiometer.discrepancy.cli', 'find the physics the model is missing'),
+    'node': ('tetra_gradiometer.nodes.run_node', 'run one ROS 2 node (driver|tensor|calibrator|compensator)'),
+    'bringup': ('tetra_gradiometer.nodes.bringup', 'run the four nodes together'),
+    'record': ('tetra_gradiometer.nodes.record', "record the sim driver's topics to a bag"),
+    'demo': ('tetra_gradiometer.nodes.demo', 'the main job: sim, trim, calibrate, survey, result'),
+}
+
+USER_ERRORS = (ValueError, OSError)
+
+
+def _usage() -> str:
+    width = max(map(len, COMMANDS))
+    lines = [f'  {name:<{width}}  {help_}' for name, (_, help_) in COMMANDS.items()]
+    return ('usage: python -m tetra_gradiometer <command> [options]\n\ncommands:\n' + '\n'.join(lines)
+            + '\n\n"python -m tetra_gradiometer <command> --help" describes each.')
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ('-h', '--help'):
+        print(_usage())
+        return 0
+    if argv[0] not in COMMANDS:
+        print(f'error: unknown command {argv[0]!r}\n\n{_usage()}', file=sys.stderr)
+        return 2
+    name = argv[0]
+    module = importlib.import_module(COMMANDS[name][0])
+    parser = argparse.ArgumentParser(prog=f'python -m tetra_gradiometer {name}',
+                                     description=COMMANDS[name][1])
+    module.add_arguments(parser)
+    args = parser.parse_args(argv[1:])
+    try:
+        return int(module.run(args) or 0)
+    except USER_ERRORS as error:
+        if os.environ.get('TETRA_DEBUG'):
+            raise
+        print(f'error: {error}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,173 @@
+"""Every message <-> array conversion, for rclpy messages and rosbags messages alike.
+
+Both libraries build messages from the same keyword fields, so each function takes a
+:class:`MessageTypes` naming the classes to use (:func:`rclpy_types` for the nodes,
+:func:`rosbags_types` for bag files). Nothing here imports rclpy at module import.
+
+Contract (README, "Topics"):
+
+* ``mag1``..``mag4``: ``sensor_msgs/MagneticField``, tesla, body frame (REP 103),
+  frames ``tetra_mag1``..``tetra_mag4``, ``header.stamp`` = sample time.
+* tensors (``gradient/raw``, ``gradient/compensated``, ``gradient/truth``):
+  ``sensor_msgs/JointState`` with ``name = gxx, gxy, gxz, gyx, gyy, gyz, gzx, gzy, gzz``,
+  ``position`` = ``G_ij = dB_i/dx_j`` in T/m, frame ``tetra_array``.
+* ``/odom``: ``nav_msgs/Odometry``, orientation rotates body vectors into ENU.
+* ``/tetra/temperature``: ``sensor_msgs/Temperature`` (degC);
+  ``/battery_state``: ``sensor_msgs/BatteryState`` (``current`` in A).
+"""
+from __future__ import annotations
+
+import array
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+NAMESPACE = '/tetra'
+MAG_TOPICS = ('mag1', 'mag2', 'mag3', 'mag4')
+MAG_FRAMES = ('tetra_mag1', 'tetra_mag2', 'tetra_mag3', 'tetra_mag4')
+ARRAY_FRAME = 'tetra_array'
+TENSOR_NAMES = ('gxx', 'gxy', 'gxz', 'gyx', 'gyy', 'gyz', 'gzx', 'gzy', 'gzz')
+ODOM_TOPIC = '/odom'
+TEMPERATURE_TOPIC = '/tetra/temperature'
+BATTERY_TOPIC = '/battery_state'
+BAG_MAG_TOPICS = tuple(f'{NAMESPACE}/{name}' for name in MAG_TOPICS)
+
+MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+ODOMETRY = 'nav_msgs/msg/Odometry'
+TEMPERATURE = 'sensor_msgs/msg/Temperature'
+BATTERY_STATE = 'sensor_msgs/msg/BatteryState'
+
+
+class MessageError(ValueError):
+    """A message does not follow the contract (wrong names, count, or non-finite values)."""
+
+
+@dataclass(frozen=True)
+class MessageTypes:
+    """The message classes to build, by ROS name, and how a float64[] field is given."""
+
+    classes: dict[str, Any]
+    float_sequence: Callable[[np.ndarray], Any]
+
+    def __getitem__(self, name: str) -> Any:
+        return self.classes[name]
+
+
+def rclpy_types() -> MessageTypes:
+    """Message classes of the rclpy wheels (imports them on first use)."""
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import (Point, Pose, PoseWithCovariance, Quaternion, Twist,
+                                   TwistWithCovariance, Vector3)
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import BatteryState, JointState, MagneticField, Temperature
+    from std_msgs.msg import Header
+    classes = {
+        'builtin_interfaces/msg/Time': Time, 'std_msgs/msg/Header': Header,
+        'geometry_msgs/msg/Vector3': Vector3, 'geometry_msgs/msg/Point': Point,
+        'geometry_msgs/msg/Quaternion': Quaternion, 'geometry_msgs/msg/Pose': Pose,
+        'geometry_msgs/msg/PoseWithCovariance': PoseWithCovariance,
+        'geometry_msgs/msg/Twist': Twist, 'geometry_msgs/msg/TwistWithCovariance': TwistWithCovariance,
+        MAGNETIC_FIELD: MagneticField, JOINT_STATE: JointState, ODOMETRY: Odometry,
+        TEMPERATURE: Temperature, BATTERY_STATE: BatteryState,
+    }
+    return MessageTypes(classes, lambda values: array.array('d', np.asarray(values, float).tolist()))
+
+
+def rosbags_types(typestore: Any) -> MessageTypes:
+    """Message classes of a rosbags typestore (e.g. ``get_typestore(Stores.ROS2_JAZZY)``)."""
+    return MessageTypes(typestore.types, lambda values: np.asarray(values, dtype=np.float64))
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """``builtin_interfaces/Time`` -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def header(types: MessageTypes, stamp_ns: int, frame_id: str) -> Any:
+    """A ``std_msgs/Header`` at ``stamp_ns`` (integer nanoseconds)."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    time = types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
+    return types['std_msgs/msg/Header'](stamp=time, frame_id=frame_id)
+
+
+def _vector3(types: MessageTypes, values: np.ndarray) -> Any:
+    return types['geometry_msgs/msg/Vector3'](x=float(values[0]), y=float(values[1]), z=float(values[2]))
+
+
+def magnetic_field_msg(types: MessageTypes, field_t: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """``sensor_msgs/MagneticField`` from a field (3,) in tesla; covariance unknown (zeros)."""
+    return types[MAGNETIC_FIELD](header=header(types, stamp_ns, frame_id),
+                                 magnetic_field=_vector3(types, field_t),
+                                 magnetic_field_covariance=np.zeros(9))
+
+
+def magnetic_field_vector(msg: Any) -> np.ndarray:
+    """Field (3,) in tesla from a ``sensor_msgs/MagneticField`` (may be non-finite: callers check)."""
+    field = msg.magnetic_field
+    return np.array([field.x, field.y, field.z], dtype=float)
+
+
+def tensor_msg(types: MessageTypes, g: np.ndarray, stamp_ns: int, frame_id: str = ARRAY_FRAME) -> Any:
+    """Tensor carrier: ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m."""
+    values = np.asarray(g, dtype=float).reshape(9)
+    empty = types.float_sequence(np.zeros(0))
+    return types[JOINT_STATE](header=header(types, stamp_ns, frame_id), name=list(TENSOR_NAMES),
+                              position=types.float_sequence(values), velocity=empty, effort=empty)
+
+
+def tensor_from_msg(msg: Any) -> np.ndarray:
+    """(3, 3) tensor in T/m from a tensor ``JointState``, in any name order.
+
+    Raises
+    ------
+    MessageError
+        If the names are not exactly ``gxx..gzz`` or the counts differ.
+    """
+    names = list(msg.name)
+    values = np.asarray(msg.position, dtype=float)
+    if sorted(names) != sorted(TENSOR_NAMES) or len(values) != 9:
+        raise MessageError(f'a tensor JointState needs names {TENSOR_NAMES} with 9 positions, '
+                           f'got names {names} and {len(values)} positions')
+    return values[[names.index(n) for n in TENSOR_NAMES]].reshape(3, 3)
+
+
+def odometry_msg(types: MessageTypes, position_enu: np.ndarray, orientation_xyzw: np.ndarray,
+                 stamp_ns: int, *, frame_id: str = 'world', child_frame_id: str = 'base_link') -> Any:
+    """``nav_msgs/Odometry``: position (3,) m ENU, orientation (4,) x, y, z, w (body -> ENU)."""
+    q = np.asarray(orientation_xyzw, dtype=float)
+    pose = types['geometry_msgs/msg/Pose'](
+        position=types['geometry_msgs/msg/Point'](x=float(position_enu[0]), y=float(position_enu[1]),
+                                                   z=float(position_enu[2])),
+        orientation=types['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                          w=float(q[3])))
+    zero = np.zeros(3)
+    twist = types['geometry_msgs/msg/Twist'](linear=_vector3(types, zero), angular=_vector3(types, zero))
+    return types[ODOMETRY](
+        header=header(types, stamp_ns, frame_id), child_frame_id=child_frame_id,
+        pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=pose, covariance=np.zeros(36)),
+        twist=types['geometry_msgs/msg/TwistWithCovariance'](twist=twist, covariance=np.zeros(36)))
+
+
+def odometry_orientation(msg: Any) -> np.ndarray:
+    """Orientation (4,) x, y, z, w from ``nav_msgs/Odometry``."""
+    q = msg.pose.pose.orientation
+    return np.array([q.x, q.y, q.z, q.w], dtype=float)
+
+
+def temperature_msg(types: MessageTypes, celsius: float, stamp_ns: int, frame_id: str = ARRAY_FRAME) -> Any:
+    """``sensor_msgs/Temperature`` in degC."""
+    return types[TEMPERATURE](header=header(types, stamp_ns, frame_id), temperature=float(celsius),
+                              variance=0.0)
+
+
+def battery_msg(types: MessageTypes, current_a: float, stamp_ns: int) -> Any:
+    """``sensor_msgs/BatteryState`` carrying only ``current`` (A); the rest unknown (NaN)."""
+    nan = float('nan')
+    empty = types.float_sequence(np.zeros(0))
+    return types[BATTERY_STATE](
+        header=header(types, stamp_ns, 'base_link'), voltage=nan, temperature=nan,
+        current=float(current_a), charge=nan, capacity=nan, design_capacity=nan, percentage=nan,
+        power_supply_status=0, power_supply_health=0, power_supply_technology=0, present=True,
+        cell_voltage=empty, cell_temperature=empty, location='', serial_number='')

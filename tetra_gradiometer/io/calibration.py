@@ -1,0 +1,96 @@
+"""Calibration files: the compensation parameters ``k``, ``b`` as YAML, written atomically.
+
+Format (version 1)::
+
+    tetra_gradiometer_calibration: 1
+    method: known_gradient_lstsq_general
+    symmetric_k: false
+    created_utc: '2026-11-22T10:00:00Z'
+    sensor_positions: [12 floats, m]
+    k_soft: [[[...]]]     # K_21, K_31, K_41 (3 x 3 x 3), dimensionless
+    b_hard_T: [[...]]     # B_21^h, B_31^h, B_41^h (3 x 3), tesla
+    diagnostics: {...}    # rank, condition number, residual (nT/m), ...
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..core import InterferenceParameters, TensorCalibration, TetraGeometry
+from .atomic import atomic_write_text
+
+FORMAT_VERSION = 1
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file is missing, truncated or malformed."""
+
+
+@dataclass(frozen=True)
+class CalibrationFile:
+    """What a calibration file holds."""
+
+    parameters: InterferenceParameters
+    method: str
+    symmetric_k: bool
+    sensor_positions: list[float]
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    created_utc: str = ''
+
+    @classmethod
+    def from_calibration(cls, calibration: TensorCalibration, geometry: TetraGeometry) -> CalibrationFile:
+        summary = calibration.summary()
+        return cls(parameters=calibration.parameters, method=calibration.method,
+                   symmetric_k=calibration.symmetric, sensor_positions=geometry.to_flat(),
+                   diagnostics={k: v for k, v in summary.items() if np.isscalar(v)},
+                   created_utc=_dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ'))
+
+    def to_yaml(self) -> str:
+        document = {
+            'tetra_gradiometer_calibration': FORMAT_VERSION, 'method': self.method,
+            'symmetric_k': bool(self.symmetric_k), 'created_utc': self.created_utc,
+            'sensor_positions': [float(v) for v in self.sensor_positions],
+            'k_soft': self.parameters.k_soft.tolist(), 'b_hard_T': self.parameters.b_hard.tolist(),
+            'diagnostics': {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+                            for k, v in self.diagnostics.items()},
+        }
+        return yaml.safe_dump(document, sort_keys=False)
+
+    @classmethod
+    def from_yaml(cls, text: str, source: str = 'calibration') -> CalibrationFile:
+        try:
+            document = yaml.safe_load(text)
+        except yaml.YAMLError as error:
+            raise CalibrationFileError(f'{source} is not valid YAML: {error}') from None
+        if not isinstance(document, dict) or document.get('tetra_gradiometer_calibration') != FORMAT_VERSION:
+            raise CalibrationFileError(f'{source} is not a tetra_gradiometer calibration (version {FORMAT_VERSION})')
+        try:
+            parameters = InterferenceParameters(document['k_soft'], document['b_hard_T'])
+            return cls(parameters=parameters, method=str(document['method']),
+                       symmetric_k=bool(document['symmetric_k']),
+                       sensor_positions=[float(v) for v in document['sensor_positions']],
+                       diagnostics=dict(document.get('diagnostics') or {}),
+                       created_utc=str(document.get('created_utc', '')))
+        except (KeyError, TypeError, ValueError) as error:
+            raise CalibrationFileError(f'{source} is malformed: {error}') from None
+
+
+def save_calibration(path: str | os.PathLike, calibration: CalibrationFile) -> Path:
+    """Write atomically (temporary file, then rename)."""
+    return atomic_write_text(path, calibration.to_yaml())
+
+
+def load_calibration(path: str | os.PathLike) -> CalibrationFile:
+    """Read a calibration file, raising :class:`CalibrationFileError` with the reason."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding='utf-8')
+    except OSError as error:
+        raise CalibrationFileError(f'cannot read calibration file {path}: {error.strerror}') from None
+    return CalibrationFile.from_yaml(text, source=str(path))

@@ -1,0 +1,71 @@
+"""ROS 2 parameter files (``/**: ros__parameters:``) as the offline tools read them."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..core import GeometryError, TetraGeometry
+
+
+class ParamsError(ValueError):
+    """A parameter file is missing, unreadable, or lacks a valid entry."""
+
+
+def load_params(path: str | os.PathLike, node: str = '/**') -> dict[str, Any]:
+    """The ``ros__parameters`` of ``node`` (default the wildcard ``/**``) in ``path``.
+
+    Falls back to the only node section when ``node`` is absent, so a file written for one
+    named node also works.
+    """
+    path = Path(path)
+    try:
+        document = yaml.safe_load(path.read_text(encoding='utf-8'))
+    except FileNotFoundError:
+        raise ParamsError(f'params file not found: {path}') from None
+    except yaml.YAMLError as error:
+        raise ParamsError(f'params file {path} is not valid YAML: {error}') from None
+    if not isinstance(document, dict) or not document:
+        raise ParamsError(f'params file {path} has no node sections (expected "/**: ros__parameters:")')
+    section = document.get(node)
+    if section is None and len(document) == 1:
+        section = next(iter(document.values()))
+    if not isinstance(section, dict) or not isinstance(section.get('ros__parameters'), dict):
+        raise ParamsError(f'params file {path}: no "{node}: ros__parameters:" mapping')
+    return section['ros__parameters']
+
+
+def geometry_from_params(params: dict[str, Any], source: str = 'params') -> TetraGeometry:
+    """The tetrahedron from ``sensor_positions`` (12 floats, metres, sensor 1 first)."""
+    values = params.get('sensor_positions')
+    if values is None:
+        raise ParamsError(f'{source}: sensor_positions is missing (12 floats, metres, body frame)')
+    try:
+        flat = np.asarray(values, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise ParamsError(f'{source}: sensor_positions must be 12 numbers, got {values!r}') from None
+    if flat.size != 12 or not np.all(np.isfinite(flat)):
+        raise ParamsError(f'{source}: sensor_positions must be 12 finite floats, got {flat.size} values')
+    try:
+        return TetraGeometry.from_flat(flat)
+    except GeometryError as error:
+        raise ParamsError(f'{source}: {error}') from None
+
+
+def earth_field_from_params(params: dict[str, Any], source: str = 'params') -> np.ndarray | None:
+    """``earth_field_enu`` (3 floats, tesla) or None when absent."""
+    values = params.get('earth_field_enu')
+    if values is None:
+        return None
+    field = np.asarray(values, dtype=float).ravel()
+    if field.size != 3 or not np.all(np.isfinite(field)):
+        raise ParamsError(f'{source}: earth_field_enu must be 3 finite floats (tesla), got {values!r}')
+    return field
+
+
+def params_document(params: dict[str, Any]) -> str:
+    """YAML text of a ``/**: ros__parameters:`` file holding ``params``."""
+    return yaml.safe_dump({'/**': {'ros__parameters': params}}, sort_keys=False)

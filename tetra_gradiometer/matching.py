@@ -1,0 +1,78 @@
+"""Matching the four magnetometer streams into sample sets by header stamp.
+
+Used by the tensor node (live topics) and the bag reader (recorded topics), so both drop
+and count incomplete sets the same way. Each sensor's stamps must increase; a set is the
+four queue heads when they lie within ``tolerance_ns`` of each other. A head that cannot
+match any more (another sensor has already moved past it) is dropped and counted.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+N_SENSORS = 4
+
+
+@dataclass
+class MatchCounters:
+    """Running counts: sets emitted, messages dropped unmatched, out-of-order messages."""
+
+    matched: int = 0
+    dropped_messages: int = 0
+    out_of_order: int = 0
+
+
+class StampMatcher:
+    """Approximate-time synchroniser for four streams.
+
+    Parameters
+    ----------
+    tolerance_ns : int
+        Largest spread of the four stamps within one set, nanoseconds.
+    max_pending : int
+        Per-sensor queue bound; older messages are dropped (a silent sensor must not grow memory).
+    """
+
+    def __init__(self, tolerance_ns: int, *, max_pending: int = 1000) -> None:
+        if tolerance_ns < 0:
+            raise ValueError(f'tolerance_ns must be >= 0, got {tolerance_ns}')
+        self.tolerance_ns = int(tolerance_ns)
+        self.max_pending = int(max_pending)
+        self.counters = MatchCounters()
+        self._queues: list[deque[tuple[int, np.ndarray]]] = [deque() for _ in range(N_SENSORS)]
+        self._last: list[int | None] = [None] * N_SENSORS
+
+    def add(self, sensor: int, stamp_ns: int, value: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """Queue one reading (sensor 0..3) and return the sets it completes as
+        ``(stamp_ns of sensor 1, fields (4, 3))``."""
+        last = self._last[sensor]
+        if last is not None and stamp_ns <= last:
+            self.counters.out_of_order += 1
+            return []
+        self._last[sensor] = stamp_ns
+        queue = self._queues[sensor]
+        queue.append((stamp_ns, value))
+        if len(queue) > self.max_pending:
+            queue.popleft()
+            self.counters.dropped_messages += 1
+        return self._drain()
+
+    def _drain(self) -> list[tuple[int, np.ndarray]]:
+        completed = []
+        while all(self._queues):
+            stamps = [q[0][0] for q in self._queues]
+            if max(stamps) - min(stamps) <= self.tolerance_ns:
+                values = [q.popleft()[1] for q in self._queues]
+                completed.append((stamps[0], np.stack(values)))
+                self.counters.matched += 1
+            else:
+                self._queues[int(np.argmin(stamps))].popleft()
+                self.counters.dropped_messages += 1
+        return completed
+
+    def pending_oldest_ns(self) -> int | None:
+        """Oldest stamp still waiting, or None."""
+        heads = [q[0][0] for q in self._queues if q]
+        return min(heads) if heads else None

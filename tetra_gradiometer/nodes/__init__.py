@@ -1,0 +1,1 @@
+"""ROS 2 nodes: driver, tensor, calibrator, compensator (thin: message -> array -> core -> message)."""
