@@ -1,0 +1,117 @@
+"""A recorded run as arrays: simulated missions into bags, and bags back into arrays.
+
+``write_mission_bag`` writes a :class:`~tetra_gradiometer.core.MissionData` per the data
+contract; ``read_recording`` reads a bag's matched sets with the optional topics
+(``/odom``, ``/tetra/temperature``, ``/battery_state``) interpolated onto the set stamps.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from .. import conversions as cv
+from ..core import MissionData
+from .bag import BagWriter, MagneticBag
+
+
+def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
+    """Header stamps (N,) int64 ns of a mission starting at ``start_ns``."""
+    return start_ns + np.round(mission.t * 1e9).astype(np.int64)
+
+
+def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns: int = 1_767_225_600 * 10**9,
+                      storage: str = 'sqlite3', odom: bool = True, temperature: bool = True,
+                      battery: bool = True) -> Path:
+    """Write the four magnetometers (and the optional topics) of ``mission`` to a bag.
+
+    Parameters
+    ----------
+    path : target rosbag2 folder (replaced atomically)
+    mission : MissionData
+    start_ns : header stamp of the first sample, ns (default 2026-01-01T00:00:00Z)
+    storage : 'sqlite3' or 'mcap'
+    odom, temperature, battery : write ``/odom``, ``/tetra/temperature``, ``/battery_state``
+    """
+    stamps = mission_stamps_ns(mission, start_ns)
+    with BagWriter(path, storage=storage) as writer:
+        types = writer.types
+        for i, stamp in enumerate(stamps):
+            stamp = int(stamp)
+            for sensor, (topic, frame) in enumerate(zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES)):
+                writer.write(topic, cv.magnetic_field_msg(types, mission.fields_measured[i, sensor], stamp, frame),
+                             stamp)
+            if odom:
+                writer.write(cv.ODOM_TOPIC, cv.odometry_msg(types, mission.position_enu[i],
+                                                            mission.orientation_xyzw[i], stamp), stamp)
+            if temperature:
+                writer.write(cv.TEMPERATURE_TOPIC, cv.temperature_msg(types, mission.temperature_c[i], stamp), stamp)
+            if battery:
+                writer.write(cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp)
+    return Path(path)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A bag's matched samples with the optional topics on the same stamps.
+
+    Attributes
+    ----------
+    stamps_ns : (N,) int64, header stamps of sensor 1
+    fields : (N, 4, 3) tesla, body frame
+    orientation_xyzw : (N, 4) body -> ENU, or None without ``/odom``
+    temperature_c : (N,) degC, or None without ``/tetra/temperature``
+    current_a : (N,) A, or None without ``/battery_state``
+    missing : topic -> why it is unavailable
+    """
+
+    stamps_ns: np.ndarray
+    fields: np.ndarray
+    orientation_xyzw: np.ndarray | None = None
+    temperature_c: np.ndarray | None = None
+    current_a: np.ndarray | None = None
+    missing: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def t_s(self) -> np.ndarray:
+        """Seconds from the first sample, (N,)."""
+        return (self.stamps_ns - self.stamps_ns[0]) * 1e-9
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+
+def _interp_orientation(series_stamps: np.ndarray, quats: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+    if len(series_stamps) == 1:
+        return np.repeat(quats, len(stamps), axis=0)
+    t0 = series_stamps[0]
+    slerp = Slerp((series_stamps - t0) * 1e-9, Rotation.from_quat(quats))
+    clipped = np.clip((stamps - t0) * 1e-9, 0.0, (series_stamps[-1] - t0) * 1e-9)
+    return slerp(clipped).as_quat()
+
+
+def read_recording(path: str | os.PathLike, *, tolerance_s: float = 2e-3,
+                   window_s: tuple[float, float] | None = None, progress: bool | None = None) -> Recording:
+    """Read a bag per the data contract into a :class:`Recording` (whole, in memory).
+
+    Optional topics are interpolated onto the set stamps (slerp for orientation, linear for
+    scalars, held at the ends); an absent topic is named in ``missing``.
+    """
+    with MagneticBag(path) as bag:
+        stamps, fields = bag.read_sets(tolerance_s=tolerance_s, window_s=window_s, progress=progress)
+        extras: dict[str, np.ndarray | None] = {}
+        missing: dict[str, str] = {}
+        for name, topic in (('orientation_xyzw', cv.ODOM_TOPIC), ('temperature_c', cv.TEMPERATURE_TOPIC),
+                            ('current_a', cv.BATTERY_TOPIC)):
+            series = bag.read_series(topic)
+            if series is None:
+                extras[name] = None
+                missing[topic] = f'{topic} is not in the bag'
+            elif name == 'orientation_xyzw':
+                extras[name] = _interp_orientation(series.stamps_ns, series.values, stamps)
+            else:
+                extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
+    return Recording(stamps, fields, missing=missing, **extras)
