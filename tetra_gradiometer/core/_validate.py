@@ -16,7 +16,7 @@ def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndar
     if array.ndim != len(shape) or any(
         want is not None and have != want for have, want in zip(array.shape, shape)
     ):
-        want = '(' + ', '.join('N' if s is None else str(s) for s in shape) + ')'
+        want = '(' + ', '.join('N' if s is None else str(s) for s in shape) + (',)' if len(shape) == 1 else ')')
         raise ValueError(f'{name} must have shape {want}, got {array.shape}')
     if not np.all(np.isfinite(array)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
