@@ -3,10 +3,25 @@
 Reading streams: :meth:`MagneticBag.iter_sets` yields matched sample sets in chunks, so
 memory stays bounded however long the bag. Writing goes to a temporary folder renamed into
 place on success (:func:`~tetra_gradiometer.io.atomic.atomic_output_path`).
+
+Fast paths (the generic ones stay, and a test checks both agree):
+
+* ``sensor_msgs/MagneticField`` is decoded straight from its CDR bytes with numpy
+  (:func:`decode_magnetic_field`): encapsulation header, ``int32 sec``, ``uint32 nanosec``,
+  ``frame_id`` (uint32 length incl. NUL, bytes), padding to 8 (counted from the end of the
+  4-byte encapsulation header), 3 float64, 9 float64 covariance. Little- and big-endian
+  plain CDR (XCDR1) are handled; any other encapsulation falls back to rosbags.
+* Sets are matched a batch at a time: when the next stamps of the four sensors are
+  identical and increasing (a synchronised driver), the batch is emitted with array
+  operations; otherwise it goes message by message through
+  :class:`~tetra_gradiometer.matching.StampMatcher`, as before.
+* :meth:`BagWriter.write_fields` encodes MagneticField CDR directly
+  (:func:`encode_magnetic_field`), byte-identical to rosbags' serializer.
 """
 from __future__ import annotations
 
 import os
+import struct
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +41,133 @@ STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
 class BagError(ValueError):
     """A bag is missing, empty, or does not follow the data contract."""
+
+
+#: CDR encapsulation identifiers (first two bytes) of plain CDR (XCDR1).
+_CDR_BE, _CDR_LE = b'\x00\x00', b'\x00\x01'
+
+
+class UnsupportedEncoding(ValueError):
+    """A serialized message is not plain CDR with the expected layout (use the generic path)."""
+
+
+def encode_magnetic_field(stamp_ns: int, field_t: np.ndarray, frame_id: str) -> bytes:
+    """Little-endian CDR of a ``sensor_msgs/MagneticField`` with zero covariance."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    frame = frame_id.encode('utf-8') + b'\x00'
+    head = _CDR_LE + b'\x00\x00' + struct.pack('<iII', sec, nanosec, len(frame)) + frame
+    pad = -(len(head) - 4) % 8
+    return head + b'\x00' * pad + struct.pack('<3d', *(float(v) for v in field_t)) + bytes(72)
+
+
+def _decode_one(raw: bytes) -> tuple[int, float, float, float]:
+    """One MagneticField CDR -> (stamp_ns, x, y, z); raises UnsupportedEncoding."""
+    kind = raw[:2]
+    if kind == _CDR_LE:
+        order = '<'
+    elif kind == _CDR_BE:
+        order = '>'
+    else:
+        raise UnsupportedEncoding(f'encapsulation {kind.hex()}')
+    sec, nanosec, length = struct.unpack_from(order + 'iII', raw, 4)
+    offset = 16 + length
+    offset += -(offset - 4) % 8
+    if offset + 96 > len(raw):
+        raise UnsupportedEncoding('message shorter than its layout')
+    x, y, z = struct.unpack_from(order + '3d', raw, offset)
+    return sec * 1_000_000_000 + nanosec, x, y, z
+
+
+def decode_magnetic_field(raws: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
+    """Header stamps (n,) int64 ns and fields (n, 3) tesla of serialized MagneticField messages.
+
+    Vectorised when all messages share one length, byte order and frame_id length (the
+    usual case: one topic, one frame); message by message otherwise.
+
+    Raises
+    ------
+    UnsupportedEncoding
+        A message is not plain CDR (the caller falls back to the rosbags deserializer).
+    """
+    n = len(raws)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+    size = len(raws[0])
+    kind = raws[0][:2]
+    if size >= 16 and kind in (_CDR_LE, _CDR_BE) and all(len(r) == size for r in raws):
+        order = '<' if kind == _CDR_LE else '>'
+        block = np.frombuffer(b''.join(raws), dtype=np.uint8).reshape(n, size)
+        length = block[:, 12:16].copy().view(order + 'u4')[:, 0]
+        if np.all(block[:, :2] == block[0, :2]) and np.all(length == length[0]):
+            offset = 16 + int(length[0])
+            offset += -(offset - 4) % 8
+            if offset + 96 <= size:
+                sec = block[:, 4:8].copy().view(order + 'i4')[:, 0].astype(np.int64)
+                nanosec = block[:, 8:12].copy().view(order + 'u4')[:, 0].astype(np.int64)
+                values = block[:, offset:offset + 24].copy().view(order + 'f8').astype(float)
+                return sec * 1_000_000_000 + nanosec, values
+    decoded = [_decode_one(r) for r in raws]
+    return (np.array([d[0] for d in decoded], dtype=np.int64),
+            np.array([d[1:] for d in decoded], dtype=float).reshape(n, 3))
+
+
+class _BatchMatcher:
+    """Matches per-sensor batches; equal-stamp runs with arrays, the rest via StampMatcher.
+
+    Equivalent to feeding every message to the StampMatcher: a run is taken on the fast path
+    only when the matcher holds nothing and the next ``k`` stamps of all four sensors are
+    identical, strictly increasing and newer than each sensor's last accepted stamp; the
+    StampMatcher would emit exactly those ``k`` sets.
+    """
+
+    def __init__(self, matcher: StampMatcher) -> None:
+        self.matcher = matcher
+        self.pending: list[tuple[np.ndarray, np.ndarray]] = [
+            (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) for _ in range(4)]
+
+    def add(self, batches: list[tuple[np.ndarray, np.ndarray]], *, final: bool = False,
+            fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Add per-sensor ``(stamps, values)``; return the completed sets as arrays."""
+        self.pending = [(np.concatenate([p[0], b[0]]), np.concatenate([p[1], b[1]]))
+                        for p, b in zip(self.pending, batches)]
+        out_stamps: list[np.ndarray] = []
+        out_fields: list[np.ndarray] = []
+        if fast and self.matcher.pending_oldest_ns() is None:
+            k = min(len(p[0]) for p in self.pending)
+            if k > 0:
+                reference = self.pending[0][0][:k]
+                last = self.matcher._last  # noqa: SLF001 (same package: keep the matcher's state)
+                same = all(np.array_equal(p[0][:k], reference) for p in self.pending[1:])
+                if (same and np.all(np.diff(reference) > 0)
+                        and all(l is None or reference[0] > l for l in last)):
+                    out_stamps.append(reference.copy())
+                    out_fields.append(np.stack([p[1][:k] for p in self.pending], axis=1))
+                    self.matcher.counters.matched += k
+                    for sensor in range(4):
+                        last[sensor] = int(reference[-1])
+                    self.pending = [(p[0][k:], p[1][k:]) for p in self.pending]
+                    if not final:
+                        return _join(out_stamps, out_fields)
+        # Generic path: everything pending, in stamp order across sensors (as logged).
+        stamps = np.concatenate([p[0] for p in self.pending])
+        if len(stamps):
+            sensors = np.concatenate([np.full(len(p[0]), i) for i, p in enumerate(self.pending)])
+            values = np.concatenate([p[1] for p in self.pending])
+            order = np.argsort(stamps, kind='stable')
+            matched = []
+            for j in order:
+                matched.extend(self.matcher.add(int(sensors[j]), int(stamps[j]), values[j]))
+            if matched:
+                out_stamps.append(np.array([m[0] for m in matched], dtype=np.int64))
+                out_fields.append(np.array([m[1] for m in matched]))
+            self.pending = [(p[0][:0], p[1][:0]) for p in self.pending]
+        return _join(out_stamps, out_fields)
+
+
+def _join(stamps: list[np.ndarray], fields: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    if not stamps:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 3))
+    return np.concatenate(stamps), np.concatenate(fields)
 
 
 def typestore() -> Any:
@@ -99,11 +241,13 @@ class MagneticBag:
 
     def iter_sets(self, *, tolerance_s: float = 2e-3, chunk_size: int = 20_000,
                   window_s: tuple[float, float] | None = None,
-                  progress: bool | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                  progress: bool | None = None, fast: bool = True) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """Matched sets in chunks: ``(stamps_ns (n,) int64, fields (n, 4, 3) tesla)``.
 
         ``window_s`` keeps sets whose stamp, in seconds from the first set's stamp, lies in
         ``[t0, t1]``. After the loop, ``self.counters`` holds the matcher's counts.
+        ``fast=False`` forces the generic path (rosbags deserializer, one message at a time
+        through the matcher); both give the same sets.
 
         Raises
         ------
@@ -111,31 +255,56 @@ class MagneticBag:
             Contract violations (see :meth:`check_contract`), or no set could be matched.
         """
         total = self.check_contract()
+        if chunk_size < 1:
+            raise ValueError(f'chunk_size must be >= 1, got {chunk_size}')
         matcher = StampMatcher(int(round(tolerance_s * 1e9)))
         self.counters = matcher.counters
+        batcher = _BatchMatcher(matcher)
         index = {c.id: cv.BAG_MAG_TOPICS.index(c.topic) for c in self.reader.connections
                  if c.topic in cv.BAG_MAG_TOPICS}
         connections = [c for c in self.reader.connections if c.id in index]
-        stamps: list[int] = []
-        fields: list[np.ndarray] = []
-        first: int | None = None
+        first: list[int] = []
         bar = _progress(total, progress, 'reading magnetometers')
+        raws: list[list] = [[] for _ in range(4)]
+        count = 0
+        decode_fast = fast
+
+        def flush(final: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+            nonlocal decode_fast
+            batches = []
+            for sensor in range(4):
+                batch = None
+                if decode_fast:
+                    try:
+                        batch = decode_magnetic_field([r for _, r in raws[sensor]])
+                    except UnsupportedEncoding:
+                        decode_fast = False
+                if batch is None:
+                    msgs = [self.reader.deserialize(r, c.msgtype) for c, r in raws[sensor]]
+                    batch = (np.array([cv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64),
+                             np.array([cv.magnetic_field_vector(m) for m in msgs], dtype=float).reshape(-1, 3))
+                batches.append(batch)
+                raws[sensor] = []
+            stamps, fields = batcher.add(batches, final=final, fast=fast)
+            if len(stamps) and not first:
+                first.append(int(stamps[0]))
+            if window_s is not None and len(stamps):
+                t = (stamps - first[0]) * 1e-9
+                keep = (t >= window_s[0]) & (t <= window_s[1])
+                stamps, fields = stamps[keep], fields[keep]
+            for start in range(0, len(stamps), chunk_size):
+                yield stamps[start:start + chunk_size], fields[start:start + chunk_size]
+
         for connection, _, raw in self.reader.messages(connections=connections):
-            msg = self.reader.deserialize(raw, connection.msgtype)
-            bar.update()
-            for stamp, values in matcher.add(index[connection.id], cv.stamp_to_ns(msg.header.stamp),
-                                             cv.magnetic_field_vector(msg)):
-                first = stamp if first is None else first
-                if window_s is not None and not window_s[0] <= (stamp - first) * 1e-9 <= window_s[1]:
-                    continue
-                stamps.append(stamp)
-                fields.append(values)
-                if len(stamps) >= chunk_size:
-                    yield np.array(stamps, dtype=np.int64), np.array(fields)
-                    stamps, fields = [], []
+            raws[index[connection.id]].append((connection, raw))
+            count += 1
+            if count >= 4 * chunk_size:
+                bar.update(count)
+                count = 0
+                yield from flush(final=False)
+        bar.update(count)
+        yield from flush(final=True)
         bar.close()
-        if stamps:
-            yield np.array(stamps, dtype=np.int64), np.array(fields)
         if matcher.counters.matched == 0:
             raise BagError(f'{self.path}: no sample set could be matched by header stamp within '
                            f'{tolerance_s * 1e3:g} ms ({matcher.counters.dropped_messages} messages unmatched)')
@@ -206,19 +375,35 @@ class BagWriter:
         finally:
             self._atomic.__exit__(exc_type, exc, tb)
 
-    def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
-        """Write one message, logged at ``stamp_ns``."""
+    def _connection(self, topic: str, msgtype: str) -> Any:
         connection = self._connections.get(topic)
         if connection is None:
-            connection = self._writer.add_connection(topic, msg.__msgtype__, typestore=self.store)
+            connection = self._writer.add_connection(topic, msgtype, typestore=self.store)
             self._connections[topic] = connection
+        elif connection.msgtype != msgtype:
+            raise BagError(f'{topic} already carries {connection.msgtype}, not {msgtype}')
+        return connection
+
+    def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
+        """Write one message, logged at ``stamp_ns``."""
+        connection = self._connection(topic, msg.__msgtype__)
         self._writer.write(connection, int(stamp_ns), self.store.serialize_cdr(msg, msg.__msgtype__))
 
+    def write_raw(self, topic: str, msgtype: str, data: bytes, stamp_ns: int) -> None:
+        """Write one already serialized (CDR) message, logged at ``stamp_ns``."""
+        self._writer.write(self._connection(topic, msgtype), int(stamp_ns), data)
+
     def write_fields(self, stamps_ns: np.ndarray, fields: np.ndarray) -> None:
-        """``/tetra/mag1..4`` from fields (N, 4, 3) tesla."""
+        """``/tetra/mag1..4`` from fields (N, 4, 3) tesla (CDR encoded directly)."""
+        fields = np.asarray(fields, dtype=float)
         for stamp, sample in zip(stamps_ns, fields):
-            for sensor, (topic, frame) in enumerate(zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES)):
-                self.write(topic, cv.magnetic_field_msg(self.types, sample[sensor], int(stamp), frame), stamp)
+            self.write_sample(int(stamp), sample)
+
+    def write_sample(self, stamp_ns: int, sample: np.ndarray) -> None:
+        """One set of ``/tetra/mag1..4`` at header and log stamp ``stamp_ns``, fields (4, 3) T."""
+        for sensor, (topic, frame) in enumerate(zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES)):
+            self.write_raw(topic, cv.MAGNETIC_FIELD, encode_magnetic_field(stamp_ns, sample[sensor], frame),
+                           stamp_ns)
 
     def write_tensors(self, topic: str, stamps_ns: np.ndarray, tensors: np.ndarray) -> None:
         """A tensor topic from tensors (N, 3, 3) T/m."""

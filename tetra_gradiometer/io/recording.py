@@ -41,9 +41,7 @@ def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns
         types = writer.types
         for i, stamp in enumerate(stamps):
             stamp = int(stamp)
-            for sensor, (topic, frame) in enumerate(zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES)):
-                writer.write(topic, cv.magnetic_field_msg(types, mission.fields_measured[i, sensor], stamp, frame),
-                             stamp)
+            writer.write_sample(stamp, mission.fields_measured[i])
             if odom:
                 writer.write(cv.ODOM_TOPIC, cv.odometry_msg(types, mission.position_enu[i],
                                                             mission.orientation_xyzw[i], stamp), stamp)
