@@ -6,10 +6,10 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from .._validate import as_tensors, as_vectors, same_length
-from ..design import constraint_design, constraint_residual, interference_design
+from ..design import CONSTRAINT_ROWS, constraint_design, constraint_residual, interference_design
 from ..geometry import TetraGeometry
-from ..model import InterferenceParameters, n_parameters
-from ._linear import solve_scaled
+from ..model import InterferenceParameters, interference_tensor, n_parameters
+from ._linear import AffineReduction, reduce_affine, solve_scaled
 from .result import NT, IdentifiabilityError, TensorCalibration
 
 #: Fewest samples any solver accepts.
@@ -57,6 +57,16 @@ def _noise_whitener(geometry: TetraGeometry) -> np.ndarray:
     covariance ``sigma^2 (I + 1 1^T)``; ``(I + 1 1^T)^(-1/2) = I - 1 1^T / 6``.
     """
     return geometry.a @ (np.eye(3) - np.ones((3, 3)) / 6.0)
+
+
+def _reduced_design(reduction: AffineReduction, geometry: TetraGeometry, *, symmetric: bool) -> np.ndarray:
+    """The interference design (eq. 18) at the 4 pseudo-samples of ``reduction``, (4, 9, P):
+    the offset columns weighted by the pseudo-samples' 4th regressor instead of 1."""
+    r = reduction.regressors
+    design = interference_design(r[:, :3], geometry, symmetric=symmetric).copy()
+    n_k = design.shape[2] - 9
+    design[:, :, n_k:] *= r[:, 3, None, None]
+    return design
 
 
 def _check_samples(n: int, method: str) -> None:
@@ -107,15 +117,19 @@ def known_gradient_lstsq(g_measured: object, b_reference: object, geometry: Tetr
             f'condition number {coverage:.3g} > {max_coverage_condition:.3g}); turn, roll and pitch more'
         )
     whitener = _noise_whitener(geometry)
-    design = interference_design(b_reference, geometry, symmetric=symmetric_k)
+    target_w = (g_measured - g_true) @ whitener  # (N, 3, 3): rows of G, whitened columns
+    # The whitened design is linear in x_n = (B_1', 1): reduce the 9N x P problem exactly to
+    # 36 x P (see reduce_affine) and solve that by the same scaled SVD.
+    reduction = reduce_affine(b_reference, target_w.reshape(n, 9))
+    design = _reduced_design(reduction, geometry, symmetric=symmetric_k)
     n_par = design.shape[2]
-    design_w = np.einsum('nRjp,jk->nRkp', design.reshape(n, 3, 3, n_par), whitener).reshape(-1, n_par)
-    target_w = ((g_measured - g_true) @ whitener).reshape(-1)
-    solution = solve_scaled(design_w, target_w)
-    dof = max(target_w.size - solution.rank, 1)
-    sigma2 = float(solution.residual @ solution.residual) / dof
+    design_w = np.einsum('nRjp,jk->nRkp', design.reshape(4, 3, 3, n_par), whitener).reshape(-1, n_par)
+    solution = solve_scaled(design_w, reduction.targets.reshape(-1))
     parameters = InterferenceParameters.from_vector(solution.theta, symmetric=symmetric_k)
-    residual = (g_measured - g_true).reshape(n, 9) - design @ solution.theta
+    residual = g_measured - g_true - interference_tensor(b_reference, parameters, geometry)
+    residual_w = residual @ whitener
+    dof = max(residual.size - solution.rank, 1)
+    sigma2 = float(np.sum(residual_w**2)) / dof
     return TensorCalibration(
         method=method, n_samples=n, n_parameters=n_par, rank=solution.rank,
         condition_number=solution.condition_number,
@@ -164,9 +178,16 @@ def constraint_lstsq(g_measured: object, b_reference: object, geometry: TetraGeo
     bounds : (lower, upper), each shape (P,), optional
         SI units of the parameter vector.
     """
-    design, target = constraint_objective(g_measured, b_reference, geometry, symmetric_k=symmetric_k)
-    n = len(target) // 4
+    g_measured = as_tensors(g_measured, 'g_measured')
+    b_reference = as_vectors(b_reference, 'b_reference')
+    n = same_length(g_measured=g_measured, b_reference=b_reference)
     _check_samples(n, 'constraint_lstsq')
+    # Same reduction as known_gradient_lstsq: 4N x P -> 16 x P with the same normal matrix,
+    # right-hand side and singular values (the objective differs by a constant).
+    reduction = reduce_affine(b_reference, constraint_residual(g_measured))
+    reduced = _reduced_design(reduction, geometry, symmetric=symmetric_k)
+    design = np.einsum('kq,nqp->nkp', CONSTRAINT_ROWS, reduced).reshape(-1, reduced.shape[2])
+    target = reduction.targets.reshape(-1)
     solution = solve_scaled(design, target)
     theta = solution.theta
     details: dict = {'bounded': bounds is not None}
@@ -177,11 +198,12 @@ def constraint_lstsq(g_measured: object, b_reference: object, geometry: TetraGeo
         bounded = lsq_linear(design / scale, target, bounds=(lower * scale, upper * scale),
                              method='bvls', lsmr_tol='auto')
         theta = bounded.x / scale
-    residual = target - design @ theta
-    details['objective_F'] = float(residual @ residual)
+    parameters = InterferenceParameters.from_vector(theta, symmetric=symmetric_k)
+    # Residual of eq. 21 on every sample: the asymmetry and trace left after compensation.
+    residual = constraint_residual(g_measured - interference_tensor(b_reference, parameters, geometry))
+    details['objective_F'] = float(np.sum(residual**2))
     return TensorCalibration(
         method='constraint_lstsq', n_samples=n, n_parameters=design.shape[1], rank=solution.rank,
         condition_number=solution.condition_number, residual_rms=float(np.sqrt(np.mean(residual**2))),
-        details=details, parameters=InterferenceParameters.from_vector(theta, symmetric=symmetric_k),
-        symmetric=symmetric_k,
+        details=details, parameters=parameters, symmetric=symmetric_k,
     )
