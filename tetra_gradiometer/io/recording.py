@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .. import conversions as cv
 from ..core import MissionData
-from .bag import BagWriter, MagneticBag
+from .bag import BagWriter, MagneticBag, _progress
 
 
 def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
@@ -25,7 +25,7 @@ def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
 
 def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns: int = 1_767_225_600 * 10**9,
                       storage: str = 'sqlite3', odom: bool = True, temperature: bool = True,
-                      battery: bool = True) -> Path:
+                      battery: bool = True, progress: bool | None = None) -> Path:
     """Write the four magnetometers (and the optional topics) of ``mission`` to a bag.
 
     Parameters
@@ -35,12 +35,18 @@ def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns
     start_ns : header stamp of the first sample, ns (default 2026-01-01T00:00:00Z)
     storage : 'sqlite3' or 'mcap'
     odom, temperature, battery : write ``/odom``, ``/tetra/temperature``, ``/battery_state``
+    progress : tqdm bar on stderr (None: only on a terminal and for long missions)
     """
     stamps = mission_stamps_ns(mission, start_ns)
+    if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+        raise ValueError('mission stamps must increase (sample period below 1 ns?)')
+    bar = _progress(len(stamps) * 4, progress, 'writing bag')
     with BagWriter(path, storage=storage) as writer:
         types = writer.types
         for i, stamp in enumerate(stamps):
             stamp = int(stamp)
+            if i % 1000 == 999:
+                bar.update(4000)
             writer.write_sample(stamp, mission.fields_measured[i])
             if odom:
                 writer.write(cv.ODOM_TOPIC, cv.odometry_msg(types, mission.position_enu[i],
@@ -49,6 +55,7 @@ def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns
                 writer.write(cv.TEMPERATURE_TOPIC, cv.temperature_msg(types, mission.temperature_c[i], stamp), stamp)
             if battery:
                 writer.write(cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp)
+    bar.close()
     return Path(path)
 
 

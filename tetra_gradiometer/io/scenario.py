@@ -68,7 +68,35 @@ def _vec(section: dict, key: str, shape: tuple[int, ...], where: str, factor: fl
         raise ScenarioError(f'{where}.{key}: not numeric: {section[key]!r}') from None
     if value.shape != shape:
         raise ScenarioError(f'{where}.{key}: expected shape {shape}, got {value.shape}')
+    if not np.all(np.isfinite(value)):
+        raise ScenarioError(f'{where}.{key}: non-finite value in {section[key]!r}')
     return value * factor
+
+
+#: Top-level keys a scenario file may hold.
+TOP_LEVEL_KEYS = {'seed', 'sample_rate_hz', 'noise_nT', 'geometry', 'earth_field', 'dipoles', 'interference',
+                  'segments', 'effects', 'temperature', 'current', 'description'}
+
+
+def _positive(spec: dict, key: str, where: str, *, allow_zero: bool = False) -> None:
+    if key not in spec:
+        return
+    try:
+        value = float(spec[key])
+    except (TypeError, ValueError):
+        raise ScenarioError(f'{where}.{key}: not a number: {spec[key]!r}') from None
+    if not np.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
+        raise ScenarioError(f'{where}.{key} must be {"non-negative" if allow_zero else "positive"}, got {value}')
+
+
+def _finite(spec: dict, key: str, where: str) -> None:
+    if key in spec:
+        try:
+            value = float(spec[key])
+        except (TypeError, ValueError):
+            raise ScenarioError(f'{where}.{key}: not a number: {spec[key]!r}') from None
+        if not np.isfinite(value):
+            raise ScenarioError(f'{where}.{key} must be finite, got {value}')
 
 
 def _segment(entry: dict, index: int) -> TrimManoeuvre | SurveyLine:
@@ -77,6 +105,18 @@ def _segment(entry: dict, index: int) -> TrimManoeuvre | SurveyLine:
         raise ScenarioError(f'{where}: expected {{trim: {{...}}}} or {{line: {{...}}}}, got {entry!r}')
     kind, spec = next(iter(entry.items()))
     spec = dict(spec or {})
+    where = f'{where}.{kind}'
+    for key in ('duration_s', 'speed_m_s', 'roll_period_s', 'pitch_period_s', 'sway_period_s'):
+        _positive(spec, key, where)
+    for key in ('roll_amplitude_deg', 'pitch_amplitude_deg'):
+        _positive(spec, key, where, allow_zero=True)
+    for key in ('heading_rate_deg_s', 'initial_heading_deg'):
+        _finite(spec, key, where)
+    if kind == 'trim' and 'duration_s' not in spec:
+        raise ScenarioError(f'{where}: missing "duration_s"')
+    if kind == 'line' and 'start_m' in spec and 'end_m' in spec:
+        if np.allclose(np.asarray(spec['start_m'], float), np.asarray(spec['end_m'], float)):
+            raise ScenarioError(f'{where}: start_m and end_m are the same point')
     try:
         if kind == 'trim':
             center = tuple(_vec(spec, 'center_m', (3,), where)) if 'center_m' in spec else (0.0, 0.0, -50.0)
@@ -93,24 +133,52 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
     """Build the scenario and return it with its seed."""
     if not isinstance(document, dict):
         raise ScenarioError('a scenario must be a mapping')
-    seed = int(document.get('seed', 0))
-    geometry_spec = document.get('geometry', {'regular_edge_m': 0.5})
-    if 'sensor_positions_m' in geometry_spec:
-        geometry = TetraGeometry.from_flat(geometry_spec['sensor_positions_m'])
-    else:
-        geometry = TetraGeometry.regular(float(geometry_spec.get('regular_edge_m', 0.5)))
-    earth = document.get('earth_field', {'enu_nT': [0.0, 20000.0, -45000.0]})
+    unknown = set(document) - TOP_LEVEL_KEYS
+    if unknown:
+        raise ScenarioError(f'unknown key(s) {sorted(unknown)}; known: {sorted(TOP_LEVEL_KEYS)}')
+    for key in ('geometry', 'earth_field', 'interference', 'effects', 'temperature', 'current'):
+        if document.get(key) is not None and not isinstance(document[key], dict):
+            raise ScenarioError(f'{key}: expected a mapping, got {document[key]!r}')
+    if not isinstance(document.get('segments') or [], list):
+        raise ScenarioError('segments: expected a list of {trim: ...} / {line: ...}')
+    if not isinstance(document.get('dipoles') or [], list):
+        raise ScenarioError('dipoles: expected a list of {position_m, moment_Am2}')
+    try:
+        seed = int(document.get('seed', 0))
+    except (TypeError, ValueError):
+        raise ScenarioError(f'seed must be an integer, got {document.get("seed")!r}') from None
+    _positive(document, 'sample_rate_hz', 'scenario')
+    _positive(document, 'noise_nT', 'scenario', allow_zero=True)
+    geometry_spec = document.get('geometry') or {'regular_edge_m': 0.5}
+    try:
+        if 'sensor_positions_m' in geometry_spec:
+            geometry = TetraGeometry.from_flat(geometry_spec['sensor_positions_m'])
+        else:
+            geometry = TetraGeometry.regular(float(geometry_spec.get('regular_edge_m', 0.5)))
+    except (TypeError, ValueError) as error:
+        raise ScenarioError(f'geometry: {error}') from None
+    earth = document.get('earth_field') or {'enu_nT': [0.0, 20000.0, -45000.0]}
     if 'igrf' in earth:
         spec = earth['igrf']
-        earth_field = igrf_field_enu(float(spec['latitude_deg']), float(spec['longitude_deg']),
-                                     spec.get('date', '2026-01-01'), float(spec.get('altitude_m', 0.0)))
+        try:
+            latitude, longitude = float(spec['latitude_deg']), float(spec['longitude_deg'])
+            if not (-90.0 <= latitude <= 90.0 and -180.0 <= longitude <= 360.0):
+                raise ValueError(f'latitude {latitude} / longitude {longitude} out of range')
+            earth_field = igrf_field_enu(latitude, longitude, spec.get('date', '2026-01-01'),
+                                         float(spec.get('altitude_m', 0.0)))
+        except KeyError as error:
+            raise ScenarioError(f'earth_field.igrf: missing {error}') from None
+        except (TypeError, ValueError) as error:
+            raise ScenarioError(f'earth_field.igrf: {error}') from None
     else:
         earth_field = _vec(earth, 'enu_nT', (3,), 'earth_field', NT)
     dipoles = [Dipole(_vec(d, 'position_m', (3,), f'dipoles[{i}]'), _vec(d, 'moment_Am2', (3,), f'dipoles[{i}]'))
                for i, d in enumerate(document.get('dipoles', []))]
     interference_spec = document.get('interference', {})
     if 'random' in interference_spec:
-        spec = interference_spec['random']
+        spec = interference_spec['random'] or {}
+        _positive(spec, 'k_scale', 'interference.random', allow_zero=True)
+        _positive(spec, 'b_scale_nT', 'interference.random', allow_zero=True)
         interference = random_interference(
             np.random.default_rng([seed, 1]), k_scale=float(spec.get('k_scale', 5e-3)),
             b_scale_t=float(spec.get('b_scale_nT', 150.0)) * NT,
@@ -135,7 +203,7 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
             interference=interference, noise_t=float(document.get('noise_nT', 0.1)) * NT, effects=effects,
             temperature=TemperatureProfile(**document.get('temperature', {})),
             current=CurrentProfile(**document.get('current', {})))
-    except TypeError as error:
+    except (TypeError, ValueError) as error:
         raise ScenarioError(f'scenario: {error}') from None
     return scenario, seed
 

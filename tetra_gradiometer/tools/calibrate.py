@@ -1,0 +1,187 @@
+"""``python -m tetra_gradiometer calibrate BAG --params FILE [--window T0:T1] [--method NAME] --out CALIB.yaml``.
+
+Identifies the interference parameters ``k``, ``b`` (eq. 18) from the magnetometer sets of
+a bag and writes them as a calibration file (:mod:`tetra_gradiometer.io.calibration`),
+atomically.
+
+The window, in seconds from the bag's first matched set (``T0:T1``, either end may be
+left out; default the whole bag), is where the **true gradient is taken as zero**: a trim
+manoeuvre in a uniform field, away from targets. Methods:
+
+=================================  ========================================================
+``known_gradient_lstsq_general``   default. Known (zero) gradient, a general 3x3 ``K_i1``
+                                   per sensor pair: 36 parameters, all observable; exact
+                                   also when sensor 1 carries its own soft and hard iron
+                                   (effective ``K_i1 (I + K_1)^-1`` is not symmetric).
+``known_gradient_lstsq``           the same with the paper's symmetric ``K_i1`` (27).
+``constraint_lstsq``               the paper's objective (symmetry + zero trace, eqs.
+                                   20-22) solved exactly; rank <= 15 of 27, so half of the
+                                   interference is invisible to it. Does not use the
+                                   zero-gradient assumption.
+``paper_ga``                       the paper's genetic algorithm as printed, seeded
+                                   (``--seed``), within the paper's bounds (eq. 23) or
+                                   ``--wide-bounds``.
+=================================  ========================================================
+
+The window is read streaming; only its sets are kept. A window of more than ``--max-sets``
+sets is thinned uniformly (every k-th set) to bound the solver's memory (the design holds
+9 x 36 floats per set); the printed summary says so.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import numpy as np
+
+from ..core import attitude_coverage, difference_tensor
+from ..core.identification import (MAX_COVERAGE_CONDITION, IdentifiabilityError, constraint_lstsq,
+                                   known_gradient_lstsq, paper_bounds, paper_ga)
+from ..io.bag import BagError, MagneticBag
+from ..io.calibration import CalibrationFile, save_calibration
+from ..io.params import geometry_from_params, load_params
+
+NT = 1e9
+METHODS = ('known_gradient_lstsq_general', 'known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
+DEFAULT_METHOD = 'known_gradient_lstsq_general'
+DEFAULT_MAX_SETS = 50_000
+
+
+def parse_window(text: str | None) -> tuple[float, float] | None:
+    """``'T0:T1'`` (seconds, either end optional) -> ``(t0, t1)``; None for the whole bag."""
+    if text is None:
+        return None
+    parts = text.split(':')
+    if len(parts) != 2:
+        raise ValueError(f'--window must be T0:T1 in seconds from the first stamp, got {text!r}')
+    try:
+        t0 = float(parts[0]) if parts[0].strip() else 0.0
+        t1 = float(parts[1]) if parts[1].strip() else float('inf')
+    except ValueError:
+        raise ValueError(f'--window must be T0:T1 in seconds from the first stamp, got {text!r}') from None
+    if not (np.isfinite(t0) and t0 >= 0 and t1 > t0):
+        raise ValueError(f'--window needs 0 <= T0 < T1, got {text!r}')
+    return t0, t1
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) following the data contract')
+    parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
+    parser.add_argument('--window', default=None, metavar='T0:T1',
+                        help='seconds from the first set where the true gradient is zero (default: whole bag)')
+    parser.add_argument('--method', choices=METHODS, default=DEFAULT_METHOD, help=f'default: {DEFAULT_METHOD}')
+    parser.add_argument('--out', required=True, help='calibration YAML to write')
+    parser.add_argument('--seed', type=int, default=0, help='paper_ga: random seed (default 0)')
+    parser.add_argument('--generations', type=int, default=None, help='paper_ga: generations (default 1000)')
+    parser.add_argument('--wide-bounds', action='store_true',
+                        help='paper_ga: |k| <= 1, |b| <= 1000 nT instead of the printed bounds')
+    parser.add_argument('--tolerance-ms', type=float, default=2.0,
+                        help='largest spread of the four header stamps in one set (default 2 ms)')
+    parser.add_argument('--max-sets', type=int, default=DEFAULT_MAX_SETS,
+                        help=f'thin the window to at most this many sets (default {DEFAULT_MAX_SETS})')
+    parser.add_argument('--max-coverage-condition', type=float, default=MAX_COVERAGE_CONDITION,
+                        help=f'refuse windows whose attitude coverage condition number exceeds this '
+                             f'(default {MAX_COVERAGE_CONDITION:g})')
+    progress = parser.add_mutually_exclusive_group()
+    progress.add_argument('--progress', dest='progress', action='store_true', default=None)
+    progress.add_argument('--no-progress', dest='progress', action='store_false')
+
+
+def read_window(bag_path: str, window: tuple[float, float] | None, *, tolerance_s: float,
+                progress: bool | None) -> tuple[np.ndarray, np.ndarray, float, object]:
+    """Sets in the window: stamps (n,), fields (n, 4, 3); the bag's span (s); the counters."""
+    stamps, fields = [], []
+    first = last = None
+    with MagneticBag(bag_path) as bag:
+        for chunk_stamps, chunk_fields in bag.iter_sets(tolerance_s=tolerance_s, progress=progress):
+            first = int(chunk_stamps[0]) if first is None else first
+            last = int(chunk_stamps[-1])
+            if window is not None:
+                t = (chunk_stamps - first) * 1e-9
+                keep = (t >= window[0]) & (t <= window[1])
+                chunk_stamps, chunk_fields = chunk_stamps[keep], chunk_fields[keep]
+            if len(chunk_stamps):
+                stamps.append(chunk_stamps)
+                fields.append(chunk_fields)
+        counters = bag.counters
+    span = (last - first) * 1e-9
+    if not stamps:
+        raise BagError(f'{bag_path}: the window {window[0]:g}:{window[1]:g} s holds no sample set '
+                       f'(the bag spans 0:{span:.3f} s from its first stamp)')
+    return np.concatenate(stamps), np.concatenate(fields), span, counters
+
+
+def _format_matrix(rows: np.ndarray, fmt: str) -> str:
+    return '[' + '; '.join(' '.join(fmt.format(v) for v in row) for row in rows) + ']'
+
+
+def run(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
+    window = parse_window(args.window)
+    if args.max_sets < 10:
+        raise ValueError(f'--max-sets must be at least 10, got {args.max_sets}')
+    geometry = geometry_from_params(load_params(args.params), source=args.params)
+    stamps, fields, span, counters = read_window(args.bag, window, tolerance_s=args.tolerance_ms * 1e-3,
+                                                 progress=args.progress)
+    n_window = len(stamps)
+    thinned = 1
+    if n_window > args.max_sets:
+        thinned = int(np.ceil(n_window / args.max_sets))
+        stamps, fields = stamps[::thinned], fields[::thinned]
+    g_measured = difference_tensor(fields, geometry)
+    b_reference = fields[:, 0, :]
+    coverage = attitude_coverage(b_reference)
+    window_text = 'whole bag' if window is None else f'{window[0]:g}:{window[1]:g} s'
+    if not coverage <= args.max_coverage_condition:
+        raise IdentifiabilityError(
+            f'the window ({window_text}, {len(stamps)} sets) has too little attitude diversity: attitude '
+            f'coverage condition number {coverage:.3g} > {args.max_coverage_condition:.3g} (the body-frame '
+            f'field must take at least 3 non-coplanar directions: turn, roll and pitch)')
+    method = args.method
+    if method.startswith('known_gradient_lstsq'):
+        calibration = known_gradient_lstsq(g_measured, b_reference, geometry,
+                                           symmetric_k=(method == 'known_gradient_lstsq'),
+                                           max_coverage_condition=args.max_coverage_condition)
+    elif method == 'constraint_lstsq':
+        calibration = constraint_lstsq(g_measured, b_reference, geometry, symmetric_k=True)
+    else:
+        options = {} if args.generations is None else {'generations': args.generations}
+        if args.generations is not None and args.generations < 1:
+            raise ValueError(f'--generations must be >= 1, got {args.generations}')
+        calibration = paper_ga(g_measured, b_reference, geometry, rng=np.random.default_rng(args.seed),
+                               bounds=paper_bounds(symmetric=True, wide=args.wide_bounds), **options)
+    record = CalibrationFile.from_calibration(calibration, geometry)
+    extra = {'bag': str(args.bag), 'window_s': window_text, 'sets_in_window': n_window, 'thinned_every': thinned,
+             'attitude_coverage_condition': coverage, 'bag_span_s': span}
+    if method == 'paper_ga':
+        extra['seed'] = args.seed
+    record = dataclasses.replace(record, diagnostics={**record.diagnostics, **extra})
+    save_calibration(args.out, record)
+
+    summary = calibration.summary()
+    print(f'calibrated {args.bag}: method {method}, window {window_text} '
+          f'({n_window} sets{f", every {thinned}th used" if thinned > 1 else ""}; bag spans {span:.1f} s; '
+          f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order)')
+    print(f'  parameters {summary["n_parameters"]}, rank {summary["rank"]} '
+          f'(null space {summary["null_space_dim"]}), condition number {summary["condition_number"]:.3g}')
+    print(f'  residual RMS {summary["residual_rms_nT_per_m"]:.4g} nT/m, attitude coverage condition number '
+          f'{coverage:.3g}' + (f', sensor noise estimate {summary["sensor_noise_nT"]:.3g} nT'
+                               if 'sensor_noise_nT' in summary else ''))
+    if 'objective_final' in summary:
+        print(f'  GA objective {summary["objective_initial"]:.4g} -> {summary["objective_final"]:.4g} (T/m)^2 '
+              f'after {summary["generations"]} generations, seed {args.seed}')
+    errors = getattr(calibration, 'standard_errors', None)
+    n_k = calibration.n_parameters - 9
+    parameters = calibration.parameters
+    for pair in range(3):
+        line = (f'  K_{pair + 2}1 = {_format_matrix(parameters.k_soft[pair], "{:+.6f}")}   '
+                f'B_{pair + 2}1^h = [{" ".join(f"{v:+.3f}" for v in parameters.b_hard[pair] * NT)}] nT')
+        if errors is not None:
+            b_err = errors[n_k + 3 * pair:n_k + 3 * pair + 3] * NT
+            line += f' (+-{b_err.max():.2g})'
+        print(line)
+    if errors is not None:
+        print(f'  largest standard error: K {errors[:n_k].max():.2g}, B^h {errors[n_k:].max() * NT:.2g} nT')
+    print(f'wrote {args.out} in {time.perf_counter() - started:.1f} s')
+    return 0
