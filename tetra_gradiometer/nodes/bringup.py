@@ -1,0 +1,82 @@
+"""``python -m tetra_gradiometer bringup [--params FILE] [--mode sim|replay] [--bag PATH]``:
+the four nodes in one process on a MultiThreadedExecutor until Ctrl-C."""
+from __future__ import annotations
+
+import argparse
+import os
+from typing import Any
+
+from ._ros import DEFAULT_PARAMS_FILE
+from .run_node import ros_arguments
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--params', default=str(DEFAULT_PARAMS_FILE) if DEFAULT_PARAMS_FILE.exists() else '',
+                        help='ROS 2 parameter file; default %(default)s')
+    parser.add_argument('--mode', choices=('sim', 'replay'), help='driver mode (default: from the params)')
+    parser.add_argument('--bag', help='replay: rosbag2 folder')
+    parser.add_argument('--rate', type=float, help='driver speed, multiple of real time (0: as fast as the graph)')
+    parser.add_argument('--scenario', help='sim: scenario YAML (default: built-in)')
+    parser.add_argument('--calibration-file', help='calibration file of calibrator and compensator')
+    parser.add_argument('--ros-args', dest='ros_args', nargs=argparse.REMAINDER, default=[],
+                        help='further ROS arguments for all four nodes')
+
+
+def driver_overrides(args: argparse.Namespace) -> list[Any]:
+    """Driver parameters given on the command line."""
+    from rclpy.parameter import Parameter
+    out = []
+    if args.mode:
+        out.append(Parameter('mode', value=args.mode))
+    if args.bag:
+        out.append(Parameter('bag', value=os.path.abspath(args.bag)))
+        if not args.mode:
+            out.append(Parameter('mode', value='replay'))
+    if args.rate is not None:
+        out.append(Parameter('rate', value=float(args.rate)))
+    if args.scenario:
+        out.append(Parameter('scenario', value=os.path.abspath(args.scenario)))
+    return out
+
+
+def create_nodes(args: argparse.Namespace, driver_extra: list[Any] = ()) -> list[Any]:
+    """The four nodes (rclpy must be initialised), command-line overrides applied."""
+    from rclpy.parameter import Parameter
+
+    from .calibrator import CalibratorNode
+    from .compensator import CompensatorNode
+    from .driver import DriverNode
+    from .tensor import TensorNode
+    calibration = ([Parameter('calibration_file', value=os.path.abspath(args.calibration_file))]
+                   if args.calibration_file else [])
+    nodes = []
+    try:
+        nodes.append(TensorNode())
+        nodes.append(CalibratorNode(parameter_overrides=list(calibration)))
+        nodes.append(CompensatorNode(parameter_overrides=list(calibration)))
+        nodes.append(DriverNode(parameter_overrides=driver_overrides(args) + list(driver_extra)))
+    except BaseException:
+        for node in nodes:
+            node.destroy_node()
+        raise
+    return nodes
+
+
+def run(args: argparse.Namespace) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    rclpy.init(args=ros_arguments(args.params, args.ros_args))
+    nodes: list[Any] = []
+    try:
+        nodes = create_nodes(args)
+        executor = MultiThreadedExecutor(num_threads=4)
+        for node in nodes:
+            executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,223 @@
+"""``calibrator`` node: identifies the interference parameters ``k``, ``b`` (eqs. 15-18).
+
+Pairs ``gradient/raw`` (``G_m``, T/m) with ``reference_field`` (``B_1'``, T) by identical
+stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
+
+* ``~/start``: forget earlier samples and collect (fly the trim manoeuvre now);
+* ``~/stop``: stop collecting (samples are kept);
+* ``~/calibrate``: solve with ``method`` on the collected samples. Too few samples, or a
+  body-frame field spanning too few directions (the attitude-coverage condition number is
+  given), answer success=false with the reason. On success the parameters are written
+  atomically to ``calibration_file`` and published on ``calibration`` (std_msgs/String
+  holding the calibration file's YAML text, transient local = latched).
+
+Methods: ``known_gradient_lstsq`` (the true gradient is taken as zero: a trim far from
+targets; general 3x3 ``K_i1`` unless ``symmetric_k``), ``constraint_lstsq`` and
+``paper_ga`` (the paper's symmetry/trace objective; see NOTES.md on its rank deficiency).
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, MagneticField
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from .. import conversions as cv
+from ..core import (IdentifiabilityError, TetraGeometry, attitude_coverage, constraint_lstsq,
+                    known_gradient_lstsq, paper_ga)
+from ..core.identification import MAX_COVERAGE_CONDITION, MIN_SAMPLES
+from ..io.calibration import CalibrationFile, save_calibration
+from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, WARN, ParamSpec, StampPairer, declare_parameters,
+                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, status)
+
+METHODS = ('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
+
+
+def _path(value: str) -> str | None:
+    return None if value.strip() else 'must name a file'
+
+
+PARAMETERS = [
+    POSITIONS_SPEC,
+    ParamSpec('method', 'known_gradient_lstsq', f'Identification method: one of {list(METHODS)}.',
+              one_of(*METHODS)),
+    ParamSpec('symmetric_k', False, 'known_gradient_lstsq/constraint_lstsq: symmetric K_i1 (the '
+              "paper's 27 parameters) instead of a general 3x3 per sensor pair (36). paper_ga is "
+              'always symmetric.'),
+    ParamSpec('calibration_file', 'calibration.yaml', 'Where ~/calibrate writes the parameters (YAML, '
+              'written atomically); "~" is expanded.', _path),
+    ParamSpec('min_samples', 100, f'Fewest sample sets ~/calibrate accepts (the solvers need >= {MIN_SAMPLES}).',
+              int_range=(MIN_SAMPLES, 10_000_000)),
+    ParamSpec('max_samples', 200_000, 'Most sample sets kept while collecting (older ones are dropped).',
+              int_range=(MIN_SAMPLES, 10_000_000)),
+    ParamSpec('max_coverage_condition', MAX_COVERAGE_CONDITION,
+              'Refuse samples whose attitude-coverage condition number (of [B_1\' 1], unit columns) '
+              'exceeds this: the body-frame field spans too few directions.', positive,
+              float_range=(1.0, 1e12)),
+    ParamSpec('ga_seed', 0, 'paper_ga: random seed.', int_range=(0, 2**31 - 1)),
+    ParamSpec('ga_generations', 1000, 'paper_ga: generations.', int_range=(1, 1_000_000)),
+    diagnostics_period_spec(),
+]
+
+
+class CalibratorNode(Node):
+    """Collects ``(B_1', G_m)`` on demand and identifies the compensation parameters."""
+
+    def __init__(self, **kwargs) -> None:
+        kwargs.setdefault('namespace', NAMESPACE)
+        super().__init__('calibrator', **kwargs)
+        p = declare_parameters(self, PARAMETERS)
+        self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
+        self._lock = threading.Lock()
+        self._collecting = False
+        self._g: list[np.ndarray] = []
+        self._b: list[np.ndarray] = []
+        self._pairer = StampPairer(2)
+        self._state = 'idle'
+        self._last_result = 'no calibration yet'
+        self._last_ok: bool | None = None
+        self._calibrations = 0
+
+        self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
+        self.create_subscription(MagneticField, 'reference_field', self._on_reference, derived_qos())
+        self.create_service(Trigger, '~/start', self._on_start)
+        self.create_service(Trigger, '~/stop', self._on_stop)
+        self.create_service(Trigger, '~/calibrate', self._on_calibrate)
+        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+
+    # ----------------------------------------------------------------- samples
+
+    def _on_raw(self, msg: JointState) -> None:
+        self._add(0, cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg))
+
+    def _on_reference(self, msg: MagneticField) -> None:
+        self._add(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
+
+    def _add(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
+        if not self._collecting:
+            return
+        with self._lock:
+            pair = self._pairer.add(stream, stamp_ns, value)
+            if pair is None or not all(np.all(np.isfinite(v)) for v in pair):
+                return
+            self._g.append(pair[0])
+            self._b.append(pair[1])
+            if len(self._g) > self.get_parameter('max_samples').value:
+                del self._g[0], self._b[0]
+
+    @property
+    def n_samples(self) -> int:
+        with self._lock:
+            return len(self._g)
+
+    # ----------------------------------------------------------------- services
+
+    def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        with self._lock:
+            self._g, self._b = [], []
+            self._pairer = StampPairer(2)
+            self._collecting = True
+        self._state = 'collecting'
+        response.success, response.message = True, 'collecting (earlier samples discarded)'
+        self.get_logger().info(response.message)
+        self._publish_diagnostics()
+        return response
+
+    def _on_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._collecting = False
+        self._state = 'stopped'
+        response.success, response.message = True, f'stopped with {self.n_samples} samples'
+        self.get_logger().info(response.message)
+        self._publish_diagnostics()
+        return response
+
+    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        ok, message = self._calibrate()
+        response.success, response.message = ok, message
+        self._last_ok, self._last_result = ok, message
+        (self.get_logger().info if ok else self.get_logger().warning)(f'calibrate: {message}')
+        self._publish_diagnostics()
+        return response
+
+    def _calibrate(self) -> tuple[bool, str]:
+        """Solve on a snapshot of the samples; write and publish on success."""
+        with self._lock:
+            g = np.array(self._g).reshape(-1, 3, 3)
+            b = np.array(self._b).reshape(-1, 3)
+        method = self.get_parameter('method').value
+        symmetric = bool(self.get_parameter('symmetric_k').value)
+        minimum = int(self.get_parameter('min_samples').value)
+        limit = float(self.get_parameter('max_coverage_condition').value)
+        if len(g) < minimum:
+            return False, (f'{len(g)} samples are too few (need at least {minimum}); call ~/start, '
+                           f'fly the trim manoeuvre, then ~/stop')
+        coverage = attitude_coverage(b)
+        if not coverage <= limit:
+            return False, (f'the body-frame field spans too few directions (attitude coverage condition '
+                           f'number {coverage:.3g} > {limit:.3g}); turn, roll and pitch more')
+        try:
+            if method == 'known_gradient_lstsq':
+                result = known_gradient_lstsq(g, b, self._geometry, symmetric_k=symmetric,
+                                              max_coverage_condition=limit)
+            elif method == 'constraint_lstsq':
+                result = constraint_lstsq(g, b, self._geometry, symmetric_k=symmetric)
+            else:
+                result = paper_ga(g, b, self._geometry,
+                                  rng=np.random.default_rng(self.get_parameter('ga_seed').value),
+                                  generations=int(self.get_parameter('ga_generations').value))
+        except (IdentifiabilityError, ValueError, np.linalg.LinAlgError) as error:
+            return False, str(error)
+        calibration = CalibrationFile.from_calibration(result, self._geometry)
+        path = self._file()
+        try:
+            save_calibration(path, calibration)
+        except OSError as error:
+            return False, f'solved, but cannot write {path}: {error}'
+        self._cal_pub.publish(String(data=calibration.to_yaml()))
+        self._calibrations += 1
+        self._state = 'calibrated' if not self._collecting else 'collecting'
+        s = result.summary()
+        return True, (f'{s["method"]}: {s["n_samples"]} samples, {s["n_parameters"]} parameters, rank '
+                      f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
+                      f'{coverage:.3g}, fit residual {s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}')
+
+    def _file(self) -> str:
+        import os
+        return os.path.expanduser(self.get_parameter('calibration_file').value)
+
+    def _publish_diagnostics(self) -> None:
+        level = WARN if self._last_ok is False else OK
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status.append(status(
+            'tetra/calibrator: calibration', level, f'{self._state}: {self._last_result}', cv.ARRAY_FRAME,
+            {'state': self._state, 'samples': self.n_samples, 'calibrations': self._calibrations,
+             'method': self.get_parameter('method').value, 'calibration_file': self._file()}))
+        self._diag_pub.publish(array)
+
+
+def main(args: list[str] | None = None) -> int:
+    """``ros2 run tetra_gradiometer calibrator``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = CalibratorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:  # a refused parameter value
+        rclpy.logging.get_logger('calibrator').error(f'cannot start: {error}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,208 @@
+"""``compensator`` node: ``G = G_m - D`` (eq. 19) on every measured tensor.
+
+Loads ``calibration_file`` at start and follows the latched ``calibration`` topic
+(std_msgs/String holding a calibration file's YAML text). A missing, corrupt or
+mismatched calibration (other ``sensor_positions``) leaves it running uncompensated
+(``gradient/compensated`` = ``gradient/raw``), said so on ``/diagnostics`` (WARN).
+
+Pairs ``gradient/raw`` (T/m) with ``reference_field`` (``B_1'``, T) by identical stamp and
+publishes ``gradient/compensated`` (JointState, T/m) and ``gradient/norm`` (Float64,
+Frobenius norm of the compensated tensor, nT/m). When ``gradient/truth`` arrives for the
+same stamp it publishes the running ``epsilon`` (eq. 24, over the samples compensated
+with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
+(std_msgs/Float64). A new calibration, or ``~/reset_metrics``, restarts the running metric.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, MagneticField
+from std_msgs.msg import Float64, String
+from std_srvs.srv import Trigger
+
+from .. import conversions as cv
+from ..core import InterferenceParameters, TetraGeometry, compensate
+from ..io.calibration import CalibrationFile, CalibrationFileError, load_calibration
+from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, WARN, ParamSpec, StampPairer, Throttle,
+                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, status)
+
+PARAMETERS = [
+    POSITIONS_SPEC,
+    ParamSpec('calibration_file', 'calibration.yaml', 'Calibration loaded at start (YAML, as the '
+              'calibrator writes it); "~" is expanded. Missing or corrupt: run uncompensated.'),
+    ParamSpec('max_pending', 1000, 'Bound of the stamp-pairing buffers, messages.', int_range=(1, 1_000_000)),
+    ParamSpec('warn_throttle_s', 5.0, 'Least interval between repeated warnings, s.',
+              float_range=(0.0, 3600.0)),
+    diagnostics_period_spec(),
+]
+
+NT = 1e9
+
+
+class CompensatorNode(Node):
+    """Applies the current calibration to the measured tensor stream."""
+
+    def __init__(self, **kwargs) -> None:
+        kwargs.setdefault('namespace', NAMESPACE)
+        super().__init__('compensator', **kwargs)
+        p = declare_parameters(self, PARAMETERS)
+        self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
+        self._types = cv.rclpy_types()
+        self._inputs = StampPairer(2, p['max_pending'])     # raw, reference
+        self._truth = StampPairer(2, p['max_pending'])      # (raw, compensated), truth
+        self._warn = Throttle(p['warn_throttle_s'])
+        self._parameters: InterferenceParameters | None = None
+        self._source = ''
+        self._problem = 'no calibration loaded yet'
+        self.published = 0
+        self.dropped_non_finite = 0
+        self._reset_metrics()
+
+        self._comp_pub = self.create_publisher(JointState, 'gradient/compensated', derived_qos())
+        self._norm_pub = self.create_publisher(Float64, 'gradient/norm', derived_qos())
+        self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
+        self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._load_file(os.path.expanduser(p['calibration_file']))
+        self.create_subscription(String, 'calibration', self._on_calibration, latched_qos())
+        self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
+        self.create_subscription(MagneticField, 'reference_field', self._on_reference, derived_qos())
+        self.create_subscription(JointState, 'gradient/truth', self._on_truth, derived_qos())
+        self.create_service(Trigger, '~/reset_metrics', self._on_reset)
+        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+
+    # ----------------------------------------------------------------- calibration
+
+    @property
+    def compensating(self) -> bool:
+        return self._parameters is not None
+
+    def _load_file(self, path: str) -> None:
+        try:
+            self._apply(load_calibration(path), f'file {path}')
+        except CalibrationFileError as error:
+            self._refuse(str(error))
+
+    def _on_calibration(self, msg: String) -> None:
+        try:
+            self._apply(CalibrationFile.from_yaml(msg.data, source='the calibration topic'), 'topic calibration')
+        except CalibrationFileError as error:
+            self._refuse(str(error))
+
+    def _apply(self, calibration: CalibrationFile, source: str) -> None:
+        positions = np.asarray(calibration.sensor_positions, dtype=float)
+        if positions.shape != (12,) or not np.allclose(positions, self._geometry.positions.ravel(),
+                                                       rtol=0.0, atol=1e-9):
+            raise CalibrationFileError(f'{source} was made for other sensor_positions {positions.tolist()}')
+        self._parameters = calibration.parameters
+        self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
+        self._problem = ''
+        self._reset_metrics()
+        self.get_logger().info(f'compensating with {self._source}')
+        self._publish_diagnostics()
+
+    def _refuse(self, reason: str) -> None:
+        self._problem = reason
+        state = f'keeping {self._source}' if self.compensating else 'running UNCOMPENSATED'
+        self.get_logger().warning(f'calibration refused: {reason}; {state}')
+        self._publish_diagnostics()
+
+    # ----------------------------------------------------------------- samples
+
+    def _on_raw(self, msg: JointState) -> None:
+        self._pair(0, cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg))
+
+    def _on_reference(self, msg: MagneticField) -> None:
+        self._pair(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
+
+    def _pair(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
+        pair = self._inputs.add(stream, stamp_ns, value)
+        if pair is not None:
+            self._compensate(stamp_ns, *pair)
+
+    def _compensate(self, stamp_ns: int, g_raw: np.ndarray, b_reference: np.ndarray) -> None:
+        """Eq. 19 on one sample: ``G_m`` (3, 3) T/m, ``B_1'`` (3,) T."""
+        if self._parameters is None:
+            g = g_raw
+        elif np.all(np.isfinite(g_raw)) and np.all(np.isfinite(b_reference)):
+            g = compensate(g_raw[None], b_reference[None], self._parameters, self._geometry)[0]
+        else:
+            g = g_raw
+        if not np.all(np.isfinite(g)):
+            self.dropped_non_finite += 1
+            if self._warn():
+                self.get_logger().warning(f'dropped a non-finite tensor at stamp {stamp_ns} ns')
+            return
+        self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
+        self._norm_pub.publish(Float64(data=float(np.linalg.norm(g) * NT)))
+        self.published += 1
+        triple = self._truth.add(0, stamp_ns, (g_raw, g))
+        if triple is not None:
+            self._score(*triple[0], triple[1])
+
+    def _on_truth(self, msg: JointState) -> None:
+        g_true = cv.tensor_from_msg(msg)
+        triple = self._truth.add(1, cv.stamp_to_ns(msg.header.stamp), g_true)
+        if triple is not None:
+            self._score(*triple[0], triple[1])
+
+    def _score(self, g_before: np.ndarray, g_after: np.ndarray, g_true: np.ndarray) -> None:
+        """Running eq. 24 term ``|(|G_a| - |G_l|) / (|G_b| - |G_l|)|``."""
+        true_norm = np.linalg.norm(g_true)
+        denominator = np.linalg.norm(g_before) - true_norm
+        if denominator == 0.0 or not np.isfinite(denominator):
+            return
+        self._eps_sum += abs((np.linalg.norm(g_after) - true_norm) / denominator)
+        self._eps_count += 1
+        eps = self._eps_sum / self._eps_count
+        self._eps_pub.publish(Float64(data=float(eps)))
+        self._pct_pub.publish(Float64(data=float(100.0 * (1.0 - eps))))
+
+    def _reset_metrics(self) -> None:
+        self._eps_sum, self._eps_count = 0.0, 0
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._reset_metrics()
+        response.success, response.message = True, 'running epsilon restarted'
+        return response
+
+    def _publish_diagnostics(self) -> None:
+        if self.compensating:
+            level = WARN if self._problem else OK
+            text = f'compensating with {self._source}' + (f'; refused a newer one: {self._problem}'
+                                                          if self._problem else '')
+        else:
+            level, text = WARN, f'UNCOMPENSATED: {self._problem}'
+        eps = self._eps_sum / self._eps_count if self._eps_count else float('nan')
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status.append(status(
+            'tetra/compensator: compensation', level, text, cv.ARRAY_FRAME,
+            {'compensating': self.compensating, 'published': self.published,
+             'dropped_non_finite': self.dropped_non_finite, 'epsilon': float(eps),
+             'scored_samples': self._eps_count}))
+        self._diag_pub.publish(array)
+
+
+def main(args: list[str] | None = None) -> int:
+    """``ros2 run tetra_gradiometer compensator``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = CompensatorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:  # a refused parameter value
+        rclpy.logging.get_logger('compensator').error(f'cannot start: {error}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

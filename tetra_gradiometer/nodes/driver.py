@@ -1,0 +1,295 @@
+"""``driver`` node: the magnetometer source, simulated or replayed.
+
+``mode: sim`` flies the core mission simulator (``scenario``: a scenario YAML for
+io/scenario.py, or the built-in default of :mod:`.scenarios`: a trim manoeuvre far from the
+target, then a survey line over a dipole). It publishes ``mag1``..``mag4``
+(sensor_msgs/MagneticField, T, frames tetra_mag1..4, header.stamp = sample time: the start
+time plus the simulated time of the sample), ``gradient/truth`` (the simulator's ``g_true``,
+JointState T/m) and ``/odom`` (nav_msgs/Odometry, body -> world ENU).
+
+``mode: replay`` plays a rosbag2 folder (sqlite3 or mcap): the magnetometer topics, and
+``/tetra/gradient/truth`` and ``/odom`` when recorded, with their recorded stamps.
+
+Pacing: ``rate`` times real time (by sample time in sim, by log time in replay), or with
+``rate: 0`` as fast as the graph takes it: at most ``max_in_flight`` sets are published
+ahead of the last ``gradient/raw`` received (after ``ack_timeout_s`` without one, the
+driver moves on and counts a timeout).
+
+``start_paused`` waits for ``~/resume``; ``hold_between_segments`` (sim) pauses after each
+scenario segment until ``~/resume`` (so a trim can be calibrated before the survey starts).
+State, segment and counts go to ``/diagnostics``.
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Iterator
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, MagneticField
+from std_srvs.srv import Trigger
+
+from .. import conversions as cv
+from ._ros import (NAMESPACE, OK, WARN, ParamSpec, declare_parameters, derived_qos,
+                   diagnostics_period_spec, non_negative, one_of, positive, sensor_qos, status)
+
+PARAMETERS = [
+    ParamSpec('mode', 'sim', 'Source: "sim" (core mission simulator) or "replay" (rosbag2 folder).',
+              one_of('sim', 'replay')),
+    ParamSpec('scenario', '', 'sim: scenario YAML file (io/scenario.py format); empty: the built-in '
+              'default (trim far from the target, then a survey line over it).'),
+    ParamSpec('seed', -1, 'sim: noise seed; -1 uses the scenario\'s own seed.', int_range=(-1, 2**31 - 1)),
+    ParamSpec('bag', '', 'replay: rosbag2 folder (sqlite3 or mcap).'),
+    ParamSpec('rate', 1.0, 'Speed: multiple of real time; 0 = as fast as the graph takes it '
+              '(paced by gradient/raw).', non_negative, float_range=(0.0, 10000.0)),
+    ParamSpec('start_paused', False, 'Wait for ~/resume before publishing.'),
+    ParamSpec('hold_between_segments', False, 'sim: pause after each scenario segment until ~/resume.'),
+    ParamSpec('max_duration_s', 0.0, 'Play only this much sample time, s (0: all).', non_negative,
+              float_range=(0.0, 1e9)),
+    ParamSpec('max_in_flight', 4, 'rate 0: sets published ahead of the last gradient/raw received.',
+              int_range=(1, 10000)),
+    ParamSpec('ack_timeout_s', 0.5, 'rate 0: move on after this long without gradient/raw, s.', positive,
+              float_range=(1e-3, 60.0)),
+    ParamSpec('publisher_depth', 100, 'Queue depth of the magnetometer publishers (best effort).',
+              int_range=(1, 10000)),
+    diagnostics_period_spec(),
+]
+
+#: Publisher keys of a frame's messages.
+MAG, TRUTH, ODOM = 'mag', 'truth', 'odom'
+
+
+@dataclass
+class Frame:
+    """Messages to publish together: ``pace_ns`` orders and times them (relative ns);
+    ``segment`` is the scenario segment (sim) or 0; ``items`` are (key, sensor, message)."""
+
+    pace_ns: int
+    segment: int
+    mag1_stamp: int | None
+    items: list[tuple[str, int, Any]]
+
+
+def sim_frames(node: Node, scenario_path: str, seed: int, start_ns: int, max_duration_s: float,
+               types: cv.MessageTypes) -> tuple[Iterator[Frame], dict[str, Any]]:
+    """Simulate the mission and yield one frame per sample (4 mags, truth, odom)."""
+    from ..core import simulate
+    from . import scenarios
+    scenario, scenario_seed = scenarios.load(scenario_path)
+    mission = simulate(scenario, np.random.default_rng(scenario_seed if seed < 0 else seed))
+    n = len(mission)
+    if max_duration_s > 0:
+        n = int(np.searchsorted(mission.t, max_duration_s, side='left'))
+    kinds = [type(s).__name__ for s in scenario.segments]
+    info = {'samples': n, 'segments': ', '.join(kinds), 'sample_rate_hz': scenario.sample_rate_hz}
+    node.get_logger().info(f'sim: {n} samples at {scenario.sample_rate_hz:g} Hz, segments {kinds}, '
+                           f'{len(scenario.dipoles)} dipole(s)')
+
+    def frames() -> Iterator[Frame]:
+        for i in range(n):
+            pace = int(round(mission.t[i] * 1e9))
+            stamp = start_ns + pace
+            items = [(MAG, s, cv.magnetic_field_msg(types, mission.fields_measured[i, s], stamp, cv.MAG_FRAMES[s]))
+                     for s in range(4)]
+            items.append((TRUTH, 0, cv.tensor_msg(types, mission.g_true[i], stamp)))
+            items.append((ODOM, 0, cv.odometry_msg(types, mission.position_enu[i], mission.orientation_xyzw[i],
+                                                   stamp)))
+            yield Frame(pace, int(mission.segment[i]), stamp, items)
+    return frames(), info
+
+
+def replay_frames(node: Node, path: str, max_duration_s: float,
+                  types: cv.MessageTypes) -> tuple[Iterator[Frame], dict[str, Any]]:
+    """Yield one frame per recorded message, paced by log time."""
+    from ..io.bag import MagneticBag
+    bag = MagneticBag(path).__enter__()
+    try:
+        count = bag.check_contract()
+    except Exception:
+        bag.__exit__(None, None, None)
+        raise
+    topics = {t: (MAG, i) for i, t in enumerate(cv.BAG_MAG_TOPICS)}
+    topics[f'{NAMESPACE}/gradient/truth'] = (TRUTH, 0)
+    topics[cv.ODOM_TOPIC] = (ODOM, 0)
+    reader = bag.reader
+    connections = [c for c in reader.connections if c.topic in topics]
+    info = {'messages': count, 'topics': ', '.join(sorted({c.topic for c in connections}))}
+    node.get_logger().info(f'replay: {path}: {count} magnetometer messages; topics {info["topics"]}')
+
+    def frames() -> Iterator[Frame]:
+        first = None
+        try:
+            for connection, log_ns, raw in reader.messages(connections=connections):
+                first = log_ns if first is None else first
+                if max_duration_s > 0 and (log_ns - first) * 1e-9 > max_duration_s:
+                    break
+                msg = reader.deserialize(raw, connection.msgtype)
+                key, sensor = topics[connection.topic]
+                stamp = cv.stamp_to_ns(msg.header.stamp)
+                if key == MAG:
+                    out = cv.magnetic_field_msg(types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id)
+                elif key == TRUTH:
+                    out = cv.tensor_msg(types, cv.tensor_from_msg(msg), stamp)
+                else:
+                    p = msg.pose.pose.position
+                    out = cv.odometry_msg(types, np.array([p.x, p.y, p.z]), cv.odometry_orientation(msg), stamp,
+                                          frame_id=msg.header.frame_id, child_frame_id=msg.child_frame_id)
+                yield Frame(log_ns - first, 0, stamp if (key == MAG and sensor == 0) else None,
+                            [(key, sensor, out)])
+        finally:
+            bag.__exit__(None, None, None)
+    return frames(), info
+
+
+class DriverNode(Node):
+    """Publishes the magnetometers (and truth, odometry) from the simulator or a bag."""
+
+    def __init__(self, **kwargs) -> None:
+        kwargs.setdefault('namespace', NAMESPACE)
+        super().__init__('driver', **kwargs)
+        p = declare_parameters(self, PARAMETERS)
+        self._rate = float(p['rate'])
+        self._hold = bool(p['hold_between_segments'])
+        self._window = int(p['max_in_flight'])
+        self._ack_timeout = float(p['ack_timeout_s'])
+        self._mode = p['mode']
+        types = cv.rclpy_types()
+        if self._mode == 'sim':
+            start_ns = self.get_clock().now().nanoseconds
+            self._frames, self.info = sim_frames(self, p['scenario'], p['seed'], start_ns,
+                                                 p['max_duration_s'], types)
+            period = 1.0 / (self.info['sample_rate_hz'] * self._rate) if self._rate > 0 else 0.01
+        else:
+            if not p['bag']:
+                raise ValueError('mode replay needs the parameter "bag" (a rosbag2 folder)')
+            self._frames, self.info = replay_frames(self, os.path.expanduser(p['bag']), p['max_duration_s'],
+                                                    types)
+            period = 0.005 if self._rate > 0 else 0.01
+        self._next: Frame | None = next(self._frames, None)
+        self.state = 'paused' if p['start_paused'] else 'playing'
+        self.segment = self._next.segment if self._next is not None else -1
+        self.sets_published = 0
+        self.ack_timeouts = 0
+        self._in_flight: deque[int] = deque()
+        self._last_progress = time.monotonic()
+        self._origin = (time.monotonic(), self._next.pace_ns if self._next else 0)
+
+        self._pubs = {
+            (MAG, s): self.create_publisher(MagneticField, topic, sensor_qos(p['publisher_depth']))
+            for s, topic in enumerate(cv.MAG_TOPICS)}
+        self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
+        self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_TOPIC, derived_qos())
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        if self._rate == 0:
+            self.create_subscription(JointState, 'gradient/raw', self._on_ack, derived_qos())
+        self.create_service(Trigger, '~/resume', self._on_resume)
+        self.create_service(Trigger, '~/pause', self._on_pause)
+        self.create_timer(min(max(period, 0.002), 0.05), self._tick)
+        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+
+    # ----------------------------------------------------------------- playing
+
+    def _tick(self) -> None:
+        """Publish every frame that is due (rate > 0) or allowed in flight (rate 0)."""
+        if self.state != 'playing':
+            return
+        now = time.monotonic()
+        for _ in range(10_000):
+            frame = self._next
+            if frame is None:
+                self._set_state('finished')
+                return
+            if self._hold and frame.segment != self.segment:
+                self.segment = frame.segment
+                self._set_state('holding')
+                return
+            if self._rate > 0:
+                if frame.pace_ns > self._origin[1] + (now - self._origin[0]) * self._rate * 1e9:
+                    return
+            elif len(self._in_flight) >= self._window:
+                if now - self._last_progress < self._ack_timeout:
+                    return
+                self.ack_timeouts += 1
+                self._in_flight.clear()
+            self._publish(frame)
+            self._next = next(self._frames, None)
+
+    def _publish(self, frame: Frame) -> None:
+        for key, sensor, msg in frame.items:
+            self._pubs[(key, sensor)].publish(msg)
+        if frame.mag1_stamp is not None:
+            self.sets_published += 1
+            if self._rate == 0:
+                if not self._in_flight:
+                    self._last_progress = time.monotonic()
+                self._in_flight.append(frame.mag1_stamp)
+        self.segment = frame.segment
+
+    def _on_ack(self, msg: JointState) -> None:
+        """rate 0: a tensor came back; release the sets up to its stamp."""
+        stamp = cv.stamp_to_ns(msg.header.stamp)
+        while self._in_flight and self._in_flight[0] <= stamp:
+            self._in_flight.popleft()
+        self._last_progress = time.monotonic()
+        self._tick()
+
+    def _set_state(self, state: str) -> None:
+        if state != self.state:
+            self.state = state
+            self.get_logger().info(f'{state} (segment {self.segment}, {self.sets_published} sets published)')
+            self._publish_diagnostics()
+
+    def _on_resume(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if self.state == 'finished':
+            response.success, response.message = False, 'finished: nothing left to play'
+            return response
+        self._origin = (time.monotonic(), self._next.pace_ns if self._next else 0)
+        self._last_progress = time.monotonic()
+        self._set_state('playing')
+        response.success, response.message = True, f'playing segment {self.segment}'
+        return response
+
+    def _on_pause(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if self.state == 'finished':
+            response.success, response.message = False, 'finished'
+            return response
+        self._set_state('paused')
+        response.success, response.message = True, 'paused'
+        return response
+
+    def _publish_diagnostics(self) -> None:
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status.append(status(
+            'tetra/driver: playback', WARN if self.ack_timeouts else OK,
+            f'{self.state} ({self._mode}, segment {self.segment})', cv.ARRAY_FRAME,
+            {'state': self.state, 'mode': self._mode, 'segment': self.segment,
+             'sets_published': self.sets_published, 'ack_timeouts': self.ack_timeouts,
+             'rate': self._rate, **self.info}))
+        self._diag_pub.publish(array)
+
+
+def main(args: list[str] | None = None) -> int:
+    """``ros2 run tetra_gradiometer driver``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = DriverNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:  # a refused parameter value, a missing bag or scenario
+        rclpy.logging.get_logger('driver').error(f'cannot start: {error}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

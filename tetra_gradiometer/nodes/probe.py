@@ -1,0 +1,85 @@
+"""``Probe``: an observer/operator node used by the demo, the recorder-free checks and the
+benchmark. It calls services, collects tensors by stamp, and keeps the latest
+``/diagnostics`` status of every component. Not part of the graph's contract."""
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+from std_srvs.srv import Trigger
+
+from .. import conversions as cv
+from ._ros import NAMESPACE, derived_qos
+
+TENSOR_TOPICS = ('gradient/raw', 'gradient/compensated', 'gradient/truth')
+
+
+class Probe(Node):
+    """Collects ``gradient/raw|compensated|truth`` (T/m) by stamp while ``collecting``."""
+
+    def __init__(self, name: str = 'probe', **kwargs) -> None:
+        kwargs.setdefault('namespace', NAMESPACE)
+        super().__init__(name, **kwargs)
+        self.lock = threading.Lock()
+        self.collecting = False
+        self.tensors: dict[str, dict[int, np.ndarray]] = {t: {} for t in TENSOR_TOPICS}
+        self.counts = {t: 0 for t in TENSOR_TOPICS}
+        self.diagnostics: dict[str, Any] = {}
+        self.percent = float('nan')
+        for topic in TENSOR_TOPICS:
+            self.create_subscription(JointState, topic, lambda msg, t=topic: self._on_tensor(t, msg), derived_qos())
+        self.create_subscription(Float64, 'compensated_percent', self._on_percent, derived_qos())
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
+        self._trigger_clients: dict[str, Any] = {}
+
+    def _on_tensor(self, topic: str, msg: JointState) -> None:
+        with self.lock:
+            self.counts[topic] += 1
+            if self.collecting:
+                self.tensors[topic][cv.stamp_to_ns(msg.header.stamp)] = cv.tensor_from_msg(msg)
+
+    def _on_percent(self, msg: Float64) -> None:
+        self.percent = msg.data
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for s in msg.status:
+            self.diagnostics[s.name] = {'level': s.level[0] if isinstance(s.level, bytes) else int(s.level),
+                                        'message': s.message, **{kv.key: kv.value for kv in s.values}}
+
+    def paired(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Stamps (n,) and raw, compensated, true tensors (n, 3, 3) on the common stamps."""
+        with self.lock:
+            common = sorted(set.intersection(*(set(d) for d in self.tensors.values())))
+            arrays = [np.array([self.tensors[t][s] for s in common]).reshape(-1, 3, 3) for t in TENSOR_TOPICS]
+        return (np.array(common, dtype=np.int64), *arrays)
+
+    def call(self, service: str, timeout_s: float = 30.0) -> Any:
+        """Call a std_srvs/Trigger service (spun by another thread); return the response."""
+        client = self._trigger_clients.get(service)
+        if client is None:
+            client = self._trigger_clients[service] = self.create_client(Trigger, service)
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise TimeoutError(f'service {service} is not available')
+        future = client.call_async(Trigger.Request())
+        deadline = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'service {service} did not answer within {timeout_s:g} s')
+            time.sleep(0.005)
+        return future.result()
+
+    def wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'timed out after {timeout_s:g} s waiting for {what}')
+            time.sleep(0.02)
+
+    def status(self, name: str) -> dict[str, Any]:
+        return self.diagnostics.get(name, {})

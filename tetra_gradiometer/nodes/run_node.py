@@ -1,0 +1,35 @@
+"""``python -m tetra_gradiometer node <driver|tensor|calibrator|compensator> [--params FILE]
+[--ros-args ...]``: one node in this process, as ``ros2 run tetra_gradiometer <name>`` would.
+
+Parameters come from ``--params`` (default: the package's config/tetra_gradiometer.yaml)
+and any further ``--ros-args`` (e.g. ``-p rate:=10.0``, ``-r __ns:=/other``).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+
+from ._ros import DEFAULT_PARAMS_FILE
+
+NODES = ('driver', 'tensor', 'calibrator', 'compensator')
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('name', choices=NODES, help='which node')
+    parser.add_argument('--params', default=str(DEFAULT_PARAMS_FILE) if DEFAULT_PARAMS_FILE.exists() else '',
+                        help='ROS 2 parameter file (/**: ros__parameters:); default %(default)s')
+    parser.add_argument('--ros-args', dest='ros_args', nargs=argparse.REMAINDER, default=[],
+                        help='further ROS arguments, e.g. --ros-args -p rate:=10.0')
+
+
+def ros_arguments(params: str, extra: list[str]) -> list[str]:
+    """rclpy argv: program name, then ``--ros-args --params-file FILE ...``."""
+    args = ['tetra_gradiometer', '--ros-args']
+    if params:
+        args += ['--params-file', params]
+    return args + list(extra)
+
+
+def run(args: argparse.Namespace) -> int:
+    module = importlib.import_module(f'tetra_gradiometer.nodes.{args.name}')
+    return int(module.main(ros_arguments(args.params, args.ros_args)) or 0)

@@ -1,0 +1,185 @@
+"""``tensor`` node: the four magnetometers -> the measured gradient tensor ``G_m`` (eq. 7).
+
+Subscribes ``mag1``..``mag4`` (sensor_msgs/MagneticField, T, sensor-data QoS), matches them
+by header stamp (:class:`~tetra_gradiometer.matching.StampMatcher`, ``stamp_tolerance_s``),
+drops and counts incomplete sets and sets with a non-finite or implausible reading
+(``|B| > max_field_t`` on any sensor), and publishes, for every good set, with sensor 1's stamp:
+
+* ``gradient/raw`` (sensor_msgs/JointState gxx..gzz, T/m, reliable): ``G_m``;
+* ``reference_field`` (sensor_msgs/MagneticField, T, reliable): ``B_1'``, the reference
+  reading of the same set (the calibrator and compensator pair it with ``gradient/raw``
+  by identical stamp).
+
+``/diagnostics``: per sensor rate (Hz), staleness (s since its last message), invalid and
+out-of-order readings; a sensor silent for ``stale_timeout_s`` is ERROR and no tensor is
+published until it is back.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, MagneticField
+
+from .. import conversions as cv
+from ..core import TetraGeometry, difference_tensor
+from ..matching import StampMatcher
+from ._ros import (ERROR, MAX_FIELD_T, NAMESPACE, OK, POSITIONS_SPEC, WARN, ParamSpec, Throttle,
+                   declare_parameters, derived_qos, diagnostics_period_spec, positive, sensor_qos,
+                   status)
+
+PARAMETERS = [
+    POSITIONS_SPEC,
+    ParamSpec('stamp_tolerance_s', 2e-3, 'Largest spread of the four header stamps within one set, s.',
+              positive, float_range=(1e-9, 10.0)),
+    ParamSpec('max_field_t', MAX_FIELD_T, 'A reading with |B| above this (tesla) is implausible: '
+              'its set is dropped.', positive, float_range=(1e-9, 1.0)),
+    ParamSpec('stale_timeout_s', 1.0, 'A sensor silent this long (s, wall clock) is ERROR on '
+              '/diagnostics and no tensor is published until it returns.', positive,
+              float_range=(1e-3, 3600.0)),
+    ParamSpec('sensor_queue_depth', 50, 'Depth of the magnetometer subscriptions (best effort), messages.',
+              int_range=(1, 10000)),
+    ParamSpec('max_pending', 1000, 'Per-sensor bound of the stamp matcher queue, messages.',
+              int_range=(1, 1000000)),
+    ParamSpec('warn_throttle_s', 5.0, 'Least interval between repeated warnings, s.', positive,
+              float_range=(0.0, 3600.0)),
+    diagnostics_period_spec(),
+]
+
+
+class TensorNode(Node):
+    """Matches the four magnetometers by stamp and publishes ``G_m`` and ``B_1'``."""
+
+    def __init__(self, **kwargs) -> None:
+        kwargs.setdefault('namespace', NAMESPACE)
+        super().__init__('tensor', **kwargs)
+        p = declare_parameters(self, PARAMETERS)
+        self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
+        self._max_field = float(p['max_field_t'])
+        self._stale_timeout = float(p['stale_timeout_s'])
+        self._matcher = StampMatcher(int(round(p['stamp_tolerance_s'] * 1e9)), max_pending=p['max_pending'])
+        self._types = cv.rclpy_types()
+        self._warn = Throttle(p['warn_throttle_s'])
+        self._stale_warn = Throttle(p['warn_throttle_s'])
+
+        started = time.monotonic()
+        self._received = [0] * 4
+        self._invalid = [0] * 4
+        self._last_arrival = [started] * 4
+        self._ever = [False] * 4
+        self._rate = [0.0] * 4
+        self._rate_mark = (started, [0] * 4)
+        self.sets_published = 0
+        self.sets_invalid = 0
+        self.sets_stale = 0
+
+        self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
+        self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        qos = sensor_qos(p['sensor_queue_depth'])
+        self._subs = [self.create_subscription(MagneticField, topic, lambda msg, s=i: self._on_mag(s, msg), qos)
+                      for i, topic in enumerate(cv.MAG_TOPICS)]
+        self._diag_timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.get_logger().info(f'matching {", ".join(cv.MAG_TOPICS)} within {p["stamp_tolerance_s"] * 1e3:g} ms; '
+                               f'array condition number {self._geometry.condition_number:.3g}')
+
+    # ----------------------------------------------------------------- callbacks
+
+    def _on_mag(self, sensor: int, msg: MagneticField) -> None:
+        """One reading (T): queue it; publish every set it completes."""
+        self._received[sensor] += 1
+        self._last_arrival[sensor] = time.monotonic()
+        self._ever[sensor] = True
+        for stamp_ns, fields in self._matcher.add(sensor, cv.stamp_to_ns(msg.header.stamp),
+                                                  cv.magnetic_field_vector(msg)):
+            self._emit(stamp_ns, fields)
+
+    def _emit(self, stamp_ns: int, fields: np.ndarray) -> None:
+        """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T)."""
+        bad = ~np.all(np.isfinite(fields), axis=1) | (np.linalg.norm(
+            np.nan_to_num(fields, nan=np.inf), axis=1) > self._max_field)
+        if bad.any():
+            self.sets_invalid += 1
+            for sensor in np.flatnonzero(bad):
+                self._invalid[sensor] += 1
+            if self._warn():
+                names = [cv.MAG_TOPICS[s] for s in np.flatnonzero(bad)]
+                self.get_logger().warning(
+                    f'dropped a set at stamp {stamp_ns} ns: non-finite or |B| > {self._max_field:g} T on '
+                    f'{", ".join(names)} ({self.sets_invalid} sets dropped so far)')
+            return
+        if self._stale_sensors():
+            self.sets_stale += 1
+            return
+        g = difference_tensor(fields[None], self._geometry)[0]
+        if not np.all(np.isfinite(g)):  # cannot happen for finite fields; never publish non-finite
+            self.sets_invalid += 1
+            return
+        self._raw_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
+        self._ref_pub.publish(cv.magnetic_field_msg(self._types, fields[0], stamp_ns, cv.MAG_FRAMES[0]))
+        self.sets_published += 1
+
+    def _stale_sensors(self) -> list[int]:
+        now = time.monotonic()
+        return [s for s in range(4) if now - self._last_arrival[s] > self._stale_timeout]
+
+    def _publish_diagnostics(self) -> None:
+        """Per-sensor rate, staleness and drops; the matching counters."""
+        now = time.monotonic()
+        mark_time, mark_counts = self._rate_mark
+        if now - mark_time > 0:
+            self._rate = [(c - m) / (now - mark_time) for c, m in zip(self._received, mark_counts)]
+        self._rate_mark = (now, list(self._received))
+        stale = self._stale_sensors()
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        for s, topic in enumerate(cv.MAG_TOPICS):
+            staleness = now - self._last_arrival[s]
+            if s in stale:
+                level, text = ERROR, (f'stale: silent for {staleness:.2f} s (> {self._stale_timeout:g} s)'
+                                      if self._ever[s] else 'no data received')
+            elif self._invalid[s]:
+                level, text = WARN, f'{self._invalid[s]} non-finite or implausible readings'
+            else:
+                level, text = OK, 'ok'
+            array.status.append(status(
+                f'tetra/tensor: {topic}', level, text, cv.MAG_FRAMES[s],
+                {'rate_hz': float(self._rate[s]), 'staleness_s': float(staleness),
+                 'received': self._received[s], 'dropped_invalid': self._invalid[s]}))
+        counters = self._matcher.counters
+        level = ERROR if stale else (WARN if self.sets_invalid or counters.dropped_messages else OK)
+        text = (f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}' if stale
+                else f'{self.sets_published} tensors published')
+        array.status.append(status(
+            'tetra/tensor: matching', level, text, cv.ARRAY_FRAME,
+            {'sets_published': self.sets_published, 'sets_dropped_invalid': self.sets_invalid,
+             'sets_dropped_stale': self.sets_stale, 'messages_dropped_unmatched': counters.dropped_messages,
+             'messages_out_of_order': counters.out_of_order}))
+        self._diag_pub.publish(array)
+        silent = [s for s in stale if self._ever[s]]  # went quiet after data (not: not started yet)
+        if silent and self._stale_warn():
+            self.get_logger().warning(f'stale sensor(s): {", ".join(cv.MAG_TOPICS[s] for s in silent)}; '
+                                      f'no tensor is published until they return')
+
+
+def main(args: list[str] | None = None) -> int:
+    """``ros2 run tetra_gradiometer tensor``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = TensorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:  # a refused parameter value
+        rclpy.logging.get_logger('tensor').error(f'cannot start: {error}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
