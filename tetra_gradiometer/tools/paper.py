@@ -24,13 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import (Dipole, InterferenceParameters, Scenario, SensorInterference, SurveyLine, TetraGeometry,
-                    TrimManoeuvre, difference_tensor, noise_floor, simulate, summarize)
-from ..core.identification import (ReferenceSensorCalibration, TensorCalibration, constraint_lstsq, known_gradient_lstsq,
-                                   paper_bounds, paper_ga, pei_yeo_2009)
+from ..core import (Dipole, InterferenceParameters, Scenario, SensorInterference, SurveyLine,
+                    TetraGeometry, TrimManoeuvre, difference_tensor, noise_floor, simulate, summarize)
+from ..core.identification import (ReferenceSensorCalibration, TensorCalibration, constraint_lstsq,
+                                   known_gradient_lstsq, paper_bounds, paper_ga, pei_yeo_2009)
 from ..core.identification.paper_ga import (CROSSOVER_PROBABILITY, GENE_BITS, GENERATION_GAP,
                                             GENERATIONS, MUTATION_PROBABILITY, POPULATION)
-from ..core.metrics import rms_residual
 from ..io.atomic import atomic_write_text
 
 NT = 1.0e9
