@@ -26,7 +26,7 @@ import numpy as np
 
 from ..core import (Dipole, InterferenceParameters, Scenario, SensorInterference, SurveyLine,
                     TetraGeometry, TrimManoeuvre, difference_tensor, noise_floor, simulate, summarize)
-from ..core.identification import (ReferenceSensorCalibration, TensorCalibration, constraint_lstsq,
+from ..core.identification import (TensorCalibration, constraint_lstsq,
                                    known_gradient_lstsq, paper_bounds, paper_ga, pei_yeo_2009)
 from ..core.identification.paper_ga import (CROSSOVER_PROBABILITY, GENE_BITS, GENERATION_GAP,
                                             GENERATIONS, MUTATION_PROBABILITY, POPULATION)
@@ -248,11 +248,7 @@ def paper_printed_parameters() -> InterferenceParameters:
 def _diagnostics(calibration) -> dict:
     if calibration.method == 'paper_printed_estimate':
         return {'method': calibration.method, 'note': 'k_hat, b_hat as printed in the paper, applied by eq. 19'}
-    summary = {k: v for k, v in calibration.summary().items() if k != 'objective_history'}
-    if isinstance(calibration, ReferenceSensorCalibration):
-        # Per-sensor fits: the residual is a field (tesla), not a gradient.
-        summary['residual_rms_nT'] = summary.pop('residual_rms_nT_per_m')
-    return summary
+    return {k: v for k, v in calibration.summary().items() if k != 'objective_history'}
 
 
 def _describe(choices: Choices, reading: str, scenario: Scenario, data, trim, line, comp, floor: float,

@@ -44,6 +44,9 @@ class Calibration(ABC):
     residual_rms: float
     details: dict = field(default_factory=dict)
 
+    #: Name (with unit) of ``residual_rms`` in :meth:`summary`.
+    residual_key = 'residual_rms_nT_per_m'
+
     @property
     def null_space_dim(self) -> int:
         """Parameter directions the data cannot see."""
@@ -59,7 +62,7 @@ class Calibration(ABC):
             'method': self.method, 'n_samples': self.n_samples, 'n_parameters': self.n_parameters,
             'rank': self.rank, 'null_space_dim': self.null_space_dim,
             'condition_number': float(self.condition_number),
-            'residual_rms_nT_per_m': float(self.residual_rms * NT), **self.details,
+            self.residual_key: float(self.residual_rms * NT), **self.details,
         }
 
 
@@ -91,6 +94,7 @@ class ReferenceSensorCalibration(Calibration):
     ``matrices`` (3, 3, 3): ``M_2..M_4``, dimensionless; ``offsets`` (3, 3): ``o_2..o_4``, tesla.
     """
 
+    residual_key = 'residual_rms_nT'  # a per-sensor field residual, not a tensor one
     matrices: np.ndarray = field(default_factory=lambda: np.tile(np.eye(3), (3, 1, 1)))
     offsets: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
