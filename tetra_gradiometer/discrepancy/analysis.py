@@ -1,0 +1,671 @@
+"""The discrepancy workflow: simulate a recorded run with the base model, measure the
+held-out gap against the noise floor, and add the missing physical effects one at a time.
+
+Base model (Yu et al. 2014, eq. 10): ``B_i' = B_i + K_i B^b + B_i^h``, symmetric ``K_i``,
+constant ``B_i^h``, sensor 1 clean. Two residual views:
+
+* **absolute** (with /odom): every sensor against ``B^b = R^T (E + x(t))``, with ``E`` the
+  Earth field (from the params, else estimated) and ``x(t)`` a slowly varying external field
+  in the world frame (a cubic B-spline, knots every ``knot_s``; it soaks up distant targets,
+  geology and diurnal drift, which move with the world, not with the vehicle). Per-sensor
+  ``K_i`` and ``B_i^h`` (sensors 2-4) are observable, and so is sensor 1's own interference.
+* **pair** (no /odom): ``B^b = B_1'`` and the residual is that of ``B_i' - B_1'`` (sensors
+  2-4). External fields cancel; sensor 1's own interference is not observable.
+
+Held-out gap: blocked k-fold cross-validation (contiguous time blocks, interleaved folds):
+each sample is predicted by a fit that did not see its block; the gap is the RMS over all
+samples, sensors and axes of measured minus predicted, nT. The fits use per-block Gram
+matrices, so every candidate model costs a few small solves.
+
+Selection: among the candidate families, the one with the lowest cross-validated BIC
+(``n ln(SS_cv/n) + p ln n``, p the number of identifiable parameters) is added when (1) its
+CV-BIC is below the current model's, (2) the held-out F-test of the added parameters has
+``p < alpha`` and (3) it explains at least ``(relevance x noise floor)^2`` of the held-out
+mean square (an effect with an RMS contribution below the noise is not named). The loop
+stops when no candidate passes. The ``ln n`` penalty per parameter is what makes a
+one-parameter-per-sensor family win over a nine-parameter one that explains the same.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+from scipy.interpolate import BSpline
+from scipy.spatial.transform import Rotation
+
+from ..core.model import SYMMETRIC_ENTRIES
+from .effects import CANDIDATES, LIBRARY, Candidate, Context, PiecewiseSpline
+
+NT_PER_T = 1e9
+
+BASE_MODEL = ("Yu et al. 2014 eq. 10: B_i' = B_i + K_i B^b + B_i^h, symmetric K_i, constant B_i^h, "
+              "sensor 1 clean (K_1 = 0, B_1^h = 0)")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Tuning of the workflow (defaults are the documented method).
+
+    n_folds : cross-validation folds (interleaved contiguous blocks)
+    block_s : block length, s (default: duration / 40 within [5, 30] s)
+    knot_s : knot spacing of the external-field spline (absolute view), s
+    relevance : minimum held-out RMS explained by an effect, in noise floors
+    alpha : level of the held-out F-test
+    max_effects : stop after this many effects
+    adequate_ratio : the model is adequate when no effect is missing and the final gap is
+        within this factor of the noise floor
+    candidates : names to test (default all)
+    """
+
+    n_folds: int = 5
+    block_s: float | None = None
+    knot_s: float = 30.0
+    relevance: float = 1.0
+    alpha: float = 1e-6
+    max_effects: int = 6
+    adequate_ratio: float = 1.25
+    candidates: tuple[str, ...] | None = None
+
+
+@dataclass
+class Step:
+    """One named effect: the held-out gap before and after adding it, its fitted
+    parameters (final joint fit) and the evidence that named it."""
+
+    effect: str
+    gap_before_nT: float
+    gap_after_nT: float
+    parameters: dict[str, Any]
+    evidence: str
+    n_parameters: int
+    delta_bic: float
+    f_statistic: float
+    p_value: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {'effect': self.effect, 'gap_before_nT': self.gap_before_nT, 'gap_after_nT': self.gap_after_nT,
+                'parameters': self.parameters, 'evidence': self.evidence, 'n_parameters': self.n_parameters,
+                'delta_bic': self.delta_bic, 'f_statistic': self.f_statistic, 'p_value': self.p_value}
+
+
+@dataclass
+class Report:
+    """What the workflow found; ``to_dict()`` is ``report.json``. ``series`` holds the arrays
+    for the plots (not serialised)."""
+
+    named_effects: list[str]
+    steps: list[Step]
+    gap_initial_nT: float
+    gap_final_nT: float
+    noise_floor_nT: float
+    base_model: str
+    adequate: bool
+    untestable: dict[str, str]
+    view: str
+    notes: list[str]
+    rounds: list[dict[str, Any]]
+    diagnostics: dict[str, Any]
+    base_parameters: dict[str, Any]
+    data: dict[str, Any]
+    runtime_s: float
+    series: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            'named_effects': list(self.named_effects),
+            'steps': [s.to_dict() for s in self.steps],
+            'gap_initial_nT': self.gap_initial_nT,
+            'gap_final_nT': self.gap_final_nT,
+            'noise_floor_nT': self.noise_floor_nT,
+            'base_model': self.base_model,
+            'adequate': self.adequate,
+            'untestable': dict(self.untestable),
+            'view': self.view,
+            'notes': list(self.notes),
+            'rounds': self.rounds,
+            'diagnostics': self.diagnostics,
+            'base_parameters': self.base_parameters,
+            'data': self.data,
+            'criterion': criterion_text(),
+            'library': {c.name: c.physics for c in CANDIDATES},
+            'runtime_s': self.runtime_s,
+        }
+
+
+def criterion_text(settings: Settings | None = None) -> str:
+    s = settings or Settings()
+    return ('Blocked %d-fold cross-validation; the candidate with the lowest CV-BIC n ln(SS_cv/n) + p ln n '
+            '(p: identifiable parameters) is added when its CV-BIC is lower than the current model\'s, '
+            'the held-out F-test of its parameters gives p < %g, and it explains at least (%g x noise floor)^2 '
+            'of the held-out mean square; otherwise the loop stops.' % (s.n_folds, s.alpha, s.relevance))
+
+
+# ---------------------------------------------------------------------------------------
+# Data preparation
+
+
+@dataclass
+class _Prepared:
+    t: np.ndarray
+    fields: np.ndarray          # (N, 4, 3) nT
+    sensors: tuple[int, ...]
+    absolute: bool
+    base_offset: np.ndarray     # (N, 4, 3) nT, the fixed part of the prediction
+    b_background: np.ndarray    # (N, 3) nT
+    b_rate: np.ndarray          # (N, 3) nT/s
+    base_cols: np.ndarray       # (N, 4, 3, pb)
+    base_labels: list[tuple[int, str]]
+    temperature_c: np.ndarray | None
+    current_a: np.ndarray | None
+    attitude: np.ndarray | None  # (N, 3) yaw, pitch, roll deg
+    earth_field_nT: np.ndarray | None
+    notes: list[str]
+    piece: np.ndarray            # (N,) index of the continuous piece of the run
+
+
+def _spline_basis(t: np.ndarray, knot_s: float) -> np.ndarray:
+    """Cubic B-spline basis (N, nk) on [t0, t1] with about ``knot_s`` between knots."""
+    span = max(t[-1] - t[0], 1e-9)
+    intervals = max(1, int(round(span / knot_s)))
+    inner = np.linspace(t[0], t[-1], intervals + 1)
+    knots = np.concatenate([[t[0]] * 3, inner, [t[-1]] * 3])
+    return BSpline.design_matrix(np.clip(t, t[0], t[-1]), knots, 3).toarray()
+
+
+def _sym_columns(cols: np.ndarray, sensor: int, start: int, b: np.ndarray,
+                 labels: list[tuple[int, str]]) -> int:
+    """Symmetric K (6) and hard iron (3) columns of ``sensor`` from ``start``."""
+    k = start
+    for r, c in SYMMETRIC_ENTRIES:
+        cols[:, sensor, r, k] = b[:, c]
+        if r != c:
+            cols[:, sensor, c, k] = b[:, r]
+        labels.append((sensor, f'K{"xyz"[r]}{"xyz"[c]}'))
+        k += 1
+    for a in range(3):
+        cols[:, sensor, a, k] = 1.0
+        labels.append((sensor, f'Bh_{"xyz"[a]}_nT'))
+        k += 1
+    return k
+
+
+def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepared:
+    t_all = np.asarray(recording.t_s, dtype=float)
+    fields = np.asarray(recording.fields, dtype=float) * NT_PER_T
+    keep = np.isfinite(fields).all(axis=(1, 2)) & np.concatenate([[True], np.diff(t_all) > 0])
+    optional = {}
+    for name in ('orientation_xyzw', 'temperature_c', 'current_a'):
+        value = getattr(recording, name, None)
+        if value is not None:
+            value = np.asarray(value, dtype=float)
+            keep &= np.isfinite(value).reshape(len(value), -1).all(axis=1)
+        optional[name] = value
+    if keep.sum() < 50:
+        raise ValueError(f'the recording has {int(keep.sum())} usable samples; the workflow needs at least 50')
+    notes: list[str] = []
+    piece_all, jumps = _pieces(t_all, fields, optional['orientation_xyzw'], keep)
+    if jumps:
+        notes.append(f'{jumps} jump(s) in attitude or field between recorded segments: no derivative is taken '
+                     'across them and 2 samples either side are left out')
+        keep &= piece_all >= 0
+    t, fields = t_all[keep], fields[keep]
+    piece = piece_all[keep]
+    optional = {k: (v[keep] if v is not None else None) for k, v in optional.items()}
+    n = len(t)
+    if n < 50:
+        raise ValueError(f'the recording has {n} usable samples; the workflow needs at least 50')
+    quat = optional['orientation_xyzw']
+    attitude = None
+    earth = None
+    if quat is not None:
+        rotation = Rotation.from_quat(quat)
+        r = rotation.as_matrix()
+        attitude = np.degrees(rotation.as_euler('ZYX'))
+        if earth_field_enu is None:
+            earth = np.mean(np.einsum('nij,nj->ni', r, fields[:, 0]), axis=0)
+            notes.append('earth_field_enu not given: estimated from sensor 1 rotated to ENU by /odom '
+                         f'({np.linalg.norm(earth):.0f} nT)')
+        else:
+            earth = np.asarray(earth_field_enu, dtype=float).reshape(3) * NT_PER_T
+        b0 = np.einsum('nji,j->ni', r, earth)                       # R^T E
+        base_offset = np.repeat(b0[:, None, :], 4, axis=1)
+        phi = _spline_basis(t, settings.knot_s)
+        nk = phi.shape[1]
+        x_cols = np.zeros((n, 4, 3, 3 * nk))
+        labels: list[tuple[int, str]] = []
+        for a in range(3):
+            # R^T e_a is row a of R.
+            x_cols[:, :, :, a * nk:(a + 1) * nk] = (r[:, a, :, None] * phi[:, None, :])[:, None]
+            labels += [(-1, f'x_{"enu"[a]}_{k}') for k in range(nk)]
+        # First pass: the background seen by sensor 1 (external field included).
+        design = x_cols[:, 0].reshape(n * 3, -1)
+        coef = np.linalg.lstsq(design, (fields[:, 0] - b0).reshape(-1), rcond=None)[0]
+        b_background = b0 + (design @ coef).reshape(n, 3)
+        base_cols = np.zeros((n, 4, 3, 3 * nk + 27))
+        base_cols[..., :3 * nk] = x_cols
+        start = 3 * nk
+        for s in (1, 2, 3):
+            start = _sym_columns(base_cols, s, start, b_background, labels)
+        sensors: tuple[int, ...] = (0, 1, 2, 3)
+        absolute = True
+        notes.append('B^b = R^T (E + x(t)) from /odom; x(t): slowly varying external field in the world frame '
+                     f'(cubic B-spline, {nk} functions per axis)')
+    else:
+        b_background = fields[:, 0].copy()
+        base_offset = np.repeat(b_background[:, None, :], 4, axis=1)
+        base_cols = np.zeros((n, 4, 3, 27))
+        labels = []
+        start = 0
+        for s in (1, 2, 3):
+            start = _sym_columns(base_cols, s, start, b_background, labels)
+        sensors = (1, 2, 3)
+        absolute = False
+        notes.append('no /odom: falling back to B^b = B_1\' (the paper\'s assumption); only the pair '
+                     'differences B_i\' - B_1\' are observable, so the residual is that of sensors 2-4 '
+                     'against sensor 1 and sensor-1 parameters are not separable')
+    b_rate = PiecewiseSpline(t, b_background, piece)(0.0, 1)
+    return _Prepared(t, fields, sensors, absolute, base_offset, b_background, b_rate, base_cols, labels,
+                     optional['temperature_c'], optional['current_a'], attitude, earth, notes, piece)
+
+
+def _pieces(t: np.ndarray, fields: np.ndarray, quat: np.ndarray | None,
+            keep: np.ndarray) -> tuple[np.ndarray, int]:
+    """Split the run where the attitude (or, without /odom, sensor 1's field) jumps: a step
+    at least 4 x larger than the steps on both sides of it and than 0.5 deg (50 nT). Returns
+    the piece index per sample (-1: left out, 2 samples either side of a jump) and the
+    number of jumps. Also splits at gaps longer than 5 sample periods."""
+    idx = np.flatnonzero(keep)
+    piece = np.full(len(t), -1, dtype=int)
+    if len(idx) < 8:
+        piece[idx] = 0
+        return piece, 0
+    if quat is not None:
+        q = quat[idx]
+        step = (Rotation.from_quat(q[1:]) * Rotation.from_quat(q[:-1]).inv()).magnitude()
+        floor = np.radians(0.5)
+    else:
+        step = np.linalg.norm(np.diff(fields[idx, 0], axis=0), axis=1)
+        floor = 50.0
+    pad = np.concatenate([[np.inf, np.inf], step, [np.inf, np.inf]])
+    left = np.maximum(pad[:-4], pad[1:-3])
+    right = np.maximum(pad[3:-1], pad[4:])
+    neighbours = np.minimum(left, right)
+    neighbours = np.where(np.isfinite(neighbours), neighbours, np.maximum(np.where(np.isfinite(left), left, 0),
+                                                                           np.where(np.isfinite(right), right, 0)))
+    jump = (step > 4.0 * neighbours) & (step > floor)
+    dt = np.diff(t[idx])
+    gap = dt > 5.0 * np.median(dt)
+    boundary = jump | gap
+    piece[idx] = np.concatenate([[0], np.cumsum(boundary)])
+    for j in np.flatnonzero(jump):
+        piece[idx[max(j - 1, 0):j + 3]] = -1
+    return piece, int(jump.sum())
+
+
+def _testable(prep: _Prepared, names: tuple[str, ...]) -> tuple[list[Candidate], dict[str, str]]:
+    out, untestable = [], {}
+    for name in names:
+        candidate = LIBRARY[name]
+        reason = None
+        if 'odom' in candidate.requires and not prep.absolute:
+            reason = ('no /odom in the bag: without an absolute attitude reference only the pair differences '
+                      "B_i' - B_1' are observable; sensor 1's own soft and hard iron is absorbed into "
+                      "K_i1 (I + K_1)^-1 (its small non-symmetric remainder would look like sensor_misalignment)")
+        elif 'temperature' in candidate.requires:
+            if prep.temperature_c is None:
+                reason = 'no /tetra/temperature in the bag: the drift has no regressor'
+            elif np.ptp(prep.temperature_c) < 1e-3:
+                reason = 'the recorded temperature does not vary (< 0.001 degC): a drift is a constant offset'
+        elif 'current' in candidate.requires:
+            if prep.current_a is None:
+                reason = 'no /battery_state in the bag: the field has no regressor'
+            elif np.ptp(prep.current_a) < 1e-3:
+                reason = 'the recorded current does not vary (< 1 mA): its field is a constant offset'
+        if reason is None:
+            out.append(candidate)
+        else:
+            untestable[name] = reason
+    return out, untestable
+
+
+# ---------------------------------------------------------------------------------------
+# Linear algebra: per-block Gram matrices and blocked cross-validation
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+    w, v = np.linalg.eigh(gram)
+    top = max(float(w[-1]), 1e-300) if len(w) else 1.0
+    keep = w > top * 1e-11
+    theta = v[:, keep] @ ((v[:, keep].T @ rhs) / w[keep])
+    return theta, int(keep.sum())
+
+
+class _Gram:
+    """Per-fold Gram matrices of ``Z`` (N, m, q): columns are normalised regressors, then
+    target and offset vectors (left unscaled)."""
+
+    def __init__(self, z: np.ndarray, t: np.ndarray, block_s: float, n_folds: int) -> None:
+        n, m, q = z.shape
+        edges = np.searchsorted(t, np.arange(t[0], t[-1] + block_s, block_s)[1:], side='left')
+        bounds = np.concatenate([[0], edges[edges < n], [n]])
+        bounds = np.unique(bounds)
+        n_blocks = len(bounds) - 1
+        n_folds = max(2, min(n_folds, n_blocks))
+        self.folds = np.zeros((n_folds, q, q))
+        self.fold_rows = np.zeros(n_folds)
+        self.fold_of_sample = np.zeros(n, dtype=int)
+        for b in range(n_blocks):
+            lo, hi = bounds[b], bounds[b + 1]
+            zb = z[lo:hi].reshape(-1, q)
+            self.folds[b % n_folds] += zb.T @ zb
+            self.fold_rows[b % n_folds] += zb.shape[0]
+            self.fold_of_sample[lo:hi] = b % n_folds
+        self.total = self.folds.sum(axis=0)
+        self.n = float(n * m)
+
+    @staticmethod
+    def _parts(g: np.ndarray, cols: np.ndarray, ty: int, to: int | None) -> tuple[np.ndarray, np.ndarray, float]:
+        c = g[cols, ty].copy()
+        s = g[ty, ty]
+        if to is not None:
+            c -= g[cols, to]
+            s = s - 2 * g[ty, to] + g[to, to]
+        return g[np.ix_(cols, cols)], c, float(s)
+
+    def evaluate(self, cols: np.ndarray, ty: int, to: int | None = None) -> dict[str, Any]:
+        gg, c, s = self._parts(self.total, cols, ty, to)
+        theta, rank = _solve(gg, c) if len(cols) else (np.zeros(0), 0)
+        rss = s - 2 * theta @ c + theta @ gg @ theta if len(cols) else s
+        cv = 0.0
+        for fold in self.folds:
+            train = self.total - fold
+            tg, tc, _ = self._parts(train, cols, ty, to)
+            fg, fc, fs = self._parts(fold, cols, ty, to)
+            th = _solve(tg, tc)[0] if len(cols) else np.zeros(0)
+            cv += fs - 2 * th @ fc + th @ fg @ th if len(cols) else fs
+        return {'theta': theta, 'rank': rank, 'rss': max(rss, 0.0), 'cv': max(cv, 1e-300)}
+
+
+def _flat(arr: np.ndarray, sensors: tuple[int, ...]) -> np.ndarray:
+    """(N, 4, 3, ...) -> (N, 3 len(sensors), ...)."""
+    sub = arr[:, list(sensors)]
+    return sub.reshape(sub.shape[0], 3 * len(sensors), *sub.shape[3:])
+
+
+def _noise_floor(residual: np.ndarray) -> tuple[float, np.ndarray]:
+    """White-noise RMS from the 4th difference of each channel (robust: MAD), nT.
+
+    ``var(diff^4 n) = 70 sigma^2``; a smooth signal is suppressed by ``(omega dt)^4``.
+    Returns the RMS over channels and the per-channel sigmas.
+    """
+    d4 = np.diff(residual, 4, axis=0)
+    mad = np.median(np.abs(d4 - np.median(d4, axis=0)), axis=0)
+    sigma = 1.4826 * mad / np.sqrt(70.0)
+    return float(np.sqrt(np.mean(sigma**2))), sigma
+
+
+def _lstsq_full(prep: _Prepared, cols: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Least squares on all samples of the view (normal equations on normalised columns,
+    eigen-solve with a rank cut-off); physical coefficients (per column)."""
+    a = _flat(cols, prep.sensors)
+    a = a.reshape(-1, a.shape[-1])
+    y = _flat(target, prep.sensors).reshape(-1)
+    gram = a.T @ a
+    norm = np.sqrt(np.diag(gram)).copy()
+    norm[norm == 0] = 1.0
+    coef, _ = _solve(gram / np.outer(norm, norm), (a.T @ y) / norm)
+    return coef / norm
+
+
+@dataclass
+class _Family:
+    candidate: Candidate
+    cols: np.ndarray                 # (N, 4, 3, p)
+    offset: np.ndarray | None        # (N, 4, 3)
+    labels: list[tuple[int, str]]
+
+
+def _build(candidate: Candidate, ctx: Context, prep: _Prepared, cur_cols: np.ndarray,
+           target: np.ndarray) -> _Family:
+    """Build a family's columns; nonlinear families are iterated at their estimate."""
+    cols, offset, labels = candidate.build(ctx, None)
+    if candidate.nonlinear:
+        for _ in range(3):
+            both = np.concatenate([cur_cols, cols], axis=-1)
+            tgt = target - (offset if offset is not None else 0.0)
+            coef = _lstsq_full(prep, both, tgt)[cur_cols.shape[-1]:]
+            estimate = {label: float(v) for label, v in zip(labels, coef)}
+            cols, offset, labels = candidate.build(ctx, estimate)
+    return _Family(candidate, cols, offset, labels)
+
+
+def _format(labels: list[tuple[int, str]], coef: np.ndarray, absolute: bool) -> dict[str, Any]:
+    per_sensor: dict[str, dict[str, float]] = {}
+    for (s, name), value in zip(labels, coef):
+        per_sensor.setdefault(f'sensor_{s + 1}', {})[name] = float(value)
+    out: dict[str, Any] = {'per_sensor': per_sensor}
+    if not absolute:
+        out['note'] = 'pair view: values relative to sensor 1 (sensor 1 taken as zero)'
+    return out
+
+
+def _effect_field(family: _Family, coef: np.ndarray) -> np.ndarray:
+    field_ = np.einsum('nsap,p->nsa', family.cols, coef)
+    return field_ + (family.offset if family.offset is not None else 0.0)
+
+
+# ---------------------------------------------------------------------------------------
+# Diagnostics: where do measurement and simulation disagree?
+
+
+def _diagnostics(prep: _Prepared, residual: np.ndarray) -> dict[str, Any]:
+    drivers: dict[str, np.ndarray] = {'time_s': prep.t, 'field_rate_nT_s': np.linalg.norm(prep.b_rate, axis=1)}
+    if prep.attitude is not None:
+        drivers.update({'heading_deg': prep.attitude[:, 0], 'pitch_deg': prep.attitude[:, 1],
+                        'roll_deg': prep.attitude[:, 2]})
+    if prep.temperature_c is not None:
+        drivers['temperature_c'] = prep.temperature_c
+    if prep.current_a is not None:
+        drivers['current_a'] = prep.current_a
+    out: dict[str, Any] = {'rms_nT': {}, 'correlation': {}}
+    for s in prep.sensors:
+        out['rms_nT'][f'sensor_{s + 1}'] = [float(v) for v in np.sqrt(np.mean(residual[:, s] ** 2, axis=0))]
+    for name, d in drivers.items():
+        if np.ptp(d) == 0:
+            continue
+        if name == 'heading_deg':
+            d = np.cos(np.radians(d))
+        dc = d - d.mean()
+        best = (0.0, '')
+        for s in prep.sensors:
+            for a in range(3):
+                r = residual[:, s, a] - residual[:, s, a].mean()
+                den = np.sqrt((dc @ dc) * (r @ r))
+                corr = float(dc @ r / den) if den > 0 else 0.0
+                if abs(corr) > abs(best[0]):
+                    best = (corr, f'sensor {s + 1} {"xyz"[a]}')
+        out['correlation'][name] = {'r': best[0], 'where': best[1]}
+    out['drivers'] = list(drivers)
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# The workflow
+
+
+def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *,
+            settings: Settings | None = None, keep_series: bool = True) -> Report:
+    """Find the effects the base model is missing in a recorded run.
+
+    Parameters
+    ----------
+    recording : io.recording.Recording (or anything with ``t_s``, ``fields`` (N, 4, 3) T and
+        the optional ``orientation_xyzw``, ``temperature_c``, ``current_a``)
+    geometry : TetraGeometry, optional
+        Used to express the final residual on the tensor (nT/m) as well.
+    earth_field_enu : (3,) tesla, optional
+        Estimated from sensor 1 and /odom when absent.
+    settings : Settings, optional
+    keep_series : keep the arrays for the plots in ``Report.series``
+
+    Returns
+    -------
+    Report
+    """
+    started = time.perf_counter()
+    settings = settings or Settings()
+    names = settings.candidates or tuple(c.name for c in CANDIDATES)
+    unknown = [n for n in names if n not in LIBRARY]
+    if unknown:
+        raise ValueError(f'unknown candidate effects {unknown}; the library has {sorted(LIBRARY)}')
+    prep = _prepare(recording, earth_field_enu, settings)
+    testable, untestable = _testable(prep, tuple(names))
+    duration = float(prep.t[-1] - prep.t[0])
+    block_s = settings.block_s or float(np.clip(duration / 40.0, 5.0, 30.0))
+    n = len(prep.t)
+    y = prep.fields - prep.base_offset
+    active: list[_Family] = []
+    steps: list[Step] = []
+    rounds: list[dict[str, Any]] = []
+    residuals: list[np.ndarray] = []
+    gaps: list[float] = []
+    floors: list[float] = []
+    remaining = list(testable)
+    base_p = prep.base_cols.shape[-1]
+    while True:
+        cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
+        cur_off = sum((f.offset for f in active if f.offset is not None), np.zeros_like(y))
+        coef = _lstsq_full(prep, cur_cols, y - cur_off)
+        prediction = prep.base_offset + np.einsum('nsap,p->nsa', cur_cols, coef) + cur_off
+        residual = prep.fields - prediction
+        floor, _ = _noise_floor(_flat(residual, prep.sensors))
+        ctx = Context(prep.t, prep.sensors, prep.absolute, prep.b_background, prep.b_rate, prediction,
+                      prep.temperature_c, prep.current_a, prep.piece)
+        fams = [] if len(active) >= settings.max_effects else [
+            _build(c, ctx, prep, cur_cols, y - cur_off) for c in remaining]
+        # Z = [current columns | candidate columns | target | candidate offsets]
+        blocks = [cur_cols] + [f.cols for f in fams]
+        allcols = np.concatenate(blocks, axis=-1)
+        a = _flat(allcols, prep.sensors)
+        norm = np.sqrt(np.einsum('nmp,nmp->p', a, a))
+        usable = norm > 0
+        norm[~usable] = 1.0
+        extra = [_flat(y - cur_off, prep.sensors)[..., None]]
+        offset_index: list[int | None] = []
+        q0 = a.shape[-1] + 1
+        for f in fams:
+            if f.offset is not None:
+                offset_index.append(q0 + len(extra) - 1)
+                extra.append(_flat(f.offset, prep.sensors)[..., None])
+            else:
+                offset_index.append(None)
+        z = np.concatenate([a / norm] + extra, axis=-1)
+        gram = _Gram(z, prep.t, block_s, settings.n_folds)
+        ty = a.shape[-1]
+        n_obs = gram.n
+        p_cur = cur_cols.shape[-1]
+        cur_idx = np.flatnonzero(usable[:p_cur])
+        cur = gram.evaluate(cur_idx, ty)
+        gap_cur = float(np.sqrt(cur['cv'] / n_obs))
+        bic_cur = n_obs * np.log(cur['cv'] / n_obs) + cur['rank'] * np.log(n_obs)
+        residuals.append(residual)
+        gaps.append(gap_cur)
+        floors.append(floor)
+        table = []
+        start = p_cur
+        for f, to in zip(fams, offset_index):
+            p = f.cols.shape[-1]
+            idx = np.concatenate([cur_idx, start + np.flatnonzero(usable[start:start + p])])
+            start += p
+            res = gram.evaluate(idx, ty, to)
+            dp = res['rank'] - cur['rank']
+            bic = n_obs * np.log(res['cv'] / n_obs) + res['rank'] * np.log(n_obs)
+            gain = cur['cv'] - res['cv']
+            if dp > 0 and gain > 0:
+                fstat = (gain / dp) / (res['cv'] / max(n_obs - res['rank'], 1.0))
+                pval = float(stats.f.sf(fstat, dp, max(n_obs - res['rank'], 1.0)))
+            else:
+                fstat, pval = 0.0, 1.0
+            explained = float(np.sqrt(max(gain, 0.0) / n_obs))
+            table.append({'effect': f.candidate.name, 'n_parameters': int(dp),
+                          'gap_after_nT': float(np.sqrt(res['cv'] / n_obs)), 'delta_bic': float(bic - bic_cur),
+                          'f_statistic': float(fstat), 'p_value': pval, 'explained_rms_nT': explained,
+                          'passes': bool(bic < bic_cur and pval < settings.alpha
+                                         and explained >= settings.relevance * floor)})
+        table.sort(key=lambda row: row['delta_bic'])
+        rounds.append({'gap_nT': gap_cur, 'noise_floor_nT': floor, 'model': [f.candidate.name for f in active],
+                       'candidates': table})
+        winners = [row for row in table if row['passes']]
+        if not winners:
+            break
+        best = winners[0]
+        family = fams[[f.candidate.name for f in fams].index(best['effect'])]
+        others = [row for row in table if row['effect'] != best['effect']]
+        runner = others[0] if others else None
+        evidence = (f"held-out gap {gap_cur:.3g} -> {best['gap_after_nT']:.3g} nT (noise floor {floor:.3g} nT) "
+                    f"with {best['n_parameters']} parameters; it explains {best['explained_rms_nT']:.3g} nT RMS "
+                    f"of the held-out residual; CV-BIC {best['delta_bic']:+.4g}; held-out F = {best['f_statistic']:.4g} "
+                    f"(p = {best['p_value']:.3g})")
+        if runner is not None:
+            evidence += (f"; runner-up {runner['effect']}: gap {runner['gap_after_nT']:.3g} nT with "
+                         f"{runner['n_parameters']} parameters, CV-BIC {runner['delta_bic']:+.4g}")
+        steps.append(Step(best['effect'], gap_cur, best['gap_after_nT'], {}, evidence, best['n_parameters'],
+                          best['delta_bic'], best['f_statistic'], best['p_value']))
+        active.append(family)
+        remaining = [c for c in remaining if c.name != family.candidate.name]
+    # Final joint fit: parameters of every named effect and of the base model.
+    offsets = [base_p]
+    for f in active:
+        offsets.append(offsets[-1] + f.cols.shape[-1])
+    effect_fields = {}
+    for step, f, lo, hi in zip(steps, active, offsets[:-1], offsets[1:]):
+        c = coef[lo:hi]
+        step.parameters = _format(f.labels, c, prep.absolute)
+        step.parameters['units'] = f.candidate.parameters
+        fld = _effect_field(f, c)
+        step.parameters['rms_contribution_nT'] = {
+            f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2))) for s in prep.sensors}
+        effect_fields[f.candidate.name] = fld
+    base_params = _format(prep.base_labels, coef[:base_p], prep.absolute)
+    base_params['per_sensor'].pop('sensor_0', None)  # the external-field spline weights
+    base_params['external_field_spline'] = 'omitted (%d weights)' % sum(1 for s, _ in prep.base_labels if s < 0)
+    gap_final, floor_final = gaps[-1], floors[-1]
+    adequate = gap_final <= settings.adequate_ratio * floor_final
+    notes = list(prep.notes)
+    if not adequate:
+        notes.append(f'the final gap {gap_final:.3g} nT exceeds {settings.adequate_ratio} x the noise floor '
+                     f'({floor_final:.3g} nT) but no candidate in the library explains the rest: '
+                     'an effect outside the library (or a target close to the track) remains')
+    diagnostics = {'base': _diagnostics(prep, residuals[0]), 'final': _diagnostics(prep, residuals[-1])}
+    if geometry is not None:
+        from ..core.geometry import difference_tensor
+        if prep.absolute:
+            g = difference_tensor(residuals[-1] / NT_PER_T, geometry) * NT_PER_T
+        else:
+            g = difference_tensor(np.concatenate([np.zeros((n, 1, 3)), residuals[-1][:, 1:]], axis=1)
+                                  / NT_PER_T, geometry) * NT_PER_T
+        diagnostics['final_tensor_rms_nT_per_m'] = float(np.sqrt(np.mean(g**2)))
+    data = {'samples': n, 'duration_s': duration, 'sample_rate_hz': float((n - 1) / duration) if duration else 0.0,
+            'cv_block_s': block_s, 'folds': settings.n_folds, 'has_odom': prep.absolute,
+            'has_temperature': prep.temperature_c is not None, 'has_current': prep.current_a is not None,
+            'missing_topics': dict(getattr(recording, 'missing', {}) or {})}
+    if prep.earth_field_nT is not None:
+        data['earth_field_enu_nT'] = [float(v) for v in prep.earth_field_nT]
+        data['earth_field_source'] = 'params' if earth_field_enu is not None else 'estimated'
+    report = Report(
+        named_effects=[s.effect for s in steps], steps=steps, gap_initial_nT=gaps[0], gap_final_nT=gap_final,
+        noise_floor_nT=floor_final, base_model=BASE_MODEL + ('; B^b = R^T earth_field_enu from /odom'
+                                                              if prep.absolute else "; B^b = B_1' (no /odom)"),
+        adequate=bool(adequate), untestable=untestable,
+        view='absolute' if prep.absolute else 'pair', notes=notes, rounds=rounds, diagnostics=diagnostics,
+        base_parameters=base_params, data=data, runtime_s=0.0)
+    if keep_series:
+        report.series = {'t': prep.t, 'sensors': prep.sensors, 'residuals': residuals, 'gaps': gaps,
+                         'floors': floors, 'effect_fields': effect_fields, 'b_rate': prep.b_rate,
+                         'attitude': prep.attitude, 'temperature_c': prep.temperature_c,
+                         'current_a': prep.current_a}
+    report.runtime_s = float(time.perf_counter() - started)
+    return report

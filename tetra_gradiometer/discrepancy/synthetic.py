@@ -1,0 +1,169 @@
+"""Recorded-style test missions with hidden effects of a chosen size (tests and bench).
+
+``make_case`` draws a random geometry (non-regular tetrahedron), Earth field, manoeuvre,
+noise and base interference, hides the named effects in random sensors, and scales each so
+that its RMS contribution over the sensors it affects is ``factor x noise``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..core import (Dipole, Effects, MissionData, Scenario, SensorInterference, SurveyLine, TetraGeometry,
+                    TrimManoeuvre, random_interference, simulate)
+
+EFFECT_NAMES = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'time_skew', 'thermal_drift',
+                'vehicle_current')
+
+
+@dataclass
+class Case:
+    """A simulated mission with its truth."""
+
+    scenario: Scenario
+    mission: MissionData
+    hidden: dict[str, dict[str, Any]]   # effect -> {'sensors': [...], 'rms_nT': float}
+
+    def recording(self, *, odom: bool = True, temperature: bool = True, battery: bool = True) -> Any:
+        """The mission as an io.recording.Recording (what read_recording returns)."""
+        from ..io.recording import Recording, mission_stamps_ns
+        m = self.mission
+        missing = {}
+        if not odom:
+            missing['/odom'] = 'not recorded'
+        if not temperature:
+            missing['/tetra/temperature'] = 'not recorded'
+        if not battery:
+            missing['/battery_state'] = 'not recorded'
+        return Recording(mission_stamps_ns(m, 0), m.fields_measured, m.orientation_xyzw if odom else None,
+                         m.temperature_c if temperature else None, m.current_a if battery else None, missing)
+
+
+def random_geometry(rng: np.random.Generator) -> TetraGeometry:
+    """A non-regular tetrahedron: edge 0.2-1 m, vertices moved up to 20 % of the edge, any orientation."""
+    edge = rng.uniform(0.2, 1.0)
+    base = TetraGeometry.regular(edge).positions
+    base = base + rng.uniform(-0.2, 0.2, (4, 3)) * edge
+    base = Rotation.random(random_state=rng.integers(2**31)).apply(base - base[0])
+    return TetraGeometry(base + rng.uniform(-1.0, 1.0, 3))
+
+
+def random_earth_field(rng: np.random.Generator) -> np.ndarray:
+    """25 000-65 000 nT, inclination -75..75 deg, any declination; tesla, ENU."""
+    magnitude = rng.uniform(25e-6, 65e-6)
+    inc, dec = np.radians(rng.uniform(-75, 75)), rng.uniform(0, 2 * np.pi)
+    return magnitude * np.array([np.cos(inc) * np.sin(dec), np.cos(inc) * np.cos(dec), -np.sin(inc)])
+
+
+def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
+    """A trim manoeuvre (random rates, amplitudes, periods), sometimes followed by a survey line."""
+    trim_s = duration_s if rng.random() < 0.5 else duration_s * rng.uniform(0.6, 0.8)
+    trim = TrimManoeuvre(duration_s=trim_s, heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
+                         roll_amplitude_deg=rng.uniform(8, 30), roll_period_s=rng.uniform(7, 16),
+                         pitch_amplitude_deg=rng.uniform(6, 25), pitch_period_s=rng.uniform(10, 25),
+                         initial_heading_deg=rng.uniform(0, 360), speed_m_s=rng.uniform(0.5, 2.0))
+    segments: tuple = (trim,)
+    rest = duration_s - trim_s
+    if rest > 1.0:
+        speed = rng.uniform(1.0, 2.5)
+        heading = rng.uniform(0, 2 * np.pi)
+        start = np.array([0.0, 0.0, -50.0])
+        end = start + speed * rest * np.array([np.cos(heading), np.sin(heading), 0.0])
+        segments += (SurveyLine(tuple(start), tuple(end), speed_m_s=speed, roll_amplitude_deg=rng.uniform(0, 5),
+                                pitch_amplitude_deg=rng.uniform(0, 4)),)
+    return segments
+
+
+def _unit_effect(name: str, rng: np.random.Generator, sensors: list[int]) -> tuple[Effects, SensorInterference | None]:
+    mask = np.zeros(4)
+    mask[sensors] = 1.0
+    if name == 'eddy_current':
+        return Effects(eddy_current=rng.normal(0, 1.0, (4, 3, 3)) * mask[:, None, None]), None
+    if name == 'sensor_misalignment':
+        return Effects(sensor_misalignment=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
+    if name == 'time_skew':
+        return Effects(time_skew_s=rng.choice([-1.0, 1.0], 4) * rng.uniform(0.5, 1.0, 4) * mask), None
+    if name == 'thermal_drift':
+        return Effects(thermal_drift=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
+    if name == 'vehicle_current':
+        return Effects(vehicle_current=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
+    if name == 'reference_interference':
+        ref = random_interference(rng, reference_clean=False)
+        k = np.zeros((4, 3, 3))
+        b = np.zeros((4, 3))
+        k[0], b[0] = ref.k_soft[0], ref.b_hard[0] * rng.uniform(0.3, 1.0)
+        return Effects(), SensorInterference(k, b)
+    raise ValueError(f'unknown effect {name!r}')
+
+
+def _scaled(effects: Effects, interference: SensorInterference | None, factor: float) -> tuple[Effects, Any]:
+    kwargs = {n: (getattr(effects, n) * factor if getattr(effects, n) is not None else None)
+              for n in ('eddy_current', 'sensor_misalignment', 'time_skew_s', 'thermal_drift', 'vehicle_current')}
+    inter = None if interference is None else SensorInterference(interference.k_soft * factor,
+                                                                 interference.b_hard * factor)
+    return Effects(**kwargs), inter
+
+
+def _combine(a: Effects, b: Effects) -> Effects:
+    out = {}
+    for n in ('eddy_current', 'sensor_misalignment', 'time_skew_s', 'thermal_drift', 'vehicle_current'):
+        va, vb = getattr(a, n), getattr(b, n)
+        out[n] = vb if va is None else (va if vb is None else va + vb)
+    return Effects(**out)
+
+
+def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 180.0, factor: tuple[float, float]
+              = (20.0, 80.0), noise_nT: tuple[float, float] = (0.02, 0.2), rate_hz: float = 10.0,
+              far_target: bool | None = None) -> Case:
+    """A mission with ``effects`` hidden, each ``factor`` (drawn uniformly) x noise RMS over
+    the sensors it affects. Sensor choice, magnitudes, geometry, Earth field, manoeuvre and
+    noise come from ``seed``."""
+    rng = np.random.default_rng(seed)
+    noise = rng.uniform(*noise_nT) * 1e-9
+    interference = random_interference(rng, k_scale=rng.uniform(1e-3, 1e-2), b_scale_t=rng.uniform(20e-9, 300e-9))
+    dipoles: tuple = ()
+    if far_target if far_target is not None else rng.random() < 0.3:
+        direction = rng.normal(size=3)
+        direction[2] = -abs(direction[2])
+        position = np.array([0.0, 0.0, -50.0]) + rng.uniform(800.0, 2000.0) * direction / np.linalg.norm(direction)
+        dipoles = (Dipole(position, rng.normal(0, 2e6, 3)),)
+    base = Scenario(geometry=random_geometry(rng), earth_field_enu=random_earth_field(rng),
+                    segments=random_segments(rng, duration_s), sample_rate_hz=rate_hz, dipoles=dipoles,
+                    interference=interference, noise_t=0.0,
+                    temperature=_random_temperature(rng), current=_random_current(rng))
+    clean = simulate(base, np.random.default_rng(seed + 1)).fields_measured
+    total_effects, total_inter = Effects(), interference
+    hidden: dict[str, dict[str, Any]] = {}
+    for name in effects:
+        sensors = [0] if name == 'reference_interference' else sorted(
+            rng.choice(4, size=int(rng.integers(1, 3)), replace=False).tolist())
+        unit, inter = _unit_effect(name, rng, sensors)
+        probe = replace(base, effects=unit, interference=interference if inter is None else
+                        SensorInterference(interference.k_soft + inter.k_soft, interference.b_hard + inter.b_hard))
+        delta = simulate(probe, np.random.default_rng(seed + 1)).fields_measured - clean
+        unit_rms = float(np.sqrt(np.mean(delta[:, sensors] ** 2)))
+        target = rng.uniform(*factor) * noise
+        scaled, inter = _scaled(unit, inter, target / unit_rms)
+        total_effects = _combine(total_effects, scaled)
+        if inter is not None:
+            total_inter = SensorInterference(total_inter.k_soft + inter.k_soft, total_inter.b_hard + inter.b_hard)
+        hidden[name] = {'sensors': [s + 1 for s in sensors], 'rms_nT': target * 1e9}
+    scenario = replace(base, effects=total_effects, interference=total_inter, noise_t=noise)
+    mission = simulate(scenario, np.random.default_rng(seed + 1))
+    for name, info in hidden.items():
+        info['noise_nT'] = noise * 1e9
+    return Case(scenario, mission, hidden)
+
+
+def _random_temperature(rng: np.random.Generator):
+    from ..core import TemperatureProfile
+    return TemperatureProfile(mean_c=rng.uniform(2, 25), ramp_c=rng.uniform(-6, 6), amplitude_c=rng.uniform(0.3, 2),
+                              period_s=rng.uniform(60, 500))
+
+
+def _random_current(rng: np.random.Generator):
+    from ..core import CurrentProfile
+    return CurrentProfile(base_a=rng.uniform(-15, -3), step_amplitude_a=rng.uniform(2, 8), step_s=rng.uniform(8, 30))
