@@ -119,7 +119,7 @@ def table(rows: list[dict]) -> str:
              '|---|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(f'| {r["scenario"]} | {r["method"]} | {r["parameters"]} ({r["rank"]}) | '
-                     f'{r["rms_before_nT_per_m"]:.1f} | {r["rms_nT_per_m"]:.4g} | {r["floor_ratio"]:.3g} | '
+                     f'{r["rms_before_nT_per_m"]:.1f} | {r["rms_nT_per_m"]:.4g} | {r["floor_ratio"]:.3f} | '
                      f'{r["improvement_ratio"]:.4g} | {r["compensated_percent"]:.3f} % |')
     return '\n'.join(lines)
 
@@ -190,7 +190,7 @@ def main() -> int:
     failed = [r for r in rows if r['method'] == 'known_gradient_lstsq_general'
               and not (r['floor_ratio'] <= TARGET_FLOOR_RATIO and r['improvement_ratio'] >= TARGET_IMPROVEMENT)]
     for r in failed:
-        print(f'TARGET MISSED: {r["scenario"]}: {r["rms_nT_per_m"]:.4g} nT/m = {r["floor_ratio"]:.3g} x floor, '
+        print(f'TARGET MISSED: {r["scenario"]}: {r["rms_nT_per_m"]:.4g} nT/m = {r["floor_ratio"]:.3f} x floor, '
               f'improvement {r["improvement_ratio"]:.4g}')
     if not failed:
         print(f'targets met: known_gradient_lstsq_general <= {TARGET_FLOOR_RATIO} x floor and improvement >= '

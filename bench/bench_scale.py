@@ -6,7 +6,7 @@ storage and cached under ``--cache`` (default /tmp/tetra_bench_scale); generatin
 a few minutes. Each command then runs in its own subprocess, timed by the wall clock, its
 peak memory read from ``ru_maxrss`` (os.wait4).
 
-    .venv/bin/python bench/bench_scale.py [--storage sqlite3 mcap] [--cache DIR] [--out-bag]
+    .venv/bin/python bench/bench_scale.py [--storage sqlite3 mcap] [--cache DIR] [--out-bag] [--generic]
 
 Target: compensate (CSV) in < 60 s with < 500 MB peak memory.
 """
@@ -61,6 +61,8 @@ def main() -> int:
     parser.add_argument('--storage', nargs='+', default=['sqlite3', 'mcap'], choices=['sqlite3', 'mcap'])
     parser.add_argument('--cache', default='/tmp/tetra_bench_scale')
     parser.add_argument('--out-bag', action='store_true', help='also time compensate --out-bag')
+    parser.add_argument('--generic', action='store_true',
+                        help='also time compensate --generic-reader (rosbags deserializer, StampMatcher)')
     parser.add_argument('--json', default=None)
     args = parser.parse_args()
     cache = Path(args.cache)
@@ -77,6 +79,8 @@ def main() -> int:
         commands = [('compensate --csv', ['--csv', work / 'out.csv'])]
         if args.out_bag:
             commands.append(('compensate --csv --out-bag', ['--csv', work / 'out.csv', '--out-bag', work / 'out_bag']))
+        if args.generic:
+            commands.append(('compensate --csv --generic-reader', ['--csv', work / 'out.csv', '--generic-reader']))
         for label, extra in commands:
             elapsed, peak, stdout = run('compensate', bag, '--params', params, '--calibration', work / 'calib.yaml',
                                         '--no-progress', *extra)

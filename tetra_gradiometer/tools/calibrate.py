@@ -94,16 +94,22 @@ def read_window(bag_path: str, window: tuple[float, float] | None, *, tolerance_
     stamps, fields = [], []
     first = last = None
     with MagneticBag(bag_path) as bag:
-        for chunk_stamps, chunk_fields in bag.iter_sets(tolerance_s=tolerance_s, progress=progress):
+        sets = bag.iter_sets(tolerance_s=tolerance_s, progress=progress)
+        for chunk_stamps, chunk_fields in sets:
             first = int(chunk_stamps[0]) if first is None else first
             last = int(chunk_stamps[-1])
+            beyond = False
             if window is not None:
                 t = (chunk_stamps - first) * 1e-9
                 keep = (t >= window[0]) & (t <= window[1])
                 chunk_stamps, chunk_fields = chunk_stamps[keep], chunk_fields[keep]
+                beyond = t[-1] > window[1]
             if len(chunk_stamps):
                 stamps.append(chunk_stamps)
                 fields.append(chunk_fields)
+            if beyond:  # sets come in stamp order: the rest of the bag lies beyond the window
+                sets.close()
+                break
         counters = bag.counters
     span = (last - first) * 1e-9
     if not stamps:
@@ -153,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
                                bounds=paper_bounds(symmetric=True, wide=args.wide_bounds), **options)
     record = CalibrationFile.from_calibration(calibration, geometry)
     extra = {'bag': str(args.bag), 'window_s': window_text, 'sets_in_window': n_window, 'thinned_every': thinned,
-             'attitude_coverage_condition': coverage, 'bag_span_s': span}
+             'attitude_coverage_condition': coverage, 'read_span_s': span}
     if method == 'paper_ga':
         extra['seed'] = args.seed
     record = dataclasses.replace(record, diagnostics={**record.diagnostics, **extra})
@@ -161,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
 
     summary = calibration.summary()
     print(f'calibrated {args.bag}: method {method}, window {window_text} '
-          f'({n_window} sets{f", every {thinned}th used" if thinned > 1 else ""}; bag spans {span:.1f} s; '
+          f'({n_window} sets{f", every {thinned}th used" if thinned > 1 else ""}; read {span:.1f} s of the bag; '
           f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order)')
     print(f'  parameters {summary["n_parameters"]}, rank {summary["rank"]} '
           f'(null space {summary["null_space_dim"]}), condition number {summary["condition_number"]:.3g}')

@@ -52,6 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="storage of --out-bag (default: the input's)")
     parser.add_argument('--tolerance-ms', type=float, default=2.0,
                         help='largest spread of the four header stamps in one set (default 2 ms)')
+    parser.add_argument('--generic-reader', action='store_true',
+                        help='decode with rosbags and match message by message (slower; same result)')
     progress = parser.add_mutually_exclusive_group()
     progress.add_argument('--progress', dest='progress', action='store_true', default=None)
     progress.add_argument('--no-progress', dest='progress', action='store_false')
@@ -102,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
             if out_bag.resolve() == bag_path.resolve():
                 raise ValueError('--out-bag must differ from the input bag')
             writer = stack.enter_context(BagWriter(out_bag, storage=args.out_storage or _input_storage(bag_path)))
-        for stamps, fields in bag.iter_sets(tolerance_s=args.tolerance_ms * 1e-3, progress=args.progress):
+        for stamps, fields in bag.iter_sets(tolerance_s=args.tolerance_ms * 1e-3, progress=args.progress,
+                                              fast=not args.generic_reader):
             tensors = difference_tensor(fields, geometry)
             if parameters is not None:
                 tensors = compensate(tensors, fields[:, 0, :], parameters, geometry)
