@@ -252,10 +252,22 @@ class MissionData:
         return MissionData(**{name: getattr(self, name)[mask] for name in self.__dataclass_fields__})
 
 
-def _pose(scenario: Scenario, t: np.ndarray) -> tuple[np.ndarray, Rotation, np.ndarray]:
-    """Position (N, 3), attitude, and segment index at absolute times ``t`` (s)."""
+def _segment_index(scenario: Scenario, t: np.ndarray) -> np.ndarray:
+    """Index of the segment flown at absolute times ``t`` (s)."""
     starts = np.cumsum([0.0] + [s.duration_s for s in scenario.segments])
-    index = np.clip(np.searchsorted(starts, t, side='right') - 1, 0, len(scenario.segments) - 1)
+    return np.clip(np.searchsorted(starts, t, side='right') - 1, 0, len(scenario.segments) - 1)
+
+
+def _pose(scenario: Scenario, t: np.ndarray,
+          index: np.ndarray | None = None) -> tuple[np.ndarray, Rotation, np.ndarray]:
+    """Position (N, 3), attitude, and segment index at absolute times ``t`` (s).
+
+    ``index`` forces the segment of each time (a segment's pose is smooth past its ends),
+    so that derivatives taken across a segment boundary stay within one segment.
+    """
+    starts = np.cumsum([0.0] + [s.duration_s for s in scenario.segments])
+    if index is None:
+        index = _segment_index(scenario, t)
     position, euler = np.empty((len(t), 3)), np.empty((len(t), 3))
     for i, segment in enumerate(scenario.segments):
         here = index == i
@@ -271,9 +283,10 @@ def _world_field(scenario: Scenario, points: np.ndarray) -> np.ndarray:
     return total
 
 
-def _clean_fields(scenario: Scenario, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Rotation, np.ndarray]:
+def _clean_fields(scenario: Scenario, t: np.ndarray,
+                  index: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Rotation, np.ndarray]:
     """Clean body-frame readings (N, 4, 3) T at times ``t``, plus position, attitude, segment."""
-    position, attitude, index = _pose(scenario, t)
+    position, attitude, index = _pose(scenario, t, index)
     n = len(t)
     rotation = attitude.as_matrix()
     points = position[:, None, :] + np.einsum('nij,sj->nsi', rotation, scenario.geometry.positions)
@@ -297,7 +310,11 @@ def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray],
     effects = scenario.effects
     if effects.eddy_current is not None:
         step = _DERIVATIVE_STEP_S
-        rate = (_clean_fields(scenario, t + step)[0][:, 0] - _clean_fields(scenario, t - step)[0][:, 0]) / (2 * step)
+        # Within the segment of each sample: segments join with a jump in pose, and a
+        # difference across the join would read it as a huge dB/dt.
+        index = _segment_index(scenario, t)
+        rate = (_clean_fields(scenario, t + step, index)[0][:, 0]
+                - _clean_fields(scenario, t - step, index)[0][:, 0]) / (2 * step)
         readings += np.einsum('sij,nj->nsi', effects.eddy_current, rate)
     if effects.thermal_drift is not None:
         excess = scenario.temperature(t, scenario.duration_s) - scenario.temperature.mean_c
