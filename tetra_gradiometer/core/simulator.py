@@ -302,9 +302,13 @@ def _current_function(scenario: Scenario, rng: np.random.Generator) -> Callable[
     return lambda t: np.interp(t, knots, levels)
 
 
-def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-    """Noise-free measured readings (N, 4, 3) T at times ``t``: interference and effects."""
-    fields, _, _, _ = _clean_fields(scenario, t)
+def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray], np.ndarray],
+              index: np.ndarray | None = None) -> np.ndarray:
+    """Noise-free measured readings (N, 4, 3) T at times ``t`` (on segments ``index``, default
+    the segments flown at ``t``): interference and effects."""
+    if index is None:
+        index = _segment_index(scenario, t)
+    fields, _, _, _ = _clean_fields(scenario, t, index)
     background = fields[:, 0, :]
     readings = scenario.interference.apply(fields, background)
     effects = scenario.effects
@@ -312,7 +316,6 @@ def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray],
         step = _DERIVATIVE_STEP_S
         # Within the segment of each sample: segments join with a jump in pose, and a
         # difference across the join would read it as a huge dB/dt.
-        index = _segment_index(scenario, t)
         rate = (_clean_fields(scenario, t + step, index)[0][:, 0]
                 - _clean_fields(scenario, t - step, index)[0][:, 0]) / (2 * step)
         readings += np.einsum('sij,nj->nsi', effects.eddy_current, rate)
@@ -346,7 +349,9 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     skew = scenario.effects.time_skew_s
     if skew is not None:
         for sensor in np.flatnonzero(skew):
-            measured[:, sensor] = _readings(scenario, t - skew[sensor], current)[:, sensor]
+            # The skewed sensor reads the same segment's trajectory, earlier (not the pose
+            # of the previous segment across a join, which is a jump).
+            measured[:, sensor] = _readings(scenario, t - skew[sensor], current, index)[:, sensor]
     measured += rng.normal(0.0, scenario.noise_t, measured.shape) if scenario.noise_t > 0 else 0.0
     centroid_world = position + attitude.apply(scenario.geometry.centroid)
     g_world = np.zeros((n, 3, 3))
