@@ -1,0 +1,138 @@
+"""``python -m tetra_gradiometer record --out BAG --duration S``: record the sim driver's
+topics (``/tetra/mag1..4``, ``/tetra/gradient/truth``, ``/odom``) over ROS 2 into a rosbag2
+folder (io/bag.py BagWriter, messages rebuilt with conversions.rosbags_types).
+
+A driver node (sim mode, ``--scenario``, ``--rate`` times real time) and a recorder node run
+in this process; ``--duration`` is seconds of *sample* time (so a recording is the same
+whatever the rate). The bag is written to a temporary folder and renamed into place only
+when complete; the command fails if any message was lost.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, MagneticField
+
+from .. import conversions as cv
+from ._ros import DEFAULT_PARAMS_FILE, NAMESPACE, derived_qos, sensor_qos
+from .run_node import ros_arguments
+
+
+class Recorder(Node):
+    """Queues every driver message it receives, rebuilt as a rosbags message, with its header
+    stamp; the thread that owns the BagWriter drains ``queue`` (sqlite3 objects stay in the
+    thread that made them)."""
+
+    def __init__(self, types: cv.MessageTypes, **kwargs) -> None:
+        kwargs.setdefault('namespace', NAMESPACE)
+        super().__init__('recorder', **kwargs)
+        self.queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._types = types
+        self.counts: dict[str, int] = {}
+        for sensor, topic in enumerate(cv.MAG_TOPICS):
+            self.create_subscription(MagneticField, topic, lambda m, t=cv.BAG_MAG_TOPICS[sensor]: self._mag(t, m),
+                                     sensor_qos(1000))
+        self.create_subscription(JointState, 'gradient/truth', self._truth, derived_qos(1000))
+        self.create_subscription(Odometry, cv.ODOM_TOPIC, self._odom, derived_qos(1000))
+
+    def _write(self, topic: str, msg: Any, stamp: int) -> None:
+        self.queue.put((topic, msg, stamp))
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def _mag(self, topic: str, msg: MagneticField) -> None:
+        stamp = cv.stamp_to_ns(msg.header.stamp)
+        self._write(topic, cv.magnetic_field_msg(self._types, cv.magnetic_field_vector(msg), stamp,
+                                                 msg.header.frame_id), stamp)
+
+    def _truth(self, msg: JointState) -> None:
+        stamp = cv.stamp_to_ns(msg.header.stamp)
+        self._write(f'{NAMESPACE}/gradient/truth', cv.tensor_msg(self._types, cv.tensor_from_msg(msg), stamp), stamp)
+
+    def _odom(self, msg: Odometry) -> None:
+        stamp = cv.stamp_to_ns(msg.header.stamp)
+        p = msg.pose.pose.position
+        self._write(cv.ODOM_TOPIC, cv.odometry_msg(self._types, np.array([p.x, p.y, p.z]),
+                                                   cv.odometry_orientation(msg), stamp,
+                                                   frame_id=msg.header.frame_id,
+                                                   child_frame_id=msg.child_frame_id), stamp)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--out', required=True, help='rosbag2 folder to write (replaced)')
+    parser.add_argument('--duration', type=float, required=True, help='seconds of sample time to record')
+    parser.add_argument('--scenario', default='', help='scenario YAML (default: the built-in one)')
+    parser.add_argument('--seed', type=int, default=-1, help="noise seed (default: the scenario's)")
+    parser.add_argument('--rate', type=float, default=10.0, help='driver speed, x real time (default %(default)s)')
+    parser.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    parser.add_argument('--params', default=str(DEFAULT_PARAMS_FILE) if DEFAULT_PARAMS_FILE.exists() else '')
+
+
+def run(args: argparse.Namespace) -> int:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from ..io.bag import BagWriter
+    from .driver import DriverNode
+    from .probe import Probe
+
+    if not args.duration > 0:
+        raise ValueError(f'--duration must be > 0 s, got {args.duration}')
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    domain = int(os.environ.get('ROS_DOMAIN_ID') or 1 + os.getpid() % 100)
+    rclpy.init(args=ros_arguments(args.params, ['--log-level', 'warn']), domain_id=domain)
+    nodes: list[Node] = []
+    executor = SingleThreadedExecutor()
+    try:
+        with BagWriter(Path(args.out), storage=args.storage) as writer:
+            driver = DriverNode(parameter_overrides=[
+                Parameter('mode', value='sim'), Parameter('rate', value=float(args.rate)),
+                Parameter('start_paused', value=True), Parameter('max_duration_s', value=float(args.duration)),
+                Parameter('scenario', value=os.path.abspath(args.scenario) if args.scenario else ''),
+                Parameter('seed', value=int(args.seed))])
+            recorder = Recorder(writer.types)
+            operator = Probe('record_operator')
+            nodes = [driver, recorder, operator]
+            for node in nodes:
+                executor.add_node(node)
+            threading.Thread(target=executor.spin, daemon=True).start()
+            topics = [*cv.MAG_TOPICS, 'gradient/truth']
+            operator.wait_for(lambda: all(recorder.count_publishers(t) for t in topics)
+                              and recorder.count_publishers(cv.ODOM_TOPIC), 20, 'the driver')
+            time.sleep(0.5)
+            operator.call('driver/resume')
+            quiet_since = None
+            while True:  # drain into the bag until the driver is done and nothing more arrives
+                try:
+                    writer.write(*recorder.queue.get(timeout=0.1))
+                    quiet_since = None
+                except queue.Empty:
+                    if driver.state == 'finished':
+                        quiet_since = quiet_since or time.monotonic()
+                        if time.monotonic() - quiet_since > 2.0:
+                            break
+            executor.shutdown(timeout_sec=2)
+            expected = driver.sets_published
+            lost = {t: expected - recorder.counts.get(t, 0) for t in [*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC,
+                                                                      f'{NAMESPACE}/gradient/truth']}
+            if any(lost.values()):
+                raise OSError(f'messages were lost while recording: {lost}')
+        print(f'record: {args.out}: {expected} sets ({expected / driver.info["sample_rate_hz"]:g} s) of '
+              f'{", ".join(sorted(recorder.counts))} ({args.storage})')
+        return 0
+    except TimeoutError as error:
+        raise OSError(str(error)) from None
+    finally:
+        executor.shutdown(timeout_sec=2)
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
