@@ -367,25 +367,29 @@ class _Gram:
         self.n = float(n * m)
 
     @staticmethod
-    def _parts(g: np.ndarray, cols: np.ndarray, ty: int, to: int | None) -> tuple[np.ndarray, np.ndarray, float]:
-        c = g[cols, ty].copy()
-        s = g[ty, ty]
-        if to is not None:
-            c -= g[cols, to]
-            s = s - 2 * g[ty, to] + g[to, to]
-        return g[np.ix_(cols, cols)], c, float(s)
+    def _parts(g: np.ndarray, cols: np.ndarray, targets: np.ndarray,
+               weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Gram of ``cols``, their products with the target ``sum_j weights_j z_targets_j``,
+        and the target's square."""
+        c = g[np.ix_(cols, targets)] @ weights
+        s = float(weights @ g[np.ix_(targets, targets)] @ weights)
+        return g[np.ix_(cols, cols)], c, s
 
-    def evaluate(self, cols: np.ndarray, ty: int, to: int | None = None) -> dict[str, Any]:
-        gg, c, s = self._parts(self.total, cols, ty, to)
+    def evaluate(self, cols: np.ndarray, ty: int, offsets: list[int] = (),
+                 add_back: list[int] = ()) -> dict[str, Any]:
+        """Fit ``cols`` to ``z_ty - sum z_offsets + sum z_add_back``: full-data and
+        cross-validated residual SS."""
+        targets = np.array([ty] + list(offsets) + list(add_back), dtype=int)
+        weights = np.array([1.0] + [-1.0] * len(offsets) + [1.0] * len(add_back))
+        gg, c, s = self._parts(self.total, cols, targets, weights)
         theta, rank = _solve(gg, c) if len(cols) else (np.zeros(0), 0)
-        rss = s - 2 * theta @ c + theta @ gg @ theta if len(cols) else s
+        rss = s - 2 * theta @ c + theta @ gg @ theta
         cv = 0.0
         for fold in self.folds:
-            train = self.total - fold
-            tg, tc, _ = self._parts(train, cols, ty, to)
-            fg, fc, fs = self._parts(fold, cols, ty, to)
+            tg, tc, _ = self._parts(self.total - fold, cols, targets, weights)
+            fg, fc, fs = self._parts(fold, cols, targets, weights)
             th = _solve(tg, tc)[0] if len(cols) else np.zeros(0)
-            cv += fs - 2 * th @ fc + th @ fg @ th if len(cols) else fs
+            cv += fs - 2 * th @ fc + th @ fg @ th
         return {'theta': theta, 'rank': rank, 'rss': max(rss, 0.0), 'cv': max(cv, 1e-300)}
 
 
@@ -426,6 +430,50 @@ class _Family:
     cols: np.ndarray                 # (N, 4, 3, p)
     offset: np.ndarray | None        # (N, 4, 3)
     labels: list[tuple[int, str]]
+
+
+def _restrict(family: _Family, sensor: int) -> _Family:
+    """The family's columns and offset for one sensor only."""
+    idx = [k for k, (s, _) in enumerate(family.labels) if s == sensor]
+    offset = None
+    if family.offset is not None:
+        offset = np.zeros_like(family.offset)
+        offset[:, sensor] = family.offset[:, sensor]
+    return _Family(family.candidate, family.cols[..., idx], offset, [family.labels[k] for k in idx])
+
+
+def _revise(steps: list[Step], step_units: list[list[int]], active: list[_Family], k: int,
+            replacement: _Family | None, message: str) -> None:
+    """Take unit ``k`` out of the model (and its step), or replace it; keep the steps
+    consistent (a step whose units all changed family is renamed, an empty one dropped)."""
+    owner = next(i for i, members in enumerate(step_units) if k in members)
+    if replacement is None:
+        del active[k]
+        step_units[owner].remove(k)
+        for members in step_units:
+            members[:] = [m - 1 if m > k else m for m in members]
+    else:
+        active[k] = replacement
+    steps[owner].evidence += f'; revised later: {message}'
+    for i in reversed(range(len(steps))):
+        names = {active[m].candidate.name for m in step_units[i]}
+        if not names:
+            del steps[i], step_units[i]
+        elif steps[i].effect not in names:
+            steps[i].effect = sorted(names)[0]
+        if i < len(steps) and len(names) > 1:
+            # The replaced unit now belongs to another family: move it to that family's step
+            # (or a new one at the end).
+            moved = [m for m in step_units[i] if active[m].candidate.name != steps[i].effect]
+            step_units[i] = [m for m in step_units[i] if m not in moved]
+            for m in moved:
+                target = next((j for j, st in enumerate(steps) if st.effect == active[m].candidate.name), None)
+                if target is None:
+                    steps.append(Step(active[m].candidate.name, steps[i].gap_before_nT, steps[i].gap_after_nT, {},
+                                      f'named when revising: {message}', active[m].cols.shape[-1], 0.0, 0.0, 1.0))
+                    step_units.append([m])
+                else:
+                    step_units[target].append(m)
 
 
 def _build(candidate: Candidate, ctx: Context, prep: _Prepared, cur_cols: np.ndarray,
@@ -533,7 +581,9 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     residuals: list[np.ndarray] = []
     gaps: list[float] = []
     floors: list[float] = []
-    remaining = list(testable)
+    step_units: list[list[int]] = []
+    notes_revision: list[str] = []
+    revisions = 0
     base_p = prep.base_cols.shape[-1]
     while True:
         cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
@@ -544,97 +594,187 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         floor, _ = _noise_floor(_flat(residual, prep.sensors))
         ctx = Context(prep.t, prep.sensors, prep.absolute, prep.b_background, prep.b_rate, prediction,
                       prep.temperature_c, prep.current_a, prep.piece)
-        fams = [] if len(active) >= settings.max_effects else [
-            _build(c, ctx, prep, cur_cols, y - cur_off) for c in remaining]
-        # Z = [current columns | candidate columns | target | candidate offsets]
-        blocks = [cur_cols] + [f.cols for f in fams]
-        allcols = np.concatenate(blocks, axis=-1)
+        taken = {(f.candidate.name, f.labels[0][0]) for f in active}
+        units: list[_Family] = []
+        if len(steps) < settings.max_effects:
+            for c in testable:
+                if all((c.name, s) in taken for s in prep.sensors):
+                    continue
+                # Nonlinear families are linearised at an estimate from the base model alone:
+                # a unit already in the model that is nearly collinear with this family (an
+                # eddy term in the same sensor as a delay) would make the joint estimate wild.
+                family = _build(c, ctx, prep, prep.base_cols, y - cur_off)
+                for s in prep.sensors:
+                    if (c.name, s) not in taken and any(lab[0] == s for lab in family.labels):
+                        units.append(_restrict(family, s))
+        # Z = [current columns | unit columns | target | unit offsets]
+        allcols = np.concatenate([cur_cols] + [u.cols for u in units], axis=-1)
         a = _flat(allcols, prep.sensors)
         norm = np.sqrt(np.einsum('nmp,nmp->p', a, a))
         usable = norm > 0
         norm[~usable] = 1.0
         extra = [_flat(y - cur_off, prep.sensors)[..., None]]
-        offset_index: list[int | None] = []
-        q0 = a.shape[-1] + 1
-        for f in fams:
-            if f.offset is not None:
-                offset_index.append(q0 + len(extra) - 1)
+        ty = a.shape[-1]
+        unit_cols: list[np.ndarray] = []
+        unit_off: list[list[int]] = []
+        start = cur_cols.shape[-1]
+        for u in units:
+            p = u.cols.shape[-1]
+            unit_cols.append(start + np.flatnonzero(usable[start:start + p]))
+            start += p
+            if u.offset is not None and np.any(u.offset):
+                unit_off.append([ty + len(extra)])
+                extra.append(_flat(u.offset, prep.sensors)[..., None])
+            else:
+                unit_off.append([])
+        # Offsets of the units already in the model, to add back when one is taken out.
+        active_off: list[list[int]] = []
+        for f in active:
+            if f.offset is not None and np.any(f.offset):
+                active_off.append([ty + len(extra)])
                 extra.append(_flat(f.offset, prep.sensors)[..., None])
             else:
-                offset_index.append(None)
-        z = np.concatenate([a / norm] + extra, axis=-1)
-        gram = _Gram(z, prep.t, block_s, settings.n_folds)
-        ty = a.shape[-1]
+                active_off.append([])
+        gram = _Gram(np.concatenate([a / norm] + extra, axis=-1), prep.t, block_s, settings.n_folds)
         n_obs = gram.n
-        p_cur = cur_cols.shape[-1]
-        cur_idx = np.flatnonzero(usable[:p_cur])
-        cur = gram.evaluate(cur_idx, ty)
-        gap_cur = float(np.sqrt(cur['cv'] / n_obs))
-        bic_cur = n_obs * np.log(cur['cv'] / n_obs) + cur['rank'] * np.log(n_obs)
-        residuals.append(residual)
-        gaps.append(gap_cur)
-        floors.append(floor)
-        table = []
-        start = p_cur
-        for f, to in zip(fams, offset_index):
-            p = f.cols.shape[-1]
-            idx = np.concatenate([cur_idx, start + np.flatnonzero(usable[start:start + p])])
-            start += p
-            res = gram.evaluate(idx, ty, to)
-            dp = res['rank'] - cur['rank']
-            bic = n_obs * np.log(res['cv'] / n_obs) + res['rank'] * np.log(n_obs)
-            gain = cur['cv'] - res['cv']
+
+        def bic(res: dict[str, Any]) -> float:
+            return float(n_obs * np.log(res['cv'] / n_obs) + res['rank'] * np.log(n_obs))
+
+        def compare(res: dict[str, Any], ref: dict[str, Any]) -> dict[str, Any]:
+            """``res`` (a larger model) against ``ref``: the selection criterion."""
+            dp = res['rank'] - ref['rank']
+            gain = ref['cv'] - res['cv']
+            dof = max(n_obs - res['rank'], 1.0)
             if dp > 0 and gain > 0:
-                fstat = (gain / dp) / (res['cv'] / max(n_obs - res['rank'], 1.0))
-                pval = float(stats.f.sf(fstat, dp, max(n_obs - res['rank'], 1.0)))
+                fstat = (gain / dp) / (res['cv'] / dof)
+                pval = float(stats.f.sf(fstat, dp, dof))
             else:
                 fstat, pval = 0.0, 1.0
             explained = float(np.sqrt(max(gain, 0.0) / n_obs))
-            table.append({'effect': f.candidate.name, 'n_parameters': int(dp),
-                          'gap_after_nT': float(np.sqrt(res['cv'] / n_obs)), 'delta_bic': float(bic - bic_cur),
-                          'f_statistic': float(fstat), 'p_value': pval, 'explained_rms_nT': explained,
-                          'passes': bool(bic < bic_cur and pval < settings.alpha
-                                         and explained >= settings.relevance * floor)})
-        table.sort(key=lambda row: row['delta_bic'])
-        rounds.append({'gap_nT': gap_cur, 'noise_floor_nT': floor, 'model': [f.candidate.name for f in active],
-                       'candidates': table})
-        winners = [row for row in table if row['passes']]
-        if not winners:
+            dbic = bic(res) - bic(ref)
+            return {'n_parameters': int(dp), 'gap_after_nT': float(np.sqrt(res['cv'] / n_obs)),
+                    'delta_bic': float(dbic), 'f_statistic': float(fstat), 'p_value': pval,
+                    'explained_rms_nT': explained, 'result': res,
+                    'passes': bool(dbic < 0 and pval < settings.alpha and explained >= settings.relevance * floor)}
+
+        base_idx = np.flatnonzero(usable[:base_p])
+        active_cols = []
+        lo = base_p
+        for f in active:
+            hi = lo + f.cols.shape[-1]
+            active_cols.append(lo + np.flatnonzero(usable[lo:hi]))
+            lo = hi
+        sel_idx = np.flatnonzero(usable[:cur_cols.shape[-1]])
+        sel_off: list[int] = []
+        cur = gram.evaluate(sel_idx, ty)
+        gap_cur = float(np.sqrt(cur['cv'] / n_obs))
+        # Backward check: is every unit in the model still needed, and does a unit with
+        # fewer parameters in the same sensor explain as much now that the others are in?
+        revised = None
+        for k, f in enumerate(active):
+            rest = np.concatenate([base_idx] + [c for j, c in enumerate(active_cols) if j != k])
+            without = gram.evaluate(rest, ty, add_back=active_off[k])
+            if not compare(cur, without)['passes']:
+                revised = (k, None, f'{f.candidate.name} at sensor {f.labels[0][0] + 1} is no longer needed '
+                                    f'once the other effects are in (removed)')
+                break
+            best_alt = None
+            for j, u in enumerate(units):
+                if u.labels[0][0] != f.labels[0][0] or u.candidate.name == f.candidate.name:
+                    continue
+                res = gram.evaluate(np.concatenate([rest, unit_cols[j]]), ty, unit_off[j], add_back=active_off[k])
+                if bic(res) < bic(cur) and (best_alt is None or bic(res) < best_alt[1]):
+                    best_alt = (j, bic(res))
+            if best_alt is not None:
+                u = units[best_alt[0]]
+                revised = (k, u, f'{f.candidate.name} at sensor {f.labels[0][0] + 1} replaced by the more '
+                                 f'parsimonious {u.candidate.name} (CV-BIC {best_alt[1] - bic(cur):+.4g}) once the '
+                                 'other effects are in')
+                break
+        if revised is not None and revisions < 4 * settings.max_effects:
+            revisions += 1
+            k, replacement, message = revised
+            notes_revision.append(message)
+            _revise(steps, step_units, active, k, replacement, message)
+            continue
+        gaps.append(gap_cur)
+        floors.append(floor)
+        residuals.append(residual)
+        chosen: list[int] = []
+        first_table: list[dict[str, Any]] | None = None
+        while True:
+            table = []
+            for k, u in enumerate(units):
+                if k in chosen:
+                    continue
+                res = gram.evaluate(np.concatenate([sel_idx, unit_cols[k]]), ty, sel_off + unit_off[k])
+                row = compare(res, cur)
+                row.update({'effect': u.candidate.name, 'sensor': u.labels[0][0] + 1, 'unit': k})
+                table.append(row)
+            table.sort(key=lambda row: row['delta_bic'])
+            if first_table is None:
+                first_table = table
+            winners = [row for row in table if row['passes']]
+            if not winners:
+                break
+            best = winners[0]
+            if chosen and best['effect'] != units[chosen[0]].candidate.name:
+                break      # another family is next: it gets its own step, on rebuilt columns
+            chosen.append(best['unit'])
+            sel_idx = np.concatenate([sel_idx, unit_cols[best['unit']]])
+            sel_off = sel_off + unit_off[best['unit']]
+            cur = best['result']
+        rounds.append({'gap_nT': gap_cur, 'noise_floor_nT': floor,
+                       'model': [f'{f.candidate.name}@sensor_{f.labels[0][0] + 1}' for f in active],
+                       'candidates': [{k: v for k, v in row.items() if k not in ('unit', 'result')}
+                                      for row in (first_table or [])]})
+        if not chosen:
             break
-        best = winners[0]
-        family = fams[[f.candidate.name for f in fams].index(best['effect'])]
-        others = [row for row in table if row['effect'] != best['effect']]
-        runner = others[0] if others else None
-        evidence = (f"held-out gap {gap_cur:.3g} -> {best['gap_after_nT']:.3g} nT (noise floor {floor:.3g} nT) "
-                    f"with {best['n_parameters']} parameters; it explains {best['explained_rms_nT']:.3g} nT RMS "
-                    f"of the held-out residual; CV-BIC {best['delta_bic']:+.4g}; held-out F = {best['f_statistic']:.4g} "
-                    f"(p = {best['p_value']:.3g})")
-        if runner is not None:
-            evidence += (f"; runner-up {runner['effect']}: gap {runner['gap_after_nT']:.3g} nT with "
-                         f"{runner['n_parameters']} parameters, CV-BIC {runner['delta_bic']:+.4g}")
-        steps.append(Step(best['effect'], gap_cur, best['gap_after_nT'], {}, evidence, best['n_parameters'],
-                          best['delta_bic'], best['f_statistic'], best['p_value']))
-        active.append(family)
-        remaining = [c for c in remaining if c.name != family.candidate.name]
+        name = units[chosen[0]].candidate.name
+        gap_after = float(np.sqrt(cur['cv'] / n_obs))
+        sensors_added = [units[k].labels[0][0] + 1 for k in chosen]
+        first = [row for row in first_table if row['unit'] == chosen[0]][0]
+        rivals = [row for row in first_table if row['effect'] != name]
+        evidence = (f"added for sensor(s) {', '.join(map(str, sensors_added))}: held-out gap {gap_cur:.3g} -> "
+                    f"{gap_after:.3g} nT (noise floor {floor:.3g} nT); first unit (sensor {first['sensor']}): "
+                    f"{first['n_parameters']} parameters explain {first['explained_rms_nT']:.3g} nT RMS of the "
+                    f"held-out residual, CV-BIC {first['delta_bic']:+.4g}, held-out F = {first['f_statistic']:.4g} "
+                    f"(p = {first['p_value']:.3g})")
+        if rivals:
+            r = rivals[0]
+            evidence += (f"; best other family: {r['effect']} at sensor {r['sensor']} with {r['n_parameters']} "
+                         f"parameters, gap {r['gap_after_nT']:.3g} nT, CV-BIC {r['delta_bic']:+.4g}")
+        n_params = sum(len(unit_cols[k]) for k in chosen)
+        steps.append(Step(name, gap_cur, gap_after, {}, evidence, n_params, first['delta_bic'],
+                          first['f_statistic'], first['p_value']))
+        step_units.append(list(range(len(active), len(active) + len(chosen))))
+        active.extend(units[k] for k in chosen)
     # Final joint fit: parameters of every named effect and of the base model.
-    offsets = [base_p]
+    bounds = [base_p]
     for f in active:
-        offsets.append(offsets[-1] + f.cols.shape[-1])
-    effect_fields = {}
-    for step, f, lo, hi in zip(steps, active, offsets[:-1], offsets[1:]):
-        c = coef[lo:hi]
-        step.parameters = _format(f.labels, c, prep.absolute)
-        step.parameters['units'] = f.candidate.parameters
-        fld = _effect_field(f, c)
+        bounds.append(bounds[-1] + f.cols.shape[-1])
+    effect_fields: list[np.ndarray] = []
+    for step, members in zip(steps, step_units):
+        labels: list[tuple[int, str]] = []
+        values: list[np.ndarray] = []
+        fld = np.zeros_like(y)
+        for k in members:
+            c = coef[bounds[k]:bounds[k + 1]]
+            labels += active[k].labels
+            values.append(c)
+            fld += _effect_field(active[k], c)
+        step.parameters = _format(labels, np.concatenate(values), prep.absolute)
+        step.parameters['units'] = LIBRARY[step.effect].parameters
         step.parameters['rms_contribution_nT'] = {
             f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2))) for s in prep.sensors}
-        effect_fields[f.candidate.name] = fld
+        effect_fields.append(fld)
     base_params = _format(prep.base_labels, coef[:base_p], prep.absolute)
     base_params['per_sensor'].pop('sensor_0', None)  # the external-field spline weights
     base_params['external_field_spline'] = 'omitted (%d weights)' % sum(1 for s, _ in prep.base_labels if s < 0)
     gap_final, floor_final = gaps[-1], floors[-1]
     adequate = gap_final <= settings.adequate_ratio * floor_final
-    notes = list(prep.notes)
+    notes = list(prep.notes) + notes_revision
     if not adequate:
         notes.append(f'the final gap {gap_final:.3g} nT exceeds {settings.adequate_ratio} x the noise floor '
                      f'({floor_final:.3g} nT) but no candidate in the library explains the rest: '

@@ -137,9 +137,16 @@ def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 1
     clean = simulate(base, np.random.default_rng(seed + 1)).fields_measured
     total_effects, total_inter = Effects(), interference
     hidden: dict[str, dict[str, Any]] = {}
+    free = [1, 2, 3] if 'reference_interference' in effects else [0, 1, 2, 3]
     for name in effects:
-        sensors = [0] if name == 'reference_interference' else sorted(
-            rng.choice(4, size=int(rng.integers(1, 3)), replace=False).tolist())
+        # Effects in different sensors (eddy_current and time_skew in one sensor are one
+        # general eddy term: no data can tell them apart).
+        if name == 'reference_interference':
+            sensors = [0]
+        else:
+            size = int(rng.integers(1, 3)) if len(effects) == 1 else 1
+            sensors = sorted(rng.choice(free, size=size, replace=False).tolist())
+            free = [s for s in free if s not in sensors]
         unit, inter = _unit_effect(name, rng, sensors)
         probe = replace(base, effects=unit, interference=interference if inter is None else
                         SensorInterference(interference.k_soft + inter.k_soft, interference.b_hard + inter.b_hard))

@@ -1,0 +1,254 @@
+"""``report.json``, ``report.md`` and the PNG plots of a discrepancy :class:`Report`,
+every file written atomically (temporary sibling, then rename)."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..io.atomic import atomic_output_path, atomic_write_text
+from .analysis import Report, criterion_text
+from .effects import LIBRARY
+
+_AXES = 'xyz'
+_MAX_POINTS = 4000
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f'not JSON serialisable: {type(value).__name__}')
+
+
+def report_json(report: Report) -> str:
+    """The text of ``report.json``."""
+    return json.dumps(report.to_dict(), indent=2, default=_json_default, allow_nan=False) + '\n'
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use('Agg', force=True)
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig: Any, path: Path) -> None:
+    with atomic_output_path(path) as tmp:
+        fig.savefig(tmp, format='png', dpi=90)
+
+
+def _thin(n: int) -> slice:
+    return slice(None, None, max(1, int(np.ceil(n / _MAX_POINTS))))
+
+
+def _plot_residuals(plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...], panels: list[tuple[str, np.ndarray]],
+                    title: str) -> None:
+    fig, axes = plt.subplots(len(sensors), len(panels), figsize=(5.5 * len(panels), 1.9 * len(sensors) + 0.8),
+                             sharex=True, squeeze=False)
+    k = _thin(len(t))
+    for col, (label, residual) in enumerate(panels):
+        for row, s in enumerate(sensors):
+            ax = axes[row, col]
+            for a in range(3):
+                ax.plot(t[k], residual[k, s, a], lw=0.6, label=_AXES[a])
+            rms = float(np.sqrt(np.mean(residual[:, s] ** 2)))
+            ax.set_title(f'{label}: sensor {s + 1} (RMS {rms:.3g} nT)', fontsize=8)
+            ax.tick_params(labelsize=7)
+            if col == 0:
+                ax.set_ylabel('nT', fontsize=7)
+        axes[-1, col].set_xlabel('time, s', fontsize=7)
+    axes[0, 0].legend(fontsize=6, loc='upper right')
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def _plot_gap(plt: Any, path: Path, report: Report) -> None:
+    gaps = report.series['gaps']
+    floors = report.series['floors']
+    labels = ['base'] + [f'+ {s.effect}' for s in report.steps]
+    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(gaps), 3.2))
+    x = np.arange(len(gaps))
+    ax.bar(x, gaps, color='tab:blue', label='held-out gap')
+    ax.plot(x, floors, 'k--', marker='o', label='noise floor')
+    ax.set_yscale('log')
+    ax.set_xticks(x, labels, fontsize=7, rotation=15)
+    ax.set_ylabel('RMS, nT')
+    ax.set_title('Held-out gap (measured - simulated) per step', fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def _plot_effect(plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...], name: str, field: np.ndarray) -> None:
+    fig, axes = plt.subplots(len(sensors), 1, figsize=(7, 1.7 * len(sensors) + 0.8), sharex=True, squeeze=False)
+    k = _thin(len(t))
+    for row, s in enumerate(sensors):
+        ax = axes[row, 0]
+        for a in range(3):
+            ax.plot(t[k], field[k, s, a], lw=0.7, label=_AXES[a])
+        ax.set_title(f'sensor {s + 1}: RMS {np.sqrt(np.mean(field[:, s] ** 2)):.3g} nT', fontsize=8)
+        ax.set_ylabel('nT', fontsize=7)
+        ax.tick_params(labelsize=7)
+    axes[0, 0].legend(fontsize=6, loc='upper right')
+    axes[-1, 0].set_xlabel('time, s', fontsize=7)
+    fig.suptitle(f'Field attributed to {name} (final fit)', fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def _plot_diagnostics(plt: Any, path: Path, report: Report) -> None:
+    series = report.series
+    residual = series['residuals'][0]
+    sensors = series['sensors']
+    drivers: list[tuple[str, np.ndarray]] = [('|dB^b/dt|, nT/s', np.linalg.norm(series['b_rate'], axis=1))]
+    if series['attitude'] is not None:
+        drivers += [('heading, deg', series['attitude'][:, 0]), ('pitch, deg', series['attitude'][:, 1]),
+                    ('roll, deg', series['attitude'][:, 2])]
+    if series['temperature_c'] is not None:
+        drivers.append(('temperature, degC', series['temperature_c']))
+    if series['current_a'] is not None:
+        drivers.append(('current, A', series['current_a']))
+    k = _thin(len(series['t']))
+    fig, axes = plt.subplots(len(sensors), len(drivers), figsize=(2.3 * len(drivers) + 0.5, 1.8 * len(sensors) + 0.8),
+                             squeeze=False)
+    for row, s in enumerate(sensors):
+        for col, (label, d) in enumerate(drivers):
+            ax = axes[row, col]
+            for a in range(3):
+                ax.plot(d[k], residual[k, s, a], '.', ms=1, alpha=0.5, label=_AXES[a])
+            ax.tick_params(labelsize=6)
+            if row == len(sensors) - 1:
+                ax.set_xlabel(label, fontsize=7)
+            if col == 0:
+                ax.set_ylabel(f'sensor {s + 1}, nT', fontsize=7)
+    fig.suptitle('Base-model residual (measured - simulated) against attitude, field rate, temperature, current',
+                 fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def _fmt_params(parameters: dict[str, Any]) -> str:
+    lines = []
+    for sensor, values in parameters.get('per_sensor', {}).items():
+        items = ', '.join(f'{k} = {v:.4g}' for k, v in values.items())
+        lines.append(f'  - {sensor.replace("_", " ")}: {items}')
+    return '\n'.join(lines)
+
+
+def report_markdown(report: Report, figures: dict[str, str]) -> str:
+    """The text of ``report.md`` (``figures``: key -> file name)."""
+    d = report.to_dict()
+    lines = ['# Discrepancy report', '']
+    if report.named_effects:
+        lines.append(f'Named effects, in the order added: **{", ".join(report.named_effects)}**.')
+    else:
+        lines.append('No effect from the library is missing: **the base model is adequate**.'
+                     if report.adequate else 'No effect from the library explains the remaining gap.')
+    lines += ['', f'Held-out gap (RMS of measured - simulated over all sensors and axes): '
+              f'**{report.gap_initial_nT:.4g} nT** with the base model, **{report.gap_final_nT:.4g} nT** at the end; '
+              f'noise floor {report.noise_floor_nT:.4g} nT '
+              f'(ratio {report.gap_final_nT / report.noise_floor_nT:.3g}). '
+              f'Adequate: **{"yes" if report.adequate else "no"}**.', '',
+              f'- Base model: {report.base_model}', f'- Residual view: {report.view} '
+              f'({"every sensor against R^T E" if report.view == "absolute" else "pair differences against sensor 1"})',
+              f'- Data: {d["data"]["samples"]} samples, {d["data"]["duration_s"]:.1f} s, '
+              f'{d["data"]["sample_rate_hz"]:.3g} Hz; analysed in {report.runtime_s:.2f} s']
+    for note in report.notes:
+        lines.append(f'- Note: {note}')
+    lines += ['', '## Method', '',
+              'The recorded run is simulated with the base model: each sensor\'s reading is predicted from the '
+              'background field B^b (from /odom and the Earth field, or B_1\' without /odom). The residual '
+              '(measured - simulated) is examined against time, attitude, field rate, temperature and current, '
+              'and each candidate family of the library is added to the model as extra regressors and tested on '
+              'held-out data.', '', f'Criterion: {criterion_text()}',
+              'The noise floor is the white-noise RMS estimated from the fourth difference of the residual '
+              '(median absolute deviation, so steps and spikes do not count).', '']
+    if 'gap' in figures:
+        lines += [f'![gap per step]({figures["gap"]})', '']
+    if report.steps:
+        lines += ['## Steps', '', '| # | effect | gap before, nT | gap after, nT | parameters | CV-BIC change | F | p |',
+                  '|---|---|---|---|---|---|---|---|']
+        for i, s in enumerate(report.steps, 1):
+            lines.append(f'| {i} | {s.effect} | {s.gap_before_nT:.4g} | {s.gap_after_nT:.4g} | {s.n_parameters} | '
+                         f'{s.delta_bic:+.4g} | {s.f_statistic:.4g} | {s.p_value:.3g} |')
+        lines.append('')
+        for i, s in enumerate(report.steps, 1):
+            lines += [f'### {i}. {s.effect}', '', f'**What it is.** {LIBRARY[s.effect].physics}', '',
+                      f'**Evidence.** {s.evidence}.', '',
+                      f'**Fitted parameters** ({s.parameters.get("units", "")}; final joint fit):',
+                      _fmt_params(s.parameters), '']
+            if 'note' in s.parameters:
+                lines += [f'({s.parameters["note"]})', '']
+            key = f'step{i}'
+            if key in figures:
+                lines += [f'![residual before and after {s.effect}]({figures[key]})', '']
+            key = f'effect_{s.effect}'
+            if key in figures:
+                lines += [f'![field attributed to {s.effect}]({figures[key]})', '']
+    if report.untestable:
+        lines += ['## Candidates that could not be tested', '']
+        lines += [f'- **{name}**: {reason}' for name, reason in report.untestable.items()]
+        lines.append('')
+    lines += ['## Candidates per round', '']
+    for i, r in enumerate(report.rounds):
+        model = ', '.join(r['model']) or 'base model'
+        lines += [f'Round {i + 1} (model: {model}; held-out gap {r["gap_nT"]:.4g} nT, noise floor '
+                  f'{r["noise_floor_nT"]:.4g} nT):', '',
+                  '| candidate | parameters | gap after, nT | explained RMS, nT | CV-BIC change | F | p | passes |',
+                  '|---|---|---|---|---|---|---|---|']
+        for c in r['candidates']:
+            lines.append(f'| {c["effect"]} | {c["n_parameters"]} | {c["gap_after_nT"]:.4g} | '
+                         f'{c["explained_rms_nT"]:.3g} | {c["delta_bic"]:+.4g} | {c["f_statistic"]:.4g} | '
+                         f'{c["p_value"]:.3g} | {"yes" if c["passes"] else "no"} |')
+        lines.append('')
+    lines += ['## Where the base model disagrees', '',
+              'Largest correlation of the base-model residual (any sensor and axis) with each driver:', '']
+    for name, c in report.diagnostics['base']['correlation'].items():
+        lines.append(f'- {name}: r = {c["r"]:+.3f} ({c["where"]})')
+    lines.append('')
+    if 'diagnostics' in figures:
+        lines += [f'![residual against drivers]({figures["diagnostics"]})', '']
+    if 'step0' in figures:
+        lines += [f'![base-model residual]({figures["step0"]})', '']
+    return '\n'.join(lines) + '\n'
+
+
+def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = True) -> Path:
+    """Write ``report.json``, ``report.md`` and (with ``plots``) the PNGs into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figures: dict[str, str] = {}
+    if plots and report.series:
+        plt = _pyplot()
+        s = report.series
+        t, sensors, residuals = s['t'], s['sensors'], s['residuals']
+        figures['gap'] = 'gap.png'
+        _plot_gap(plt, out / figures['gap'], report)
+        figures['diagnostics'] = 'diagnostics.png'
+        _plot_diagnostics(plt, out / figures['diagnostics'], report)
+        if not report.steps:
+            figures['step0'] = 'residual_base.png'
+            _plot_residuals(plt, out / figures['step0'], t, sensors, [('base model', residuals[0])],
+                            'Residual (measured - simulated) of the base model')
+        for i, step in enumerate(report.steps, 1):
+            figures[f'step{i}'] = f'residual_step{i}_{step.effect}.png'
+            _plot_residuals(plt, out / figures[f'step{i}'], t, sensors,
+                            [('before', residuals[i - 1]), (f'after + {step.effect}', residuals[i])],
+                            f'Step {i}: residual before and after adding {step.effect}')
+            field = s['effect_fields'][i - 1] if i - 1 < len(s['effect_fields']) else None
+            if field is not None and f'effect_{step.effect}' not in figures:
+                figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
+                _plot_effect(plt, out / figures[f'effect_{step.effect}'], t, sensors, step.effect, field)
+    atomic_write_text(out / 'report.json', report_json(report))
+    atomic_write_text(out / 'report.md', report_markdown(report, figures))
+    return out
