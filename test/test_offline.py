@@ -198,6 +198,18 @@ def test_empty_bag(good, tmp_path, storage):
         assert_fails(result, 'empty bag')
 
 
+def test_wrong_message_type_on_a_magnetometer_topic(good, tmp_path):
+    with BagWriter(tmp_path / 'typed') as writer:
+        for sensor, topic in enumerate(cv.BAG_MAG_TOPICS):
+            if sensor == 1:
+                writer.write(topic, cv.temperature_msg(writer.types, 12.0, START_NS), START_NS)
+            else:
+                writer.write(topic, cv.magnetic_field_msg(writer.types, np.zeros(3), START_NS, cv.MAG_FRAMES[sensor]),
+                             START_NS)
+    for result in both_commands(good, tmp_path / 'typed'):
+        assert_fails(result, '/tetra/mag2 has type sensor_msgs/msg/Temperature, expected sensor_msgs/msg/MagneticField')
+
+
 def test_sensors_that_cannot_be_matched_by_stamp(good, tmp_path):
     bag = _bag_with(tmp_path / 'skewed', cv.BAG_MAG_TOPICS, offsets_ns=(0, 0, 0, 5_000_000))
     for result in both_commands(good, bag):
