@@ -268,3 +268,21 @@ def test_other_input_errors_name_the_problem(good, tmp_path):
     (tmp_path / 'bad.yaml').write_text('segments: [{trim: {duration_s: -5}}]\n')
     assert_fails(cli('simulate', '--scenario', tmp_path / 'bad.yaml', '--out', tmp_path / 'b', check=False),
                  'duration_s must be positive')
+
+
+def test_a_set_with_a_non_finite_reading_is_skipped_and_counted(tmp_path):
+    geometry = TetraGeometry.regular(EDGE_M)
+    n = 30
+    stamps = START_NS + np.arange(n, dtype=np.int64) * 10_000_000
+    m_linear = np.arange(1.0, 10.0).reshape(3, 3) * 1e-7
+    fields = np.repeat((np.array([0.0, 2e-5, -4e-5]) + geometry.positions @ m_linear.T)[None], n, axis=0)
+    fields[7, 2, 1] = np.nan
+    with BagWriter(tmp_path / 'bag') as writer:
+        writer.write_fields(stamps, fields)
+    (tmp_path / 'params.yaml').write_text(params_document({'sensor_positions': geometry.to_flat()}))
+    out = cli('compensate', tmp_path / 'bag', '--params', tmp_path / 'params.yaml', '--raw',
+              '--csv', tmp_path / 'g.csv')
+    assert '29 sets' in out.stdout and '1 sets with a non-finite reading skipped' in out.stdout
+    _, csv_stamps, g = read_csv(tmp_path / 'g.csv')
+    assert csv_stamps.tolist() == np.delete(stamps, 7).tolist()
+    assert np.allclose(g, m_linear * 1e9, atol=1e-5)

@@ -6,7 +6,7 @@ import pytest
 from tetra_gradiometer import conversions as cv
 from tetra_gradiometer import matching
 from tetra_gradiometer.io.bag import (BagWriter, MagneticBag, UnsupportedEncoding, decode_magnetic_field,
-                                      encode_magnetic_field, typestore)
+                                      encode_magnetic_field, encode_tensor, typestore)
 
 START = 1_767_225_600 * 10**9
 
@@ -23,6 +23,18 @@ def test_encoder_is_byte_identical_to_rosbags(store, frame):
     for stamp in (0, START + 123_456_789, 2**31 * 10**9 - 1):
         msg = cv.magnetic_field_msg(types, field, stamp, frame)
         assert encode_magnetic_field(stamp, field, frame) == bytes(store.serialize_cdr(msg, cv.MAGNETIC_FIELD))
+
+
+@pytest.mark.parametrize('frame', ['tetra_array', '', 'a', 'ab', 'abc', 'abcd', 'abcde'])
+def test_tensor_encoder_is_byte_identical_to_rosbags(store, frame):
+    types = cv.rosbags_types(store)
+    g = np.random.default_rng(2).normal(0.0, 1e-7, (3, 3))
+    stamp = START + 987_654_321
+    msg = cv.tensor_msg(types, g, stamp, frame)
+    raw = encode_tensor(stamp, g, frame)
+    assert raw == bytes(store.serialize_cdr(msg, cv.JOINT_STATE))
+    back = store.deserialize_cdr(raw, cv.JOINT_STATE)
+    assert np.array_equal(cv.tensor_from_msg(back), g) and cv.stamp_to_ns(back.header.stamp) == stamp
 
 
 @pytest.mark.parametrize('little_endian', [True, False])

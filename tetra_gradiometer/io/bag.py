@@ -15,8 +15,9 @@ Fast paths (the generic ones stay, and a test checks both agree):
   identical and increasing (a synchronised driver), the batch is emitted with array
   operations; otherwise it goes message by message through
   :class:`~tetra_gradiometer.matching.StampMatcher`, as before.
-* :meth:`BagWriter.write_fields` encodes MagneticField CDR directly
-  (:func:`encode_magnetic_field`), byte-identical to rosbags' serializer.
+* :meth:`BagWriter.write_fields` and :meth:`BagWriter.write_tensors` encode MagneticField
+  and the tensor JointState directly (:func:`encode_magnetic_field`,
+  :func:`encode_tensor`), byte-identical to rosbags' serializer.
 """
 from __future__ import annotations
 
@@ -58,6 +59,28 @@ def encode_magnetic_field(stamp_ns: int, field_t: np.ndarray, frame_id: str) -> 
     head = _CDR_LE + b'\x00\x00' + struct.pack('<iII', sec, nanosec, len(frame)) + frame
     pad = -(len(head) - 4) % 8
     return head + b'\x00' * pad + struct.pack('<3d', *(float(v) for v in field_t)) + bytes(72)
+
+
+def _cdr_string(text: str, length_so_far: int) -> bytes:
+    """A CDR string (uint32 length incl. NUL, bytes, NUL) after ``length_so_far`` payload
+    bytes, with the padding that aligns its length field to 4."""
+    data = text.encode('utf-8') + b'\x00'
+    return b'\x00' * (-length_so_far % 4) + struct.pack('<I', len(data)) + data
+
+
+def encode_tensor(stamp_ns: int, g: np.ndarray, frame_id: str = cv.ARRAY_FRAME) -> bytes:
+    """Little-endian CDR of the tensor ``sensor_msgs/JointState`` (``conversions.tensor_msg``):
+    names ``gxx..gzz``, positions ``g`` (3, 3) T/m row-major, empty velocity and effort."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    body = struct.pack('<iI', sec, nanosec)
+    body += _cdr_string(frame_id, len(body))
+    body += b'\x00' * (-len(body) % 4) + struct.pack('<I', len(cv.TENSOR_NAMES))
+    for name in cv.TENSOR_NAMES:
+        body += _cdr_string(name, len(body))
+    body += b'\x00' * (-len(body) % 4) + struct.pack('<I', 9)
+    body += b'\x00' * (-len(body) % 8) + struct.pack('<9d', *np.asarray(g, dtype=float).reshape(9).tolist())
+    body += struct.pack('<II', 0, 0)  # velocity[], effort[]: empty (offset is 4-aligned after doubles)
+    return _CDR_LE + b'\x00\x00' + body
 
 
 def _decode_one(raw: bytes) -> tuple[int, float, float, float]:
@@ -406,9 +429,9 @@ class BagWriter:
                            stamp_ns)
 
     def write_tensors(self, topic: str, stamps_ns: np.ndarray, tensors: np.ndarray) -> None:
-        """A tensor topic from tensors (N, 3, 3) T/m."""
-        for stamp, g in zip(stamps_ns, tensors):
-            self.write(topic, cv.tensor_msg(self.types, g, int(stamp)), stamp)
+        """A tensor topic from tensors (N, 3, 3) T/m (JointState CDR encoded directly)."""
+        for stamp, g in zip(stamps_ns, np.asarray(tensors, dtype=float)):
+            self.write_raw(topic, cv.JOINT_STATE, encode_tensor(int(stamp), g), int(stamp))
 
 
 def _progress(total: int, enabled: bool | None, description: str) -> Any:

@@ -130,6 +130,11 @@ def run(args: argparse.Namespace) -> int:
     geometry = geometry_from_params(load_params(args.params), source=args.params)
     stamps, fields, span, counters = read_window(args.bag, window, tolerance_s=args.tolerance_ms * 1e-3,
                                                  progress=args.progress)
+    finite = np.isfinite(fields).all(axis=(1, 2))
+    non_finite = int((~finite).sum())
+    stamps, fields = stamps[finite], fields[finite]
+    if not len(stamps):
+        raise BagError(f'{args.bag}: every set in the window has a non-finite reading ({non_finite} sets)')
     n_window = len(stamps)
     thinned = 1
     if n_window > args.max_sets:
@@ -159,7 +164,8 @@ def run(args: argparse.Namespace) -> int:
                                bounds=paper_bounds(symmetric=True, wide=args.wide_bounds), **options)
     record = CalibrationFile.from_calibration(calibration, geometry)
     extra = {'bag': str(args.bag), 'window_s': window_text, 'sets_in_window': n_window, 'thinned_every': thinned,
-             'attitude_coverage_condition': coverage, 'read_span_s': span}
+             'attitude_coverage_condition': coverage, 'read_span_s': span,
+             'non_finite_sets_skipped': non_finite}
     if method == 'paper_ga':
         extra['seed'] = args.seed
     record = dataclasses.replace(record, diagnostics={**record.diagnostics, **extra})
@@ -168,7 +174,8 @@ def run(args: argparse.Namespace) -> int:
     summary = calibration.summary()
     print(f'calibrated {args.bag}: method {method}, window {window_text} '
           f'({n_window} sets{f", every {thinned}th used" if thinned > 1 else ""}; read {span:.1f} s of the bag; '
-          f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order)')
+          f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
+          f'{non_finite} sets with a non-finite reading skipped)')
     print(f'  parameters {summary["n_parameters"]}, rank {summary["rank"]} '
           f'(null space {summary["null_space_dim"]}), condition number {summary["condition_number"]:.3g}')
     print(f'  residual RMS {summary["residual_rms_nT_per_m"]:.4g} nT/m, attitude coverage condition number '

@@ -7,7 +7,8 @@ CSV (written to a temporary file, renamed into place at the end)::
 
     stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz
 
-one row per matched set; ``stamp_s`` is the **absolute** header stamp of sensor 1 in
+one row per matched set (sets with a non-finite reading are skipped and counted);
+``stamp_s`` is the **absolute** header stamp of sensor 1 in
 seconds since the Unix epoch, printed exactly from the integer nanoseconds (9 decimals);
 ``gij = G_ij = dB_i/dx_j`` in **nT/m** (6 decimals), body frame.
 
@@ -28,7 +29,7 @@ import numpy as np
 from .. import conversions as cv
 from ..core import compensate, difference_tensor
 from ..io.atomic import atomic_output_path
-from ..io.bag import STORAGES, BagWriter, MagneticBag
+from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
 from ..io.calibration import load_calibration
 from ..io.params import ParamsError, geometry_from_params, load_params
 
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         parameters = calibration.parameters
     bag_path = Path(args.bag)
     topic = RAW_TOPIC if args.raw else COMPENSATED_TOPIC
-    n_sets = 0
+    n_sets = non_finite = 0
     first = last = None
     with ExitStack() as stack:
         bag = stack.enter_context(MagneticBag(bag_path))
@@ -106,6 +107,12 @@ def run(args: argparse.Namespace) -> int:
             writer = stack.enter_context(BagWriter(out_bag, storage=args.out_storage or _input_storage(bag_path)))
         for stamps, fields in bag.iter_sets(tolerance_s=args.tolerance_ms * 1e-3, progress=args.progress,
                                               fast=not args.generic_reader):
+            finite = np.isfinite(fields).all(axis=(1, 2))
+            if not finite.all():  # a NaN/inf reading: drop the set, count it
+                non_finite += int((~finite).sum())
+                stamps, fields = stamps[finite], fields[finite]
+                if not len(stamps):
+                    continue
             tensors = difference_tensor(fields, geometry)
             if parameters is not None:
                 tensors = compensate(tensors, fields[:, 0, :], parameters, geometry)
@@ -117,10 +124,13 @@ def run(args: argparse.Namespace) -> int:
             first = int(stamps[0]) if first is None else first
             last = int(stamps[-1])
         counters = bag.counters
+        if n_sets == 0:
+            raise BagError(f'{bag_path}: every matched set has a non-finite reading ({non_finite} sets)')
     elapsed = time.perf_counter() - started
     kind = 'raw' if args.raw else 'compensated'
     print(f'{kind} {n_sets} sets from {bag_path} ({(last - first) * 1e-9:.1f} s of data; '
-          f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order) '
+          f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
+          f'{non_finite} sets with a non-finite reading skipped) '
           f'in {elapsed:.1f} s ({n_sets / max(elapsed, 1e-9):.0f} sets/s)')
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m)')
