@@ -318,16 +318,18 @@ class MagneticBag:
             for start in range(0, len(stamps), chunk_size):
                 yield stamps[start:start + chunk_size], fields[start:start + chunk_size]
 
-        for connection, _, raw in self.reader.messages(connections=connections):
-            raws[index[connection.id]].append((connection, raw))
-            count += 1
-            if count >= 4 * chunk_size:
-                bar.update(count)
-                count = 0
-                yield from flush(final=False)
-        bar.update(count)
-        yield from flush(final=True)
-        bar.close()
+        try:
+            for connection, _, raw in self.reader.messages(connections=connections):
+                raws[index[connection.id]].append((connection, raw))
+                count += 1
+                if count >= 4 * chunk_size:
+                    bar.update(count)
+                    count = 0
+                    yield from flush(final=False)
+            bar.update(count)
+            yield from flush(final=True)
+        finally:  # also when the caller stops early (generator closed)
+            bar.close()
         if matcher.counters.matched == 0:
             raise BagError(f'{self.path}: no sample set could be matched by header stamp within '
                            f'{tolerance_s * 1e3:g} ms ({matcher.counters.dropped_messages} messages unmatched)')
