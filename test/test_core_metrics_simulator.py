@@ -128,3 +128,7 @@ def test_scenario_validation():
         _scenario(segments=[])
     with pytest.raises(ValueError, match=r'time_skew_s must have shape \(4,\)'):
         Effects(time_skew_s=[0.1, 0.2])
+    with pytest.raises(ValueError, match='TrimManoeuvre.duration_s must be positive'):
+        TrimManoeuvre(0.0)
+    with pytest.raises(ValueError, match='SurveyLine.length_m must be positive'):
+        SurveyLine((1.0, 2.0, 3.0), (1.0, 2.0, 3.0))

@@ -29,6 +29,13 @@ from .model import SensorInterference
 _DERIVATIVE_STEP_S = 1.0e-3
 
 
+def _require_positive(owner: str, **values: float) -> None:
+    """Raise ValueError naming the first value that is not a positive finite number."""
+    for name, value in values.items():
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f'{owner}.{name} must be positive, got {value}')
+
+
 @dataclass(frozen=True)
 class Dipole:
     """A point dipole target: ``position`` (3,) m ENU, ``moment`` (3,) A m^2 ENU."""
@@ -59,6 +66,10 @@ class TrimManoeuvre:
     initial_heading_deg: float = 0.0
     speed_m_s: float = 1.0
 
+    def __post_init__(self) -> None:
+        _require_positive('TrimManoeuvre', duration_s=self.duration_s, roll_period_s=self.roll_period_s,
+                          pitch_period_s=self.pitch_period_s, speed_m_s=self.speed_m_s)
+
     def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position (N, 3) m and (yaw, pitch, roll) (N, 3) rad at segment-local times (s)."""
         rate = np.radians(self.heading_rate_deg_s)
@@ -85,6 +96,10 @@ class SurveyLine:
     roll_amplitude_deg: float = 0.0
     pitch_amplitude_deg: float = 0.0
     sway_period_s: float = 9.0
+
+    def __post_init__(self) -> None:
+        _require_positive('SurveyLine', speed_m_s=self.speed_m_s, sway_period_s=self.sway_period_s,
+                          length_m=float(np.linalg.norm(np.subtract(self.end, self.start))))
 
     @property
     def duration_s(self) -> float:
