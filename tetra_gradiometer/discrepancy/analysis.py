@@ -164,15 +164,7 @@ class _Prepared:
     earth_field_nT: np.ndarray | None
     notes: list[str]
     piece: np.ndarray            # (N,) index of the continuous piece of the run
-
-
-def _spline_basis(t: np.ndarray, knot_s: float) -> np.ndarray:
-    """Cubic B-spline basis (N, nk) on [t0, t1] with about ``knot_s`` between knots."""
-    span = max(t[-1] - t[0], 1e-9)
-    intervals = max(1, int(round(span / knot_s)))
-    inner = np.linspace(t[0], t[-1], intervals + 1)
-    knots = np.concatenate([[t[0]] * 3, inner, [t[-1]] * 3])
-    return BSpline.design_matrix(np.clip(t, t[0], t[-1]), knots, 3).toarray()
+    rotation: np.ndarray | None  # (N, 3, 3) body -> ENU
 
 
 def _sym_columns(cols: np.ndarray, sensor: int, start: int, b: np.ndarray,
@@ -232,35 +224,20 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepa
             earth = np.asarray(earth_field_enu, dtype=float).reshape(3) * NT_PER_T
         b0 = np.einsum('nji,j->ni', r, earth)                       # R^T E
         base_offset = np.repeat(b0[:, None, :], 4, axis=1)
-        phi = _spline_basis(t, settings.knot_s)
-        nk = phi.shape[1]
-        x_cols = np.zeros((n, 4, 3, 3 * nk))
-        labels: list[tuple[int, str]] = []
-        for a in range(3):
-            # R^T e_a is row a of R.
-            x_cols[:, :, :, a * nk:(a + 1) * nk] = (r[:, a, :, None] * phi[:, None, :])[:, None]
-            labels += [(-1, f'x_{"enu"[a]}_{k}') for k in range(nk)]
-        # First pass: the background seen by sensor 1 (external field included).
-        design = x_cols[:, 0].reshape(n * 3, -1)
-        coef = np.linalg.lstsq(design, (fields[:, 0] - b0).reshape(-1), rcond=None)[0]
-        b_background = b0 + (design @ coef).reshape(n, 3)
-        base_cols = np.zeros((n, 4, 3, 3 * nk + 27))
-        base_cols[..., :3 * nk] = x_cols
-        start = 3 * nk
-        for s in (1, 2, 3):
-            start = _sym_columns(base_cols, s, start, b_background, labels)
+        # First pass: a constant correction of the Earth field, from sensor 1.
+        design = np.swapaxes(r, 1, 2).reshape(n * 3, 3)             # rows of R^T
+        correction = np.linalg.lstsq(design, (fields[:, 0] - b0).reshape(-1), rcond=None)[0]
+        b_background = b0 + np.einsum('nji,j->ni', r, correction)
+        base_cols, labels = _base_columns(r, b_background, True, t)
         sensors: tuple[int, ...] = (0, 1, 2, 3)
         absolute = True
-        notes.append('B^b = R^T (E + x(t)) from /odom; x(t): slowly varying external field in the world frame '
-                     f'(cubic B-spline, {nk} functions per axis)')
+        notes.append('B^b = R^T E from /odom, E corrected by a constant fitted with the model '
+                     f'(|E| = {np.linalg.norm(earth + correction):.0f} nT)')
     else:
+        r = None
         b_background = fields[:, 0].copy()
         base_offset = np.repeat(b_background[:, None, :], 4, axis=1)
-        base_cols = np.zeros((n, 4, 3, 27))
-        labels = []
-        start = 0
-        for s in (1, 2, 3):
-            start = _sym_columns(base_cols, s, start, b_background, labels)
+        base_cols, labels = _base_columns(None, b_background, False)
         sensors = (1, 2, 3)
         absolute = False
         notes.append('no /odom: falling back to B^b = B_1\' (the paper\'s assumption); only the pair '
@@ -268,7 +245,51 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepa
                      'against sensor 1 and sensor-1 parameters are not separable')
     b_rate = PiecewiseSpline(t, b_background, piece)(0.0, 1)
     return _Prepared(t, fields, sensors, absolute, base_offset, b_background, b_rate, base_cols, labels,
-                     optional['temperature_c'], optional['current_a'], attitude, earth, notes, piece)
+                     optional['temperature_c'], optional['current_a'], attitude, earth, notes, piece, r)
+
+
+def _refresh_background(prep: _Prepared, correction: np.ndarray, tolerance_nT: float = 0.5) -> bool:
+    """Re-derive ``B^b = R^T (E + dE + dE' (t - t_mid))`` with the Earth-field correction of
+    the joint fit (the first pass used sensor 1 alone, whose own interference biases it);
+    rebuild the base columns when it moved by more than ``tolerance_nT`` (soft iron ~1e-2
+    turns that into < 0.005 nT). Returns True when something changed."""
+    world = correction[None, :3] + _ramp(prep.t)[:, None] * correction[None, 3:6]
+    b_background = prep.base_offset[:, 0] + np.einsum('nji,nj->ni', prep.rotation, world)
+    if np.max(np.abs(b_background - prep.b_background)) < tolerance_nT:
+        return False
+    prep.b_background = b_background
+    prep.base_cols, prep.base_labels = _base_columns(prep.rotation, b_background, True, prep.t)
+    prep.b_rate = PiecewiseSpline(prep.t, b_background, prep.piece)(0.0, 1)
+    return True
+
+
+def _ramp(t: np.ndarray) -> np.ndarray:
+    """(t - t_mid) / (half the span): -1 .. 1."""
+    half = max(0.5 * (t[-1] - t[0]), 1e-9)
+    return (t - 0.5 * (t[-1] + t[0])) / half
+
+
+def _base_columns(r: np.ndarray | None, b_background: np.ndarray, absolute: bool,
+                  t: np.ndarray | None = None) -> tuple[np.ndarray, list[tuple[int, str]]]:
+    """Base-model regressors: (absolute view) a correction of the Earth field seen by all
+    sensors, constant plus a linear drift over the run (diurnal variation, a distant target
+    passed slowly), then symmetric K_i and B_i^h of sensors 2-4 on ``b_background``."""
+    n = len(b_background)
+    first = 6 if absolute else 0
+    cols = np.zeros((n, 4, 3, first + 27))
+    labels: list[tuple[int, str]] = []
+    if absolute:
+        ramp = _ramp(t)
+        for a in range(3):
+            cols[..., a] = r[:, a, :][:, None, :]
+            labels.append((-1, f'dE_{"enu"[a]}_nT'))
+        for a in range(3):
+            cols[..., 3 + a] = (ramp[:, None] * r[:, a, :])[:, None, :]
+            labels.append((-1, f'dE_drift_{"enu"[a]}_nT_at_end'))
+    start = first
+    for s in (1, 2, 3):
+        start = _sym_columns(cols, s, start, b_background, labels)
+    return cols, labels
 
 
 def _pieces(t: np.ndarray, fields: np.ndarray, quat: np.ndarray | None,
@@ -310,7 +331,10 @@ def _testable(prep: _Prepared, names: tuple[str, ...]) -> tuple[list[Candidate],
     for name in names:
         candidate = LIBRARY[name]
         reason = None
-        if 'odom' in candidate.requires and not prep.absolute:
+        if candidate.name == 'external_field' and not prep.absolute:
+            reason = ('no /odom in the bag: the world frame is unknown, and the pair differences '
+                      "B_i' - B_1' cancel a field that is the same at all sensors")
+        elif 'odom' in candidate.requires and not prep.absolute:
             reason = ('no /odom in the bag: without an absolute attitude reference only the pair differences '
                       "B_i' - B_1' are observable; sensor 1's own soft and hard iron is absorbed into "
                       "K_i1 (I + K_1)^-1 (its small non-symmetric remainder would look like sensor_misalignment)")
@@ -490,10 +514,14 @@ def _build(candidate: Candidate, ctx: Context, prep: _Prepared, cur_cols: np.nda
     return _Family(candidate, cols, offset, labels)
 
 
+def _sensor_name(s: int) -> str:
+    return 'all_sensors' if s < 0 else f'sensor_{s + 1}'
+
+
 def _format(labels: list[tuple[int, str]], coef: np.ndarray, absolute: bool) -> dict[str, Any]:
     per_sensor: dict[str, dict[str, float]] = {}
     for (s, name), value in zip(labels, coef):
-        per_sensor.setdefault(f'sensor_{s + 1}', {})[name] = float(value)
+        per_sensor.setdefault(_sensor_name(s), {})[name] = float(value)
     out: dict[str, Any] = {'per_sensor': per_sensor}
     if not absolute:
         out['note'] = 'pair view: values relative to sensor 1 (sensor 1 taken as zero)'
@@ -586,26 +614,36 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     revisions = 0
     base_p = prep.base_cols.shape[-1]
     while True:
-        cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
         cur_off = sum((f.offset for f in active if f.offset is not None), np.zeros_like(y))
-        coef = _lstsq_full(prep, cur_cols, y - cur_off)
+        for _ in range(3):
+            cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
+            coef = _lstsq_full(prep, cur_cols, y - cur_off)
+            if not prep.absolute or not _refresh_background(prep, coef[:6]):
+                break
+            # Linear families on B^b (reference soft iron, eddy currents) follow the new B^b.
+            plain = Context(prep.t, prep.sensors, prep.absolute, prep.b_background, prep.b_rate,
+                            np.zeros_like(y), prep.temperature_c, prep.current_a, prep.piece, prep.rotation,
+                            settings.knot_s)
+            for k, f in enumerate(active):
+                if not f.candidate.nonlinear:
+                    active[k] = _restrict(_Family(f.candidate, *f.candidate.build(plain, None)), f.labels[0][0])
         prediction = prep.base_offset + np.einsum('nsap,p->nsa', cur_cols, coef) + cur_off
         residual = prep.fields - prediction
         floor, _ = _noise_floor(_flat(residual, prep.sensors))
         ctx = Context(prep.t, prep.sensors, prep.absolute, prep.b_background, prep.b_rate, prediction,
-                      prep.temperature_c, prep.current_a, prep.piece)
+                      prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
         taken = {(f.candidate.name, f.labels[0][0]) for f in active}
         units: list[_Family] = []
         if len(steps) < settings.max_effects:
             for c in testable:
-                if all((c.name, s) in taken for s in prep.sensors):
+                if all((c.name, s) in taken for s in prep.sensors + (-1,)):
                     continue
                 # Nonlinear families are linearised at an estimate from the base model alone:
                 # a unit already in the model that is nearly collinear with this family (an
                 # eddy term in the same sensor as a delay) would make the joint estimate wild.
                 family = _build(c, ctx, prep, prep.base_cols, y - cur_off)
-                for s in prep.sensors:
-                    if (c.name, s) not in taken and any(lab[0] == s for lab in family.labels):
+                for s in sorted({lab[0] for lab in family.labels}):
+                    if (c.name, s) not in taken:
                         units.append(_restrict(family, s))
         # Z = [current columns | unit columns | target | unit offsets]
         allcols = np.concatenate([cur_cols] + [u.cols for u in units], axis=-1)
@@ -710,7 +748,8 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                     continue
                 res = gram.evaluate(np.concatenate([sel_idx, unit_cols[k]]), ty, sel_off + unit_off[k])
                 row = compare(res, cur)
-                row.update({'effect': u.candidate.name, 'sensor': u.labels[0][0] + 1, 'unit': k})
+                row.update({'effect': u.candidate.name, 'unit': k,
+                            'sensor': 'all' if u.labels[0][0] < 0 else u.labels[0][0] + 1})
                 table.append(row)
             table.sort(key=lambda row: row['delta_bic'])
             if first_table is None:
@@ -726,14 +765,14 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             sel_off = sel_off + unit_off[best['unit']]
             cur = best['result']
         rounds.append({'gap_nT': gap_cur, 'noise_floor_nT': floor,
-                       'model': [f'{f.candidate.name}@sensor_{f.labels[0][0] + 1}' for f in active],
+                       'model': [f'{f.candidate.name}@{_sensor_name(f.labels[0][0])}' for f in active],
                        'candidates': [{k: v for k, v in row.items() if k not in ('unit', 'result')}
                                       for row in (first_table or [])]})
         if not chosen:
             break
         name = units[chosen[0]].candidate.name
         gap_after = float(np.sqrt(cur['cv'] / n_obs))
-        sensors_added = [units[k].labels[0][0] + 1 for k in chosen]
+        sensors_added = ['all' if units[k].labels[0][0] < 0 else units[k].labels[0][0] + 1 for k in chosen]
         first = [row for row in first_table if row['unit'] == chosen[0]][0]
         rivals = [row for row in first_table if row['effect'] != name]
         evidence = (f"added for sensor(s) {', '.join(map(str, sensors_added))}: held-out gap {gap_cur:.3g} -> "
@@ -770,8 +809,8 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2))) for s in prep.sensors}
         effect_fields.append(fld)
     base_params = _format(prep.base_labels, coef[:base_p], prep.absolute)
-    base_params['per_sensor'].pop('sensor_0', None)  # the external-field spline weights
-    base_params['external_field_spline'] = 'omitted (%d weights)' % sum(1 for s, _ in prep.base_labels if s < 0)
+    if 'all_sensors' in base_params['per_sensor']:
+        base_params['earth_field_correction_enu_nT'] = base_params['per_sensor'].pop('all_sensors')
     gap_final, floor_final = gaps[-1], floors[-1]
     adequate = gap_final <= settings.adequate_ratio * floor_final
     notes = list(prep.notes) + notes_revision

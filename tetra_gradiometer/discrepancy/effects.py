@@ -47,6 +47,8 @@ class Context:
     temperature_c: np.ndarray | None
     current_a: np.ndarray | None
     piece: np.ndarray | None = None
+    rotation: np.ndarray | None = None      # (N, 3, 3) body -> ENU, with /odom
+    knot_s: float = 30.0
 
 
 class PiecewiseSpline:
@@ -194,6 +196,28 @@ def _current(ctx: Context, estimate: dict | None) -> Built:
     return _per_sensor_scalar(ctx, ctx.current_a, 'nT_per_A', reference_offset=False)
 
 
+def spline_basis(t: np.ndarray, knot_s: float) -> np.ndarray:
+    """Cubic B-spline basis (N, nk) on [t0, t1] with about ``knot_s`` between knots."""
+    from scipy.interpolate import BSpline
+    span = max(t[-1] - t[0], 1e-9)
+    intervals = max(1, int(round(span / knot_s)))
+    inner = np.linspace(t[0], t[-1], intervals + 1)
+    knots = np.concatenate([[t[0]] * 3, inner, [t[-1]] * 3])
+    return BSpline.design_matrix(np.clip(t, t[0], t[-1]), knots, 3).toarray()
+
+
+def _external(ctx: Context, estimate: dict | None) -> Built:
+    phi = spline_basis(ctx.t, ctx.knot_s)
+    n, nk = phi.shape
+    cols = _empty(n, 3 * nk)
+    labels = []
+    for a in range(3):
+        # R^T e_a (world axis a seen in the body frame) is row a of R; the same at every sensor.
+        cols[..., a * nk:(a + 1) * nk] = (ctx.rotation[:, a, :, None] * phi[:, None, :])[:, None]
+        labels += [(-1, f'{"enu"[a]}_{k}_nT') for k in range(nk)]
+    return cols, None, labels
+
+
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate(
         'eddy_current',
@@ -236,6 +260,13 @@ CANDIDATES: tuple[Candidate, ...] = (
         "vehicle's wiring: by Biot-Savart proportional to the current, v_i I(t) with I from "
         '/battery_state, v_i in nT/A per sensor and axis.',
         'v_i per sensor and axis, nT/A', ('current',), _current),
+    Candidate(
+        'external_field',
+        'A field from outside the vehicle that the Earth-field model lacks: a distant target or '
+        'geology along the track, or the diurnal variation. It is fixed in the world frame (it does '
+        'not turn with the vehicle), the same at all four sensors, and varies slowly: x(t) in ENU '
+        '(a cubic B-spline in time, knots every 30 s), seen in the body frame as R^T x(t).',
+        'spline weights per ENU axis, nT (all sensors)', ('odom',), _external),
 )
 
 #: name -> candidate.
