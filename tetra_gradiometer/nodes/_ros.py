@@ -25,7 +25,7 @@ DEFAULT_PARAMS_FILE = Path(__file__).resolve().parents[2] / 'config' / 'tetra_gr
 #: Largest plausible magnetometer reading, tesla (the Earth's field is < 7e-5 T).
 MAX_FIELD_T = 1.0e-3
 
-DERIVED_DEPTH = 100
+DERIVED_DEPTH = 1000
 
 
 def sensor_qos(depth: int) -> Any:
@@ -68,7 +68,7 @@ class ParamSpec:
     read_only: bool = False
 
 
-def _descriptor(spec: ParamSpec) -> Any:
+def _descriptor(spec: ParamSpec, read_only: bool) -> Any:
     from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                     ParameterType)
     default = spec.default
@@ -85,7 +85,7 @@ def _descriptor(spec: ParamSpec) -> Any:
     else:
         raise TypeError(f'parameter {spec.name}: unsupported default {default!r}')
     descriptor = ParameterDescriptor(name=spec.name, type=kind, description=spec.description,
-                                     read_only=spec.read_only)
+                                     read_only=read_only)
     if spec.float_range is not None:
         descriptor.floating_point_range = [FloatingPointRange(
             from_value=float(spec.float_range[0]), to_value=float(spec.float_range[1]), step=0.0)]
@@ -95,8 +95,11 @@ def _descriptor(spec: ParamSpec) -> Any:
     return descriptor
 
 
-def declare_parameters(node: Any, specs: list[ParamSpec]) -> dict[str, Any]:
+def declare_parameters(node: Any, specs: list[ParamSpec], dynamic: tuple[str, ...] = ()) -> dict[str, Any]:
     """Declare ``specs`` on ``node`` with descriptors and validation; return their values.
+
+    Only the parameters named in ``dynamic`` may change at run time (the node reads them
+    when it uses them); the others are read-only after start-up.
 
     The validators also guard later ``set_parameters`` calls (bad values are refused with
     the validator's reason). Raises rclpy's ``InvalidParameterValueException`` (a
@@ -118,7 +121,8 @@ def declare_parameters(node: Any, specs: list[ParamSpec]) -> dict[str, Any]:
     node.add_on_set_parameters_callback(on_set)
     for spec in specs:
         default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
-        node.declare_parameter(spec.name, default, _descriptor(spec))
+        read_only = spec.read_only or spec.name not in dynamic
+        node.declare_parameter(spec.name, default, _descriptor(spec, read_only))
     return {spec.name: node.get_parameter(spec.name).value for spec in specs}
 
 

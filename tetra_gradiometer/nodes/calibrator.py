@@ -72,7 +72,9 @@ class CalibratorNode(Node):
     def __init__(self, **kwargs) -> None:
         kwargs.setdefault('namespace', NAMESPACE)
         super().__init__('calibrator', **kwargs)
-        p = declare_parameters(self, PARAMETERS)
+        p = declare_parameters(self, PARAMETERS, dynamic=(
+            'method', 'symmetric_k', 'calibration_file', 'min_samples', 'max_samples', 'max_coverage_condition',
+            'ga_seed', 'ga_generations'))
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._lock = threading.Lock()
         self._collecting = False
@@ -143,7 +145,10 @@ class CalibratorNode(Node):
         ok, message = self._calibrate()
         response.success, response.message = ok, message
         self._last_ok, self._last_result = ok, message
-        (self.get_logger().info if ok else self.get_logger().warning)(f'calibrate: {message}')
+        if ok:
+            self.get_logger().info(f'calibrate: {message}')
+        else:
+            self.get_logger().warning(f'calibrate: {message}')
         self._publish_diagnostics()
         return response
 
@@ -205,19 +210,19 @@ class CalibratorNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """``ros2 run tetra_gradiometer calibrator``."""
+    """``ros2 run tetra_gradiometer calibrator``; 1 when the node refuses its parameters."""
     rclpy.init(args=args)
-    node = None
     try:
         node = CalibratorNode()
+    except ValueError as error:  # a refused parameter value (the reason is in the message)
+        rclpy.logging.get_logger('calibrator').error(f'cannot start: {error}')
+        rclpy.try_shutdown()
+        return 1
+    try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as error:  # a refused parameter value
-        rclpy.logging.get_logger('calibrator').error(f'cannot start: {error}')
-        return 1
     finally:
-        if node is not None:
-            node.destroy_node()
+        node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -190,19 +190,19 @@ class CompensatorNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """``ros2 run tetra_gradiometer compensator``."""
+    """``ros2 run tetra_gradiometer compensator``; 1 when the node refuses its parameters."""
     rclpy.init(args=args)
-    node = None
     try:
         node = CompensatorNode()
+    except ValueError as error:  # a refused parameter value (the reason is in the message)
+        rclpy.logging.get_logger('compensator').error(f'cannot start: {error}')
+        rclpy.try_shutdown()
+        return 1
+    try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as error:  # a refused parameter value
-        rclpy.logging.get_logger('compensator').error(f'cannot start: {error}')
-        return 1
     finally:
-        if node is not None:
-            node.destroy_node()
+        node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -50,6 +50,9 @@ PARAMETERS = [
     ParamSpec('rate', 1.0, 'Speed: multiple of real time; 0 = as fast as the graph takes it '
               '(paced by gradient/raw).', non_negative, float_range=(0.0, 10000.0)),
     ParamSpec('start_paused', False, 'Wait for ~/resume before publishing.'),
+    ParamSpec('min_subscribers', 0, 'Do not publish until every magnetometer topic has at least this many '
+              'subscriptions (e.g. 1: wait for the tensor node instead of losing the first sets).',
+              int_range=(0, 1000)),
     ParamSpec('hold_between_segments', False, 'sim: pause after each scenario segment until ~/resume.'),
     ParamSpec('max_duration_s', 0.0, 'Play only this much sample time, s (0: all).', non_negative,
               float_range=(0.0, 1e9)),
@@ -61,6 +64,10 @@ PARAMETERS = [
               int_range=(1, 10000)),
     diagnostics_period_spec(),
 ]
+
+#: With ``min_subscribers``: wait this long after the subscriptions appear (s), so that the
+#: subscribers' side of the discovery has completed too.
+MATCH_SETTLE_S = 0.5
 
 #: Publisher keys of a frame's messages.
 MAG, TRUTH, ODOM = 'mag', 'truth', 'odom'
@@ -160,6 +167,8 @@ class DriverNode(Node):
         self._window = int(p['max_in_flight'])
         self._ack_timeout = float(p['ack_timeout_s'])
         self._mode = p['mode']
+        self._min_subscribers = int(p['min_subscribers'])
+        self._matched_since: float | None = None
         types = cv.rclpy_types()
         if self._mode == 'sim':
             start_ns = self.get_clock().now().nanoseconds
@@ -201,6 +210,14 @@ class DriverNode(Node):
         if self.state != 'playing':
             return
         now = time.monotonic()
+        if self._min_subscribers and self._matched_since is None:
+            if any(self._pubs[(MAG, s)].get_subscription_count() < self._min_subscribers for s in range(4)):
+                return
+            self._matched_since = now
+        if self._matched_since is not None and now - self._matched_since < MATCH_SETTLE_S:
+            self._origin = (now, self._next.pace_ns if self._next else 0)
+            self._last_progress = now
+            return
         for _ in range(10_000):
             frame = self._next
             if frame is None:
@@ -277,19 +294,19 @@ class DriverNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """``ros2 run tetra_gradiometer driver``."""
+    """``ros2 run tetra_gradiometer driver``; 1 when the node refuses its parameters."""
     rclpy.init(args=args)
-    node = None
     try:
         node = DriverNode()
+    except ValueError as error:  # a refused parameter value (the reason is in the message)
+        rclpy.logging.get_logger('driver').error(f'cannot start: {error}')
+        rclpy.try_shutdown()
+        return 1
+    try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as error:  # a refused parameter value, a missing bag or scenario
-        rclpy.logging.get_logger('driver').error(f'cannot start: {error}')
-        return 1
     finally:
-        if node is not None:
-            node.destroy_node()
+        node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -45,6 +45,9 @@ PARAMETERS = [
               int_range=(1, 10000)),
     ParamSpec('max_pending', 1000, 'Per-sensor bound of the stamp matcher queue, messages.',
               int_range=(1, 1000000)),
+    ParamSpec('jump_back_s', 1.0, 'A stamp this much older than its sensor\'s previous one (s) means the '
+              'source restarted (e.g. a new replay): the matcher is reset instead of dropping everything as '
+              'out of order.', positive, float_range=(1e-6, 1e9)),
     ParamSpec('warn_throttle_s', 5.0, 'Least interval between repeated warnings, s.', positive,
               float_range=(0.0, 3600.0)),
     diagnostics_period_spec(),
@@ -57,12 +60,19 @@ class TensorNode(Node):
     def __init__(self, **kwargs) -> None:
         kwargs.setdefault('namespace', NAMESPACE)
         super().__init__('tensor', **kwargs)
-        p = declare_parameters(self, PARAMETERS)
+        p = declare_parameters(self, PARAMETERS, dynamic=('max_field_t', 'stale_timeout_s'))
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._max_field = float(p['max_field_t'])
         self._stale_timeout = float(p['stale_timeout_s'])
-        self._matcher = StampMatcher(int(round(p['stamp_tolerance_s'] * 1e9)), max_pending=p['max_pending'])
+        self._tolerance_ns = int(round(p['stamp_tolerance_s'] * 1e9))
+        self._max_pending = int(p['max_pending'])
+        self._jump_back_ns = int(round(p['jump_back_s'] * 1e9))
+        self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
+        self._earlier = {'dropped_messages': 0, 'out_of_order': 0}  # counts of matchers reset before
+        self._last_stamp: list[int | None] = [None] * 4
+        self.resets = 0
         self._types = cv.rclpy_types()
+        self.add_post_set_parameters_callback(self._on_parameters)
         self._warn = Throttle(p['warn_throttle_s'])
         self._stale_warn = Throttle(p['warn_throttle_s'])
 
@@ -89,19 +99,41 @@ class TensorNode(Node):
 
     # ----------------------------------------------------------------- callbacks
 
+    def _on_parameters(self, parameters: list) -> None:
+        """Take validated run-time changes of ``max_field_t`` and ``stale_timeout_s``."""
+        for parameter in parameters:
+            if parameter.name == 'max_field_t':
+                self._max_field = float(parameter.value)
+            elif parameter.name == 'stale_timeout_s':
+                self._stale_timeout = float(parameter.value)
+
     def _on_mag(self, sensor: int, msg: MagneticField) -> None:
         """One reading (T): queue it; publish every set it completes."""
         self._received[sensor] += 1
         self._last_arrival[sensor] = time.monotonic()
         self._ever[sensor] = True
-        for stamp_ns, fields in self._matcher.add(sensor, cv.stamp_to_ns(msg.header.stamp),
-                                                  cv.magnetic_field_vector(msg)):
+        stamp = cv.stamp_to_ns(msg.header.stamp)
+        last = self._last_stamp[sensor]
+        if last is not None and stamp < last - self._jump_back_ns:
+            self._reset_matcher(sensor, last - stamp)
+        self._last_stamp[sensor] = stamp
+        for stamp_ns, fields in self._matcher.add(sensor, stamp, cv.magnetic_field_vector(msg)):
             self._emit(stamp_ns, fields)
+
+    def _reset_matcher(self, sensor: int, jump_ns: int) -> None:
+        """The source went back in time (a new replay): start matching afresh."""
+        for key in self._earlier:
+            self._earlier[key] += getattr(self._matcher.counters, key)
+        self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
+        self._last_stamp = [None] * 4
+        self.resets += 1
+        self.get_logger().warning(f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * 1e-9:.3g} s in time: '
+                                  f'stamp matching restarted')
 
     def _emit(self, stamp_ns: int, fields: np.ndarray) -> None:
         """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T)."""
-        bad = ~np.all(np.isfinite(fields), axis=1) | (np.linalg.norm(
-            np.nan_to_num(fields, nan=np.inf), axis=1) > self._max_field)
+        bad = ~np.all(np.isfinite(fields), axis=1)
+        bad[~bad] = np.linalg.norm(fields[~bad], axis=1) > self._max_field
         if bad.any():
             self.sets_invalid += 1
             for sensor in np.flatnonzero(bad):
@@ -151,14 +183,17 @@ class TensorNode(Node):
                 {'rate_hz': float(self._rate[s]), 'staleness_s': float(staleness),
                  'received': self._received[s], 'dropped_invalid': self._invalid[s]}))
         counters = self._matcher.counters
-        level = ERROR if stale else (WARN if self.sets_invalid or counters.dropped_messages else OK)
+        dropped = counters.dropped_messages + self._earlier['dropped_messages']
+        level = ERROR if stale else (WARN if self.sets_invalid or dropped else OK)
         text = (f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}' if stale
                 else f'{self.sets_published} tensors published')
         array.status.append(status(
             'tetra/tensor: matching', level, text, cv.ARRAY_FRAME,
             {'sets_published': self.sets_published, 'sets_dropped_invalid': self.sets_invalid,
-             'sets_dropped_stale': self.sets_stale, 'messages_dropped_unmatched': counters.dropped_messages,
-             'messages_out_of_order': counters.out_of_order}))
+             'sets_dropped_stale': self.sets_stale,
+             'messages_dropped_unmatched': counters.dropped_messages + self._earlier['dropped_messages'],
+             'messages_out_of_order': counters.out_of_order + self._earlier['out_of_order'],
+             'matcher_resets': self.resets}))
         self._diag_pub.publish(array)
         silent = [s for s in stale if self._ever[s]]  # went quiet after data (not: not started yet)
         if silent and self._stale_warn():
@@ -167,19 +202,19 @@ class TensorNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """``ros2 run tetra_gradiometer tensor``."""
+    """``ros2 run tetra_gradiometer tensor``; 1 when the node refuses its parameters."""
     rclpy.init(args=args)
-    node = None
     try:
         node = TensorNode()
+    except ValueError as error:  # a refused parameter value (the reason is in the message)
+        rclpy.logging.get_logger('tensor').error(f'cannot start: {error}')
+        rclpy.try_shutdown()
+        return 1
+    try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as error:  # a refused parameter value
-        rclpy.logging.get_logger('tensor').error(f'cannot start: {error}')
-        return 1
     finally:
-        if node is not None:
-            node.destroy_node()
+        node.destroy_node()
         rclpy.try_shutdown()
     return 0

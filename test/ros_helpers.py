@@ -1,0 +1,185 @@
+"""Helpers of the ROS integration tests (imported explicitly by test/test_nodes*.py).
+
+Nodes run as child processes (``python -m tetra_gradiometer node ...``) on a ROS domain
+unique to the test, discovery limited to localhost; the test process observes and drives
+them through its own rclpy context (a Probe and a Feeder node spun in a thread).
+"""
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+PARAMS = REPO / 'config' / 'tetra_gradiometer.yaml'
+_counter = itertools.count()
+
+
+def unique_domain() -> int:
+    """A ROS_DOMAIN_ID in 1..100 for one test: from the pid and a per-run counter."""
+    return 1 + (os.getpid() * 7 + next(_counter)) % 100
+
+
+def child_env(domain: int) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(PYTHONPATH=str(REPO), ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               PYTHONUNBUFFERED='1')
+    return env
+
+
+def ros_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ','.join(repr(float(v)) for v in value) + ']'
+    return str(value)
+
+
+class NodeProcess:
+    """One ``python -m tetra_gradiometer node NAME`` child; stderr kept in a file."""
+
+    def __init__(self, name: str, domain: int, params: dict[str, Any] | None = None) -> None:
+        self.name = name
+        self.log = tempfile.NamedTemporaryFile('w+', prefix=f'tg_{name}_', suffix='.log', delete=False)
+        command = [sys.executable, '-m', 'tetra_gradiometer', 'node', name, '--params', str(PARAMS)]
+        if params:
+            command.append('--ros-args')
+            for key, value in params.items():
+                command += ['-p', f'{key}:={ros_value(value)}']
+        self.process = subprocess.Popen(command, cwd=REPO, env=child_env(domain), stdout=self.log,
+                                        stderr=subprocess.STDOUT, start_new_session=True)
+
+    def output(self) -> str:
+        return Path(self.log.name).read_text()
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self) -> None:
+        """SIGINT (clean shutdown), then SIGKILL if it lingers."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(timeout=5)
+        self.log.close()
+
+
+class Graph:
+    """Child node processes plus in-process observer nodes on one domain."""
+
+    def __init__(self, domain: int) -> None:
+        self.domain = domain
+        self.processes: dict[str, NodeProcess] = {}
+
+    def start(self, name: str, **params: Any) -> NodeProcess:
+        process = NodeProcess(name, self.domain, params)
+        self.processes[name] = process
+        return process
+
+    def stop(self, name: str) -> None:
+        self.processes.pop(name).stop()
+
+    def logs(self) -> str:
+        return '\n'.join(f'--- {n} ---\n{p.output()[-3000:]}' for n, p in self.processes.items())
+
+
+@contextmanager
+def ros_graph() -> Iterator[tuple[Graph, Any, 'Feeder']]:
+    """``(graph, probe, feeder)``; every child process is stopped in ``finally``."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from tetra_gradiometer.nodes.probe import Probe
+
+    domain = unique_domain()
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    graph = Graph(domain)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    executor = SingleThreadedExecutor(context=context)
+    nodes: list = []
+    try:
+        probe = Probe('test_probe', context=context)
+        feeder = Feeder(context=context)
+        nodes = [probe, feeder]
+        for node in nodes:
+            executor.add_node(node)
+        threading.Thread(target=executor.spin, daemon=True).start()
+        yield graph, probe, feeder
+    finally:
+        for name in list(graph.processes):
+            graph.stop(name)
+        executor.shutdown(timeout_sec=2)
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def _feeder_class() -> type:
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState, MagneticField
+    from std_msgs.msg import String
+
+    from tetra_gradiometer import conversions as cv
+    from tetra_gradiometer.nodes._ros import derived_qos, latched_qos
+
+    class _Feeder(Node):
+        """Publishes magnetometer sets, raw tensors/reference fields and calibrations."""
+
+        def __init__(self, **kwargs: Any) -> None:
+            super().__init__('test_feeder', namespace='/tetra', **kwargs)
+            self.types = cv.rclpy_types()
+            self.mags = [self.create_publisher(MagneticField, t, 100) for t in cv.MAG_TOPICS]
+            self.raw = self.create_publisher(JointState, 'gradient/raw', derived_qos())
+            self.reference = self.create_publisher(MagneticField, 'reference_field', derived_qos())
+            self.calibration = self.create_publisher(String, 'calibration', latched_qos())
+
+        def publish_set(self, stamp_ns: int, fields: np.ndarray, skip: tuple[int, ...] = ()) -> None:
+            """Fields (4, 3) T at ``stamp_ns``; sensors in ``skip`` stay silent."""
+            for s in range(4):
+                if s not in skip:
+                    self.mags[s].publish(cv.magnetic_field_msg(self.types, fields[s], stamp_ns, cv.MAG_FRAMES[s]))
+
+        def publish_raw(self, stamp_ns: int, g: np.ndarray, b_reference: np.ndarray) -> None:
+            self.raw.publish(cv.tensor_msg(self.types, g, stamp_ns))
+            self.reference.publish(cv.magnetic_field_msg(self.types, b_reference, stamp_ns, cv.MAG_FRAMES[0]))
+
+    return _Feeder
+
+
+def Feeder(**kwargs: Any) -> Any:  # noqa: N802 - a factory standing in for the class
+    return _feeder_class()(**kwargs)
+
+
+def wait_for(condition, timeout_s: float, what: str, graph: Graph | None = None) -> None:
+    """Poll ``condition`` until true; on timeout fail with the children's logs."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out after {timeout_s:g} s waiting for {what}'
+                                 + (f'\n{graph.logs()}' if graph else ''))
+        time.sleep(0.02)
+
+
+def wait_matched(publisher: Any, count: int, timeout_s: float = 20.0) -> None:
+    wait_for(lambda: publisher.get_subscription_count() >= count, timeout_s,
+             f'{count} subscriber(s) on {publisher.topic_name}')
+
+
+def uniform_gradient_fields(positions: np.ndarray, b0: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Fields (4, 3) T of a linear field ``B(r) = b0 + G r`` at the sensor positions (4, 3) m:
+    exact for eq. 7, an independent truth for the tensor node."""
+    return b0[None, :] + positions @ g.T
