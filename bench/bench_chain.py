@@ -71,8 +71,9 @@ def main() -> int:
 
     node.create_subscription(JointState, 'gradient/compensated', on_compensated, derived_qos())
     executor = SingleThreadedExecutor()
+    spinner = threading.Thread(target=executor.spin, daemon=True)
     executor.add_node(node)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    spinner.start()
     results = []
     try:
         for publisher in mags:
@@ -117,6 +118,8 @@ def main() -> int:
               f'load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs')
     finally:
         executor.shutdown(timeout_sec=2)
+        if spinner.is_alive():
+            spinner.join(timeout=5)
         node.destroy_node()
         rclpy.try_shutdown()
         for process in processes:

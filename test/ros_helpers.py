@@ -110,6 +110,7 @@ def ros_graph() -> Iterator[tuple[Graph, Any, 'Feeder']]:
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     executor = SingleThreadedExecutor(context=context)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
     nodes: list = []
     try:
         probe = Probe('test_probe', context=context)
@@ -117,12 +118,14 @@ def ros_graph() -> Iterator[tuple[Graph, Any, 'Feeder']]:
         nodes = [probe, feeder]
         for node in nodes:
             executor.add_node(node)
-        threading.Thread(target=executor.spin, daemon=True).start()
+        spinner.start()
         yield graph, probe, feeder
     finally:
         for name in list(graph.processes):
             graph.stop(name)
         executor.shutdown(timeout_sec=2)
+        if spinner.is_alive():
+            spinner.join(timeout=5)
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)

@@ -78,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
                  CompensatorNode(parameter_overrides=cal),
                  DriverNode(parameter_overrides=[Parameter('mode', value='sim'), Parameter('rate', value=args.rate),
                                                  Parameter('start_paused', value=True),
-                                                 Parameter('hold_between_segments', value=True)])]
+                                                 Parameter('hold_between_segments', value=True),
+                                                 Parameter('min_subscribers', value=1)])]
         probe = Probe('demo')
         nodes.append(probe)
         for node in nodes:
@@ -134,6 +135,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     finally:
         executor.shutdown(timeout_sec=2)
+        if spinner.is_alive():
+            spinner.join(timeout=5)
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     rclpy.init(args=ros_arguments(args.params, ['--log-level', 'warn']), domain_id=domain)
     nodes: list[Node] = []
     executor = SingleThreadedExecutor()
+    spinner = threading.Thread(target=executor.spin, daemon=True)
     try:
         with BagWriter(Path(args.out), storage=args.storage) as writer:
             driver = DriverNode(parameter_overrides=[
@@ -104,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
             nodes = [driver, recorder, operator]
             for node in nodes:
                 executor.add_node(node)
-            threading.Thread(target=executor.spin, daemon=True).start()
+            spinner.start()
             topics = [*cv.MAG_TOPICS, 'gradient/truth']
             operator.wait_for(lambda: all(recorder.count_publishers(t) for t in topics)
                               and recorder.count_publishers(cv.ODOM_TOPIC), 20, 'the driver')
@@ -121,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
                         if time.monotonic() - quiet_since > 2.0:
                             break
             executor.shutdown(timeout_sec=2)
+            if spinner.is_alive():
+                spinner.join(timeout=5)
             expected = driver.sets_published
             lost = {t: expected - recorder.counts.get(t, 0) for t in [*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC,
                                                                       f'{NAMESPACE}/gradient/truth']}
@@ -133,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
         raise OSError(str(error)) from None
     finally:
         executor.shutdown(timeout_sec=2)
+        if spinner.is_alive():
+            spinner.join(timeout=5)
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
