@@ -261,9 +261,30 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         wait_for(lambda: '300 samples' in probe.call('calibrator/stop').message, 10, '300 samples', graph)
         reply = probe.call('calibrator/calibrate')
         assert reply.success, reply.message
-    saved = load_calibration(calibration_file)
-    np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(saved.parameters.b_hard, exact.b_hard, rtol=0, atol=1e-15)
+        saved = load_calibration(calibration_file)
+        np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(saved.parameters.b_hard, exact.b_hard, rtol=0, atol=1e-15)
+
+        # The paper's objective on the same samples (method changed at run time): the
+        # compensated training tensors become symmetric and traceless, as eqs. 21-22 ask.
+        _set_string(probe, graph, 'calibrator', 'method', 'constraint_lstsq')
+        reply = probe.call('calibrator/calibrate')
+        assert reply.success and reply.message.startswith('constraint_lstsq'), reply.message
+        paper = load_calibration(calibration_file)
+        compensated = core.compensate(g, b, paper.parameters, GEOMETRY)
+        assert np.abs(compensated - np.swapaxes(compensated, 1, 2)).max() < 1e-6 * np.abs(g).max()
+        assert np.abs(np.trace(compensated, axis1=1, axis2=2)).max() < 1e-6 * np.abs(g).max()
+
+
+def _set_string(probe, graph, node: str, name: str, value: str) -> None:
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    client = probe.create_client(SetParameters, f'{node}/set_parameters')
+    assert client.wait_for_service(timeout_sec=30)
+    parameter = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value))
+    future = client.call_async(SetParameters.Request(parameters=[parameter]))
+    wait_for(future.done, 10, 'set_parameters', graph)
+    assert future.result().results[0].successful, future.result().results[0].reason
 
 
 def test_corrupt_calibration_file_runs_uncompensated_then_follows_the_latched_topic(tmp_path):
@@ -277,19 +298,25 @@ def test_corrupt_calibration_file_runs_uncompensated_then_follows_the_latched_to
                  30, 'compensator diagnostics', graph)
         status = _diag(probe, 'tetra/compensator: compensation')
         assert status['level'] == 1 and 'UNCOMPENSATED' in status['message'] and 'not valid YAML' in status['message']
+        from std_msgs.msg import Float64, String
+        norms: list[float] = []
+        probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)
         wait_matched(feeder.raw, 2)  # compensator and probe
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/norm') >= 1, 10, 'norm publisher', graph)
+        time.sleep(0.5)
         with probe.lock:
             probe.collecting = True
         for i in range(10):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 10, 10, 'pass-through tensors', graph)
+        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 10 and len(norms) == 10, 10,
+                 'pass-through tensors', graph)
         for i in range(10):
             np.testing.assert_array_equal(probe.tensors['gradient/compensated'][T0 + i * 10**8], g[i])
+        np.testing.assert_allclose(norms, [np.sqrt(np.sum(g[i] ** 2)) / NT for i in range(10)], rtol=1e-12)
 
         # A calibration with the exact parameters, on the latched topic: the true tensor (zero) comes out.
         document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                    sensor_positions=GEOMETRY.to_flat())
-        from std_msgs.msg import String
         feeder.calibration.publish(String(data=document.to_yaml()))
         wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'True',
                  10, 'the latched calibration', graph)
