@@ -7,7 +7,6 @@ core path on the same bag.
 """
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -21,7 +20,7 @@ from ros_helpers import (REPO, child_env, ros_graph, uniform_gradient_fields, un
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.bag import MagneticBag
-from tetra_gradiometer.io.calibration import CalibrationFile, load_calibration, save_calibration
+from tetra_gradiometer.io.calibration import CalibrationFile, load_calibration
 from tetra_gradiometer.io.scenario import load_scenario
 from tetra_gradiometer.nodes import scenarios
 

@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def driver_overrides(args: argparse.Namespace) -> list[Any]:
     """Driver parameters given on the command line."""
     from rclpy.parameter import Parameter
-    out = []
+    out = [Parameter('min_subscribers', value=1)]  # the tensor node is here: do not lose the first sets
     if args.mode:
         out.append(Parameter('mode', value=args.mode))
     if args.bag:

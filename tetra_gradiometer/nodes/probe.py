@@ -1,6 +1,6 @@
-"""``Probe``: an observer/operator node used by the demo, the recorder-free checks and the
-benchmark. It calls services, collects tensors by stamp, and keeps the latest
-``/diagnostics`` status of every component. Not part of the graph's contract."""
+"""``Probe``: the operator/observer node of the demo, the record command and the tests.
+It calls Trigger services, collects tensors by stamp, and keeps the latest ``/diagnostics``
+status of every component. Not part of the graph's contract."""
 from __future__ import annotations
 
 import threading
