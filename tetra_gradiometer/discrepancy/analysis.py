@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import linalg as scipy_linalg
 from scipy import stats
 from scipy.interpolate import BSpline
 from scipy.spatial.transform import Rotation
@@ -359,7 +360,21 @@ def _testable(prep: _Prepared, names: tuple[str, ...]) -> tuple[list[Candidate],
 # Linear algebra: per-block Gram matrices and blocked cross-validation
 
 
+def _solve_fast(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve a normalised Gram system with a tiny ridge (Cholesky); exactly degenerate
+    directions get (nearly) the minimum-norm share. Falls back to the eigen-solve."""
+    if not len(rhs):
+        return np.zeros(0)
+    ridge = 1e-10 * max(float(np.trace(gram)) / len(rhs), 1e-300)
+    try:
+        factor = scipy_linalg.cho_factor(gram + ridge * np.eye(len(rhs)), check_finite=False)
+        return scipy_linalg.cho_solve(factor, rhs, check_finite=False)
+    except np.linalg.LinAlgError:
+        return _solve(gram, rhs)[0]
+
+
 def _solve(gram: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+    """Eigen-solve with a relative cut-off; returns the solution and the rank."""
     w, v = np.linalg.eigh(gram)
     top = max(float(w[-1]), 1e-300) if len(w) else 1.0
     keep = w > top * 1e-11
@@ -412,14 +427,24 @@ class _Gram:
         for fold in self.folds:
             tg, tc, _ = self._parts(self.total - fold, cols, targets, weights)
             fg, fc, fs = self._parts(fold, cols, targets, weights)
-            th = _solve(tg, tc)[0] if len(cols) else np.zeros(0)
+            th = _solve_fast(tg, tc)
             cv += fs - 2 * th @ fc + th @ fg @ th
         return {'theta': theta, 'rank': rank, 'rss': max(rss, 0.0), 'cv': max(cv, 1e-300)}
 
 
+ALL_SENSORS = (0, 1, 2, 3)
+
+
 def _flat(arr: np.ndarray, sensors: tuple[int, ...]) -> np.ndarray:
-    """(N, 4, 3, ...) -> (N, 3 len(sensors), ...)."""
-    sub = arr[:, list(sensors)]
+    """Full-sensor array (N, 4, 3, ...) -> the residual view (N, 3 len(sensors), ...).
+
+    Absolute view (sensors 0-3): as is. Pair view (sensors 1-3): the differences
+    ``sensor_i - sensor_1``, so a term of sensor 1 enters every pair with a minus sign.
+    """
+    if tuple(sensors) == ALL_SENSORS:
+        sub = arr
+    else:
+        sub = arr[:, list(sensors)] - arr[:, :1]
     return sub.reshape(sub.shape[0], 3 * len(sensors), *sub.shape[3:])
 
 
@@ -454,6 +479,29 @@ class _Family:
     cols: np.ndarray                 # (N, 4, 3, p)
     offset: np.ndarray | None        # (N, 4, 3)
     labels: list[tuple[int, str]]
+
+
+def _soft_iron(labels: list[tuple[int, str]], coef: np.ndarray) -> np.ndarray:
+    """The fitted symmetric K_i (4, 3, 3) of the base model (zero for sensor 1)."""
+    k = np.zeros((4, 3, 3))
+    for (s, name), value in zip(labels, coef):
+        if s >= 0 and name.startswith('K'):
+            r, c = 'xyz'.index(name[1]), 'xyz'.index(name[2])
+            k[s, r, c] = k[s, c, r] = value
+    return k
+
+
+def _reference_in_pairs(unit: _Family, k_hat: np.ndarray) -> _Family:
+    """A term of sensor 1 in the pair view: it enters ``B_i' - B_1'`` as ``-(I + K_i)`` times
+    itself, because the model's ``K_i B^b`` uses ``B^b = B_1'``, which carries it. The view
+    subtracts sensor 1's column; this puts ``-K_i`` times it at sensor i."""
+    cols = unit.cols.copy()
+    cols[:, 1:] = -np.einsum('sij,njp->nsip', k_hat[1:], unit.cols[:, 0])
+    offset = None
+    if unit.offset is not None:
+        offset = unit.offset.copy()
+        offset[:, 1:] = -np.einsum('sij,nj->nsi', k_hat[1:], unit.offset[:, 0])
+    return _Family(unit.candidate, cols, offset, unit.labels)
 
 
 def _restrict(family: _Family, sensor: int) -> _Family:
@@ -498,19 +546,75 @@ def _revise(steps: list[Step], step_units: list[list[int]], active: list[_Family
                     step_units.append([m])
                 else:
                     step_units[target].append(m)
+    # One step per family: merge a renamed step into the earlier step of its family.
+    i = 0
+    while i < len(steps):
+        j = next((j for j in range(i + 1, len(steps)) if steps[j].effect == steps[i].effect), None)
+        if j is None:
+            i += 1
+            continue
+        step_units[i] += step_units[j]
+        if j == i + 1:
+            steps[i].gap_after_nT = steps[j].gap_after_nT
+        steps[i].n_parameters += steps[j].n_parameters
+        steps[i].evidence += f'; merged with a later step of the same family: {steps[j].evidence}'
+        del steps[j], step_units[j]
 
 
-def _build(candidate: Candidate, ctx: Context, prep: _Prepared, cur_cols: np.ndarray,
-           target: np.ndarray) -> _Family:
-    """Build a family's columns; nonlinear families are iterated at their estimate."""
+@dataclass
+class _CurrentDesign:
+    """The current model's normalised design on all samples, shared by the builds of a round."""
+
+    a: np.ndarray          # (rows, p) normalised columns
+    norm: np.ndarray       # (p,)
+    gram: np.ndarray       # (p, p)
+    rhs: np.ndarray        # (p,) a^T target
+    target: np.ndarray     # (rows,)
+    sensor: np.ndarray     # (p,) sensor of each column (-2: base model)
+
+
+def _current_design(prep: _Prepared, cur_cols: np.ndarray, cur_sensor: np.ndarray,
+                    target: np.ndarray) -> _CurrentDesign:
+    a = _flat(cur_cols, prep.sensors)
+    a = a.reshape(-1, a.shape[-1])
+    norm = np.sqrt(np.einsum('rp,rp->p', a, a))
+    norm[norm == 0] = 1.0
+    a = a / norm
+    y = _flat(target, prep.sensors).reshape(-1)
+    return _CurrentDesign(a, norm, a.T @ a, a.T @ y, y, cur_sensor)
+
+
+def _build(candidate: Candidate, ctx: Context, prep: _Prepared, cur: _CurrentDesign) -> _Family:
+    """Build a family's columns; nonlinear families are iterated at their estimate.
+
+    The estimate for sensor ``s`` comes from the current model without its units in sensor
+    ``s`` (``cur.sensor``: the sensor of each current column, -2 for the base model): a unit
+    there that is nearly collinear with this family (an eddy term beside a delay) would make
+    a joint estimate wild, and leaving out the other sensors' units would bias it.
+    """
     cols, offset, labels = candidate.build(ctx, None)
-    if candidate.nonlinear:
-        for _ in range(3):
-            both = np.concatenate([cur_cols, cols], axis=-1)
-            tgt = target - (offset if offset is not None else 0.0)
-            coef = _lstsq_full(prep, both, tgt)[cur_cols.shape[-1]:]
-            estimate = {label: float(v) for label, v in zip(labels, coef)}
-            cols, offset, labels = candidate.build(ctx, estimate)
+    if not candidate.nonlinear:
+        return _Family(candidate, cols, offset, labels)
+    p_cur = len(cur.norm)
+    fam_sensor = np.array([lab[0] for lab in labels])
+    for _ in range(3):
+        f = _flat(cols, prep.sensors)
+        f = f.reshape(-1, f.shape[-1])
+        fnorm = np.sqrt(np.einsum('rq,rq->q', f, f))
+        fnorm[fnorm == 0] = 1.0
+        f = f / fnorm
+        y = cur.target - (_flat(offset, prep.sensors).reshape(-1) if offset is not None else 0.0)
+        cross = cur.a.T @ f
+        gram = np.block([[cur.gram, cross], [cross.T, f.T @ f]])
+        rhs = np.concatenate([cur.a.T @ y if offset is not None else cur.rhs, f.T @ y])
+        coef = np.zeros(len(labels))
+        for sensor in np.unique(fam_sensor):
+            own = np.flatnonzero(fam_sensor == sensor)
+            sel = np.concatenate([np.flatnonzero(cur.sensor != sensor), p_cur + own])
+            theta = _solve_fast(gram[np.ix_(sel, sel)], rhs[sel])
+            coef[own] = theta[-len(own):] / fnorm[own]
+        estimate = {label: float(v) for label, v in zip(labels, coef)}
+        cols, offset, labels = candidate.build(ctx, estimate)
     return _Family(candidate, cols, offset, labels)
 
 
@@ -524,7 +628,8 @@ def _format(labels: list[tuple[int, str]], coef: np.ndarray, absolute: bool) -> 
         per_sensor.setdefault(_sensor_name(s), {})[name] = float(value)
     out: dict[str, Any] = {'per_sensor': per_sensor}
     if not absolute:
-        out['note'] = 'pair view: values relative to sensor 1 (sensor 1 taken as zero)'
+        out['note'] = ('pair view (no /odom): only differences between a sensor and sensor 1 are observable; '
+                       'a value at sensor 1 is a term common to all pairs (e.g. tau_i - tau_1 is what the data fix)')
     return out
 
 
@@ -621,7 +726,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             if not prep.absolute or not _refresh_background(prep, coef[:6]):
                 break
             # Linear families on B^b (reference soft iron, eddy currents) follow the new B^b.
-            plain = Context(prep.t, prep.sensors, prep.absolute, prep.b_background, prep.b_rate,
+            plain = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate,
                             np.zeros_like(y), prep.temperature_c, prep.current_a, prep.piece, prep.rotation,
                             settings.knot_s)
             for k, f in enumerate(active):
@@ -629,22 +734,37 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                     active[k] = _restrict(_Family(f.candidate, *f.candidate.build(plain, None)), f.labels[0][0])
         prediction = prep.base_offset + np.einsum('nsap,p->nsa', cur_cols, coef) + cur_off
         residual = prep.fields - prediction
+        if not prep.absolute:
+            residual = residual - residual[:, :1]      # pair view: B_i' - B_1' against the model
         floor, _ = _noise_floor(_flat(residual, prep.sensors))
-        ctx = Context(prep.t, prep.sensors, prep.absolute, prep.b_background, prep.b_rate, prediction,
+        # Candidates are built on each sensor's prediction without the effects already named
+        # in that sensor (a delay of a reading that holds an eddy term would differentiate it).
+        own = np.zeros_like(y)
+        lo = prep.base_cols.shape[-1]
+        for f in active:
+            hi = lo + f.cols.shape[-1]
+            if f.labels[0][0] >= 0:
+                own += _effect_field(f, coef[lo:hi])
+            lo = hi
+        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction - own,
                       prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
         taken = {(f.candidate.name, f.labels[0][0]) for f in active}
+        cur_sensor = np.concatenate([np.full(prep.base_cols.shape[-1], -2)]
+                                    + [np.full(f.cols.shape[-1], f.labels[0][0]) for f in active])
         units: list[_Family] = []
         if len(steps) < settings.max_effects:
+            design = _current_design(prep, cur_cols, cur_sensor, y - cur_off)
+            k_hat = _soft_iron(prep.base_labels, coef[:prep.base_cols.shape[-1]])
             for c in testable:
-                if all((c.name, s) in taken for s in prep.sensors + (-1,)):
+                if all((c.name, s) in taken for s in ALL_SENSORS + (-1,)):
                     continue
-                # Nonlinear families are linearised at an estimate from the base model alone:
-                # a unit already in the model that is nearly collinear with this family (an
-                # eddy term in the same sensor as a delay) would make the joint estimate wild.
-                family = _build(c, ctx, prep, prep.base_cols, y - cur_off)
+                family = _build(c, ctx, prep, design)
                 for s in sorted({lab[0] for lab in family.labels}):
                     if (c.name, s) not in taken:
-                        units.append(_restrict(family, s))
+                        unit = _restrict(family, s)
+                        if s == 0 and not prep.absolute:
+                            unit = _reference_in_pairs(unit, k_hat)
+                        units.append(unit)
         # Z = [current columns | unit columns | target | unit offsets]
         allcols = np.concatenate([cur_cols] + [u.cols for u in units], axis=-1)
         a = _flat(allcols, prep.sensors)
@@ -719,8 +839,9 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                 break
             best_alt = None
             for j, u in enumerate(units):
-                if u.labels[0][0] != f.labels[0][0] or u.candidate.name == f.candidate.name:
-                    continue
+                if (u.labels[0][0] != f.labels[0][0] or u.candidate.name == f.candidate.name
+                        or len(unit_cols[j]) > len(active_cols[k])):
+                    continue      # only a unit with no more parameters may replace one
                 res = gram.evaluate(np.concatenate([rest, unit_cols[j]]), ty, unit_off[j], add_back=active_off[k])
                 if bic(res) < bic(cur) and (best_alt is None or bic(res) < best_alt[1]):
                     best_alt = (j, bic(res))
@@ -803,10 +924,11 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             labels += active[k].labels
             values.append(c)
             fld += _effect_field(active[k], c)
+        step.n_parameters = int(sum(active[k].cols.shape[-1] for k in members))
         step.parameters = _format(labels, np.concatenate(values), prep.absolute)
         step.parameters['units'] = LIBRARY[step.effect].parameters
         step.parameters['rms_contribution_nT'] = {
-            f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2))) for s in prep.sensors}
+            f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2))) for s in ALL_SENSORS if np.any(fld[:, s])}
         effect_fields.append(fld)
     base_params = _format(prep.base_labels, coef[:base_p], prep.absolute)
     if 'all_sensors' in base_params['per_sensor']:

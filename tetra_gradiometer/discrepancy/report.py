@@ -248,7 +248,8 @@ def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = Tr
             field = s['effect_fields'][i - 1] if i - 1 < len(s['effect_fields']) else None
             if field is not None and f'effect_{step.effect}' not in figures:
                 figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
-                _plot_effect(plt, out / figures[f'effect_{step.effect}'], t, sensors, step.effect, field)
+                shown = tuple(k for k in range(4) if np.any(field[:, k])) or sensors
+                _plot_effect(plt, out / figures[f'effect_{step.effect}'], t, shown, step.effect, field)
     atomic_write_text(out / 'report.json', report_json(report))
     atomic_write_text(out / 'report.md', report_markdown(report, figures))
     return out
