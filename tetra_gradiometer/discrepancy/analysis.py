@@ -479,6 +479,7 @@ class _Family:
     cols: np.ndarray                 # (N, 4, 3, p)
     offset: np.ndarray | None        # (N, 4, 3)
     labels: list[tuple[int, str]]
+    estimate: dict | None = None     # linearisation point of a nonlinear family
 
 
 def _soft_iron(labels: list[tuple[int, str]], coef: np.ndarray) -> np.ndarray:
@@ -501,7 +502,7 @@ def _reference_in_pairs(unit: _Family, k_hat: np.ndarray) -> _Family:
     if unit.offset is not None:
         offset = unit.offset.copy()
         offset[:, 1:] = -np.einsum('sij,nj->nsi', k_hat[1:], unit.offset[:, 0])
-    return _Family(unit.candidate, cols, offset, unit.labels)
+    return _Family(unit.candidate, cols, offset, unit.labels, unit.estimate)
 
 
 def _restrict(family: _Family, sensor: int) -> _Family:
@@ -511,7 +512,8 @@ def _restrict(family: _Family, sensor: int) -> _Family:
     if family.offset is not None:
         offset = np.zeros_like(family.offset)
         offset[:, sensor] = family.offset[:, sensor]
-    return _Family(family.candidate, family.cols[..., idx], offset, [family.labels[k] for k in idx])
+    return _Family(family.candidate, family.cols[..., idx], offset, [family.labels[k] for k in idx],
+                   family.estimate)
 
 
 def _revise(steps: list[Step], step_units: list[list[int]], active: list[_Family], k: int,
@@ -546,7 +548,13 @@ def _revise(steps: list[Step], step_units: list[list[int]], active: list[_Family
                     step_units.append([m])
                 else:
                     step_units[target].append(m)
-    # One step per family: merge a renamed step into the earlier step of its family.
+    _merge_steps(steps, step_units)
+
+
+def _merge_steps(steps: list[Step], step_units: list[list[int]]) -> None:
+    """One step per family: a later step of a family already named is merged into the earlier
+    one (its units and parameters; the gaps of the earlier step stay those it was named with,
+    unless the two steps were consecutive)."""
     i = 0
     while i < len(steps):
         j = next((j for j in range(i + 1, len(steps)) if steps[j].effect == steps[i].effect), None)
@@ -615,7 +623,7 @@ def _build(candidate: Candidate, ctx: Context, prep: _Prepared, cur: _CurrentDes
             coef[own] = theta[-len(own):] / fnorm[own]
         estimate = {label: float(v) for label, v in zip(labels, coef)}
         cols, offset, labels = candidate.build(ctx, estimate)
-    return _Family(candidate, cols, offset, labels)
+    return _Family(candidate, cols, offset, labels, estimate)
 
 
 def _sensor_name(s: int) -> str:
@@ -677,6 +685,55 @@ def _diagnostics(prep: _Prepared, residual: np.ndarray) -> dict[str, Any]:
 # The workflow
 
 
+def _fit_current(prep: _Prepared, active: list[_Family], y: np.ndarray, settings: Settings
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Context, np.ndarray]:
+    """Fit the current model on all samples, iterating what depends on the fit: ``B^b`` (the
+    Earth-field correction; linear families on ``B^b`` follow it) and the linearisation point
+    of the nonlinear families (Gauss-Newton: rebuilt at their current estimate). Returns the
+    columns, the fixed offsets, the coefficients, the prediction of every sensor, the build
+    context (each sensor's prediction without its own named effects) and the fitted K_i."""
+    last = None
+    for _ in range(8):
+        cur_off = sum((f.offset for f in active if f.offset is not None), np.zeros_like(y))
+        cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
+        coef = _lstsq_full(prep, cur_cols, y - cur_off)
+        prediction = prep.base_offset + np.einsum('nsap,p->nsa', cur_cols, coef) + cur_off
+        moved = prep.absolute and _refresh_background(prep, coef[:6])
+        # Candidates are built on each sensor's prediction without the effects already named
+        # in that sensor (a delay of a reading that holds an eddy term would differentiate it).
+        own = np.zeros_like(y)
+        bounds = [prep.base_cols.shape[-1]]
+        for f in active:
+            bounds.append(bounds[-1] + f.cols.shape[-1])
+            if f.labels[0][0] >= 0:
+                own += _effect_field(f, coef[bounds[-2]:bounds[-1]])
+        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction - own,
+                      prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
+        k_hat = _soft_iron(prep.base_labels, coef[:prep.base_cols.shape[-1]])
+        # Converged when the prediction no longer moves (a nonlinear family's offset is the
+        # exact remainder of the prediction it was built on, so it must follow it).
+        settled = last is not None and float(np.max(np.abs(prediction - last))) < 1e-3 and not moved
+        last = prediction
+        if settled or not any(f.candidate.nonlinear for f in active) and not moved:
+            break
+        for k, f in enumerate(active):
+            sensor = f.labels[0][0]
+            if f.candidate.nonlinear:
+                estimate = {label: float(v) for label, v in zip(f.labels, coef[bounds[k]:bounds[k + 1]])}
+                built = f.candidate.build(ctx, estimate)
+            elif moved:
+                built = f.candidate.build(ctx, None)
+                estimate = None
+            else:
+                continue
+            unit = _restrict(_Family(f.candidate, *built), sensor)
+            unit.estimate = estimate
+            if sensor == 0 and not prep.absolute:
+                unit = _reference_in_pairs(unit, k_hat)
+            active[k] = unit
+    return cur_cols, cur_off, coef, prediction, ctx, k_hat
+
+
 def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *,
             settings: Settings | None = None, keep_series: bool = True) -> Report:
     """Find the effects the base model is missing in a recorded run.
@@ -719,42 +776,17 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     revisions = 0
     base_p = prep.base_cols.shape[-1]
     while True:
-        cur_off = sum((f.offset for f in active if f.offset is not None), np.zeros_like(y))
-        for _ in range(3):
-            cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
-            coef = _lstsq_full(prep, cur_cols, y - cur_off)
-            if not prep.absolute or not _refresh_background(prep, coef[:6]):
-                break
-            # Linear families on B^b (reference soft iron, eddy currents) follow the new B^b.
-            plain = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate,
-                            np.zeros_like(y), prep.temperature_c, prep.current_a, prep.piece, prep.rotation,
-                            settings.knot_s)
-            for k, f in enumerate(active):
-                if not f.candidate.nonlinear:
-                    active[k] = _restrict(_Family(f.candidate, *f.candidate.build(plain, None)), f.labels[0][0])
-        prediction = prep.base_offset + np.einsum('nsap,p->nsa', cur_cols, coef) + cur_off
+        cur_cols, cur_off, coef, prediction, ctx, k_hat = _fit_current(prep, active, y, settings)
         residual = prep.fields - prediction
         if not prep.absolute:
             residual = residual - residual[:, :1]      # pair view: B_i' - B_1' against the model
         floor, _ = _noise_floor(_flat(residual, prep.sensors))
-        # Candidates are built on each sensor's prediction without the effects already named
-        # in that sensor (a delay of a reading that holds an eddy term would differentiate it).
-        own = np.zeros_like(y)
-        lo = prep.base_cols.shape[-1]
-        for f in active:
-            hi = lo + f.cols.shape[-1]
-            if f.labels[0][0] >= 0:
-                own += _effect_field(f, coef[lo:hi])
-            lo = hi
-        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction - own,
-                      prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
         taken = {(f.candidate.name, f.labels[0][0]) for f in active}
         cur_sensor = np.concatenate([np.full(prep.base_cols.shape[-1], -2)]
                                     + [np.full(f.cols.shape[-1], f.labels[0][0]) for f in active])
         units: list[_Family] = []
         if len(steps) < settings.max_effects:
             design = _current_design(prep, cur_cols, cur_sensor, y - cur_off)
-            k_hat = _soft_iron(prep.base_labels, coef[:prep.base_cols.shape[-1]])
             for c in testable:
                 if all((c.name, s) in taken for s in ALL_SENSORS + (-1,)):
                     continue
@@ -799,8 +831,12 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         def bic(res: dict[str, Any]) -> float:
             return float(n_obs * np.log(res['cv'] / n_obs) + res['rank'] * np.log(n_obs))
 
-        def compare(res: dict[str, Any], ref: dict[str, Any]) -> dict[str, Any]:
-            """``res`` (a larger model) against ``ref``: the selection criterion."""
+        channels = 3 * len(prep.sensors)
+
+        def compare(res: dict[str, Any], ref: dict[str, Any], sensor: int) -> dict[str, Any]:
+            """``res`` (the model with a unit of ``sensor`` added) against ``ref``: the
+            selection criterion. The explained RMS is over the unit's own sensor (3 channels;
+            a common term, or sensor 1 in the pair view, over all channels)."""
             dp = res['rank'] - ref['rank']
             gain = ref['cv'] - res['cv']
             dof = max(n_obs - res['rank'], 1.0)
@@ -809,7 +845,8 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                 pval = float(stats.f.sf(fstat, dp, dof))
             else:
                 fstat, pval = 0.0, 1.0
-            explained = float(np.sqrt(max(gain, 0.0) / n_obs))
+            own = 3 if (sensor >= 1 or (sensor == 0 and prep.absolute)) else channels
+            explained = float(np.sqrt(max(gain, 0.0) / (n_obs / channels * own)))
             dbic = bic(res) - bic(ref)
             return {'n_parameters': int(dp), 'gap_after_nT': float(np.sqrt(res['cv'] / n_obs)),
                     'delta_bic': float(dbic), 'f_statistic': float(fstat), 'p_value': pval,
@@ -833,7 +870,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         for k, f in enumerate(active):
             rest = np.concatenate([base_idx] + [c for j, c in enumerate(active_cols) if j != k])
             without = gram.evaluate(rest, ty, add_back=active_off[k])
-            if not compare(cur, without)['passes']:
+            if not compare(cur, without, f.labels[0][0])['passes']:
                 revised = (k, None, f'{f.candidate.name} at sensor {f.labels[0][0] + 1} is no longer needed '
                                     f'once the other effects are in (removed)')
                 break
@@ -865,10 +902,10 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         while True:
             table = []
             for k, u in enumerate(units):
-                if k in chosen:
-                    continue
+                if k in chosen or (chosen and u.candidate.name != units[chosen[0]].candidate.name):
+                    continue      # after the first unit, the step extends its family to other sensors
                 res = gram.evaluate(np.concatenate([sel_idx, unit_cols[k]]), ty, sel_off + unit_off[k])
-                row = compare(res, cur)
+                row = compare(res, cur, u.labels[0][0])
                 row.update({'effect': u.candidate.name, 'unit': k,
                             'sensor': 'all' if u.labels[0][0] < 0 else u.labels[0][0] + 1})
                 table.append(row)
@@ -879,8 +916,6 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             if not winners:
                 break
             best = winners[0]
-            if chosen and best['effect'] != units[chosen[0]].candidate.name:
-                break      # another family is next: it gets its own step, on rebuilt columns
             chosen.append(best['unit'])
             sel_idx = np.concatenate([sel_idx, unit_cols[best['unit']]])
             sel_off = sel_off + unit_off[best['unit']]
@@ -910,6 +945,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                           first['f_statistic'], first['p_value']))
         step_units.append(list(range(len(active), len(active) + len(chosen))))
         active.extend(units[k] for k in chosen)
+        _merge_steps(steps, step_units)
     # Final joint fit: parameters of every named effect and of the base model.
     bounds = [base_p]
     for f in active:
@@ -954,8 +990,12 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             'has_temperature': prep.temperature_c is not None, 'has_current': prep.current_a is not None,
             'missing_topics': dict(getattr(recording, 'missing', {}) or {})}
     if prep.earth_field_nT is not None:
-        data['earth_field_enu_nT'] = [float(v) for v in prep.earth_field_nT]
-        data['earth_field_source'] = 'params' if earth_field_enu is not None else 'estimated'
+        data['earth_field_enu_nT'] = [float(v) for v in prep.earth_field_nT + coef[:3]]
+        data['earth_field_drift_enu_nT'] = [float(v) for v in coef[3:6]]
+        data['earth_field_source'] = ('params, corrected by the fit' if earth_field_enu is not None
+                                      else 'estimated from sensor 1 and /odom, refined by the fit')
+        if earth_field_enu is not None:
+            data['earth_field_params_enu_nT'] = [float(v) for v in prep.earth_field_nT]
     report = Report(
         named_effects=[s.effect for s in steps], steps=steps, gap_initial_nT=gaps[0], gap_final_nT=gap_final,
         noise_floor_nT=floor_final, base_model=BASE_MODEL + ('; B^b = R^T earth_field_enu from /odom'
