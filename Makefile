@@ -29,6 +29,10 @@ paper: setup
 
 bench: setup
 	$(PY) bench/bench_solvers.py
+	$(PY) bench/bench_accuracy.py
+	$(PY) bench/bench_scale.py
+	$(PY) bench/bench_chain.py
+	$(PY) bench/bench_discrepancy.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info
