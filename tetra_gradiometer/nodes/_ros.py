@@ -231,3 +231,16 @@ def status(name: str, level: int, message: str, hardware_id: str, values: dict[s
 
 
 OK, WARN, ERROR = 0, 1, 2
+
+
+def interrupt_on_signals() -> None:
+    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread (also when the shell
+    started us with SIGINT ignored), for processes that stop their executors themselves
+    instead of letting rclpy's handler invalidate the context under running callbacks."""
+    import signal
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, interrupt)
+    signal.signal(signal.SIGTERM, interrupt)

@@ -64,18 +64,24 @@ def create_nodes(args: argparse.Namespace, driver_extra: list[Any] = ()) -> list
 
 def run(args: argparse.Namespace) -> int:
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from ._ros import interrupt_on_signals
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-    rclpy.init(args=ros_arguments(args.params, args.ros_args))
+    # Our own Ctrl-C handling (KeyboardInterrupt), so callbacks stop before the context goes.
+    interrupt_on_signals()
+    rclpy.init(args=ros_arguments(args.params, args.ros_args), signal_handler_options=SignalHandlerOptions.NO)
     nodes: list[Any] = []
+    executor = MultiThreadedExecutor(num_threads=4)
     try:
         nodes = create_nodes(args)
-        executor = MultiThreadedExecutor(num_threads=4)
         for node in nodes:
             executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        executor.shutdown(timeout_sec=2)  # let running callbacks finish before the nodes go
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()

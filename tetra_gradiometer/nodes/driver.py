@@ -281,6 +281,11 @@ class DriverNode(Node):
         response.success, response.message = True, 'paused'
         return response
 
+    def destroy_node(self) -> None:
+        """Close the source (a replayed bag) with the node."""
+        self._frames.close()
+        super().destroy_node()
+
     def _publish_diagnostics(self) -> None:
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()

@@ -78,6 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from ._ros import interrupt_on_signals
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
@@ -89,7 +92,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f'--duration must be > 0 s, got {args.duration}')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     domain = int(os.environ.get('ROS_DOMAIN_ID') or 1 + os.getpid() % 100)
-    rclpy.init(args=ros_arguments(args.params, ['--log-level', 'warn']), domain_id=domain)
+    interrupt_on_signals()
+    rclpy.init(args=ros_arguments(args.params, ['--log-level', 'warn']), domain_id=domain,
+               signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C: KeyboardInterrupt, clean stop
     nodes: list[Node] = []
     executor = SingleThreadedExecutor()
     spinner = threading.Thread(target=executor.spin, daemon=True)
