@@ -138,10 +138,13 @@ class Report:
 
 def criterion_text(settings: Settings | None = None) -> str:
     s = settings or Settings()
-    return ('Blocked %d-fold cross-validation; the candidate with the lowest CV-BIC n ln(SS_cv/n) + p ln n '
-            '(p: identifiable parameters) is added when its CV-BIC is lower than the current model\'s, '
+    return ('Blocked %d-fold cross-validation; per unit (family x sensor), the one with the lowest '
+            'CV-BIC n ln(SS_cv/n) + p ln n (p: identifiable parameters) is added when its CV-BIC is lower than the current model\'s, '
             'the held-out F-test of its parameters gives p < %g, and it explains at least (%g x noise floor)^2 '
-            'of the held-out mean square; otherwise the loop stops.' % (s.n_folds, s.alpha, s.relevance))
+            'of the held-out mean square of its own sensor; the step extends the family to the other sensors '
+            'that pass; named units are re-checked every round (removed when no longer needed, replaced by a '
+            'unit of another family with no more parameters and a lower CV-BIC); the loop stops when no unit '
+            'passes.' % (s.n_folds, s.alpha, s.relevance))
 
 
 # ---------------------------------------------------------------------------------------
@@ -244,7 +247,8 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepa
         notes.append('no /odom: falling back to B^b = B_1\' (the paper\'s assumption); only the pair '
                      'differences B_i\' - B_1\' are observable, so the residual is that of sensors 2-4 '
                      'against sensor 1 and sensor-1 parameters are not separable')
-    b_rate = PiecewiseSpline(t, b_background, piece)(0.0, 1)
+    b_rate = (PiecewiseSpline(t, b_background, piece)(0.0, 1) if quat is not None
+              else _smoothed(t, b_background, piece, deriv=1))
     return _Prepared(t, fields, sensors, absolute, base_offset, b_background, b_rate, base_cols, labels,
                      optional['temperature_c'], optional['current_a'], attitude, earth, notes, piece, r)
 
@@ -261,6 +265,39 @@ def _refresh_background(prep: _Prepared, correction: np.ndarray, tolerance_nT: f
     prep.b_background = b_background
     prep.base_cols, prep.base_labels = _base_columns(prep.rotation, b_background, True, prep.t)
     prep.b_rate = PiecewiseSpline(prep.t, b_background, prep.piece)(0.0, 1)
+    return True
+
+
+def _smoothed(t: np.ndarray, values: np.ndarray, piece: np.ndarray, deriv: int = 0) -> np.ndarray:
+    """Savitzky-Golay (5th order, ~1.3 s or 13 samples) value or derivative on each piece:
+    exact to ~1e-7 for manoeuvre signals, a quarter of the noise gain of a spline derivative.
+    Pieces shorter than the window get a cubic spline."""
+    from scipy.signal import savgol_filter
+    out = np.empty_like(values, dtype=float)
+    for p in np.unique(piece):
+        idx = np.flatnonzero(piece == p)
+        if len(idx) < 2:
+            out[idx] = 0.0 if deriv else values[idx]
+            continue
+        dt = float(np.median(np.diff(t[idx])))
+        window = max(13, int(round(1.3 / dt)) | 1)
+        if len(idx) > window:
+            out[idx] = savgol_filter(values[idx], window, 5, deriv=deriv, delta=dt, axis=0)
+        else:
+            out[idx] = PiecewiseSpline(t[idx], values[idx])(0.0, deriv)
+    return out
+
+
+def _refresh_pair_background(prep: _Prepared, clean: np.ndarray, tolerance_nT: float = 0.01) -> bool:
+    """Pair view: take ``B^b`` (and the fixed part of every prediction) as sensor 1's reading
+    less its named effects; rebuild the base columns when it moved. True when it did. (Here
+    ``B^b`` is the regressor of sensor 1's own terms, hence the tight tolerance.)"""
+    if np.max(np.abs(clean - prep.b_background)) < tolerance_nT:
+        return False
+    prep.b_background = clean
+    prep.base_offset = np.repeat(clean[:, None, :], 4, axis=1)
+    prep.base_cols, prep.base_labels = _base_columns(None, clean, False)
+    prep.b_rate = _smoothed(prep.t, clean, prep.piece, deriv=1)
     return True
 
 
@@ -493,9 +530,10 @@ def _soft_iron(labels: list[tuple[int, str]], coef: np.ndarray) -> np.ndarray:
 
 
 def _reference_in_pairs(unit: _Family, k_hat: np.ndarray) -> _Family:
-    """A term of sensor 1 in the pair view: it enters ``B_i' - B_1'`` as ``-(I + K_i)`` times
-    itself, because the model's ``K_i B^b`` uses ``B^b = B_1'``, which carries it. The view
-    subtracts sensor 1's column; this puts ``-K_i`` times it at sensor i."""
+    """A candidate term of sensor 1 in the pair view: it enters ``B_i' - B_1'`` as
+    ``-(I + K_i)`` times itself while the model's ``K_i B^b`` uses ``B^b = B_1'``, which
+    carries it. The view subtracts sensor 1's column; this puts ``-K_i`` times it at sensor
+    i. (Once named, the term is taken out of ``B^b`` instead and the unit is plain.)"""
     cols = unit.cols.copy()
     cols[:, 1:] = -np.einsum('sij,njp->nsip', k_hat[1:], unit.cols[:, 0])
     offset = None
@@ -707,8 +745,17 @@ def _fit_current(prep: _Prepared, active: list[_Family], y: np.ndarray, settings
             bounds.append(bounds[-1] + f.cols.shape[-1])
             if f.labels[0][0] >= 0:
                 own += _effect_field(f, coef[bounds[-2]:bounds[-1]])
-        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction - own,
+        basis = prediction - own
+        if not prep.absolute:
+            # B^b = B_1' carries sensor 1's noise; the derivatives and shifts the builders take
+            # would amplify it (an interpolating spline's derivative by ~1.4/dt).
+            basis = _smoothed(prep.t, basis, prep.piece)
+        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, basis,
                       prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
+        if not prep.absolute:
+            # Pair view: B^b = B_1' less the effects named in sensor 1 (its own delay or eddy
+            # term must not magnetise the other sensors' model).
+            moved = _refresh_pair_background(prep, prep.fields[:, 0] - own[:, 0])
         k_hat = _soft_iron(prep.base_labels, coef[:prep.base_cols.shape[-1]])
         # Converged when the prediction no longer moves (a nonlinear family's offset is the
         # exact remainder of the prediction it was built on, so it must follow it).
@@ -728,8 +775,6 @@ def _fit_current(prep: _Prepared, active: list[_Family], y: np.ndarray, settings
                 continue
             unit = _restrict(_Family(f.candidate, *built), sensor)
             unit.estimate = estimate
-            if sensor == 0 and not prep.absolute:
-                unit = _reference_in_pairs(unit, k_hat)
             active[k] = unit
     return cur_cols, cur_off, coef, prediction, ctx, k_hat
 
@@ -785,6 +830,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         cur_sensor = np.concatenate([np.full(prep.base_cols.shape[-1], -2)]
                                     + [np.full(f.cols.shape[-1], f.labels[0][0]) for f in active])
         units: list[_Family] = []
+        plain: dict[int, _Family] = {}     # pair view, sensor 1: the unit as it replaces a named one
         if len(steps) < settings.max_effects:
             design = _current_design(prep, cur_cols, cur_sensor, y - cur_off)
             for c in testable:
@@ -795,10 +841,12 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                     if (c.name, s) not in taken:
                         unit = _restrict(family, s)
                         if s == 0 and not prep.absolute:
+                            plain[len(units)] = unit
                             unit = _reference_in_pairs(unit, k_hat)
                         units.append(unit)
-        # Z = [current columns | unit columns | target | unit offsets]
-        allcols = np.concatenate([cur_cols] + [u.cols for u in units], axis=-1)
+        # Z = [current columns | unit columns | plain units | target | unit offsets]
+        extra_units = list(plain.values())
+        allcols = np.concatenate([cur_cols] + [u.cols for u in units + extra_units], axis=-1)
         a = _flat(allcols, prep.sensors)
         norm = np.sqrt(np.einsum('nmp,nmp->p', a, a))
         usable = norm > 0
@@ -808,7 +856,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         unit_cols: list[np.ndarray] = []
         unit_off: list[list[int]] = []
         start = cur_cols.shape[-1]
-        for u in units:
+        for u in units + extra_units:
             p = u.cols.shape[-1]
             unit_cols.append(start + np.flatnonzero(usable[start:start + p]))
             start += p
@@ -817,6 +865,8 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                 extra.append(_flat(u.offset, prep.sensors)[..., None])
             else:
                 unit_off.append([])
+        # Where the swap test finds each unit's columns (the plain version when there is one).
+        swap_index = {k: len(units) + i for i, k in enumerate(plain)}
         # Offsets of the units already in the model, to add back when one is taken out.
         active_off: list[list[int]] = []
         for f in active:
@@ -879,11 +929,12 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                 if (u.labels[0][0] != f.labels[0][0] or u.candidate.name == f.candidate.name
                         or len(unit_cols[j]) > len(active_cols[k])):
                     continue      # only a unit with no more parameters may replace one
-                res = gram.evaluate(np.concatenate([rest, unit_cols[j]]), ty, unit_off[j], add_back=active_off[k])
+                jj = swap_index.get(j, j)
+                res = gram.evaluate(np.concatenate([rest, unit_cols[jj]]), ty, unit_off[jj], add_back=active_off[k])
                 if bic(res) < bic(cur) and (best_alt is None or bic(res) < best_alt[1]):
                     best_alt = (j, bic(res))
             if best_alt is not None:
-                u = units[best_alt[0]]
+                u = plain.get(best_alt[0], units[best_alt[0]])
                 revised = (k, u, f'{f.candidate.name} at sensor {f.labels[0][0] + 1} replaced by the more '
                                  f'parsimonious {u.candidate.name} (CV-BIC {best_alt[1] - bic(cur):+.4g}) once the '
                                  'other effects are in')

@@ -252,4 +252,10 @@ def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = Tr
                 _plot_effect(plt, out / figures[f'effect_{step.effect}'], t, shown, step.effect, field)
     atomic_write_text(out / 'report.json', report_json(report))
     atomic_write_text(out / 'report.md', report_markdown(report, figures))
+    # Plots of an earlier report in the same folder would mislead: remove ours that are stale.
+    current = set(figures.values())
+    for pattern in ('residual_step*.png', 'residual_base.png', 'effect_*.png', 'gap.png', 'diagnostics.png'):
+        for stale in out.glob(pattern):
+            if stale.name not in current:
+                stale.unlink(missing_ok=True)
     return out
