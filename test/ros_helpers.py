@@ -104,11 +104,9 @@ def ros_graph() -> Iterator[tuple[Graph, Any, 'Feeder']]:
 
     from tetra_gradiometer.nodes.probe import Probe
 
-    domain = unique_domain()
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    domain, context = _free_domain()
     graph = Graph(domain)
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain)
     executor = SingleThreadedExecutor(context=context)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     nodes: list = []
@@ -129,6 +127,25 @@ def ros_graph() -> Iterator[tuple[Graph, Any, 'Feeder']]:
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def _free_domain(attempts: int = 10, listen_s: float = 0.7) -> tuple[int, Any]:
+    """A domain where no other node is seen (other people's tests share this machine), with
+    an initialised rclpy context on it."""
+    import rclpy
+    from rclpy.node import Node
+    for _ in range(attempts):
+        domain = unique_domain()
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=domain)
+        scout = Node('domain_scout', context=context)
+        time.sleep(listen_s)
+        others = [n for n in scout.get_node_names() if n != 'domain_scout']
+        scout.destroy_node()
+        if not others:
+            return domain, context
+        rclpy.try_shutdown(context=context)
+    raise RuntimeError(f'no free ROS domain found in {attempts} attempts')
 
 
 def _feeder_class() -> type:
