@@ -129,7 +129,7 @@ def test_report_files_and_schema(tmp_path):
         assert set(step) >= {'effect', 'gap_before_nT', 'gap_after_nT', 'parameters', 'evidence'}
     text = (out / 'report.md').read_text()
     for name in data['named_effects']:
-        assert f'### ' in text and name in text
+        assert '### ' in text and name in text
         assert LIBRARY[name].physics[:40] in text
     pngs = sorted(p.name for p in out.glob('*.png'))
     assert 'gap.png' in pngs and 'diagnostics.png' in pngs

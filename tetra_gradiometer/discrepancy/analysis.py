@@ -4,26 +4,30 @@ held-out gap against the noise floor, and add the missing physical effects one a
 Base model (Yu et al. 2014, eq. 10): ``B_i' = B_i + K_i B^b + B_i^h``, symmetric ``K_i``,
 constant ``B_i^h``, sensor 1 clean. Two residual views:
 
-* **absolute** (with /odom): every sensor against ``B^b = R^T (E + x(t))``, with ``E`` the
-  Earth field (from the params, else estimated) and ``x(t)`` a slowly varying external field
-  in the world frame (a cubic B-spline, knots every ``knot_s``; it soaks up distant targets,
-  geology and diurnal drift, which move with the world, not with the vehicle). Per-sensor
-  ``K_i`` and ``B_i^h`` (sensors 2-4) are observable, and so is sensor 1's own interference.
-* **pair** (no /odom): ``B^b = B_1'`` and the residual is that of ``B_i' - B_1'`` (sensors
-  2-4). External fields cancel; sensor 1's own interference is not observable.
+* **absolute** (with /odom): every sensor against ``B^b = R^T E``, with ``E`` the Earth
+  field (from the params, else estimated from sensor 1) refined by a constant and a linear
+  drift common to all sensors. Per-sensor ``K_i`` and ``B_i^h`` (sensors 2-4) are
+  observable, and so is sensor 1's own interference.
+* **pair** (no /odom): ``B^b = B_1'`` (less sensor 1's named effects) and the residual is
+  that of ``B_i' - B_1'`` (sensors 2-4). Fields common to all sensors cancel; sensor 1's own
+  soft and hard iron is not observable, its other effects only relative to the others.
 
 Held-out gap: blocked k-fold cross-validation (contiguous time blocks, interleaved folds):
 each sample is predicted by a fit that did not see its block; the gap is the RMS over all
 samples, sensors and axes of measured minus predicted, nT. The fits use per-block Gram
 matrices, so every candidate model costs a few small solves.
 
-Selection: among the candidate families, the one with the lowest cross-validated BIC
-(``n ln(SS_cv/n) + p ln n``, p the number of identifiable parameters) is added when (1) its
-CV-BIC is below the current model's, (2) the held-out F-test of the added parameters has
-``p < alpha`` and (3) it explains at least ``(relevance x noise floor)^2`` of the held-out
-mean square (an effect with an RMS contribution below the noise is not named). The loop
-stops when no candidate passes. The ``ln n`` penalty per parameter is what makes a
-one-parameter-per-sensor family win over a nine-parameter one that explains the same.
+Selection works on units (a family of the library in one sensor, or a term common to all
+sensors): the unit with the lowest cross-validated BIC (``n ln(SS_cv/n) + p ln n``, p the
+number of identifiable parameters) is added when (1) its CV-BIC is below the current
+model's, (2) the held-out F-test of the added parameters has ``p < alpha`` and (3) it
+explains at least ``(relevance x noise floor)^2`` of the held-out mean square of its own
+sensor (an effect with an RMS contribution below the noise is not named). The step extends
+the family to the other sensors whose units pass; every round re-checks the named units
+(remove one no longer needed; replace one by a unit of another family with no more
+parameters and a lower CV-BIC). The loop stops when no unit passes. The ``ln n`` penalty
+per parameter is what makes a one-parameter delay win over a nine-parameter eddy term that
+explains the same.
 """
 from __future__ import annotations
 
@@ -34,7 +38,6 @@ from typing import Any
 import numpy as np
 from scipy import linalg as scipy_linalg
 from scipy import stats
-from scipy.interpolate import BSpline
 from scipy.spatial.transform import Rotation
 
 from ..core.model import SYMMETRIC_ENTRIES
@@ -52,7 +55,7 @@ class Settings:
 
     n_folds : cross-validation folds (interleaved contiguous blocks)
     block_s : block length, s (default: duration / 40 within [5, 30] s)
-    knot_s : knot spacing of the external-field spline (absolute view), s
+    knot_s : knot spacing of the ``external_field`` candidate's spline, s
     relevance : minimum held-out RMS explained by an effect, in noise floors
     alpha : level of the held-out F-test
     max_effects : stop after this many effects
