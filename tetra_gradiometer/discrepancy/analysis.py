@@ -62,6 +62,7 @@ class Settings:
     adequate_ratio : the model is adequate when no effect is missing and the final gap is
         within this factor of the noise floor
     candidates : names to test (default all)
+    max_samples : analyse at most this many sample sets (every k-th of a longer record)
     """
 
     n_folds: int = 5
@@ -72,6 +73,7 @@ class Settings:
     max_effects: int = 6
     adequate_ratio: float = 1.25
     candidates: tuple[str, ...] | None = None
+    max_samples: int = 12000
 
 
 @dataclass
@@ -210,9 +212,16 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepa
         notes.append(f'{jumps} jump(s) in attitude or field between recorded segments: no derivative is taken '
                      'across them and 2 samples either side are left out')
         keep &= piece_all >= 0
-    t, fields = t_all[keep], fields[keep]
-    piece = piece_all[keep]
-    optional = {k: (v[keep] if v is not None else None) for k, v in optional.items()}
+    index = np.flatnonzero(keep)
+    if len(index) > settings.max_samples:
+        # Long or fast records: every k-th set keeps white noise white and the manoeuvre
+        # resolved (it changes over seconds), and bounds memory and time.
+        step = int(np.ceil(len(index) / settings.max_samples))
+        index = index[::step]
+        notes.append(f'{int(keep.sum())} sets: every {step}-th analysed ({len(index)} sets)')
+    t, fields = t_all[index], fields[index]
+    piece = piece_all[index]
+    optional = {k: (v[index] if v is not None else None) for k, v in optional.items()}
     n = len(t)
     if n < 50:
         raise ValueError(f'the recording has {n} usable samples; the workflow needs at least 50')
