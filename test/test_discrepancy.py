@@ -142,3 +142,19 @@ def test_settings_reject_unknown_candidates():
     case = make_case(909, (), duration_s=60.0)
     with pytest.raises(ValueError, match='unknown candidate'):
         analyze(case.recording(), settings=Settings(candidates=('poltergeist',)))
+
+
+@pytest.mark.parametrize('effect', ['time_skew', 'eddy_current'])
+def test_without_odom_an_effect_of_sensor_1_is_named_and_taken_out_of_the_background(effect):
+    # Sensor 1 is the pair view's reference: its term enters every pair, and B^b = B_1'
+    # carries it; a large one (200-400 x the noise) must still leave the noise floor.
+    case = make_case(515, (effect,), duration_s=120.0, factor=(200.0, 400.0), sensors={effect: [1]})
+    report = _run(case, earth=False, odom=False)
+    assert report.named_effects == [effect]
+    assert report.gap_final_nT <= 1.1 * report.noise_floor_nT
+    if effect == 'time_skew':
+        tau = case.scenario.effects.time_skew_s[0]
+        values = {s: v['tau_s'] for s, v in report.steps[0].parameters['per_sensor'].items()}
+        # Only relative delays are observable: tau_i - tau_1 = -tau_1 for the clean sensors.
+        for s in ('sensor_2', 'sensor_3', 'sensor_4'):
+            assert values.get(s, 0.0) - values.get('sensor_1', 0.0) == pytest.approx(-tau, rel=0.02)

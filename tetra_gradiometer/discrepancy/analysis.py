@@ -258,7 +258,7 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepa
         absolute = False
         notes.append('no /odom: falling back to B^b = B_1\' (the paper\'s assumption); only the pair '
                      'differences B_i\' - B_1\' are observable, so the residual is that of sensors 2-4 '
-                     'against sensor 1 and sensor-1 parameters are not separable')
+                     'against sensor 1; a term of sensor 1 enters every pair, so only relative values are fixed')
     b_rate = (PiecewiseSpline(t, b_background, piece)(0.0, 1) if quat is not None
               else _smoothed(t, b_background, piece, deriv=1))
     return _Prepared(t, fields, sensors, absolute, base_offset, b_background, b_rate, base_cols, labels,

@@ -117,10 +117,10 @@ def _combine(a: Effects, b: Effects) -> Effects:
 
 def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 180.0, factor: tuple[float, float]
               = (20.0, 80.0), noise_nT: tuple[float, float] = (0.02, 0.2), rate_hz: float = 10.0,
-              far_target: bool | None = None) -> Case:
+              far_target: bool | None = None, sensors: dict[str, list[int]] | None = None) -> Case:
     """A mission with ``effects`` hidden, each ``factor`` (drawn uniformly) x noise RMS over
-    the sensors it affects. Sensor choice, magnitudes, geometry, Earth field, manoeuvre and
-    noise come from ``seed``."""
+    the sensors it affects. Sensor choice (unless ``sensors`` names them, 1-based),
+    magnitudes, geometry, Earth field, manoeuvre and noise come from ``seed``."""
     rng = np.random.default_rng(seed)
     noise = rng.uniform(*noise_nT) * 1e-9
     interference = random_interference(rng, k_scale=rng.uniform(1e-3, 1e-2), b_scale_t=rng.uniform(20e-9, 300e-9))
@@ -142,22 +142,24 @@ def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 1
         # Effects in different sensors (eddy_current and time_skew in one sensor are one
         # general eddy term: no data can tell them apart).
         if name == 'reference_interference':
-            sensors = [0]
+            chosen = [0]
+        elif sensors and name in sensors:
+            chosen = [s - 1 for s in sensors[name]]
         else:
             size = int(rng.integers(1, 3)) if len(effects) == 1 else 1
-            sensors = sorted(rng.choice(free, size=size, replace=False).tolist())
-            free = [s for s in free if s not in sensors]
-        unit, inter = _unit_effect(name, rng, sensors)
+            chosen = sorted(rng.choice(free, size=size, replace=False).tolist())
+        free = [s for s in free if s not in chosen]
+        unit, inter = _unit_effect(name, rng, chosen)
         probe = replace(base, effects=unit, interference=interference if inter is None else
                         SensorInterference(interference.k_soft + inter.k_soft, interference.b_hard + inter.b_hard))
         delta = simulate(probe, np.random.default_rng(seed + 1)).fields_measured - clean
-        unit_rms = float(np.sqrt(np.mean(delta[:, sensors] ** 2)))
+        unit_rms = float(np.sqrt(np.mean(delta[:, chosen] ** 2)))
         target = rng.uniform(*factor) * noise
         scaled, inter = _scaled(unit, inter, target / unit_rms)
         total_effects = _combine(total_effects, scaled)
         if inter is not None:
             total_inter = SensorInterference(total_inter.k_soft + inter.k_soft, total_inter.b_hard + inter.b_hard)
-        hidden[name] = {'sensors': [s + 1 for s in sensors], 'rms_nT': target * 1e9}
+        hidden[name] = {'sensors': [s + 1 for s in chosen], 'rms_nT': target * 1e9}
     scenario = replace(base, effects=total_effects, interference=total_inter, noise_t=noise)
     mission = simulate(scenario, np.random.default_rng(seed + 1))
     for name, info in hidden.items():
