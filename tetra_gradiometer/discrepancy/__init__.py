@@ -8,6 +8,7 @@ The command line is ``python -m tetra_gradiometer discrepancy BAG --params FILE 
 """
 from .analysis import BASE_MODEL, Report, Settings, Step, analyze, criterion_text
 from .effects import CANDIDATES, LIBRARY, Candidate
+from .report import write_report
 
 __all__ = ['BASE_MODEL', 'CANDIDATES', 'Candidate', 'LIBRARY', 'Report', 'Settings', 'Step', 'analyze',
-           'criterion_text']
+           'criterion_text', 'write_report']
