@@ -244,3 +244,40 @@ def interrupt_on_signals() -> None:
 
     signal.signal(signal.SIGINT, interrupt)
     signal.signal(signal.SIGTERM, interrupt)
+
+
+def spin_node(factory: Callable[[], Any], name: str, args: list[str] | None) -> int:
+    """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
+    Ctrl-C or an external shutdown, then destroy it and ``rclpy.try_shutdown()``.
+
+    Returns 1 when the node refuses its parameters (a ``ValueError`` naming the reason), else 0.
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    rclpy.init(args=args)
+    try:
+        node = factory()
+    except ValueError as error:
+        rclpy.logging.get_logger(name).error(f'cannot start: {error}')
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def stop_graph(executor: Any, spinner: Any, nodes: list[Any]) -> None:
+    """Stop an in-process graph (demo, record): the executor, then its spin thread, then the
+    nodes and the context, in that order (joining the thread first avoids a crash at exit)."""
+    import rclpy
+    executor.shutdown(timeout_sec=2)
+    if spinner.is_alive():
+        spinner.join(timeout=5)
+    for node in nodes:
+        node.destroy_node()
+    rclpy.try_shutdown()

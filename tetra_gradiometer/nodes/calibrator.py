@@ -20,9 +20,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import String
@@ -33,8 +31,8 @@ from ..core import (IdentifiabilityError, TetraGeometry, attitude_coverage, cons
                     known_gradient_lstsq, paper_ga)
 from ..core.identification import MAX_COVERAGE_CONDITION, MIN_SAMPLES
 from ..io.calibration import CalibrationFile, save_calibration
-from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, WARN, ParamSpec, StampPairer, declare_parameters,
-                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, status)
+from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, WARN, declare_parameters,
+                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, spin_node, status)
 
 METHODS = ('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
 
@@ -211,18 +209,4 @@ class CalibratorNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """``ros2 run tetra_gradiometer calibrator``; 1 when the node refuses its parameters."""
-    rclpy.init(args=args)
-    try:
-        node = CalibratorNode()
-    except ValueError as error:  # a refused parameter value (the reason is in the message)
-        rclpy.logging.get_logger('calibrator').error(f'cannot start: {error}')
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(CalibratorNode, 'calibrator', args)

@@ -17,9 +17,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64, String
@@ -28,8 +26,8 @@ from std_srvs.srv import Trigger
 from .. import conversions as cv
 from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..io.calibration import CalibrationFile, CalibrationFileError, load_calibration
-from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, WARN, ParamSpec, StampPairer, Throttle,
-                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, status)
+from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, Throttle, WARN,
+                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, spin_node, status)
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -191,18 +189,4 @@ class CompensatorNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """``ros2 run tetra_gradiometer compensator``; 1 when the node refuses its parameters."""
-    rclpy.init(args=args)
-    try:
-        node = CompensatorNode()
-    except ValueError as error:  # a refused parameter value (the reason is in the message)
-        rclpy.logging.get_logger('compensator').error(f'cannot start: {error}')
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(CompensatorNode, 'compensator', args)

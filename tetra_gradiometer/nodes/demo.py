@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from ._ros import interrupt_on_signals
+    from ._ros import interrupt_on_signals, stop_graph
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
@@ -139,12 +139,7 @@ def run(args: argparse.Namespace) -> int:
         print(f'error: {error}', file=sys.stderr)
         return 1
     finally:
-        executor.shutdown(timeout_sec=2)
-        if spinner.is_alive():
-            spinner.join(timeout=5)
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        stop_graph(executor, spinner, nodes)
 
 
 def _settle(probe, quiet_s: float = 1.0, timeout_s: float = 30.0) -> None:

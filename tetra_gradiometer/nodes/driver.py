@@ -28,17 +28,15 @@ from dataclasses import dataclass
 from typing import Any, Iterator
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
 from .. import conversions as cv
-from ._ros import (NAMESPACE, OK, WARN, ParamSpec, declare_parameters, derived_qos,
-                   diagnostics_period_spec, non_negative, one_of, positive, sensor_qos, status)
+from ._ros import (NAMESPACE, OK, ParamSpec, WARN, declare_parameters, derived_qos, diagnostics_period_spec,
+                   non_negative, one_of, positive, sensor_qos, spin_node, status)
 
 PARAMETERS = [
     ParamSpec('mode', 'sim', 'Source: "sim" (core mission simulator) or "replay" (rosbag2 folder).',
@@ -300,18 +298,4 @@ class DriverNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """``ros2 run tetra_gradiometer driver``; 1 when the node refuses its parameters."""
-    rclpy.init(args=args)
-    try:
-        node = DriverNode()
-    except ValueError as error:  # a refused parameter value (the reason is in the message)
-        rclpy.logging.get_logger('driver').error(f'cannot start: {error}')
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(DriverNode, 'driver', args)

@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from ._ros import interrupt_on_signals
+    from ._ros import interrupt_on_signals, stop_graph
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
@@ -140,9 +140,4 @@ def run(args: argparse.Namespace) -> int:
     except TimeoutError as error:
         raise OSError(str(error)) from None
     finally:
-        executor.shutdown(timeout_sec=2)
-        if spinner.is_alive():
-            spinner.join(timeout=5)
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        stop_graph(executor, spinner, nodes)

@@ -19,18 +19,16 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
 from .. import conversions as cv
 from ..core import TetraGeometry, difference_tensor
 from ..matching import StampMatcher
-from ._ros import (ERROR, MAX_FIELD_T, NAMESPACE, OK, POSITIONS_SPEC, WARN, ParamSpec, Throttle,
+from ._ros import (ERROR, MAX_FIELD_T, NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, Throttle, WARN,
                    declare_parameters, derived_qos, diagnostics_period_spec, positive, sensor_qos,
-                   status)
+                   spin_node, status)
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -203,18 +201,4 @@ class TensorNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """``ros2 run tetra_gradiometer tensor``; 1 when the node refuses its parameters."""
-    rclpy.init(args=args)
-    try:
-        node = TensorNode()
-    except ValueError as error:  # a refused parameter value (the reason is in the message)
-        rclpy.logging.get_logger('tensor').error(f'cannot start: {error}')
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(TensorNode, 'tensor', args)
