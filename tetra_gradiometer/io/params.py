@@ -9,6 +9,7 @@ import numpy as np
 import yaml
 
 from ..core import GeometryError, TetraGeometry
+from ._yaml import read_yaml
 
 
 class ParamsError(ValueError):
@@ -22,12 +23,7 @@ def load_params(path: str | os.PathLike, node: str = '/**') -> dict[str, Any]:
     named node also works.
     """
     path = Path(path)
-    try:
-        document = yaml.safe_load(path.read_text(encoding='utf-8'))
-    except FileNotFoundError:
-        raise ParamsError(f'params file not found: {path}') from None
-    except yaml.YAMLError as error:
-        raise ParamsError(f'params file {path} is not valid YAML: {error}') from None
+    document = read_yaml(path, 'params', ParamsError)
     if not isinstance(document, dict) or not document:
         raise ParamsError(f'params file {path} has no node sections (expected "/**: ros__parameters:")')
     section = document.get(node)

@@ -27,10 +27,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from ..core import (CurrentProfile, Dipole, Effects, Scenario, SensorInterference, SurveyLine,
                     TemperatureProfile, TetraGeometry, TrimManoeuvre, random_interference)
+from ._yaml import read_yaml
 
 NT = 1e-9
 
@@ -211,12 +211,7 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
 def load_scenario(path: str | os.PathLike) -> tuple[Scenario, int]:
     """Read a scenario file; see the module docstring for the format."""
     path = Path(path)
-    try:
-        document = yaml.safe_load(path.read_text(encoding='utf-8'))
-    except FileNotFoundError:
-        raise ScenarioError(f'scenario file not found: {path}') from None
-    except yaml.YAMLError as error:
-        raise ScenarioError(f'scenario file {path} is not valid YAML: {error}') from None
+    document = read_yaml(path, 'scenario', ScenarioError)
     try:
         return scenario_from_dict(document)
     except ScenarioError as error:
