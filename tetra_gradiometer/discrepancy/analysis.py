@@ -32,7 +32,7 @@ explains the same.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -63,6 +63,13 @@ class Settings:
         within this factor of the noise floor
     candidates : names to test (default all)
     max_samples : analyse at most this many sample sets (every k-th of a longer record)
+    exclude_targets : find and leave out spans where a localized field that no candidate
+        represents (a target passed close to the track) dominates the residual
+    target_high, target_low : a span reaches ``target_high`` and ends below ``target_low``
+        x the run's median level of the full model's residual (mean square in noise sigmas,
+        averaged over ~2 s)
+    target_margin : each span is widened by this share of its length (at least 2 s) each side
+    target_max_fraction : spans are excluded only when they cover at most this share of the run
     """
 
     n_folds: int = 5
@@ -74,6 +81,11 @@ class Settings:
     adequate_ratio: float = 1.25
     candidates: tuple[str, ...] | None = None
     max_samples: int = 12000
+    exclude_targets: bool = True
+    target_high: float = 16.0
+    target_low: float = 2.5
+    target_margin: float = 0.5
+    target_max_fraction: float = 0.6
 
 
 @dataclass
@@ -117,6 +129,7 @@ class Report:
     base_parameters: dict[str, Any]
     data: dict[str, Any]
     runtime_s: float
+    excluded_spans: list[dict[str, Any]] = field(default_factory=list)
     series: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -135,6 +148,7 @@ class Report:
             'diagnostics': self.diagnostics,
             'base_parameters': self.base_parameters,
             'data': self.data,
+            'excluded_spans': list(self.excluded_spans),
             'criterion': criterion_text(),
             'library': {c.name: c.physics for c in CANDIDATES},
             'runtime_s': self.runtime_s,
@@ -193,10 +207,18 @@ def _sym_columns(cols: np.ndarray, sensor: int, start: int, b: np.ndarray,
     return k
 
 
-def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepared:
+def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
+             window_s: tuple[float, float] | None = None,
+             exclude_s: list[tuple[float, float]] | None = None) -> _Prepared:
     t_all = np.asarray(recording.t_s, dtype=float)
     fields = np.asarray(recording.fields, dtype=float) * NT_PER_T
     keep = np.isfinite(fields).all(axis=(1, 2)) & np.concatenate([[True], np.diff(t_all) > 0])
+    if window_s is not None:
+        inside = (t_all >= window_s[0]) & (t_all <= window_s[1])
+        if inside.sum() < 50:
+            raise ValueError(f'the window {window_s[0]:g}:{window_s[1]:g} s holds {int(inside.sum())} sample sets '
+                             f'(the run spans 0-{t_all[-1] - t_all[0]:.1f} s); the workflow needs at least 50')
+        keep &= inside
     optional = {}
     for name in ('orientation_xyzw', 'temperature_c', 'current_a'):
         value = getattr(recording, name, None)
@@ -212,6 +234,17 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings) -> _Prepa
         notes.append(f'{jumps} jump(s) in attitude or field between recorded segments: no derivative is taken '
                      'across them and 2 samples either side are left out')
         keep &= piece_all >= 0
+    if exclude_s:
+        # Excluded spans (target passages): left out, and no derivative is taken across them.
+        excluded = np.zeros(len(t_all), dtype=bool)
+        for t0, t1 in exclude_s:
+            excluded |= (t_all >= t0) & (t_all <= t1)
+        keep &= ~excluded
+        starts = np.cumsum(np.diff(excluded.astype(int), prepend=0) == 1)
+        piece_all = np.where(piece_all >= 0, piece_all * (len(exclude_s) + 1) + starts, -1)
+        if keep.sum() < 50:
+            raise ValueError(f'{int(keep.sum())} usable samples are left outside the excluded spans; '
+                             'the workflow needs at least 50')
     index = np.flatnonzero(keep)
     if len(index) > settings.max_samples:
         # Long or fast records: every k-th set keeps white noise white and the manoeuvre
@@ -732,6 +765,163 @@ def _diagnostics(prep: _Prepared, residual: np.ndarray) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------
+# Target passages: localized fields that no candidate represents
+
+#: Families of the full model the detector fits (every candidate of the library that is
+#: global in time; ``time_skew`` is the isotropic part of ``eddy_current`` to first order,
+#: ``external_field`` is left out so that a target's common part stays in the residual).
+_DETECTOR_FAMILIES = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'thermal_drift',
+                      'vehicle_current')
+
+
+def _lstsq_rows(prep: _Prepared, cols: np.ndarray, target: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Least squares on the samples ``rows`` (bool, N) only; physical coefficients."""
+    a = _flat(cols[rows], prep.sensors)
+    a = a.reshape(-1, a.shape[-1])
+    y = _flat(target[rows], prep.sensors).reshape(-1)
+    gram = a.T @ a
+    norm = np.sqrt(np.diag(gram)).copy()
+    norm[norm == 0] = 1.0
+    coef, _ = _solve(gram / np.outer(norm, norm), (a.T @ y) / norm)
+    return coef / norm
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Contiguous runs of True: (first, last) indices."""
+    edges = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1))
+
+
+def _full_model_residual(prep: _Prepared, names: set[str], include: np.ndarray,
+                         settings: Settings) -> np.ndarray:
+    """Residual (N, 4, 3) of the base model plus every global candidate, fitted on
+    ``include`` only and evaluated everywhere (the model is global in time)."""
+    y = prep.fields - prep.base_offset
+    for _ in range(3):
+        coef = _lstsq_rows(prep, prep.base_cols, y, include)
+        prediction = prep.base_offset + np.einsum('nsap,p->nsa', prep.base_cols, coef)
+        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction,
+                      prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
+        cols = np.concatenate([prep.base_cols] + [LIBRARY[n].build(ctx, None)[0] for n in _DETECTOR_FAMILIES
+                                                  if n in names], axis=-1)
+        coef = _lstsq_rows(prep, cols, y, include)
+        if not (prep.absolute and _refresh_background(prep, coef[:6])):
+            break
+        y = prep.fields - prep.base_offset
+    residual = prep.fields - prep.base_offset - np.einsum('nsap,p->nsa', cols, coef)
+    if not prep.absolute:
+        residual = residual - residual[:, :1]
+    return residual
+
+
+def _target_spans(prep: _Prepared, names: set[str], settings: Settings) -> tuple[list[dict[str, Any]], list[str]]:
+    """Spans of the run where the residual is dominated by a localized field that no
+    candidate represents (a target passed close to the track).
+
+    The base model plus every global candidate of the library is fitted (so a genuine
+    effect, which is global in time, is explained wherever it shows: turns, temperature,
+    current); its residual, in units of each channel's white-noise sigma (4th difference,
+    MAD), is averaged over ~2 s. A span is a contiguous stretch above ``target_low`` x the
+    run's median level that reaches ``target_high`` x; it is widened by ``target_margin`` of
+    its length (at least 2 s) on either side. The fit is repeated without the spans until
+    they settle (a strong target distorts the first fit). Spans are only excluded when they
+    are localized: together at most ``target_max_fraction`` of the run. Returns the spans
+    (seconds from the first sample) with the evidence, and notes.
+    """
+    from scipy.ndimage import uniform_filter1d
+    prep = replace(prep)                      # the detector refreshes B^b on its own copy
+    n = len(prep.t)
+    t = prep.t
+    dt = float(np.median(np.diff(t)))
+    width = max(5, int(round(2.0 / dt)))
+    spans: list[tuple[int, int]] = []
+    notes: list[str] = []
+
+    def score(include: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        residual = _full_model_residual(prep, names, include, settings)
+        flat = _flat(residual, prep.sensors)
+        _, sigma = _noise_floor(flat[include])
+        sigma = np.maximum(sigma, 1e-12)
+        q = np.mean((flat / sigma) ** 2, axis=1)
+        z = np.empty_like(q)
+        for p in np.unique(prep.piece):          # no average across a jump
+            idx = np.flatnonzero(prep.piece == p)
+            z[idx] = uniform_filter1d(q[idx], min(width, len(idx)), mode='nearest')
+        return residual, flat, sigma, z
+
+    # A strong target pulls a least-squares fit over the whole run: start from the half of
+    # the run that the model fits best (least trimmed squares, concentration steps).
+    include = np.ones(n, dtype=bool)
+    for _ in range(4):
+        residual, flat, sigma, z = score(include)
+        best = z <= np.quantile(z, 0.5)
+        if np.array_equal(best, include):
+            break
+        include = best
+    last = None
+    for _ in range(6):
+        residual, flat, sigma, z = score(include)
+        level = max(float(np.median(z)), 1.0)
+        high, low = settings.target_high * level, settings.target_low * level
+        found = [(i, j) for i, j in _runs(z > low) if np.max(z[i:j + 1]) > high]
+        mask = np.zeros(n, dtype=bool)
+        spans = []
+        for i, j in found:
+            # The margin stays within the continuous piece of the run (a jump between recorded
+            # segments is a different place).
+            margin = float(np.clip(settings.target_margin * (t[j] - t[i]), 2.0, 15.0))
+            lo = int(np.searchsorted(t, t[i] - margin, side='left'))
+            hi = int(np.searchsorted(t, t[j] + margin, side='right')) - 1
+            piece = prep.piece[i + int(np.argmax(z[i:j + 1]))]
+            same = np.flatnonzero(prep.piece[lo:hi + 1] == piece) + lo
+            if len(same):
+                lo, hi = int(same[0]), int(same[-1])
+            mask[lo:hi + 1] = True
+        spans = _runs(mask)
+        if mask.mean() > settings.target_max_fraction:
+            notes.append(f'the residual of the full candidate model is far above the noise over '
+                         f'{100 * mask.mean():.0f} % of the run: not a localized target passage, nothing excluded')
+            return [], notes
+        key = tuple(spans)
+        if key == last:
+            break
+        last = key
+        include = ~mask
+    if not spans:
+        return [], notes
+    # Evidence per span: where the residual peaks, how much of it differs between sensors.
+    common = residual.mean(axis=1, keepdims=True) if prep.absolute else np.zeros_like(residual[:, :1])
+    diff = residual - common
+    sel = list(prep.sensors)
+    out = []
+    for i, j in spans:
+        k = i + int(np.argmax(z[i:j + 1]))
+        peak = float(np.sqrt(np.mean(flat[k] ** 2)))
+        window = slice(max(i, k - width // 2), min(j, k + width // 2) + 1)
+        d_rms = float(np.sqrt(np.mean(diff[window][:, sel] ** 2)))
+        c_rms = float(np.sqrt(np.mean(common[window] ** 2)))
+        turn = None
+        if prep.rotation is not None:
+            turn = float(np.degrees((Rotation.from_matrix(prep.rotation[j])
+                                     * Rotation.from_matrix(prep.rotation[i]).inv()).magnitude()))
+        noise = float(np.sqrt(np.mean(sigma ** 2)))
+        reason = (f'localized field that no candidate represents (a target passed close to the track): the '
+                  f'residual of the base model plus every global candidate peaks at {peak:.3g} nT '
+                  f'({peak / noise:.0f} x the noise) at t = {t[k]:.1f} s and falls off on both sides; '
+                  f'{d_rms:.3g} nT RMS of it differs between the sensors (a gradient)')
+        if prep.absolute:
+            reason += f', {c_rms:.3g} nT is common to them'
+        if turn is not None:
+            reason += f'; attitude change across the span {turn:.1f} deg'
+        out.append({'start_s': float(t[i]), 'end_s': float(t[j]), 'duration_s': float(t[j] - t[i]),
+                    'samples': int(j - i + 1), 'peak_time_s': float(t[k]), 'peak_residual_rms_nT': peak,
+                    'peak_over_noise': peak / noise, 'peak_difference_rms_nT': d_rms,
+                    'peak_common_rms_nT': c_rms if prep.absolute else None,
+                    'attitude_change_deg': turn, 'reason': reason})
+    return out, notes
+
+
+# ---------------------------------------------------------------------------------------
 # The workflow
 
 
@@ -792,7 +982,8 @@ def _fit_current(prep: _Prepared, active: list[_Family], y: np.ndarray, settings
 
 
 def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *,
-            settings: Settings | None = None, keep_series: bool = True) -> Report:
+            settings: Settings | None = None, keep_series: bool = True,
+            window_s: tuple[float, float] | None = None) -> Report:
     """Find the effects the base model is missing in a recorded run.
 
     Parameters
@@ -805,6 +996,8 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         Estimated from sensor 1 and /odom when absent.
     settings : Settings, optional
     keep_series : keep the arrays for the plots in ``Report.series``
+    window_s : (t0, t1) s from the first sample, optional
+        Analyse only this part of the run (``t1`` may be ``inf``).
 
     Returns
     -------
@@ -816,8 +1009,27 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     unknown = [n for n in names if n not in LIBRARY]
     if unknown:
         raise ValueError(f'unknown candidate effects {unknown}; the library has {sorted(LIBRARY)}')
-    prep = _prepare(recording, earth_field_enu, settings)
+    if window_s is not None:
+        window_s = (float(window_s[0]), float(window_s[1]))
+        if not (np.isfinite(window_s[0]) and window_s[0] >= 0 and window_s[1] > window_s[0]):
+            raise ValueError(f'window_s needs 0 <= T0 < T1, got {window_s}')
+    prep = _prepare(recording, earth_field_enu, settings, window_s)
     testable, untestable = _testable(prep, tuple(names))
+    excluded: list[dict[str, Any]] = []
+    if settings.exclude_targets:
+        excluded, target_notes = _target_spans(prep, {c.name for c in testable}, settings)
+        if excluded:
+            prep = _prepare(recording, earth_field_enu, settings, window_s,
+                            [(e['start_s'], e['end_s']) for e in excluded])
+            target_notes.append(
+                f'{len(excluded)} span(s) excluded from the fits and the gap ('
+                + ', '.join(f"{e['start_s']:.1f}-{e['end_s']:.1f} s" for e in excluded)
+                + '): a localized field that differs between the sensors and that no candidate represents '
+                  '(a target passed close to the track); see excluded_spans')
+        prep.notes.extend(target_notes)
+    if window_s is not None:
+        prep.notes.insert(0, f'analysis restricted to the window {window_s[0]:g}:{window_s[1]:g} s '
+                             '(seconds from the first sample)')
     duration = float(prep.t[-1] - prep.t[0])
     block_s = settings.block_s or float(np.clip(duration / 40.0, 5.0, 30.0))
     n = len(prep.t)
@@ -1051,7 +1263,9 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     data = {'samples': n, 'duration_s': duration, 'sample_rate_hz': float((n - 1) / duration) if duration else 0.0,
             'cv_block_s': block_s, 'folds': settings.n_folds, 'has_odom': prep.absolute,
             'has_temperature': prep.temperature_c is not None, 'has_current': prep.current_a is not None,
-            'missing_topics': dict(getattr(recording, 'missing', {}) or {})}
+            'missing_topics': dict(getattr(recording, 'missing', {}) or {}),
+            'window_s': None if window_s is None else [window_s[0], window_s[1] if np.isfinite(window_s[1]) else None],
+            'excluded_s': float(sum(e['duration_s'] for e in excluded))}
     if prep.earth_field_nT is not None:
         data['earth_field_enu_nT'] = [float(v) for v in prep.earth_field_nT + coef[:3]]
         data['earth_field_drift_enu_nT'] = [float(v) for v in coef[3:6]]
@@ -1065,7 +1279,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                                                               if prep.absolute else "; B^b = B_1' (no /odom)"),
         adequate=bool(adequate), untestable=untestable,
         view='absolute' if prep.absolute else 'pair', notes=notes, rounds=rounds, diagnostics=diagnostics,
-        base_parameters=base_params, data=data, runtime_s=0.0)
+        base_parameters=base_params, data=data, runtime_s=0.0, excluded_spans=excluded)
     if keep_series:
         report.series = {'t': prep.t, 'sensors': prep.sensors, 'residuals': residuals, 'gaps': gaps,
                          'floors': floors, 'effect_fields': effect_fields, 'b_rate': prep.b_rate,

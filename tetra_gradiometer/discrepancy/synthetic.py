@@ -117,10 +117,17 @@ def _combine(a: Effects, b: Effects) -> Effects:
 
 def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 180.0, factor: tuple[float, float]
               = (20.0, 80.0), noise_nT: tuple[float, float] = (0.02, 0.2), rate_hz: float = 10.0,
-              far_target: bool | None = None, sensors: dict[str, list[int]] | None = None) -> Case:
+              far_target: bool | None = None, sensors: dict[str, list[int]] | None = None,
+              near_target: bool = False, target_depth_m: tuple[float, float] = (20.0, 50.0),
+              target_moment_am2: tuple[float, float] = (1e4, 1e5)) -> Case:
     """A mission with ``effects`` hidden, each ``factor`` (drawn uniformly) x noise RMS over
     the sensors it affects. Sensor choice (unless ``sensors`` names them, 1-based),
-    magnitudes, geometry, Earth field, manoeuvre and noise come from ``seed``."""
+    magnitudes, geometry, Earth field, manoeuvre and noise come from ``seed``.
+
+    ``near_target``: the run is a trim manoeuvre (55-70 % of it) followed by a survey line
+    that passes ``target_depth_m`` over a dipole of ``target_moment_am2`` A m^2 (any
+    direction), its closest approach in the middle half of the line; drawn from a stream of
+    its own, so the rest of the case is the same as without it."""
     rng = np.random.default_rng(seed)
     noise = rng.uniform(*noise_nT) * 1e-9
     interference = random_interference(rng, k_scale=rng.uniform(1e-3, 1e-2), b_scale_t=rng.uniform(20e-9, 300e-9))
@@ -134,6 +141,9 @@ def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 1
                     segments=random_segments(rng, duration_s), sample_rate_hz=rate_hz, dipoles=dipoles,
                     interference=interference, noise_t=0.0,
                     temperature=_random_temperature(rng), current=_random_current(rng))
+    if near_target:
+        base = replace(base, **_target_pass(np.random.default_rng([seed, 4242]), duration_s, target_depth_m,
+                                            target_moment_am2, dipoles))
     clean = simulate(base, np.random.default_rng(seed + 1)).fields_measured
     total_effects, total_inter = Effects(), interference
     hidden: dict[str, dict[str, Any]] = {}
@@ -165,6 +175,33 @@ def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 1
     for name, info in hidden.items():
         info['noise_nT'] = noise * 1e9
     return Case(scenario, mission, hidden)
+
+
+def _target_pass(rng: np.random.Generator, duration_s: float, depth_m: tuple[float, float],
+                 moment_am2: tuple[float, float], dipoles: tuple) -> dict[str, Any]:
+    """Segments (trim, then a survey line over a target) and the dipoles with the target added."""
+    trim_s = duration_s * rng.uniform(0.55, 0.7)
+    trim = TrimManoeuvre(duration_s=trim_s, center=(2000.0, 2000.0, -40.0),
+                         heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
+                         roll_amplitude_deg=rng.uniform(8, 30), roll_period_s=rng.uniform(7, 16),
+                         pitch_amplitude_deg=rng.uniform(6, 25), pitch_period_s=rng.uniform(10, 25),
+                         initial_heading_deg=rng.uniform(0, 360), speed_m_s=rng.uniform(0.5, 2.0))
+    rest = duration_s - trim_s
+    speed = rng.uniform(1.0, 2.5)
+    heading = rng.uniform(0, 2 * np.pi)
+    direction = np.array([np.cos(heading), np.sin(heading), 0.0])
+    start = np.array([0.0, 0.0, -40.0])
+    end = start + speed * rest * direction
+    line = SurveyLine(tuple(start), tuple(end), speed_m_s=speed, roll_amplitude_deg=rng.uniform(0, 3),
+                      pitch_amplitude_deg=rng.uniform(0, 2))
+    closest = start + rng.uniform(0.3, 0.7) * speed * rest * direction
+    offset = rng.uniform(0.0, 0.5)                       # lateral share of the distance
+    distance = rng.uniform(*depth_m)
+    lateral = np.array([-direction[1], direction[0], 0.0]) * rng.choice([-1, 1])
+    position = closest + distance * (offset * lateral + np.sqrt(1 - offset**2) * np.array([0.0, 0.0, -1.0]))
+    moment = rng.normal(size=3)
+    moment *= rng.uniform(*moment_am2) / np.linalg.norm(moment)
+    return {'segments': (trim, line), 'dipoles': tuple(dipoles) + (Dipole(position, moment),)}
 
 
 def _random_temperature(rng: np.random.Generator):
