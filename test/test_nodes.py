@@ -329,7 +329,7 @@ def test_corrupt_calibration_file_runs_uncompensated_then_follows_the_latched_to
         other = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                 sensor_positions=core.TetraGeometry.regular(0.3).to_flat())
         feeder.calibration.publish(String(data=other.to_yaml()))
-        wait_for(lambda: 'other sensor_positions' in _diag(probe, 'tetra/compensator: compensation')['message'],
+        wait_for(lambda: 'other sensor positions' in _diag(probe, 'tetra/compensator: compensation')['message'],
                  10, 'the refusal', graph)
         assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
         assert compensator.alive()

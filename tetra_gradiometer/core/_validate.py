@@ -24,6 +24,14 @@ def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndar
     return array
 
 
+def frozen_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Like :func:`as_array`, but a read-only copy: for frozen dataclasses, so that neither the
+    caller nor anyone else can change them afterwards."""
+    array = as_array(value, name, shape).copy()
+    array.setflags(write=False)
+    return array
+
+
 def as_fields(value: object, name: str = 'fields') -> np.ndarray:
     """Sensor fields, shape (N, 4, 3), tesla."""
     return as_array(value, name, (None, 4, 3))

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._validate import as_array, as_fields
+from ._validate import as_fields, frozen_array
 
 #: Largest condition number of ``a`` accepted by default. A regular tetrahedron has 2;
 #: noise on the tensor grows with cond(a), and past ~1e3 the array is nearly flat.
@@ -43,7 +43,7 @@ class TetraGeometry:
     a_inv: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        positions = as_array(self.positions, 'sensor positions', (4, 3))
+        positions = frozen_array(self.positions, 'sensor positions', (4, 3))
         a = (positions[1:] - positions[0]).T  # eq. 6: columns r_21, r_31, r_41
         condition = np.linalg.cond(a)
         if not np.isfinite(condition) or condition > self.max_condition:
@@ -51,10 +51,12 @@ class TetraGeometry:
                 f'sensor positions are degenerate: condition number of a (eq. 6) is '
                 f'{condition:.3g} > {self.max_condition:.3g}; the four sensors must not be coplanar'
             )
-        positions.setflags(write=False)
+        a_inv = np.linalg.inv(a)
+        a.setflags(write=False)
+        a_inv.setflags(write=False)
         object.__setattr__(self, 'positions', positions)
         object.__setattr__(self, 'a', a)
-        object.__setattr__(self, 'a_inv', np.linalg.inv(a))
+        object.__setattr__(self, 'a_inv', a_inv)
 
     @classmethod
     def regular(cls, edge: float = 0.5) -> TetraGeometry:

@@ -17,25 +17,35 @@ def _checked(**tensors: object) -> dict[str, np.ndarray]:
     return arrays
 
 
-def epsilon(g_before: object, g_after: object, g_true: object) -> float:
-    """Eq. 24: ``mean |(|G_a|_F - |G_l|_F) / (|G_b|_F - |G_l|_F)|`` (dimensionless).
+def epsilon_terms(g_before: object, g_after: object, g_true: object) -> np.ndarray:
+    """Per-sample terms of eq. 24, ``|(|G_a|_F - |G_l|_F) / (|G_b|_F - |G_l|_F)|``, shape (N,);
+    NaN where ``|G_b|_F == |G_l|_F`` (undefined).
 
     Parameters
     ----------
     g_before, g_after, g_true : array_like, shape (N, 3, 3)
         Uncompensated, compensated and true tensors, T/m.
+    """
+    t = _checked(g_before=g_before, g_after=g_after, g_true=g_true)
+    norm = {name: np.linalg.norm(value, axis=(1, 2)) for name, value in t.items()}
+    denominator = norm['g_before'] - norm['g_true']
+    with np.errstate(divide='ignore', invalid='ignore'):
+        terms = np.abs((norm['g_after'] - norm['g_true']) / denominator)
+    return np.where(denominator == 0.0, np.nan, terms)
+
+
+def epsilon(g_before: object, g_after: object, g_true: object) -> float:
+    """Eq. 24: the mean of :func:`epsilon_terms` (dimensionless).
 
     Raises
     ------
     ValueError
         If a sample's uncompensated norm equals the true norm (the ratio is undefined).
     """
-    t = _checked(g_before=g_before, g_after=g_after, g_true=g_true)
-    norm = {name: np.linalg.norm(value, axis=(1, 2)) for name, value in t.items()}
-    denominator = norm['g_before'] - norm['g_true']
-    if np.any(denominator == 0.0):
+    terms = epsilon_terms(g_before, g_after, g_true)
+    if np.any(np.isnan(terms)):
         raise ValueError('epsilon is undefined: a sample has |G_before|_F == |G_true|_F')
-    return float(np.mean(np.abs((norm['g_after'] - norm['g_true']) / denominator)))
+    return float(np.mean(terms))
 
 
 def compensated_percent(eps: float) -> float:

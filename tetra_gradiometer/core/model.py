@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import as_array, as_fields, as_tensors, as_vectors, same_length
+from ._validate import as_array, as_fields, as_tensors, as_vectors, frozen_array, same_length
 from .geometry import TetraGeometry, difference_tensor
 
 #: Index pairs of the 6 unique entries of a symmetric 3x3 matrix, in vector order.
@@ -57,8 +57,8 @@ class InterferenceParameters:
     b_hard: np.ndarray
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, 'k_soft', as_array(self.k_soft, 'k_soft', (3, 3, 3)))
-        object.__setattr__(self, 'b_hard', as_array(self.b_hard, 'b_hard', (3, 3)))
+        object.__setattr__(self, 'k_soft', frozen_array(self.k_soft, 'k_soft', (3, 3, 3)))
+        object.__setattr__(self, 'b_hard', frozen_array(self.b_hard, 'b_hard', (3, 3)))
 
     @classmethod
     def zero(cls) -> InterferenceParameters:
@@ -116,8 +116,8 @@ class SensorInterference:
     b_hard: np.ndarray
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, 'k_soft', as_array(self.k_soft, 'k_soft', (4, 3, 3)))
-        object.__setattr__(self, 'b_hard', as_array(self.b_hard, 'b_hard', (4, 3)))
+        object.__setattr__(self, 'k_soft', frozen_array(self.k_soft, 'k_soft', (4, 3, 3)))
+        object.__setattr__(self, 'b_hard', frozen_array(self.b_hard, 'b_hard', (4, 3)))
 
     @classmethod
     def zero(cls) -> SensorInterference:

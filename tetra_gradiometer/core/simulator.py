@@ -21,8 +21,8 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ._validate import as_array
-from .fields import dipole_field, dipole_gradient
+from ._validate import frozen_array
+from .fields import dipole_field, dipole_gradient, uniform_field
 from .geometry import TetraGeometry, difference_tensor
 from .model import SensorInterference
 
@@ -44,8 +44,8 @@ class Dipole:
     moment: np.ndarray
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, 'position', as_array(self.position, 'dipole position', (3,)))
-        object.__setattr__(self, 'moment', as_array(self.moment, 'dipole moment', (3,)))
+        object.__setattr__(self, 'position', frozen_array(self.position, 'dipole position', (3,)))
+        object.__setattr__(self, 'moment', frozen_array(self.moment, 'dipole moment', (3,)))
 
 
 @dataclass(frozen=True)
@@ -173,7 +173,7 @@ class Effects:
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None:
-                object.__setattr__(self, name, as_array(value, name, shape))
+                object.__setattr__(self, name, frozen_array(value, name, shape))
 
     def active(self) -> list[str]:
         """Names of the effects that are switched on."""
@@ -213,7 +213,7 @@ class Scenario:
     current: CurrentProfile = field(default_factory=CurrentProfile)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, 'earth_field_enu', as_array(self.earth_field_enu, 'earth_field_enu', (3,)))
+        object.__setattr__(self, 'earth_field_enu', frozen_array(self.earth_field_enu, 'earth_field_enu', (3,)))
         object.__setattr__(self, 'segments', tuple(self.segments))
         object.__setattr__(self, 'dipoles', tuple(self.dipoles))
         if not self.segments:
@@ -292,7 +292,7 @@ def _pose(scenario: Scenario, t: np.ndarray,
 
 
 def _world_field(scenario: Scenario, points: np.ndarray) -> np.ndarray:
-    total = np.broadcast_to(scenario.earth_field_enu, points.shape).copy()
+    total = uniform_field(len(points), scenario.earth_field_enu)
     for dipole in scenario.dipoles:
         total += dipole_field(points, dipole.moment, dipole.position)
     return total
@@ -340,7 +340,8 @@ def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray],
     if effects.vehicle_current is not None:
         readings += current(t)[:, None, None] * effects.vehicle_current[None]
     if effects.sensor_misalignment is not None:
-        rotations = Rotation.from_rotvec(effects.sensor_misalignment).as_matrix()
+        # A writable copy: scipy's Cython Rotation refuses read-only buffers.
+        rotations = Rotation.from_rotvec(np.array(effects.sensor_misalignment)).as_matrix()
         readings = np.einsum('sij,nsj->nsi', rotations, readings)
     return readings
 
@@ -354,7 +355,7 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     rng : numpy.random.Generator
         Source of the noise and the current profile.
     """
-    n = int(np.floor(scenario.duration_s * scenario.sample_rate_hz))
+    n = int(np.floor(scenario.duration_s * scenario.sample_rate_hz + 1e-9))  # 4.35 s x 100 Hz = 435
     if n < 1:
         raise ValueError('the scenario is shorter than one sample period')
     t = np.arange(n) / scenario.sample_rate_hz

@@ -10,7 +10,7 @@ import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
@@ -41,11 +41,22 @@ def atomic_output_path(path: str | os.PathLike) -> Iterator[Path]:
     _remove(tmp)
     try:
         yield tmp
-        _remove(path)
+        if tmp.is_file():
+            with open(tmp, 'rb+') as handle:
+                os.fsync(handle.fileno())
+        if path.is_dir() and not path.is_symlink():
+            _remove(path)  # os.replace cannot put a folder over a folder; a file is replaced in one step
         os.replace(tmp, path)
     except BaseException:
         _remove(tmp)
         raise
+
+
+def save_figure(figure: Any, path: str | os.PathLike, *, dpi: int = 110) -> Path:
+    """Save a matplotlib figure as PNG atomically; returns the path."""
+    with atomic_output_path(path) as tmp:
+        figure.savefig(tmp, format='png', dpi=dpi)
+    return Path(path)
 
 
 def _umask() -> int:

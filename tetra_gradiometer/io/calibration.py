@@ -81,6 +81,23 @@ class CalibrationFile:
             raise CalibrationFileError(f'{source} is malformed: {error}') from None
 
 
+#: A calibration applies to an array whose sensor positions agree with its own to this, metres.
+POSITION_TOLERANCE_M = 1e-6
+
+
+def check_positions(calibration: CalibrationFile, geometry: TetraGeometry, *, source: str,
+                    target: str = 'this array') -> None:
+    """Raise :class:`CalibrationFileError` when ``calibration`` was made for other sensor
+    positions than ``geometry`` (beyond :data:`POSITION_TOLERANCE_M`)."""
+    positions = np.asarray(calibration.sensor_positions, dtype=float)
+    if positions.shape != (12,):
+        raise CalibrationFileError(f'{source}: sensor_positions must hold 12 floats, got {positions.size}')
+    offset = float(np.abs(positions - geometry.positions.ravel()).max())
+    if offset > POSITION_TOLERANCE_M:
+        raise CalibrationFileError(f'{source} was made for other sensor positions than {target} '
+                                   f'(they differ by up to {offset:.3g} m)')
+
+
 def save_calibration(path: str | os.PathLike, calibration: CalibrationFile) -> Path:
     """Write atomically (temporary file, then rename)."""
     return atomic_write_text(path, calibration.to_yaml())

@@ -246,6 +246,16 @@ def interrupt_on_signals() -> None:
     signal.signal(signal.SIGTERM, interrupt)
 
 
+def tensor_or_nan(msg: Any) -> np.ndarray:
+    """A tensor JointState as (3, 3) T/m; a malformed one (wrong names or count) as NaN, which
+    the callers' non-finite checks drop and count, so one bad message cannot stop a node."""
+    from .. import conversions as cv
+    try:
+        return cv.tensor_from_msg(msg)
+    except cv.MessageError:
+        return np.full((3, 3), np.nan)
+
+
 def spin_node(factory: Callable[[], Any], name: str, args: list[str] | None) -> int:
     """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
     Ctrl-C or an external shutdown, then destroy it and ``rclpy.try_shutdown()``.

@@ -32,7 +32,8 @@ from ..core import (IdentifiabilityError, TetraGeometry, attitude_coverage, cons
 from ..core.identification import MAX_COVERAGE_CONDITION, MIN_SAMPLES
 from ..io.calibration import CalibrationFile, save_calibration
 from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, WARN, declare_parameters,
-                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, spin_node, status)
+                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, spin_node, status,
+                   tensor_or_nan)
 
 METHODS = ('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
 
@@ -96,7 +97,7 @@ class CalibratorNode(Node):
     # ----------------------------------------------------------------- samples
 
     def _on_raw(self, msg: JointState) -> None:
-        self._add(0, cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg))
+        self._add(0, cv.stamp_to_ns(msg.header.stamp), tensor_or_nan(msg))
 
     def _on_reference(self, msg: MagneticField) -> None:
         self._add(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))

@@ -25,9 +25,11 @@ from std_srvs.srv import Trigger
 
 from .. import conversions as cv
 from ..core import InterferenceParameters, TetraGeometry, compensate
-from ..io.calibration import CalibrationFile, CalibrationFileError, load_calibration
+from ..core.metrics import epsilon_terms
+from ..io.calibration import CalibrationFile, CalibrationFileError, check_positions, load_calibration
 from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, Throttle, WARN,
-                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, spin_node, status)
+                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, spin_node, status,
+                   tensor_or_nan)
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -93,10 +95,7 @@ class CompensatorNode(Node):
             self._refuse(str(error))
 
     def _apply(self, calibration: CalibrationFile, source: str) -> None:
-        positions = np.asarray(calibration.sensor_positions, dtype=float)
-        if positions.shape != (12,) or not np.allclose(positions, self._geometry.positions.ravel(),
-                                                       rtol=0.0, atol=1e-9):
-            raise CalibrationFileError(f'{source} was made for other sensor_positions {positions.tolist()}')
+        check_positions(calibration, self._geometry, source=source, target='sensor_positions of this node')
         self._parameters = calibration.parameters
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
         self._problem = ''
@@ -113,7 +112,7 @@ class CompensatorNode(Node):
     # ----------------------------------------------------------------- samples
 
     def _on_raw(self, msg: JointState) -> None:
-        self._pair(0, cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg))
+        self._pair(0, cv.stamp_to_ns(msg.header.stamp), tensor_or_nan(msg))
 
     def _on_reference(self, msg: MagneticField) -> None:
         self._pair(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
@@ -125,17 +124,15 @@ class CompensatorNode(Node):
 
     def _compensate(self, stamp_ns: int, g_raw: np.ndarray, b_reference: np.ndarray) -> None:
         """Eq. 19 on one sample: ``G_m`` (3, 3) T/m, ``B_1'`` (3,) T."""
-        if self._parameters is None:
-            g = g_raw
-        elif np.all(np.isfinite(g_raw)) and np.all(np.isfinite(b_reference)):
-            g = compensate(g_raw[None], b_reference[None], self._parameters, self._geometry)[0]
-        else:
-            g = g_raw
-        if not np.all(np.isfinite(g)):
+        if not (np.all(np.isfinite(g_raw)) and np.all(np.isfinite(b_reference))):
             self.dropped_non_finite += 1
             if self._warn():
-                self.get_logger().warning(f'dropped a non-finite tensor at stamp {stamp_ns} ns')
+                self.get_logger().warning(f'dropped a non-finite or malformed input at stamp {stamp_ns} ns')
             return
+        if self._parameters is None:
+            g = g_raw
+        else:
+            g = compensate(g_raw[None], b_reference[None], self._parameters, self._geometry)[0]
         self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
         self._norm_pub.publish(Float64(data=float(np.linalg.norm(g) * NT)))
         self.published += 1
@@ -144,18 +141,17 @@ class CompensatorNode(Node):
             self._score(*triple[0], triple[1])
 
     def _on_truth(self, msg: JointState) -> None:
-        g_true = cv.tensor_from_msg(msg)
+        g_true = tensor_or_nan(msg)
         triple = self._truth.add(1, cv.stamp_to_ns(msg.header.stamp), g_true)
         if triple is not None:
             self._score(*triple[0], triple[1])
 
     def _score(self, g_before: np.ndarray, g_after: np.ndarray, g_true: np.ndarray) -> None:
-        """Running eq. 24 term ``|(|G_a| - |G_l|) / (|G_b| - |G_l|)|``."""
-        true_norm = np.linalg.norm(g_true)
-        denominator = np.linalg.norm(g_before) - true_norm
-        if denominator == 0.0 or not np.isfinite(denominator):
+        """Running mean of the eq. 24 terms (a sample where it is undefined is skipped)."""
+        term = float(epsilon_terms(g_before[None], g_after[None], g_true[None])[0])
+        if not np.isfinite(term):
             return
-        self._eps_sum += abs((np.linalg.norm(g_after) - true_norm) / denominator)
+        self._eps_sum += term
         self._eps_count += 1
         eps = self._eps_sum / self._eps_count
         self._eps_pub.publish(Float64(data=float(eps)))

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.atomic import save_figure
 from ._ros import DEFAULT_PARAMS_FILE
 from .run_node import ros_arguments
 
@@ -211,5 +212,5 @@ def _plot(path: Path, stamps: np.ndarray, g_raw: np.ndarray, g_comp: np.ndarray,
     bottom.legend(loc='upper left')
     bottom.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

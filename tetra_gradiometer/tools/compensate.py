@@ -30,15 +30,13 @@ from .. import conversions as cv
 from ..core import compensate, difference_tensor
 from ..io.atomic import atomic_output_path
 from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
-from ..io.calibration import load_calibration
-from ..io.params import ParamsError, geometry_from_params, load_params
+from ..io.calibration import check_positions, load_calibration
+from ..io.params import geometry_from_params, load_params
 
 NT = 1e9
 CSV_HEADER = 'stamp_s,' + ','.join(cv.TENSOR_NAMES)
 COMPENSATED_TOPIC = f'{cv.NAMESPACE}/gradient/compensated'
 RAW_TOPIC = f'{cv.NAMESPACE}/gradient/raw'
-#: Calibration and params sensor positions must agree to this, metres.
-POSITION_TOLERANCE_M = 1e-6
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -83,10 +81,7 @@ def run(args: argparse.Namespace) -> int:
     parameters = None
     if not args.raw:
         calibration = load_calibration(args.calibration)
-        offset = np.abs(np.subtract(calibration.sensor_positions, geometry.to_flat())).max()
-        if offset > POSITION_TOLERANCE_M:
-            raise ParamsError(f'{args.calibration} was made for other sensor positions than {args.params} '
-                              f'(they differ by up to {offset:.3g} m)')
+        check_positions(calibration, geometry, source=str(args.calibration), target=str(args.params))
         parameters = calibration.parameters
     bag_path = Path(args.bag)
     topic = RAW_TOPIC if args.raw else COMPENSATED_TOPIC

@@ -30,7 +30,7 @@ from ..core.identification import (TensorCalibration, constraint_lstsq,
                                    known_gradient_lstsq, paper_bounds, paper_ga, pei_yeo_2009)
 from ..core.identification.paper_ga import (CROSSOVER_PROBABILITY, GENE_BITS, GENERATION_GAP,
                                             GENERATIONS, MUTATION_PROBABILITY, POPULATION)
-from ..io.atomic import atomic_write_text
+from ..io.atomic import atomic_write_text, save_figure
 
 NT = 1.0e9
 
@@ -378,16 +378,6 @@ def _pyplot():
     return plt
 
 
-def _save(figure, path: Path) -> None:
-    """Save a PNG atomically (temporary sibling, then rename)."""
-    tmp = path.with_name(f'.{path.name}.tmp.png')
-    try:
-        figure.savefig(tmp, dpi=110)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _floor_line(axis, curves: dict) -> None:
     # The Frobenius norm of pure sensor noise on the tensor is ~3x the per-component RMS.
     axis.axhline(3 * curves['floor'], color='grey', lw=1, ls=':',
@@ -421,7 +411,7 @@ def plot_fig2(reading: Reading, path: Path, title: str) -> None:
         axis.set_xlabel('pass point index (30-229 compensated; 2 m spacing)')
     figure.suptitle(f'Fig. 2 analogue, {title}: Frobenius norm along the pass')
     figure.tight_layout()
-    _save(figure, path)
+    save_figure(figure, path)
     plt.close(figure)
 
 
@@ -449,7 +439,7 @@ def plot_fig3(reading: Reading, path: Path, title: str) -> None:
         axis.legend(fontsize=8, loc='upper center', bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     figure.suptitle(f'Fig. 3 analogue, {title}: methods compared')
     figure.tight_layout()
-    _save(figure, path)
+    save_figure(figure, path)
     plt.close(figure)
 
 
