@@ -82,7 +82,7 @@ class Settings:
     candidates: tuple[str, ...] | None = None
     max_samples: int = 12000
     exclude_targets: bool = True
-    target_high: float = 16.0
+    target_high: float = 12.0
     target_low: float = 2.5
     target_margin: float = 0.5
     target_max_fraction: float = 0.6
@@ -782,8 +782,7 @@ def _lstsq_rows(prep: _Prepared, cols: np.ndarray, target: np.ndarray, rows: np.
     gram = a.T @ a
     norm = np.sqrt(np.diag(gram)).copy()
     norm[norm == 0] = 1.0
-    coef, _ = _solve(gram / np.outer(norm, norm), (a.T @ y) / norm)
-    return coef / norm
+    return _solve_fast(gram / np.outer(norm, norm), (a.T @ y) / norm) / norm
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -798,12 +797,7 @@ def _full_model_residual(prep: _Prepared, names: set[str], include: np.ndarray,
     ``include`` only and evaluated everywhere (the model is global in time)."""
     y = prep.fields - prep.base_offset
     for _ in range(3):
-        coef = _lstsq_rows(prep, prep.base_cols, y, include)
-        prediction = prep.base_offset + np.einsum('nsap,p->nsa', prep.base_cols, coef)
-        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction,
-                      prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
-        cols = np.concatenate([prep.base_cols] + [LIBRARY[n].build(ctx, None)[0] for n in _DETECTOR_FAMILIES
-                                                  if n in names], axis=-1)
+        cols = _detector_columns(prep, names, include, settings)
         coef = _lstsq_rows(prep, cols, y, include)
         if not (prep.absolute and _refresh_background(prep, coef[:6])):
             break
@@ -814,7 +808,87 @@ def _full_model_residual(prep: _Prepared, names: set[str], include: np.ndarray,
     return residual
 
 
-def _target_spans(prep: _Prepared, names: set[str], settings: Settings) -> tuple[list[dict[str, Any]], list[str]]:
+def _detector_columns(prep: _Prepared, names: set[str], include: np.ndarray, settings: Settings) -> np.ndarray:
+    """Columns (N, 4, 3, p) of the base model plus every global candidate."""
+    y = prep.fields - prep.base_offset
+    coef = _lstsq_rows(prep, prep.base_cols, y, include)
+    prediction = prep.base_offset + np.einsum('nsap,p->nsa', prep.base_cols, coef)
+    ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction,
+                  prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
+    return np.concatenate([prep.base_cols] + [LIBRARY[n].build(ctx, None)[0] for n in _DETECTOR_FAMILIES
+                                              if n in names], axis=-1)
+
+
+def _robust_start(prep: _Prepared, names: set[str], settings: Settings, width: int) -> np.ndarray:
+    """Samples (bool, N) of the half of the run that the full model fits best.
+
+    A strong target pulls a least-squares fit over the whole run, and a slow regressor
+    (temperature, a drift) can take part of it, so the fit on all samples is no guide to
+    where the target is. Least trimmed squares on blocks of ~2 s (per-block Gram matrices):
+    from several starts (all blocks; each contiguous half of the run; each continuous piece
+    of at least a quarter of it), concentration steps keep the half of the blocks with the
+    smallest mean square residual; the start with the smallest trimmed sum wins.
+    """
+    n = len(prep.t)
+    y = prep.fields - prep.base_offset
+    cols = _detector_columns(prep, names, np.ones(n, dtype=bool), settings)
+    a = _flat(cols, prep.sensors)
+    target = _flat(y, prep.sensors)
+    norm = np.sqrt(np.einsum('nmp,nmp->p', a, a))
+    norm[norm == 0] = 1.0
+    a = a / norm
+    # Blocks of ``width`` samples within each piece.
+    block = np.empty(n, dtype=int)
+    count = 0
+    for p in np.unique(prep.piece):
+        idx = np.flatnonzero(prep.piece == p)
+        block[idx] = count + np.arange(len(idx)) // width
+        count = int(block[idx].max()) + 1
+    grams = np.zeros((count, a.shape[-1], a.shape[-1]))
+    rhs = np.zeros((count, a.shape[-1]))
+    for b in range(count):
+        ab = a[block == b].reshape(-1, a.shape[-1])
+        grams[b] = ab.T @ ab
+        rhs[b] = ab.T @ target[block == b].reshape(-1)
+
+    def fit(chosen: np.ndarray) -> np.ndarray:
+        theta = _solve_fast(grams[chosen].sum(axis=0), rhs[chosen].sum(axis=0))
+        r = target - np.einsum('nmp,p->nm', a, theta)
+        return r
+
+    r = fit(np.ones(count, dtype=bool))
+    _, sigma = _noise_floor(r)          # the 4th difference does not see a smooth target
+    sigma = np.maximum(sigma, 1e-12)
+
+    def block_scores(r: np.ndarray) -> np.ndarray:
+        q = np.mean((r / sigma) ** 2, axis=1)
+        return np.bincount(block, q, count) / np.maximum(np.bincount(block, None, count), 1)
+
+    starts = [np.ones(count, dtype=bool)]
+    order = np.arange(count)
+    for lo in (0.0, 0.25, 0.5):
+        starts.append((order >= lo * count) & (order < (lo + 0.5) * count))
+    for p in np.unique(prep.piece):
+        if np.mean(prep.piece == p) >= 0.25 and len(np.unique(prep.piece)) > 1:
+            starts.append(np.isin(order, np.unique(block[prep.piece == p])))
+    half = max(1, count // 2)
+    best, best_cost = starts[0], np.inf
+    for chosen in starts:
+        for _ in range(4):
+            scores = block_scores(fit(chosen))
+            new = np.zeros(count, dtype=bool)
+            new[np.argsort(scores)[:half]] = True
+            if np.array_equal(new, chosen):
+                break
+            chosen = new
+        cost = float(np.sort(scores)[:half].sum())
+        if cost < best_cost:
+            best, best_cost = chosen, cost
+    return best[block]
+
+
+def _target_spans(prep: _Prepared, names: set[str], settings: Settings
+                  ) -> tuple[list[dict[str, Any]], list[str], dict[str, float]]:
     """Spans of the run where the residual is dominated by a localized field that no
     candidate represents (a target passed close to the track).
 
@@ -849,19 +923,13 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings) -> tuple
             z[idx] = uniform_filter1d(q[idx], min(width, len(idx)), mode='nearest')
         return residual, flat, sigma, z
 
-    # A strong target pulls a least-squares fit over the whole run: start from the half of
-    # the run that the model fits best (least trimmed squares, concentration steps).
-    include = np.ones(n, dtype=bool)
-    for _ in range(4):
-        residual, flat, sigma, z = score(include)
-        best = z <= np.quantile(z, 0.5)
-        if np.array_equal(best, include):
-            break
-        include = best
+    include = _robust_start(prep, names, settings, width)
     last = None
     for _ in range(6):
         residual, flat, sigma, z = score(include)
         level = max(float(np.median(z)), 1.0)
+        info = {'median_level': float(np.median(z)), 'peak_over_level': float(np.max(z) / level),
+                'high': settings.target_high, 'low': settings.target_low}
         high, low = settings.target_high * level, settings.target_low * level
         found = [(i, j) for i, j in _runs(z > low) if np.max(z[i:j + 1]) > high]
         mask = np.zeros(n, dtype=bool)
@@ -881,14 +949,14 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings) -> tuple
         if mask.mean() > settings.target_max_fraction:
             notes.append(f'the residual of the full candidate model is far above the noise over '
                          f'{100 * mask.mean():.0f} % of the run: not a localized target passage, nothing excluded')
-            return [], notes
+            return [], notes, info
         key = tuple(spans)
         if key == last:
             break
         last = key
         include = ~mask
     if not spans:
-        return [], notes
+        return [], notes, info
     # Evidence per span: where the residual peaks, how much of it differs between sensors.
     common = residual.mean(axis=1, keepdims=True) if prep.absolute else np.zeros_like(residual[:, :1])
     diff = residual - common
@@ -918,7 +986,7 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings) -> tuple
                     'peak_over_noise': peak / noise, 'peak_difference_rms_nT': d_rms,
                     'peak_common_rms_nT': c_rms if prep.absolute else None,
                     'attitude_change_deg': turn, 'reason': reason})
-    return out, notes
+    return out, notes, info
 
 
 # ---------------------------------------------------------------------------------------
@@ -1016,8 +1084,9 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     prep = _prepare(recording, earth_field_enu, settings, window_s)
     testable, untestable = _testable(prep, tuple(names))
     excluded: list[dict[str, Any]] = []
+    detector: dict[str, float] = {}
     if settings.exclude_targets:
-        excluded, target_notes = _target_spans(prep, {c.name for c in testable}, settings)
+        excluded, target_notes, detector = _target_spans(prep, {c.name for c in testable}, settings)
         if excluded:
             prep = _prepare(recording, earth_field_enu, settings, window_s,
                             [(e['start_s'], e['end_s']) for e in excluded])
@@ -1265,7 +1334,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             'has_temperature': prep.temperature_c is not None, 'has_current': prep.current_a is not None,
             'missing_topics': dict(getattr(recording, 'missing', {}) or {}),
             'window_s': None if window_s is None else [window_s[0], window_s[1] if np.isfinite(window_s[1]) else None],
-            'excluded_s': float(sum(e['duration_s'] for e in excluded))}
+            'excluded_s': float(sum(e['duration_s'] for e in excluded)), 'target_detector': detector}
     if prep.earth_field_nT is not None:
         data['earth_field_enu_nT'] = [float(v) for v in prep.earth_field_nT + coef[:3]]
         data['earth_field_drift_enu_nT'] = [float(v) for v in coef[3:6]]

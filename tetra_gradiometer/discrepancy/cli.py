@@ -1,4 +1,4 @@
-"""``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR``."""
+"""``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR [--window T0:T1]``."""
 from __future__ import annotations
 
 import argparse
@@ -7,6 +7,7 @@ import time
 
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..io.recording import read_recording
+from ..tools.calibrate import parse_window
 from .analysis import Settings, analyze
 from .effects import CANDIDATES
 from .report import write_report
@@ -22,11 +23,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--max-effects', type=int, default=Settings.max_effects, help='stop after this many effects')
     parser.add_argument('--relevance', type=float, default=Settings.relevance,
                         help='minimum held-out RMS an effect must explain, in noise floors (default 1)')
+    parser.add_argument('--window', default=None, metavar='T0:T1',
+                        help='analyse only this part of the run, seconds from the first sample (either end may be '
+                             'left out; default the whole run)')
+    parser.add_argument('--keep-targets', action='store_true',
+                        help='do not look for and exclude target passages (spans dominated by a localized field '
+                             'that no candidate represents)')
     parser.add_argument('--no-plots', action='store_true', help='write report.json and report.md only')
 
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    window = parse_window(args.window)
     params = load_params(args.params)
     geometry = geometry_from_params(params, str(args.params))
     earth = earth_field_from_params(params, str(args.params))
@@ -35,13 +43,15 @@ def run(args: argparse.Namespace) -> int:
     if args.folds < 2:
         raise ValueError(f'--folds must be at least 2, got {args.folds}')
     settings = Settings(n_folds=args.folds, max_effects=args.max_effects, relevance=args.relevance,
-                        candidates=candidates)
-    report = analyze(recording, geometry, earth, settings=settings)
+                        candidates=candidates, exclude_targets=not args.keep_targets)
+    report = analyze(recording, geometry, earth, settings=settings, window_s=window)
     out = write_report(report, args.out, plots=not args.no_plots)
     for note in report.notes:
         print(f'note: {note}', file=sys.stderr)
     for name, reason in report.untestable.items():
         print(f'untestable: {name}: {reason}', file=sys.stderr)
+    for span in report.excluded_spans:
+        print(f"excluded {span['start_s']:.1f}-{span['end_s']:.1f} s: {span['reason']}", file=sys.stderr)
     named = ', '.join(report.named_effects) or 'none'
     print(f'named effects: {named}; held-out gap {report.gap_initial_nT:.4g} -> {report.gap_final_nT:.4g} nT, '
           f'noise floor {report.noise_floor_nT:.4g} nT; adequate: {"yes" if report.adequate else "no"}; '

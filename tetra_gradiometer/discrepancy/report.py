@@ -47,7 +47,7 @@ def _thin(n: int) -> slice:
 
 
 def _plot_residuals(plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...], panels: list[tuple[str, np.ndarray]],
-                    title: str) -> None:
+                    title: str, spans: list[dict[str, Any]] = ()) -> None:
     fig, axes = plt.subplots(len(sensors), len(panels), figsize=(5.5 * len(panels), 1.9 * len(sensors) + 0.8),
                              sharex=True, squeeze=False)
     k = _thin(len(t))
@@ -56,6 +56,8 @@ def _plot_residuals(plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...
             ax = axes[row, col]
             for a in range(3):
                 ax.plot(t[k], residual[k, s, a], lw=0.6, label=_AXES[a])
+            for span in spans:
+                ax.axvspan(span['start_s'], span['end_s'], color='0.85', zorder=0)
             rms = float(np.sqrt(np.mean(residual[:, s] ** 2)))
             ax.set_title(f'{label}: sensor {s + 1} (RMS {rms:.3g} nT)', fontsize=8)
             ax.tick_params(labelsize=7)
@@ -163,8 +165,26 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
               f'({"every sensor against R^T E" if report.view == "absolute" else "pair differences against sensor 1"})',
               f'- Data: {d["data"]["samples"]} samples, {d["data"]["duration_s"]:.1f} s, '
               f'{d["data"]["sample_rate_hz"]:.3g} Hz; analysed in {report.runtime_s:.2f} s']
+    if d['data'].get('window_s'):
+        w = d['data']['window_s']
+        lines.append(f'- Window: {w[0]:g} to {"the end" if w[1] is None else f"{w[1]:g} s"} (seconds from the first sample)')
     for note in report.notes:
         lines.append(f'- Note: {note}')
+    if report.excluded_spans:
+        lines += ['', '## Excluded spans (target passages)', '',
+                  'Spans where the residual is dominated by a localized field that no candidate represents '
+                  '(it differs between the sensors and rises and falls within the span: a target passed close '
+                  'to the track). They are left out of every fit and of the held-out gap, with a margin; '
+                  '"adequate" refers to the rest of the run.', '',
+                  '| start, s | end, s | peak at, s | peak residual, nT | x noise | between sensors, nT | '
+                  'common, nT | attitude change, deg |', '|---|---|---|---|---|---|---|---|']
+        for e in report.excluded_spans:
+            common = '-' if e['peak_common_rms_nT'] is None else f"{e['peak_common_rms_nT']:.3g}"
+            turn = '-' if e['attitude_change_deg'] is None else f"{e['attitude_change_deg']:.1f}"
+            lines.append(f"| {e['start_s']:.1f} | {e['end_s']:.1f} | {e['peak_time_s']:.1f} | "
+                         f"{e['peak_residual_rms_nT']:.3g} | {e['peak_over_noise']:.0f} | "
+                         f"{e['peak_difference_rms_nT']:.3g} | {common} | {turn} |")
+        lines += [''] + [f"- {e['start_s']:.1f}-{e['end_s']:.1f} s: {e['reason']}" for e in report.excluded_spans]
     lines += ['', '## Method', '',
               'The recorded run is simulated with the base model: each sensor\'s reading is predicted from the '
               'background field B^b (from /odom and the Earth field, or B_1\' without /odom). The residual '
@@ -239,12 +259,14 @@ def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = Tr
         if not report.steps:
             figures['step0'] = 'residual_base.png'
             _plot_residuals(plt, out / figures['step0'], t, sensors, [('base model', residuals[0])],
-                            'Residual (measured - simulated) of the base model')
+                            'Residual (measured - simulated) of the base model'
+                            + (' (grey: excluded spans)' if report.excluded_spans else ''), report.excluded_spans)
         for i, step in enumerate(report.steps, 1):
             figures[f'step{i}'] = f'residual_step{i}_{step.effect}.png'
             _plot_residuals(plt, out / figures[f'step{i}'], t, sensors,
                             [('before', residuals[i - 1]), (f'after + {step.effect}', residuals[i])],
-                            f'Step {i}: residual before and after adding {step.effect}')
+                            f'Step {i}: residual before and after adding {step.effect}'
+                            + (' (grey: excluded spans)' if report.excluded_spans else ''), report.excluded_spans)
             field = s['effect_fields'][i - 1] if i - 1 < len(s['effect_fields']) else None
             if field is not None and f'effect_{step.effect}' not in figures:
                 figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
