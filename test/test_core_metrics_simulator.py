@@ -4,9 +4,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tetra_gradiometer.core import (Dipole, Effects, Scenario, SurveyLine, TetraGeometry, TrimManoeuvre,
-                                    compensated_percent, difference_tensor, dipole_gradient, epsilon,
-                                    improvement_ratio, noise_floor, random_interference, rms_residual,
-                                    simulate)
+                                    compensated_percent, difference_tensor, dipole_field, dipole_gradient,
+                                    epsilon, improvement_ratio, noise_floor, random_interference,
+                                    rms_residual, simulate)
 
 GEOMETRY = TetraGeometry.regular(0.5)
 EARTH = np.array([1.2e-6, 1.5e-5, -4.9e-5])
@@ -67,11 +67,19 @@ def test_truth_tensors_agree_with_independent_dipole_physics():
     mission = simulate(_scenario(), np.random.default_rng(2))
     survey = mission.select(mission.segment == 1)
     np.testing.assert_allclose(survey.g_true, difference_tensor(survey.fields_true, GEOMETRY))
-    rotation = Rotation.from_quat(survey.orientation_xyzw).as_matrix()
-    centroid = survey.position_enu + rotation @ GEOMETRY.centroid
-    g_world = dipole_gradient(centroid, [2e4, -1e4, 3e4], [0.0, 0.0, -60.0])
-    np.testing.assert_allclose(survey.g_analytic, np.einsum('nji,njk,nkl->nil', rotation, g_world, rotation),
-                               rtol=1e-9)
+    moment, source = np.array([2e4, -1e4, 3e4]), np.array([0.0, 0.0, -60.0])
+    for n in range(0, len(survey), 37):
+        # Independent route: put the dipole in the body frame (moment and position rotated
+        # by R^T) and evaluate there; the simulator works in the world frame and rotates after.
+        body_to_world = Rotation.from_quat(survey.orientation_xyzw[n])
+        sensors_world = survey.position_enu[n] + body_to_world.apply(np.array(GEOMETRY.positions))
+        source_body = body_to_world.inv().apply(source - survey.position_enu[n])
+        moment_body = body_to_world.inv().apply(moment)
+        np.testing.assert_allclose(
+            survey.g_analytic[n], dipole_gradient(GEOMETRY.positions.mean(axis=0)[None], moment_body, source_body)[0],
+            rtol=1e-9, atol=1e-15)
+        expected_fields = body_to_world.inv().apply(EARTH + dipole_field(sensors_world, moment, source))
+        np.testing.assert_allclose(survey.fields_true[n], expected_fields, rtol=1e-12, atol=1e-15)
     # Differencing truncation is small against the signal at 30 m or more.
     assert rms_residual(survey.g_true, survey.g_analytic) < 0.05 * np.sqrt(np.mean(survey.g_analytic ** 2))
 
