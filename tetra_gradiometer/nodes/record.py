@@ -129,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
             executor.shutdown(timeout_sec=2)
             if spinner.is_alive():
                 spinner.join(timeout=5)
+            while not recorder.queue.empty():  # callbacks may have queued more before the stop
+                writer.write(*recorder.queue.get_nowait())
             expected = driver.sets_published
             lost = {t: expected - recorder.counts.get(t, 0) for t in [*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC,
                                                                       f'{NAMESPACE}/gradient/truth']}
