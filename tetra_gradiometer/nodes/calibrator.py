@@ -27,15 +27,12 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from .. import conversions as cv
-from ..core import (IdentifiabilityError, TetraGeometry, attitude_coverage, constraint_lstsq,
-                    known_gradient_lstsq, paper_ga)
-from ..core.identification import MAX_COVERAGE_CONDITION, MIN_SAMPLES
+from ..core import TetraGeometry
+from ..core.identification import MAX_COVERAGE_CONDITION, METHODS, MIN_SAMPLES, identify
 from ..io.calibration import CalibrationFile, save_calibration
 from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, WARN, declare_parameters,
                    derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, spin_node, status,
                    tensor_or_nan)
-
-METHODS = ('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
 
 
 def _path(value: str) -> str | None:
@@ -163,21 +160,12 @@ class CalibratorNode(Node):
         if len(g) < minimum:
             return False, (f'{len(g)} samples are too few (need at least {minimum}); call ~/start, '
                            f'fly the trim manoeuvre, then ~/stop')
-        coverage = attitude_coverage(b)
-        if not coverage <= limit:
-            return False, (f'the body-frame field spans too few directions (attitude coverage condition '
-                           f'number {coverage:.3g} > {limit:.3g}); turn, roll and pitch more')
         try:
-            if method == 'known_gradient_lstsq':
-                result = known_gradient_lstsq(g, b, self._geometry, symmetric_k=symmetric,
-                                              max_coverage_condition=limit)
-            elif method == 'constraint_lstsq':
-                result = constraint_lstsq(g, b, self._geometry, symmetric_k=symmetric)
-            else:
-                result = paper_ga(g, b, self._geometry,
-                                  rng=np.random.default_rng(self.get_parameter('ga_seed').value),
-                                  generations=int(self.get_parameter('ga_generations').value))
-        except (IdentifiabilityError, ValueError, np.linalg.LinAlgError) as error:
+            result = identify(method, g, b, self._geometry, symmetric_k=symmetric,
+                              rng=np.random.default_rng(self.get_parameter('ga_seed').value),
+                              generations=int(self.get_parameter('ga_generations').value),
+                              max_coverage_condition=limit)
+        except (ValueError, np.linalg.LinAlgError) as error:  # IdentifiabilityError is a ValueError
             return False, str(error)
         calibration = CalibrationFile.from_calibration(result, self._geometry)
         path = self._file()
@@ -191,7 +179,7 @@ class CalibratorNode(Node):
         s = result.summary()
         return True, (f'{s["method"]}: {s["n_samples"]} samples, {s["n_parameters"]} parameters, rank '
                       f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
-                      f'{coverage:.3g}, fit residual {s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}')
+                      f'{s["attitude_coverage_condition"]:.3g}, fit residual {s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}')
 
     def _file(self) -> str:
         import os

@@ -35,9 +35,9 @@ import time
 
 import numpy as np
 
-from ..core import attitude_coverage, difference_tensor
-from ..core.identification import (MAX_COVERAGE_CONDITION, IdentifiabilityError, constraint_lstsq,
-                                   known_gradient_lstsq, paper_bounds, paper_ga)
+from ..core import difference_tensor
+from ..core.identification import MAX_COVERAGE_CONDITION, IdentifiabilityError, identify
+from ..core.identification.paper_ga import GENERATIONS
 from ..io.bag import BagError, MagneticBag
 from ..io.calibration import CalibrationFile, save_calibration
 from ..io.params import geometry_from_params, load_params
@@ -142,26 +142,19 @@ def run(args: argparse.Namespace) -> int:
         stamps, fields = stamps[::thinned], fields[::thinned]
     g_measured = difference_tensor(fields, geometry)
     b_reference = fields[:, 0, :]
-    coverage = attitude_coverage(b_reference)
     window_text = 'whole bag' if window is None else f'{window[0]:g}:{window[1]:g} s'
-    if not coverage <= args.max_coverage_condition:
-        raise IdentifiabilityError(
-            f'the window ({window_text}, {len(stamps)} sets) has too little attitude diversity: attitude '
-            f'coverage condition number {coverage:.3g} > {args.max_coverage_condition:.3g} (the body-frame '
-            f'field must take at least 3 non-coplanar directions: turn, roll and pitch)')
     method = args.method
-    if method.startswith('known_gradient_lstsq'):
-        calibration = known_gradient_lstsq(g_measured, b_reference, geometry,
-                                           symmetric_k=(method == 'known_gradient_lstsq'),
-                                           max_coverage_condition=args.max_coverage_condition)
-    elif method == 'constraint_lstsq':
-        calibration = constraint_lstsq(g_measured, b_reference, geometry, symmetric_k=True)
-    else:
-        options = {} if args.generations is None else {'generations': args.generations}
-        if args.generations is not None and args.generations < 1:
-            raise ValueError(f'--generations must be >= 1, got {args.generations}')
-        calibration = paper_ga(g_measured, b_reference, geometry, rng=np.random.default_rng(args.seed),
-                               bounds=paper_bounds(symmetric=True, wide=args.wide_bounds), **options)
+    if args.generations is not None and args.generations < 1:
+        raise ValueError(f'--generations must be >= 1, got {args.generations}')
+    try:
+        calibration = identify(
+            method.removesuffix('_general'), g_measured, b_reference, geometry,
+            symmetric_k=(method != 'known_gradient_lstsq_general'), rng=np.random.default_rng(args.seed),
+            generations=args.generations or GENERATIONS, wide_bounds=args.wide_bounds,
+            max_coverage_condition=args.max_coverage_condition)
+    except IdentifiabilityError as error:
+        raise IdentifiabilityError(f'the window ({window_text}, {len(stamps)} sets): {error}') from None
+    coverage = calibration.details['attitude_coverage_condition']
     record = CalibrationFile.from_calibration(calibration, geometry)
     extra = {'bag': str(args.bag), 'window_s': window_text, 'sets_in_window': n_window, 'thinned_every': thinned,
              'attitude_coverage_condition': coverage, 'read_span_s': span,

@@ -6,7 +6,10 @@
 ``known_gradient_lstsq``        true gradient known (trim manoeuvre): all parameters
 ``pei_yeo_2009``                reference [8]: sensors mapped onto sensor 1, then differenced
 ==============================  ==========================================================
+
+``identify(method, ...)`` runs the first three by name after the attitude-coverage check.
 """
+from .dispatch import METHODS, identify
 from .lstsq import (MAX_COVERAGE_CONDITION, MIN_SAMPLES, attitude_coverage, constraint_lstsq,
                     constraint_objective, known_gradient_lstsq, paper_bounds)
 from .paper_ga import paper_ga
@@ -15,7 +18,7 @@ from .result import (Calibration, IdentifiabilityError, ReferenceSensorCalibrati
                      TensorCalibration)
 
 __all__ = [
-    'MAX_COVERAGE_CONDITION', 'MIN_SAMPLES', 'Calibration', 'IdentifiabilityError',
+    'MAX_COVERAGE_CONDITION', 'METHODS', 'MIN_SAMPLES', 'Calibration', 'IdentifiabilityError',
     'ReferenceSensorCalibration', 'TensorCalibration', 'attitude_coverage', 'constraint_lstsq',
-    'constraint_objective', 'known_gradient_lstsq', 'paper_bounds', 'paper_ga', 'pei_yeo_2009',
+    'constraint_objective', 'identify', 'known_gradient_lstsq', 'paper_bounds', 'paper_ga', 'pei_yeo_2009',
 ]
