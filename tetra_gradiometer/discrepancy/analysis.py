@@ -17,6 +17,12 @@ each sample is predicted by a fit that did not see its block; the gap is the RMS
 samples, sensors and axes of measured minus predicted, nT. The fits use per-block Gram
 matrices, so every candidate model costs a few small solves.
 
+Target passages: before the search, the base model plus every global candidate is fitted
+robustly (least trimmed squares on ~2 s blocks, several starts); contiguous spans where its
+residual stays far above the noise (a localized field that no candidate represents: a
+target passed close to the track) are left out of every fit and of the gap, with a margin,
+and reported (``Report.excluded_spans``). ``window_s`` restricts the analysis to part of the run.
+
 Selection works on units (a family of the library in one sensor, or a term common to all
 sensors): the unit with the lowest cross-validated BIC (``n ln(SS_cv/n) + p ln n``, p the
 number of identifiable parameters) is added when (1) its CV-BIC is below the current
@@ -70,6 +76,8 @@ class Settings:
         averaged over ~2 s)
     target_margin : each span is widened by this share of its length (at least 2 s) each side
     target_max_fraction : spans are excluded only when they cover at most this share of the run
+    target_confirm : a span is confirmed when, fitted with its samples in, its mean square
+        residual stays at least this factor above the rest of the run's median
     """
 
     n_folds: int = 5
@@ -86,6 +94,7 @@ class Settings:
     target_low: float = 2.5
     target_margin: float = 0.5
     target_max_fraction: float = 0.6
+    target_confirm: float = 2.0
 
 
 @dataclass
@@ -955,8 +964,26 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
             break
         last = key
         include = ~mask
+    # Confirm each span: fitted with its own samples in, a target stays far above the rest
+    # (no candidate represents it); a span that the model explains once it may fit it was
+    # an extrapolation of a fit on part of the run, not a target.
+    confirmed = []
+    for i, j in spans:
+        inside = np.zeros(n, dtype=bool)
+        inside[i:j + 1] = True
+        with_it = ~mask | inside
+        _, _, _, z_in = score(with_it)
+        ratio = float(np.mean(z_in[inside]) / max(np.median(z_in[with_it & ~inside]), 1e-12))
+        if ratio >= settings.target_confirm:
+            confirmed.append((i, j))
+        else:
+            notes.append(f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the full candidate model explains it once fitted on it '
+                         f'(mean square {ratio:.2g} x the rest of the run)')
+    info['confirmed'] = len(confirmed)
+    spans = confirmed
     if not spans:
         return [], notes, info
+    residual, flat, sigma, z = score(~np.isin(np.arange(n), np.concatenate([np.arange(i, j + 1) for i, j in spans])))
     # Evidence per span: where the residual peaks, how much of it differs between sensors.
     common = residual.mean(axis=1, keepdims=True) if prep.absolute else np.zeros_like(residual[:, :1])
     diff = residual - common
@@ -1320,6 +1347,10 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         notes.append(f'the final gap {gap_final:.3g} nT exceeds {settings.adequate_ratio} x the noise floor '
                      f'({floor_final:.3g} nT) but no candidate in the library explains the rest: '
                      'an effect outside the library (or a target close to the track) remains')
+        if excluded:
+            notes.append('target passage(s) were excluded, but the rest of the run is not at the noise floor either: '
+                         "the target's field may reach the manoeuvre (a trim flown near the target); analyse a run, "
+                         'or a --window, flown away from targets')
     diagnostics = {'base': _diagnostics(prep, residuals[0]), 'final': _diagnostics(prep, residuals[-1])}
     if geometry is not None:
         from ..core.geometry import difference_tensor
