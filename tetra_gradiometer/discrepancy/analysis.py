@@ -977,8 +977,8 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
         if ratio >= settings.target_confirm:
             confirmed.append((i, j))
         else:
-            notes.append(f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the full candidate model explains it once fitted on it '
-                         f'(mean square {ratio:.2g} x the rest of the run)')
+            notes.append(f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the full candidate model explains it once '
+                         f'fitted on it (mean square {ratio:.2g} x the rest of the run)')
     info['confirmed'] = len(confirmed)
     spans = confirmed
     if not spans:

@@ -167,7 +167,8 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
               f'{d["data"]["sample_rate_hz"]:.3g} Hz; analysed in {report.runtime_s:.2f} s']
     if d['data'].get('window_s'):
         w = d['data']['window_s']
-        lines.append(f'- Window: {w[0]:g} to {"the end" if w[1] is None else f"{w[1]:g} s"} (seconds from the first sample)')
+        end = 'the end' if w[1] is None else f'{w[1]:g} s'
+        lines.append(f'- Window: {w[0]:g} to {end} (seconds from the first sample)')
     for note in report.notes:
         lines.append(f'- Note: {note}')
     if report.excluded_spans:
