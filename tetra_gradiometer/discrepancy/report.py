@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io.atomic import atomic_output_path, atomic_write_text
+from ..io.atomic import atomic_write_text, save_figure
 from .analysis import Report, criterion_text
 from .effects import LIBRARY
 
@@ -38,8 +38,7 @@ def _pyplot():
 
 
 def _save(fig: Any, path: Path) -> None:
-    with atomic_output_path(path) as tmp:
-        fig.savefig(tmp, format='png', dpi=90)
+    save_figure(fig, path, dpi=90)
 
 
 def _thin(n: int) -> slice:
