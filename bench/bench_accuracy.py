@@ -29,7 +29,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tetra_gradiometer.core import TetraGeometry, noise_floor, summarize  # noqa: E402
+from tetra_gradiometer.core import noise_floor, summarize  # noqa: E402
 from tetra_gradiometer.core.identification import pei_yeo_2009  # noqa: E402
 from tetra_gradiometer.io.bag import MagneticBag  # noqa: E402
 from tetra_gradiometer.io.params import geometry_from_params, load_params  # noqa: E402

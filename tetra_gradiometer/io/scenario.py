@@ -31,16 +31,16 @@ import numpy as np
 from ..core import (CurrentProfile, Dipole, Effects, Scenario, SensorInterference, SurveyLine,
                     TemperatureProfile, TetraGeometry, TrimManoeuvre, random_interference)
 from ._yaml import read_yaml
+from ..core.units import T_PER_NT
 
-NT = 1e-9
 
 #: effect name -> (key in the file, factor to SI)
 EFFECT_KEYS = {
     'eddy_current': ('coefficients_s', 1.0),
     'sensor_misalignment': ('rotation_deg', np.pi / 180.0),
     'time_skew_s': ('delay_s', 1.0),
-    'thermal_drift': ('nT_per_degC', NT),
-    'vehicle_current': ('nT_per_A', NT),
+    'thermal_drift': ('nT_per_degC', T_PER_NT),
+    'vehicle_current': ('nT_per_A', T_PER_NT),
 }
 
 
@@ -56,7 +56,7 @@ def igrf_field_enu(latitude_deg: float, longitude_deg: float, date: _dt.date | s
     if not isinstance(when, _dt.datetime):
         when = _dt.datetime(when.year, when.month, when.day)
     east, north, up = ppigrf.igrf(longitude_deg, latitude_deg, altitude_m / 1000.0, when)
-    return np.array([east.item(), north.item(), up.item()]) * NT
+    return np.array([east.item(), north.item(), up.item()]) * T_PER_NT
 
 
 def _vec(section: dict, key: str, shape: tuple[int, ...], where: str, factor: float = 1.0) -> np.ndarray:
@@ -171,7 +171,7 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
         except (TypeError, ValueError) as error:
             raise ScenarioError(f'earth_field.igrf: {error}') from None
     else:
-        earth_field = _vec(earth, 'enu_nT', (3,), 'earth_field', NT)
+        earth_field = _vec(earth, 'enu_nT', (3,), 'earth_field', T_PER_NT)
     dipoles = [Dipole(_vec(d, 'position_m', (3,), f'dipoles[{i}]'), _vec(d, 'moment_Am2', (3,), f'dipoles[{i}]'))
                for i, d in enumerate(document.get('dipoles', []))]
     interference_spec = document.get('interference', {})
@@ -181,11 +181,11 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
         _positive(spec, 'b_scale_nT', 'interference.random', allow_zero=True)
         interference = random_interference(
             np.random.default_rng([seed, 1]), k_scale=float(spec.get('k_scale', 5e-3)),
-            b_scale_t=float(spec.get('b_scale_nT', 150.0)) * NT,
+            b_scale_t=float(spec.get('b_scale_nT', 150.0)) * T_PER_NT,
             reference_clean=bool(spec.get('reference_clean', True)))
     elif interference_spec:
         interference = SensorInterference(_vec(interference_spec, 'k_soft', (4, 3, 3), 'interference'),
-                                          _vec(interference_spec, 'b_hard_nT', (4, 3), 'interference', NT))
+                                          _vec(interference_spec, 'b_hard_nT', (4, 3), 'interference', T_PER_NT))
     else:
         interference = SensorInterference.zero()
     effects_spec = document.get('effects') or {}
@@ -200,7 +200,7 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
         scenario = Scenario(
             geometry=geometry, earth_field_enu=earth_field, segments=segments,
             sample_rate_hz=float(document.get('sample_rate_hz', 10.0)), dipoles=dipoles,
-            interference=interference, noise_t=float(document.get('noise_nT', 0.1)) * NT, effects=effects,
+            interference=interference, noise_t=float(document.get('noise_nT', 0.1)) * T_PER_NT, effects=effects,
             temperature=TemperatureProfile(**document.get('temperature', {})),
             current=CurrentProfile(**document.get('current', {})))
     except (TypeError, ValueError) as error:

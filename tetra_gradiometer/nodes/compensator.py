@@ -30,6 +30,7 @@ from ..io.calibration import CalibrationFile, CalibrationFileError, check_positi
 from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, Throttle, WARN,
                    declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, spin_node, status,
                    tensor_or_nan)
+from ..core.units import NT_PER_T
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -41,7 +42,6 @@ PARAMETERS = [
     diagnostics_period_spec(),
 ]
 
-NT = 1e9
 
 
 class CompensatorNode(Node):
@@ -134,7 +134,7 @@ class CompensatorNode(Node):
         else:
             g = compensate(g_raw[None], b_reference[None], self._parameters, self._geometry)[0]
         self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
-        self._norm_pub.publish(Float64(data=float(np.linalg.norm(g) * NT)))
+        self._norm_pub.publish(Float64(data=float(np.linalg.norm(g) * NT_PER_T)))
         self.published += 1
         triple = self._truth.add(0, stamp_ns, (g_raw, g))
         if triple is not None:

@@ -23,8 +23,8 @@ import numpy as np
 from ..io.atomic import save_figure
 from ._ros import DEFAULT_PARAMS_FILE
 from .run_node import ros_arguments
+from ..core.units import NT_PER_T
 
-NT = 1e9
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -177,13 +177,13 @@ def _summarise_calibration(calibration, scenarios) -> None:
     exact = scenario.interference.effective_parameters()
     d = calibration.diagnostics
     k_err = np.abs(calibration.parameters.k_soft - exact.k_soft).max()
-    b_err = np.abs(calibration.parameters.b_hard - exact.b_hard).max() * NT
+    b_err = np.abs(calibration.parameters.b_hard - exact.b_hard).max() * NT_PER_T
     _say(f'demo: calibration {calibration.method}: {d.get("n_samples")} samples, {d.get("n_parameters")} '
          f'parameters, rank {d.get("rank")}, fit residual {d.get("residual_rms_nT_per_m", float("nan")):.3g} nT/m, '
          f'estimated sensor noise {d.get("sensor_noise_nT", float("nan")):.3g} nT')
     _say(f'demo: against the simulator: max |k error| {k_err:.2e} (largest |k| '
          f'{np.abs(exact.k_soft).max():.2e}), max |b error| {b_err:.3g} nT (largest |b| '
-         f'{np.abs(exact.b_hard).max() * NT:.3g} nT)')
+         f'{np.abs(exact.b_hard).max() * NT_PER_T:.3g} nT)')
 
 
 def _plot(path: Path, stamps: np.ndarray, g_raw: np.ndarray, g_comp: np.ndarray, g_true: np.ndarray,
@@ -192,7 +192,7 @@ def _plot(path: Path, stamps: np.ndarray, g_raw: np.ndarray, g_comp: np.ndarray,
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     t = (stamps - stamps[0]) * 1e-9
-    norm = {name: np.linalg.norm(g, axis=(1, 2)) * NT for name, g in
+    norm = {name: np.linalg.norm(g, axis=(1, 2)) * NT_PER_T for name, g in
             (('raw', g_raw), ('compensated', g_comp), ('true', g_true))}
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True,
                                       gridspec_kw={'height_ratios': [2, 1]})

@@ -41,8 +41,8 @@ from ..core.identification.paper_ga import GENERATIONS
 from ..io.bag import BagError, MagneticBag
 from ..io.calibration import CalibrationFile, save_calibration
 from ..io.params import geometry_from_params, load_params
+from ..core.units import NT_PER_T
 
-NT = 1e9
 METHODS = ('known_gradient_lstsq_general', 'known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
 DEFAULT_METHOD = 'known_gradient_lstsq_general'
 DEFAULT_MAX_SETS = 50_000
@@ -182,12 +182,12 @@ def run(args: argparse.Namespace) -> int:
     parameters = calibration.parameters
     for pair in range(3):
         line = (f'  K_{pair + 2}1 = {_format_matrix(parameters.k_soft[pair], "{:+.6f}")}   '
-                f'B_{pair + 2}1^h = [{" ".join(f"{v:+.3f}" for v in parameters.b_hard[pair] * NT)}] nT')
+                f'B_{pair + 2}1^h = [{" ".join(f"{v:+.3f}" for v in parameters.b_hard[pair] * NT_PER_T)}] nT')
         if errors is not None:
-            b_err = errors[n_k + 3 * pair:n_k + 3 * pair + 3] * NT
+            b_err = errors[n_k + 3 * pair:n_k + 3 * pair + 3] * NT_PER_T
             line += f' (+-{b_err.max():.2g})'
         print(line)
     if errors is not None:
-        print(f'  largest standard error: K {errors[:n_k].max():.2g}, B^h {errors[n_k:].max() * NT:.2g} nT')
+        print(f'  largest standard error: K {errors[:n_k].max():.2g}, B^h {errors[n_k:].max() * NT_PER_T:.2g} nT')
     print(f'wrote {args.out} in {time.perf_counter() - started:.1f} s')
     return 0

@@ -32,8 +32,8 @@ from ..io.atomic import atomic_output_path
 from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
 from ..io.calibration import check_positions, load_calibration
 from ..io.params import geometry_from_params, load_params
+from ..core.units import NT_PER_T
 
-NT = 1e9
 CSV_HEADER = 'stamp_s,' + ','.join(cv.TENSOR_NAMES)
 COMPENSATED_TOPIC = f'{cv.NAMESPACE}/gradient/compensated'
 RAW_TOPIC = f'{cv.NAMESPACE}/gradient/raw'
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def format_rows(stamps_ns: np.ndarray, tensors_t_per_m: np.ndarray) -> str:
     """CSV rows (with trailing newline) for stamps (n,) ns and tensors (n, 3, 3) T/m."""
     seconds, nanoseconds = np.divmod(np.asarray(stamps_ns, dtype=np.int64), 1_000_000_000)
-    values = tensors_t_per_m.reshape(len(stamps_ns), 9) * NT
+    values = tensors_t_per_m.reshape(len(stamps_ns), 9) * NT_PER_T
     row = '%d.%09d,' + ','.join(['%.6f'] * 9)
     table = np.column_stack([seconds, nanoseconds]).astype(object)
     return ''.join(row % (s, ns, *v) + '\n' for (s, ns), v in zip(table, values.tolist()))

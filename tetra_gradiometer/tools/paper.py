@@ -31,8 +31,8 @@ from ..core.identification import (TensorCalibration, constraint_lstsq,
 from ..core.identification.paper_ga import (CROSSOVER_PROBABILITY, GENE_BITS, GENERATION_GAP,
                                             GENERATIONS, MUTATION_PROBABILITY, POPULATION)
 from ..io.atomic import atomic_write_text, save_figure
+from ..core.units import NT_PER_T
 
-NT = 1.0e9
 
 #: Section 6.1 as printed: soft iron K_1..K_4 (dimensionless) and hard iron B_1^h..B_4^h (nT).
 PAPER_K = np.array([
@@ -101,7 +101,7 @@ class Choices:
     def earth_field_enu_t(self) -> np.ndarray:
         inc, dec = np.radians(self.earth_inclination_deg), np.radians(self.earth_declination_deg)
         horizontal = np.cos(inc)
-        return self.earth_intensity_nT / NT * np.array(
+        return self.earth_intensity_nT / NT_PER_T * np.array(
             [horizontal * np.sin(dec), horizontal * np.cos(dec), -np.sin(inc)])
 
     @property
@@ -131,7 +131,7 @@ class Choices:
             geometry=TetraGeometry.regular(self.edge_m), earth_field_enu=earth,
             segments=(self.trim(reading), self.line()), sample_rate_hz=self.sample_rate_hz,
             dipoles=(Dipole(self.dipole_position, PAPER_MOMENT),),
-            interference=SensorInterference(PAPER_K, PAPER_B_HARD_NT / NT), noise_t=self.noise_nT / NT)
+            interference=SensorInterference(PAPER_K, PAPER_B_HARD_NT / NT_PER_T), noise_t=self.noise_nT / NT_PER_T)
 
 
 @dataclass
@@ -157,7 +157,7 @@ def _timed(function, *args, **kwargs):
 
 
 def _norms(g: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(g, axis=(1, 2)) * NT
+    return np.linalg.norm(g, axis=(1, 2)) * NT_PER_T
 
 
 def run_reading(choices: Choices, reading: str) -> Reading:
@@ -223,7 +223,7 @@ def run_reading(choices: Choices, reading: str) -> Reading:
     methods, after = score(calibrations, seconds)
     variants, after_variants = score(variants_cal, variants_s)
     constraint = calibrations['constraint_lstsq']
-    floor = noise_floor(scenario.noise_t, geometry) * NT
+    floor = noise_floor(scenario.noise_t, geometry) * NT_PER_T
     interference = g_before - comp.g_true
     diagnostics = {name: _diagnostics(cal) for name, cal in {**calibrations, **variants_cal}.items()}
     diagnostics['constraint_lstsq']['null_space_dim'] = constraint.null_space_dim
@@ -242,7 +242,7 @@ def run_reading(choices: Choices, reading: str) -> Reading:
 def paper_printed_parameters() -> InterferenceParameters:
     """The paper's printed estimate (section 6.2, step 3) as parameters, SI."""
     k_soft = PAPER_K_HAT.reshape(3, 3, 3).transpose(1, 0, 2)  # block i = columns 3i..3i+2
-    return InterferenceParameters(k_soft, PAPER_B_HAT_NT / NT)
+    return InterferenceParameters(k_soft, PAPER_B_HAT_NT / NT_PER_T)
 
 
 def _diagnostics(calibration) -> dict:
@@ -277,7 +277,7 @@ def _describe(choices: Choices, reading: str, scenario: Scenario, data, trim, li
         'seed': choices.seed,
         'dipole': {'moment_A_m2': list(PAPER_MOMENT), 'position_enu_m': list(choices.dipole_position),
                    'frame': 'world ENU (x east, y north, z up)'},
-        'earth_field_enu_nT': (scenario.earth_field_enu * NT).tolist(),
+        'earth_field_enu_nT': (scenario.earth_field_enu * NT_PER_T).tolist(),
         'earth_field': (f'{choices.earth_intensity_nT:g} nT, inclination {choices.earth_inclination_deg:g} deg '
                         f'(down), declination {choices.earth_declination_deg:g} deg'
                         if reading == 'earth_field' else 'none'),
@@ -302,7 +302,7 @@ def _describe(choices: Choices, reading: str, scenario: Scenario, data, trim, li
             'speed_m_s': trim_segment.speed_m_s,
             'circle_radius_m': trim_segment.speed_m_s / np.radians(trim_segment.heading_rate_deg_s),
             'range_to_dipole_m': [float(trim_distance.min()), float(trim_distance.max())],
-            'max_true_gradient_nT_per_m': float(np.abs(trim.g_true).max() * NT),
+            'max_true_gradient_nT_per_m': float(np.abs(trim.g_true).max() * NT_PER_T),
             'truth_given_to_solvers': ('none: the true gradient is taken as zero (uniform field far from the target)'
                                        if reading == 'earth_field' else
                                        'the simulator g_true (eq. 7 on the clean fields) on the trim samples: in a '
@@ -337,14 +337,14 @@ def _describe(choices: Choices, reading: str, scenario: Scenario, data, trim, li
         'g_analytic_truncation': {
             'note': 'g_analytic (exact gradient at the array centroid) differs from g_true by the differencing '
                     'truncation (~ d/R); it is not used as truth',
-            'rms_nT_per_m': float(np.sqrt(np.mean(truncation**2)) * NT),
-            'max_abs_nT_per_m': float(np.abs(truncation).max() * NT),
+            'rms_nT_per_m': float(np.sqrt(np.mean(truncation**2)) * NT_PER_T),
+            'max_abs_nT_per_m': float(np.abs(truncation).max() * NT_PER_T),
             'relative_rms': float(np.sqrt(np.mean(truncation**2) / np.mean(comp.g_true**2))),
         },
         'uncompensated': {
-            'rms_interference_nT_per_m': float(np.sqrt(np.mean(interference**2)) * NT),
-            'max_interference_frobenius_nT_per_m': float(np.linalg.norm(interference, axis=(1, 2)).max() * NT),
-            'max_true_frobenius_nT_per_m': float(np.linalg.norm(comp.g_true, axis=(1, 2)).max() * NT),
+            'rms_interference_nT_per_m': float(np.sqrt(np.mean(interference**2)) * NT_PER_T),
+            'max_interference_frobenius_nT_per_m': float(np.linalg.norm(interference, axis=(1, 2)).max() * NT_PER_T),
+            'max_true_frobenius_nT_per_m': float(np.linalg.norm(comp.g_true, axis=(1, 2)).max() * NT_PER_T),
         },
     }
 

@@ -34,8 +34,8 @@ from ..io.bag import STORAGES
 from ..io.params import params_document
 from ..io.recording import mission_stamps_ns, write_mission_bag
 from ..io.scenario import load_scenario
+from ..core.units import NT_PER_T
 
-NT = 1e9
 DEFAULT_START = '2026-01-01T00:00:00Z'
 
 
@@ -103,10 +103,10 @@ def run(args: argparse.Namespace) -> int:
                 b_hard=scenario.interference.b_hard, k_effective=effective.k_soft,
                 b_effective=effective.b_hard, noise_t=scenario.noise_t,
                 sample_rate_hz=scenario.sample_rate_hz, seed=seed)
-    b_norm = np.linalg.norm(scenario.earth_field_enu) * NT
+    b_norm = np.linalg.norm(scenario.earth_field_enu) * NT_PER_T
     print(f'simulated {len(mission)} sample sets, {scenario.duration_s:.1f} s at {scenario.sample_rate_hz:g} Hz, '
           f'{len(scenario.segments)} segment(s), {len(scenario.dipoles)} dipole(s), '
-          f'|B_earth| = {b_norm:.0f} nT, noise {scenario.noise_t * NT:g} nT, seed {seed}, '
+          f'|B_earth| = {b_norm:.0f} nT, noise {scenario.noise_t * NT_PER_T:g} nT, seed {seed}, '
           f'effects: {", ".join(scenario.effects.active()) or "none"}')
     print(f'bag:    {out} ({args.storage})')
     print(f'params: {params_path}')

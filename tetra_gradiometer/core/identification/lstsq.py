@@ -10,7 +10,8 @@ from ..design import CONSTRAINT_ROWS, constraint_design, constraint_residual, in
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters, interference_tensor, n_parameters
 from ._linear import AffineReduction, reduce_affine, solve_scaled
-from .result import NT, IdentifiabilityError, TensorCalibration
+from .result import IdentifiabilityError, TensorCalibration
+from ..units import NT_PER_T
 
 #: Fewest samples any solver accepts.
 MIN_SAMPLES = 10
@@ -134,7 +135,7 @@ def known_gradient_lstsq(g_measured: object, b_reference: object, geometry: Tetr
         method=method, n_samples=n, n_parameters=n_par, rank=solution.rank,
         condition_number=solution.condition_number,
         residual_rms=float(np.sqrt(np.mean(residual**2))),
-        details={'attitude_coverage_condition': coverage, 'sensor_noise_nT': float(np.sqrt(sigma2) * NT)},
+        details={'attitude_coverage_condition': coverage, 'sensor_noise_nT': float(np.sqrt(sigma2) * NT_PER_T)},
         parameters=parameters, symmetric=symmetric_k, covariance=sigma2 * solution.covariance_unit,
     )
 

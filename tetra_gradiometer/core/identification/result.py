@@ -9,8 +9,8 @@ import numpy as np
 from .._validate import as_fields
 from ..geometry import TetraGeometry, difference_tensor
 from ..model import InterferenceParameters, compensate_fields
+from ..units import NT_PER_T
 
-NT = 1.0e9  # tesla -> nT
 
 
 class IdentifiabilityError(ValueError):
@@ -62,7 +62,7 @@ class Calibration(ABC):
             'method': self.method, 'n_samples': self.n_samples, 'n_parameters': self.n_parameters,
             'rank': self.rank, 'null_space_dim': self.null_space_dim,
             'condition_number': float(self.condition_number),
-            self.residual_key: float(self.residual_rms * NT), **self.details,
+            self.residual_key: float(self.residual_rms * NT_PER_T), **self.details,
         }
 
 
