@@ -19,13 +19,13 @@ $(STAMP): requirements.txt constraints.txt setup.py setup.cfg package.xml
 	touch $(STAMP)
 
 demo: setup
-	$(PY) -m tetra_gradiometer demo --out $(OUT)/demo
+	$(PY) -m tetra_gradiometer demo --out $(OUT)/demo --force
 
 test: setup
 	$(PY) -m pytest
 
 paper: setup
-	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper
+	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper --force
 
 bench: setup
 	$(PY) bench/bench_solvers.py

@@ -135,7 +135,8 @@ def test_report_files_and_schema(tmp_path):
     assert 'gap.png' in pngs and 'diagnostics.png' in pngs
     assert any(p.startswith('residual_step1_') for p in pngs)
     assert any(p.startswith('effect_') for p in pngs)
-    assert not list(out.glob('.*'))   # no temporary files left behind
+    assert [p.name for p in out.glob('.*')] == ['.tetra_gradiometer_output']  # the marker, no temporary
+    assert not list(out.parent.glob('.*partial'))
 
 
 def test_settings_reject_unknown_candidates():

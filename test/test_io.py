@@ -8,7 +8,7 @@ from rosbags.typesys import Stores, get_typestore
 from tetra_gradiometer import conversions as cv
 from tetra_gradiometer.core import (InterferenceParameters, Scenario, TetraGeometry, TrimManoeuvre,
                                     known_gradient_lstsq, difference_tensor, random_interference, simulate)
-from tetra_gradiometer.io.atomic import atomic_write_text
+from tetra_gradiometer.io.outputs import CALIBRATION, atomic_write_text
 from tetra_gradiometer.io.bag import BagError, BagWriter, MagneticBag
 from tetra_gradiometer.io.calibration import (CalibrationFile, CalibrationFileError, load_calibration,
                                               save_calibration)
@@ -53,14 +53,16 @@ def test_matcher_pairs_by_stamp_and_counts_incomplete_sets():
 
 def test_atomic_write_never_leaves_a_partial_file(tmp_path, monkeypatch):
     target = tmp_path / 'calibration.yaml'
-    atomic_write_text(target, 'old: 1\n')
+    old = 'tetra_gradiometer_calibration: 1\nold: 1\n'
+    atomic_write_text(target, old, CALIBRATION)
 
     def fail(*args):
         raise OSError('disk full')
     monkeypatch.setattr(os, 'replace', fail)
     with pytest.raises(OSError, match='disk full'):
-        atomic_write_text(target, 'new: 2\n' * 1000)
-    assert target.read_text() == 'old: 1\n'
+        atomic_write_text(target, 'tetra_gradiometer_calibration: 1\n' + 'new: 2\n' * 1000, CALIBRATION,
+                          force=True)
+    assert target.read_text() == old
     assert sorted(p.name for p in tmp_path.iterdir()) == ['calibration.yaml']
 
 

@@ -346,7 +346,7 @@ i = 0
 while True:
     i += 1
     params = InterferenceParameters(np.full((3, 3, 3), 1e-3 * i), np.full((3, 3), 1e-9 * i))
-    save_calibration(sys.argv[1], CalibrationFile(params, "test", False, geometry.to_flat(), big))
+    save_calibration(sys.argv[1], CalibrationFile(params, "test", False, geometry.to_flat(), big), force=True)
     print(i, flush=True)
 '''
 
@@ -405,3 +405,34 @@ def test_a_bad_value_set_at_run_time_is_refused():
         future = client.call_async(SetParameters.Request(parameters=[Parameter(name='stale_timeout_s', value=value)]))
         wait_for(future.done, 10, 'set_parameters', graph)
         assert future.result().results[0].successful
+
+
+def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_path_is_read_only(tmp_path):
+    """Fault table rows: nobody on the ROS domain can turn ~/calibrate into a file writer."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    precious = tmp_path / 'vehicle.conf'
+    precious.write_bytes(b'rudder_gain: 3\n')
+    rng = np.random.default_rng(4)
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('calibrator', calibration_file=str(precious))
+        client = probe.create_client(SetParameters, 'calibrator/set_parameters')
+        assert client.wait_for_service(timeout_sec=30)
+        value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=str(tmp_path / 'elsewhere.yaml'))
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(name='calibration_file', value=value)]))
+        wait_for(future.done, 10, 'set_parameters', graph)
+        result = future.result().results[0]
+        assert not result.successful and 'read-only' in result.reason.lower(), result.reason
+
+        wait_matched(feeder.raw, 1)
+        wait_matched(feeder.reference, 1)
+        assert probe.call('calibrator/start').success
+        g, b, _ = _interference_set(200, rng, 'rich')
+        for i in range(len(g)):
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+            time.sleep(0.002)
+        wait_for(lambda: '200 samples' in probe.call('calibrator/stop').message, 10, '200 samples', graph)
+        reply = probe.call('calibrator/calibrate')
+        assert not reply.success and 'not a calibration file' in reply.message, reply.message
+    assert precious.read_bytes() == b'rudder_gain: 3\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['vehicle.conf']

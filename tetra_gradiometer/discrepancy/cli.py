@@ -5,6 +5,7 @@ import argparse
 import sys
 import time
 
+from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..io.recording import read_recording
 from ..tools.calibrate import parse_window
@@ -30,11 +31,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='do not look for and exclude target passages (spans dominated by a localized field '
                              'that no candidate represents)')
     parser.add_argument('--no-plots', action='store_true', help='write report.json and report.md only')
+    parser.add_argument('--force', action='store_true',
+                        help='replace a previous report folder at --out (anything else there is refused)')
 
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     window = parse_window(args.window)
+    inputs = (args.bag, args.params)
+    check_output(args.out, REPORT, force=args.force, inputs=inputs)  # refuse before the analysis
     params = load_params(args.params)
     geometry = geometry_from_params(params, str(args.params))
     earth = earth_field_from_params(params, str(args.params))
@@ -45,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     settings = Settings(n_folds=args.folds, max_effects=args.max_effects, relevance=args.relevance,
                         candidates=candidates, exclude_targets=not args.keep_targets)
     report = analyze(recording, geometry, earth, settings=settings, window_s=window)
-    out = write_report(report, args.out, plots=not args.no_plots)
+    out = write_report(report, args.out, plots=not args.no_plots, force=args.force, inputs=inputs)
     for note in report.notes:
         print(f'note: {note}', file=sys.stderr)
     for name, reason in report.untestable.items():

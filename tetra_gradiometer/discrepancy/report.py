@@ -1,15 +1,16 @@
-"""``report.json``, ``report.md`` and the PNG plots of a discrepancy :class:`Report`,
-every file written atomically (temporary sibling, then rename)."""
+"""``report.json``, ``report.md`` and the PNG plots of a discrepancy :class:`Report`, in one
+report folder written atomically (:func:`~tetra_gradiometer.io.outputs.atomic_output`)."""
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..io.atomic import atomic_write_text, save_figure
+from ..io.outputs import REPORT, atomic_output
 from .analysis import Report, criterion_text
 from .effects import LIBRARY
 
@@ -38,7 +39,7 @@ def _pyplot():
 
 
 def _save(fig: Any, path: Path) -> None:
-    save_figure(fig, path, dpi=90)
+    fig.savefig(path, format='png', dpi=90)
 
 
 def _thin(n: int) -> slice:
@@ -243,10 +244,18 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = True) -> Path:
-    """Write ``report.json``, ``report.md`` and (with ``plots``) the PNGs into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = True, force: bool = False,
+                 inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """Write ``report.json``, ``report.md`` and (with ``plots``) the PNGs into the folder
+    ``out_dir``, atomically (a previous report folder is replaced only with ``force``;
+    :func:`~tetra_gradiometer.io.outputs.atomic_output`)."""
+    with atomic_output(out_dir, REPORT, force=force, inputs=inputs, command='discrepancy') as out:
+        out.mkdir()
+        _write_report_files(report, out, plots=plots)
+    return Path(out_dir)
+
+
+def _write_report_files(report: Report, out: Path, *, plots: bool) -> None:
     figures: dict[str, str] = {}
     if plots and report.series:
         plt = _pyplot()
@@ -272,12 +281,5 @@ def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = Tr
                 figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
                 shown = tuple(k for k in range(4) if np.any(field[:, k])) or sensors
                 _plot_effect(plt, out / figures[f'effect_{step.effect}'], t, shown, step.effect, field)
-    atomic_write_text(out / 'report.json', report_json(report))
-    atomic_write_text(out / 'report.md', report_markdown(report, figures))
-    # Plots of an earlier report in the same folder would mislead: remove ours that are stale.
-    current = set(figures.values())
-    for pattern in ('residual_step*.png', 'residual_base.png', 'effect_*.png', 'gap.png', 'diagnostics.png'):
-        for stale in out.glob(pattern):
-            if stale.name not in current:
-                stale.unlink(missing_ok=True)
-    return out
+    (out / 'report.json').write_text(report_json(report), encoding='utf-8')
+    (out / 'report.md').write_text(report_markdown(report, figures), encoding='utf-8')

@@ -1,8 +1,9 @@
 """rosbag2 files (sqlite3 or mcap) following the data contract, via the rosbags library.
 
 Reading streams: :meth:`MagneticBag.iter_sets` yields matched sample sets in chunks, so
-memory stays bounded however long the bag. Writing goes to a temporary folder renamed into
-place on success (:func:`~tetra_gradiometer.io.atomic.atomic_output_path`).
+memory stays bounded however long the bag. Writing goes to a private temporary folder moved
+into place on success, and never replaces anything but a previous bag of ours
+(:func:`~tetra_gradiometer.io.outputs.atomic_output`).
 
 Fast paths (the generic ones stay, and a test checks both agree):
 
@@ -24,6 +25,8 @@ from __future__ import annotations
 import os
 import struct
 import sys
+from collections.abc import Iterable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -35,7 +38,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from .. import conversions as cv
 from ..matching import StampMatcher
-from .atomic import atomic_output_path
+from .outputs import BAG, atomic_output, check_output
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
@@ -366,39 +369,39 @@ class BagWriter:
 
     Parameters
     ----------
-    path : target folder (must not be inside another bag)
+    path : target folder; refused as :func:`~tetra_gradiometer.io.outputs.check_output`
+        says (an existing folder is replaced only if it is a bag this package wrote, and
+        only with ``force``)
     storage : 'sqlite3' or 'mcap'
+    force : replace a previous bag written by this package
+    inputs : the command's inputs (the bag may not be, contain or lie in one)
+    command : the writing command, recorded in the folder's marker file
     """
 
-    def __init__(self, path: str | os.PathLike, *, storage: str = 'sqlite3') -> None:
+    def __init__(self, path: str | os.PathLike, *, storage: str = 'sqlite3', force: bool = False,
+                 inputs: Iterable[str | os.PathLike] = (), command: str = '') -> None:
         if storage not in STORAGES:
             raise BagError(f'storage must be one of {sorted(STORAGES)}, got {storage!r}')
-        self.path = Path(path)
+        self.path = check_output(path, BAG, force=force, inputs=inputs)
         self.storage = storage
         self.store = typestore()
         self.types = cv.rosbags_types(self.store)
         self._connections: dict[str, Any] = {}
+        self._options = {'force': force, 'inputs': tuple(inputs), 'command': command}
+        self._stack = ExitStack()
 
     def __enter__(self) -> BagWriter:
-        # The bag is written as <tmp>/<name> so its storage file carries the final name;
-        # the folder <tmp> is then renamed into place.
-        self._atomic = atomic_output_path(self.path)
-        self._tmp = self._atomic.__enter__()
-        self._tmp.mkdir()
-        self._writer = Writer(self._tmp / self.path.name, version=9, storage_plugin=STORAGES[self.storage])
-        self._writer.open()
+        with ExitStack() as stack:
+            tmp = stack.enter_context(atomic_output(self.path, BAG, **self._options))
+            # The storage file is named after the folder, which carries its final name already.
+            self._writer = Writer(tmp, version=9, storage_plugin=STORAGES[self.storage])
+            self._writer.open()
+            stack.callback(self._writer.close)  # runs before the folder is moved into place
+            self._stack = stack.pop_all()
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
-        try:
-            self._writer.close()
-            if exc_type is None:
-                holder = self._tmp.with_name(self._tmp.name + '.holder')
-                os.replace(self._tmp, holder)
-                os.replace(holder / self.path.name, self._tmp)
-                holder.rmdir()
-        finally:
-            self._atomic.__exit__(exc_type, exc, tb)
+        self._stack.__exit__(exc_type, exc, tb)
 
     def _connection(self, topic: str, msgtype: str) -> Any:
         connection = self._connections.get(topic)

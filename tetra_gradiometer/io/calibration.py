@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ import numpy as np
 import yaml
 
 from ..core import InterferenceParameters, TensorCalibration, TetraGeometry
-from .atomic import atomic_write_text
+from .outputs import CALIBRATION, atomic_write_text
 
 FORMAT_VERSION = 1
 
@@ -98,9 +99,15 @@ def check_positions(calibration: CalibrationFile, geometry: TetraGeometry, *, so
                                    f'(they differ by up to {offset:.3g} m)')
 
 
-def save_calibration(path: str | os.PathLike, calibration: CalibrationFile) -> Path:
-    """Write atomically (temporary file, then rename)."""
-    return atomic_write_text(path, calibration.to_yaml())
+def save_calibration(path: str | os.PathLike, calibration: CalibrationFile, *, force: bool = False,
+                     inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """Write atomically (temporary file, then rename).
+
+    Refused (:class:`~tetra_gradiometer.errors.OutputError`) when ``path`` exists and is not
+    a calibration file, or is a previous one and ``force`` is False, or is one of ``inputs``
+    (:func:`~tetra_gradiometer.io.outputs.check_output`).
+    """
+    return atomic_write_text(path, calibration.to_yaml(), CALIBRATION, force=force, inputs=inputs)
 
 
 def load_calibration(path: str | os.PathLike) -> CalibrationFile:

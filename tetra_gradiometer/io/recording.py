@@ -7,6 +7,7 @@ contract; ``read_recording`` reads a bag's matched sets with the optional topics
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,23 +26,26 @@ def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
 
 def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns: int = 1_767_225_600 * 10**9,
                       storage: str = 'sqlite3', odom: bool = True, temperature: bool = True,
-                      battery: bool = True, progress: bool | None = None) -> Path:
+                      battery: bool = True, progress: bool | None = None, force: bool = False,
+                      inputs: Iterable[str | os.PathLike] = (), command: str = '') -> Path:
     """Write the four magnetometers (and the optional topics) of ``mission`` to a bag.
 
     Parameters
     ----------
-    path : target rosbag2 folder (replaced atomically)
+    path : target rosbag2 folder, written atomically; refused if it exists and is not a bag
+        this package wrote (:class:`~tetra_gradiometer.io.bag.BagWriter`)
     mission : MissionData
     start_ns : header stamp of the first sample, ns (default 2026-01-01T00:00:00Z)
     storage : 'sqlite3' or 'mcap'
     odom, temperature, battery : write ``/odom``, ``/tetra/temperature``, ``/battery_state``
     progress : tqdm bar on stderr (None: only on a terminal and for long missions)
+    force, inputs, command : as for :class:`~tetra_gradiometer.io.bag.BagWriter`
     """
     stamps = mission_stamps_ns(mission, start_ns)
     if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
         raise ValueError('mission stamps must increase (sample period below 1 ns?)')
     bar = _progress(len(stamps) * 4, progress, 'writing bag')
-    with BagWriter(path, storage=storage) as writer:
+    with BagWriter(path, storage=storage, force=force, inputs=inputs, command=command) as writer:
         types = writer.types
         for i, stamp in enumerate(stamps):
             stamp = int(stamp)

@@ -11,6 +11,7 @@ QoS (docs/ros.md has the full table):
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -50,6 +51,18 @@ def latched_qos() -> Any:
 
 
 # --------------------------------------------------------------------------- parameters
+
+def ros_home() -> Path:
+    """``$ROS_HOME``, else ``~/.ros`` (where ROS 2 keeps a node's files)."""
+    return Path(os.environ.get('ROS_HOME') or Path.home() / '.ros').expanduser()
+
+
+def resolve_node_path(value: str) -> Path:
+    """A file parameter as a path: ``~`` expanded, absolute as given, relative ones under
+    :func:`ros_home` (never the working directory, which differs between launches)."""
+    path = Path(value).expanduser()
+    return path if path.is_absolute() else ros_home() / path
+
 
 Validator = Callable[[Any], 'str | None']
 

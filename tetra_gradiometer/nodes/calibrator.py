@@ -10,6 +10,10 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
   given), answer success=false with the reason. On success the parameters are written
   atomically to ``calibration_file`` and published on ``calibration`` (std_msgs/String
   holding the calibration file's YAML text, transient local = latched).
+  ``calibration_file`` is read-only after start-up (nobody on the ROS domain can point the
+  write elsewhere), relative paths resolve under ``$ROS_HOME`` (default ``~/.ros``), and
+  the write replaces only a previous calibration file: any other file there is left
+  untouched and the call answers success=false.
 
 Methods: ``known_gradient_lstsq`` (the true gradient is taken as zero: a trim far from
 targets; general 3x3 ``K_i1`` unless ``symmetric_k``), ``constraint_lstsq`` and
@@ -29,10 +33,11 @@ from std_srvs.srv import Trigger
 from .. import conversions as cv
 from ..core import TetraGeometry
 from ..core.identification import MAX_COVERAGE_CONDITION, METHODS, MIN_SAMPLES, identify
+from ..errors import OutputError
 from ..io.calibration import CalibrationFile, save_calibration
 from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, WARN, declare_parameters,
-                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, spin_node, status,
-                   tensor_or_nan)
+                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, resolve_node_path,
+                   spin_node, status, tensor_or_nan)
 
 
 def _path(value: str) -> str | None:
@@ -47,7 +52,8 @@ PARAMETERS = [
               "paper's 27 parameters) instead of a general 3x3 per sensor pair (36). paper_ga is "
               'always symmetric.'),
     ParamSpec('calibration_file', 'calibration.yaml', 'Where ~/calibrate writes the parameters (YAML, '
-              'written atomically); "~" is expanded.', _path),
+              'written atomically; only a previous calibration file is replaced). Read-only after '
+              'start-up; "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros).', _path),
     ParamSpec('min_samples', 100, f'Fewest sample sets ~/calibrate accepts (the solvers need >= {MIN_SAMPLES}).',
               int_range=(MIN_SAMPLES, 10_000_000)),
     ParamSpec('max_samples', 200_000, 'Most sample sets kept while collecting (older ones are dropped).',
@@ -69,9 +75,10 @@ class CalibratorNode(Node):
         kwargs.setdefault('namespace', NAMESPACE)
         super().__init__('calibrator', **kwargs)
         p = declare_parameters(self, PARAMETERS, dynamic=(
-            'method', 'symmetric_k', 'calibration_file', 'min_samples', 'max_samples', 'max_coverage_condition',
+            'method', 'symmetric_k', 'min_samples', 'max_samples', 'max_coverage_condition',
             'ga_seed', 'ga_generations'))
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
+        self._calibration_path = resolve_node_path(p['calibration_file'])
         self._lock = threading.Lock()
         self._collecting = False
         self._g: list[np.ndarray] = []
@@ -168,10 +175,10 @@ class CalibratorNode(Node):
         except (ValueError, np.linalg.LinAlgError) as error:  # IdentifiabilityError is a ValueError
             return False, str(error)
         calibration = CalibrationFile.from_calibration(result, self._geometry)
-        path = self._file()
+        path = self._calibration_path
         try:
-            save_calibration(path, calibration)
-        except OSError as error:
+            save_calibration(path, calibration, force=True)  # replaces only a previous calibration
+        except (OSError, OutputError) as error:
             return False, f'solved, but cannot write {path}: {error}'
         self._cal_pub.publish(String(data=calibration.to_yaml()))
         self._calibrations += 1
@@ -181,10 +188,6 @@ class CalibratorNode(Node):
                       f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
                       f'{s["attitude_coverage_condition"]:.3g}, fit residual {s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}')
 
-    def _file(self) -> str:
-        import os
-        return os.path.expanduser(self.get_parameter('calibration_file').value)
-
     def _publish_diagnostics(self) -> None:
         level = WARN if self._last_ok is False else OK
         array = DiagnosticArray()
@@ -192,7 +195,7 @@ class CalibratorNode(Node):
         array.status.append(status(
             'tetra/calibrator: calibration', level, f'{self._state}: {self._last_result}', cv.ARRAY_FRAME,
             {'state': self._state, 'samples': self.n_samples, 'calibrations': self._calibrations,
-             'method': self.get_parameter('method').value, 'calibration_file': self._file()}))
+             'method': self.get_parameter('method').value, 'calibration_file': str(self._calibration_path)}))
         self._diag_pub.publish(array)
 
 

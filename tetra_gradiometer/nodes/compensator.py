@@ -14,7 +14,6 @@ with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 """
 from __future__ import annotations
 
-import os
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -28,14 +27,15 @@ from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.metrics import epsilon_terms
 from ..io.calibration import CalibrationFile, CalibrationFileError, check_positions, load_calibration
 from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, Throttle, WARN,
-                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, spin_node, status,
-                   tensor_or_nan)
+                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, resolve_node_path,
+                   spin_node, status, tensor_or_nan)
 from ..core.units import NT_PER_T
 
 PARAMETERS = [
     POSITIONS_SPEC,
     ParamSpec('calibration_file', 'calibration.yaml', 'Calibration loaded at start (YAML, as the '
-              'calibrator writes it); "~" is expanded. Missing or corrupt: run uncompensated.'),
+              'calibrator writes it); "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros). '
+              'Missing or corrupt: run uncompensated.'),
     ParamSpec('max_pending', 1000, 'Bound of the stamp-pairing buffers, messages.', int_range=(1, 1_000_000)),
     ParamSpec('warn_throttle_s', 5.0, 'Least interval between repeated warnings, s.',
               float_range=(0.0, 3600.0)),
@@ -68,7 +68,7 @@ class CompensatorNode(Node):
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._load_file(os.path.expanduser(p['calibration_file']))
+        self._load_file(str(resolve_node_path(p['calibration_file'])))
         self.create_subscription(String, 'calibration', self._on_calibration, latched_qos())
         self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
         self.create_subscription(MagneticField, 'reference_field', self._on_reference, derived_qos())

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import save_figure
+from ..io.outputs import DEMO, atomic_output, check_output
 from ._ros import DEFAULT_PARAMS_FILE
 from .run_node import ros_arguments
 from ..core.units import NT_PER_T
@@ -29,6 +29,8 @@ from ..core.units import NT_PER_T
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', default='out/demo', help='output folder (default %(default)s)')
+    parser.add_argument('--force', action='store_true',
+                        help='replace a previous demo folder at --out (anything else there is refused)')
     parser.add_argument('--rate', type=float, default=20.0,
                         help='driver speed, multiple of real time (default %(default)s)')
     parser.add_argument('--method', default='known_gradient_lstsq',
@@ -47,6 +49,15 @@ def _domain() -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    inputs = (args.params,) if args.params else ()
+    check_output(args.out, DEMO, force=args.force, inputs=inputs)  # refuse before starting ROS
+    with atomic_output(args.out, DEMO, force=args.force, inputs=inputs, command='demo') as folder:
+        folder.mkdir()
+        return _fly(args, folder, Path(args.out))
+
+
+def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
+    """The demo, writing into ``out`` (the temporary folder that becomes ``final``)."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
@@ -63,10 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from .probe import Probe
     from .tensor import TensorNode
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     calibration_file = (out / 'calibration.yaml').resolve()
-    calibration_file.unlink(missing_ok=True)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     domain = _domain()
     interrupt_on_signals()
@@ -130,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         metrics = summarize(g_raw, g_comp, g_true)
         _say(f'demo: compensator running compensated_percent topic: {probe.percent:.4f} %')
         _plot(out / 'norms.png', stamps, g_raw, g_comp, g_true, metrics)
-        _say(f'demo: plot {out / "norms.png"}; calibration {calibration_file}; '
+        _say(f'demo: plot {final / "norms.png"}; calibration {final / "calibration.yaml"}; '
              f'{time.monotonic() - started:.1f} s')
         print(f'RESULT compensated_percent={metrics["compensated_percent"]:.4f} '
               f'rms_residual_nT_per_m={metrics["rms_residual_nT_per_m"]:.4f} '
@@ -212,5 +220,5 @@ def _plot(path: Path, stamps: np.ndarray, g_raw: np.ndarray, g_comp: np.ndarray,
     bottom.legend(loc='upper left')
     bottom.grid(alpha=0.3)
     fig.tight_layout()
-    save_figure(fig, path, dpi=110)
+    fig.savefig(path, format='png', dpi=110)
     plt.close(fig)

@@ -14,7 +14,6 @@ import os
 import queue
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -67,7 +66,9 @@ class Recorder(Node):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--out', required=True, help='rosbag2 folder to write (replaced)')
+    parser.add_argument('--out', required=True, help='rosbag2 folder to write')
+    parser.add_argument('--force', action='store_true',
+                        help='replace a previous bag of ours at --out (anything else there is refused)')
     parser.add_argument('--duration', type=float, required=True, help='seconds of sample time to record')
     parser.add_argument('--scenario', default='', help='scenario YAML (default: the built-in one)')
     parser.add_argument('--seed', type=int, default=-1, help="noise seed (default: the scenario's)")
@@ -85,11 +86,14 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.parameter import Parameter
 
     from ..io.bag import BagWriter
+    from ..io.outputs import BAG, check_output
     from .driver import DriverNode
     from .probe import Probe
 
     if not args.duration > 0:
         raise ValueError(f'--duration must be > 0 s, got {args.duration}')
+    inputs = tuple(p for p in (args.scenario, args.params) if p)
+    check_output(args.out, BAG, force=args.force, inputs=inputs)  # refuse before starting ROS
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     domain = int(os.environ.get('ROS_DOMAIN_ID') or 1 + os.getpid() % 100)
     interrupt_on_signals()
@@ -99,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
     executor = SingleThreadedExecutor()
     spinner = threading.Thread(target=executor.spin, daemon=True)
     try:
-        with BagWriter(Path(args.out), storage=args.storage) as writer:
+        with BagWriter(args.out, storage=args.storage, force=args.force, inputs=inputs,
+                       command='record') as writer:
             driver = DriverNode(parameter_overrides=[
                 Parameter('mode', value='sim'), Parameter('rate', value=float(args.rate)),
                 Parameter('start_paused', value=True), Parameter('max_duration_s', value=float(args.duration)),

@@ -40,6 +40,7 @@ from ..core.identification import MAX_COVERAGE_CONDITION, IdentifiabilityError, 
 from ..core.identification.paper_ga import GENERATIONS
 from ..io.bag import BagError, MagneticBag
 from ..io.calibration import CalibrationFile, save_calibration
+from ..io.outputs import CALIBRATION, check_output
 from ..io.params import geometry_from_params, load_params
 from ..core.units import NT_PER_T
 
@@ -72,6 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='seconds from the first set where the true gradient is zero (default: whole bag)')
     parser.add_argument('--method', choices=METHODS, default=DEFAULT_METHOD, help=f'default: {DEFAULT_METHOD}')
     parser.add_argument('--out', required=True, help='calibration YAML to write')
+    parser.add_argument('--force', action='store_true',
+                        help='replace a previous calibration file at --out (anything else there is refused)')
     parser.add_argument('--seed', type=int, default=0, help='paper_ga: random seed (default 0)')
     parser.add_argument('--generations', type=int, default=None, help='paper_ga: generations (default 1000)')
     parser.add_argument('--wide-bounds', action='store_true',
@@ -127,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
     window = parse_window(args.window)
     if args.max_sets < 10:
         raise ValueError(f'--max-sets must be at least 10, got {args.max_sets}')
+    inputs = (args.bag, args.params)
+    check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     geometry = geometry_from_params(load_params(args.params), source=args.params)
     stamps, fields, span, counters = read_window(args.bag, window, tolerance_s=args.tolerance_ms * 1e-3,
                                                  progress=args.progress)
@@ -162,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     if method == 'paper_ga':
         extra['seed'] = args.seed
     record = dataclasses.replace(record, diagnostics={**record.diagnostics, **extra})
-    save_calibration(args.out, record)
+    save_calibration(args.out, record, force=args.force, inputs=inputs)
 
     summary = calibration.summary()
     print(f'calibrated {args.bag}: method {method}, window {window_text} '

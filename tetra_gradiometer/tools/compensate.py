@@ -28,9 +28,9 @@ import numpy as np
 
 from .. import conversions as cv
 from ..core import compensate, difference_tensor
-from ..io.atomic import atomic_output_path
 from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
 from ..io.calibration import check_positions, load_calibration
+from ..io.outputs import BAG, CSV, OutputError, atomic_output, check_output
 from ..io.params import geometry_from_params, load_params
 from ..core.units import NT_PER_T
 
@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--csv', default=None, help='CSV to write (stamp_s + 9 components, nT/m)')
     parser.add_argument('--raw', action='store_true', help='write the uncompensated tensor (eq. 7)')
     parser.add_argument('--out-bag', default=None, help='also write the tensor topic into this new bag')
+    parser.add_argument('--force', action='store_true',
+                        help='replace a previous CSV at --csv and a previous bag of ours at --out-bag '
+                             '(anything else there is refused)')
     parser.add_argument('--out-storage', choices=sorted(STORAGES), default=None,
                         help="storage of --out-bag (default: the input's)")
     parser.add_argument('--tolerance-ms', type=float, default=2.0,
@@ -77,6 +80,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError('nothing to write: give --csv OUT.csv and/or --out-bag DIR')
     if not args.raw and args.calibration is None:
         raise ValueError('--calibration is required (or --raw for the uncompensated tensor)')
+    inputs = tuple(p for p in (args.bag, args.params, args.calibration) if p is not None)
+    if args.csv is not None and args.out_bag is not None and Path(args.csv).resolve() == Path(args.out_bag).resolve():
+        raise OutputError('--csv and --out-bag name the same path')
+    # Refuse before any work: nothing is read or written when an output is not ours to replace.
+    if args.csv is not None:
+        check_output(args.csv, CSV, force=args.force, inputs=inputs)
+    if args.out_bag is not None:
+        check_output(args.out_bag, BAG, force=args.force, inputs=inputs)
     geometry = geometry_from_params(load_params(args.params), source=args.params)
     parameters = None
     if not args.raw:
@@ -92,14 +103,13 @@ def run(args: argparse.Namespace) -> int:
         bag.check_contract()
         handle = writer = None
         if args.csv is not None:
-            tmp = stack.enter_context(atomic_output_path(args.csv))
+            tmp = stack.enter_context(atomic_output(args.csv, CSV, force=args.force, inputs=inputs))
             handle = stack.enter_context(open(tmp, 'w', encoding='ascii', newline='\n'))
             handle.write(CSV_HEADER + '\n')
         if args.out_bag is not None:
-            out_bag = Path(args.out_bag)
-            if out_bag.resolve() == bag_path.resolve():
-                raise ValueError('--out-bag must differ from the input bag')
-            writer = stack.enter_context(BagWriter(out_bag, storage=args.out_storage or _input_storage(bag_path)))
+            writer = stack.enter_context(BagWriter(
+                args.out_bag, storage=args.out_storage or _input_storage(bag_path), force=args.force,
+                inputs=inputs, command='compensate'))
         for stamps, fields in bag.iter_sets(tolerance_s=args.tolerance_ms * 1e-3, progress=args.progress,
                                               fast=not args.generic_reader):
             finite = np.isfinite(fields).all(axis=(1, 2))

@@ -30,7 +30,7 @@ from ..core.identification import (TensorCalibration, constraint_lstsq,
                                    known_gradient_lstsq, paper_bounds, paper_ga, pei_yeo_2009)
 from ..core.identification.paper_ga import (CROSSOVER_PROBABILITY, GENE_BITS, GENERATION_GAP,
                                             GENERATIONS, MUTATION_PROBABILITY, POPULATION)
-from ..io.atomic import atomic_write_text, save_figure
+from ..io.outputs import PAPER, atomic_output, check_output
 from ..core.units import NT_PER_T
 
 
@@ -349,18 +349,23 @@ def _describe(choices: Choices, reading: str, scenario: Scenario, data, trim, li
     }
 
 
-def reproduce(out_dir: str | Path, *, choices: Choices | None = None, plots: bool = True) -> dict:
-    """Run both readings, write ``results.json`` (and the figures) into ``out_dir``; return the JSON."""
+def reproduce(out_dir: str | Path, *, choices: Choices | None = None, plots: bool = True,
+              force: bool = False) -> dict:
+    """Run both readings, write ``results.json`` (and the figures) into the folder ``out_dir``
+    (atomically; a previous paper folder is replaced only with ``force``); return the JSON."""
     choices = choices or Choices()
-    out_dir = Path(out_dir)
+    check_output(out_dir, PAPER, force=force)  # refuse before the work
     readings = {name: run_reading(choices, name) for name in READINGS}
     results = readings['earth_field'].as_json()
     results['scenarios'] = {'dipole_only': readings['dipole_only'].as_json()}
-    atomic_write_text(out_dir / 'results.json', json.dumps(results, indent=2, allow_nan=False) + '\n')
-    if plots:
-        for name, reading in readings.items():
-            plot_fig2(reading, out_dir / f'fig2_{name}.png', TITLES[name])
-            plot_fig3(reading, out_dir / f'fig3_{name}.png', TITLES[name])
+    with atomic_output(out_dir, PAPER, force=force, command='paper') as folder:
+        folder.mkdir()
+        (folder / 'results.json').write_text(json.dumps(results, indent=2, allow_nan=False) + '\n',
+                                             encoding='utf-8')
+        if plots:
+            for name, reading in readings.items():
+                plot_fig2(reading, folder / f'fig2_{name}.png', TITLES[name])
+                plot_fig3(reading, folder / f'fig3_{name}.png', TITLES[name])
     return results
 
 
@@ -411,7 +416,7 @@ def plot_fig2(reading: Reading, path: Path, title: str) -> None:
         axis.set_xlabel('pass point index (30-229 compensated; 2 m spacing)')
     figure.suptitle(f'Fig. 2 analogue, {title}: Frobenius norm along the pass')
     figure.tight_layout()
-    save_figure(figure, path)
+    figure.savefig(path, format='png', dpi=110)
     plt.close(figure)
 
 
@@ -439,7 +444,7 @@ def plot_fig3(reading: Reading, path: Path, title: str) -> None:
         axis.legend(fontsize=8, loc='upper center', bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     figure.suptitle(f'Fig. 3 analogue, {title}: methods compared')
     figure.tight_layout()
-    save_figure(figure, path)
+    figure.savefig(path, format='png', dpi=110)
     plt.close(figure)
 
 
@@ -463,13 +468,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f'GA generations for paper_ga (default {GENERATIONS})')
     parser.add_argument('--seed', type=int, default=Choices.seed, help='seed of every random draw')
     parser.add_argument('--no-plots', action='store_true', help='skip the PNG figures')
+    parser.add_argument('--force', action='store_true',
+                        help='replace a previous paper folder at --out (anything else there is refused)')
 
 
 def run(args: argparse.Namespace) -> int:
     if args.generations < 1:
         raise ValueError(f'--generations must be >= 1, got {args.generations}')
     choices = Choices(seed=args.seed, generations=args.generations)
-    results = reproduce(args.out, choices=choices, plots=not args.no_plots)
+    results = reproduce(args.out, choices=choices, plots=not args.no_plots, force=args.force)
     print(format_table(results, 'Earth-field reading (dipole + 50 000 nT)'))
     print()
     print(format_table(results['scenarios']['dipole_only'], 'Dipole-only reading'))

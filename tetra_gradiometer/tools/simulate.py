@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..core import TrimManoeuvre, simulate
-from ..io.atomic import atomic_output_path, atomic_write_text
 from ..io.bag import STORAGES
+from ..io.outputs import BAG, PARAMS, TRUTH, atomic_output, atomic_write_text, check_output
 from ..io.params import params_document
 from ..io.recording import mission_stamps_ns, write_mission_bag
 from ..io.scenario import load_scenario
@@ -61,7 +61,10 @@ def parse_start(text: str) -> int:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--scenario', required=True, help='scenario YAML (see config/scenarios/)')
-    parser.add_argument('--out', required=True, help='rosbag2 folder to write (replaced if it exists)')
+    parser.add_argument('--out', required=True, help='rosbag2 folder to write (with BAG.params.yaml and '
+                        'BAG.truth.npz beside it)')
+    parser.add_argument('--force', action='store_true',
+                        help='replace the previous output of simulate at --out (anything else there is refused)')
     parser.add_argument('--storage', choices=sorted(STORAGES), default='sqlite3', help='default: sqlite3')
     parser.add_argument('--seed', type=int, default=None, help="override the scenario's seed")
     parser.add_argument('--start-utc', default=DEFAULT_START,
@@ -82,17 +85,23 @@ def run(args: argparse.Namespace) -> int:
     start_ns = parse_start(args.start_utc)
     out = Path(args.out)
     params_path, truth_path = sidecar_paths(out)
+    inputs = (args.scenario,)
+    # Refuse before any work: nothing is simulated or written when an output is not ours.
+    for path, kind in ((out, BAG), (params_path, PARAMS), (truth_path, TRUTH)):
+        check_output(path, kind, force=args.force, inputs=inputs)
     mission = simulate(scenario, np.random.default_rng(seed))
     stamps = mission_stamps_ns(mission, start_ns)
     optional = not args.mag_only
     write_mission_bag(out, mission, start_ns=start_ns, storage=args.storage, odom=optional,
-                      temperature=optional, battery=optional, progress=args.progress)
+                      temperature=optional, battery=optional, progress=args.progress, force=args.force,
+                      inputs=inputs, command='simulate')
     params = {'sensor_positions': scenario.geometry.to_flat(),
               'earth_field_enu': [float(v) for v in scenario.earth_field_enu]}
     atomic_write_text(params_path, '# Written by "python -m tetra_gradiometer simulate" from '
-                      f'{Path(args.scenario).name}\n' + params_document(params))
+                      f'{Path(args.scenario).name}\n' + params_document(params), PARAMS, force=args.force,
+                      inputs=inputs)
     effective = scenario.interference.effective_parameters()
-    with atomic_output_path(truth_path) as tmp:
+    with atomic_output(truth_path, TRUTH, force=args.force, inputs=inputs) as tmp:
         with open(tmp, 'wb') as handle:
             np.savez_compressed(
                 handle, stamps_ns=stamps, t_s=mission.t, g_true=mission.g_true, g_analytic=mission.g_analytic,

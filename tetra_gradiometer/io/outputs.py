@@ -1,0 +1,218 @@
+"""Safe, atomic outputs: an output never destroys an input or anything it did not write.
+
+Every file or folder a command writes goes through :func:`atomic_output`:
+
+* **Refusal first, nothing touched.** The target is refused (:class:`OutputError`) when it
+  is, contains or lies inside one of the command's inputs, when it lies inside a rosbag2
+  folder (a folder holding ``metadata.yaml``), or when it exists and is not a previous
+  output of the same :class:`OutputKind`. A previous output is replaced only with
+  ``force=True`` (the CLI's ``--force``). An empty folder may be filled without ``force``.
+* **How a previous output is recognized.** Files by their content: a tensor CSV by its
+  header line ``stamp_s,gxx,...``, a calibration file by its first key
+  ``tetra_gradiometer_calibration``, a simulated params file by its first line ``# Written
+  by "python -m tetra_gradiometer simulate"``, a truth file by being a ``.npz`` with
+  ``g_true`` and ``stamps_ns``. Folders (bags, reports, paper and demo outputs) by the
+  marker file :data:`MARKER` this module writes into them, naming their kind.
+* **Atomic and private.** Each run fills a path inside its own temporary folder beside the
+  target (``tempfile.mkdtemp``: two runs never share it), fsyncs it, checks the target
+  again and moves it into place with one ``os.replace``. A folder that replaces a previous
+  output is first moved aside into that temporary folder, then deleted. On any error (or a
+  kill) the target is as it was; a killed run may leave a ``.NAME.*.partial`` folder.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import zipfile
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import OutputError
+
+__all__ = ['BAG', 'CALIBRATION', 'CSV', 'DEMO', 'MARKER', 'OutputError', 'OutputKind', 'PAPER',
+           'PARAMS', 'REPORT', 'TRUTH', 'atomic_output', 'atomic_write_text', 'check_output']
+
+#: Name of the marker file inside every folder this package writes (JSON: kind, command).
+MARKER = '.tetra_gradiometer_output'
+
+
+def _starts_with(prefix: bytes) -> Callable[[Path], bool]:
+    def recognize(path: Path) -> bool:
+        try:
+            with open(path, 'rb') as handle:
+                return handle.read(len(prefix)) == prefix
+        except OSError:
+            return False
+    return recognize
+
+
+def _truth_npz(path: Path) -> bool:
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return {'g_true.npy', 'stamps_ns.npy'} <= set(archive.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+@dataclass(frozen=True)
+class OutputKind:
+    """One kind of output: what it is called, whether it is a folder, how it is recognized.
+
+    Attributes
+    ----------
+    name : str
+        Used in messages and in a folder's marker file.
+    folder : bool
+        A folder (recognized by :data:`MARKER`) rather than a file.
+    recognize : callable or None
+        For files: ``recognize(path) -> bool``, True when ``path`` holds this kind.
+    """
+
+    name: str
+    folder: bool = False
+    recognize: Callable[[Path], bool] | None = None
+
+    def holds(self, path: Path) -> bool:
+        """True when ``path`` (which exists) is a previous output of this kind."""
+        if path.is_symlink():
+            return False
+        if self.folder:
+            return path.is_dir() and _marker_kind(path) == self.name
+        return path.is_file() and self.recognize is not None and self.recognize(path)
+
+
+CSV = OutputKind('tensor CSV', recognize=_starts_with(b'stamp_s,gxx,'))
+CALIBRATION = OutputKind('calibration file', recognize=_starts_with(b'tetra_gradiometer_calibration:'))
+PARAMS = OutputKind('simulated params file',
+                    recognize=_starts_with(b'# Written by "python -m tetra_gradiometer simulate"'))
+TRUTH = OutputKind('simulation truth file', recognize=_truth_npz)
+BAG = OutputKind('rosbag2 folder', folder=True)
+REPORT = OutputKind('discrepancy report folder', folder=True)
+PAPER = OutputKind('paper reproduction folder', folder=True)
+DEMO = OutputKind('demo folder', folder=True)
+
+
+def _marker_kind(folder: Path) -> str | None:
+    try:
+        return str(json.loads((folder / MARKER).read_text(encoding='utf-8'))['kind'])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return path == folder or folder in path.parents
+
+
+def _bag_folder_around(path: Path) -> Path | None:
+    """The nearest folder at or above ``path``'s parent that is a rosbag2 folder."""
+    for folder in path.parents:
+        if (folder / 'metadata.yaml').is_file():
+            return folder
+    return None
+
+
+def check_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = False,
+                 inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """Raise :class:`OutputError` unless ``path`` may be written as ``kind``; return it.
+
+    Parameters
+    ----------
+    path : path-like
+        The output the command is asked to write.
+    kind : OutputKind
+        What it writes there.
+    force : bool
+        Allow replacing a previous output of the same kind.
+    inputs : iterable of path-like
+        Files and folders the command reads: the output may not be, contain or lie in one.
+    """
+    path = Path(path)
+    resolved = path.resolve()
+    for source in inputs:
+        source_resolved = Path(source).resolve()
+        if _inside(source_resolved, resolved):
+            relation = 'is' if source_resolved == resolved else 'contains'
+            raise OutputError(f'{path} {relation} the input {source}: refusing to write there '
+                              '(nothing was written)')
+        if _inside(resolved, source_resolved):
+            raise OutputError(f'{path} lies inside the input {source}: refusing to write there '
+                              '(nothing was written)')
+    bag = _bag_folder_around(resolved)
+    if bag is not None:
+        raise OutputError(f'{path} lies inside the rosbag2 folder {bag}: refusing to write there '
+                          '(nothing was written)')
+    if not os.path.lexists(path):
+        return path
+    if kind.folder and path.is_dir() and not path.is_symlink() and not any(path.iterdir()):
+        return path  # an empty folder: nothing to lose
+    if not kind.holds(path):
+        what = 'folder' if path.is_dir() else 'file'
+        raise OutputError(f'{path} exists and is not a {kind.name} written by tetra_gradiometer '
+                          f'(an existing {what}): refusing to replace it (nothing was written)')
+    if not force:
+        raise OutputError(f'{path} exists (a previous {kind.name}); --force replaces it '
+                          '(nothing was written)')
+    return path
+
+
+@contextmanager
+def atomic_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = False,
+                  inputs: Iterable[str | os.PathLike] = (), command: str = '') -> Iterator[Path]:
+    """Yield a private temporary path to fill as ``kind``; on success it becomes ``path``.
+
+    The yielded path does not exist yet: create the file, or the folder (``mkdir`` or a
+    writer that creates it). On success a folder gets the :data:`MARKER` file (naming
+    ``kind`` and ``command``), everything is fsynced, ``path`` is checked again and the
+    temporary path moved into place. On error nothing at ``path`` changes.
+    """
+    inputs = tuple(inputs)
+    path = check_output(path, kind, force=force, inputs=inputs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', suffix='.partial', dir=path.parent))
+    try:
+        tmp = work / path.name
+        yield tmp
+        if kind.folder:
+            if not tmp.is_dir():
+                raise OutputError(f'{path}: nothing was written')
+            (tmp / MARKER).write_text(json.dumps({'kind': kind.name, 'command': command}) + '\n',
+                                      encoding='utf-8')
+        _fsync_tree(tmp)
+        check_output(path, kind, force=force, inputs=inputs)  # it may have appeared meanwhile
+        _move_into_place(tmp, path, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, kind: OutputKind, *,
+                      force: bool = False, inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` as ``kind`` through :func:`atomic_output`."""
+    with atomic_output(path, kind, force=force, inputs=inputs) as tmp:
+        tmp.write_text(text, encoding='utf-8')
+    return Path(path)
+
+
+def _fsync_tree(root: Path) -> None:
+    files = [root] if root.is_file() else [p for p in root.rglob('*') if p.is_file()]
+    for file in files:
+        with open(file, 'rb') as handle:
+            os.fsync(handle.fileno())
+
+
+def _move_into_place(tmp: Path, path: Path, work: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        # os.replace cannot put a folder over a non-empty folder: move the old one aside first
+        # (into this run's own temporary folder, deleted afterwards), then put the new one in.
+        aside = work / '.previous'
+        os.replace(path, aside)
+        try:
+            os.replace(tmp, path)
+        except BaseException:
+            os.replace(aside, path)
+            raise
+    else:
+        os.replace(tmp, path)
