@@ -40,10 +40,10 @@ def main() -> int:
     from rclpy.node import Node
     from sensor_msgs.msg import JointState, MagneticField
 
-    from tetra_gradiometer import conversions as cv
+    from tetra_gradiometer.io import conversions as cv
     from tetra_gradiometer import core
     from tetra_gradiometer.io.calibration import CalibrationFile, save_calibration
-    from tetra_gradiometer.nodes._ros import derived_qos
+    from tetra_gradiometer.nodes.common import derived_qos
 
     domain = unique_domain()
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'

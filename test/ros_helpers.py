@@ -102,7 +102,7 @@ def ros_graph() -> Iterator[tuple[Graph, Any, 'Feeder']]:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from tetra_gradiometer.nodes.probe import Probe
+    from tetra_gradiometer.cli._probe import Probe
 
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     domain, context = _free_domain()
@@ -153,8 +153,8 @@ def _feeder_class() -> type:
     from sensor_msgs.msg import JointState, MagneticField
     from std_msgs.msg import String
 
-    from tetra_gradiometer import conversions as cv
-    from tetra_gradiometer.nodes._ros import derived_qos, latched_qos
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.nodes.common import derived_qos, latched_qos
 
     class _Feeder(Node):
         """Publishes magnetometer sets, raw tensors/reference fields and calibrations."""

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tetra_gradiometer.discrepancy import CANDIDATES, LIBRARY, Settings, analyze
-from tetra_gradiometer.discrepancy.report import write_report
+from tetra_gradiometer.io.report import write_report
 from tetra_gradiometer.discrepancy.synthetic import EFFECT_NAMES, make_case
 
 REQUIRED = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'time_skew', 'thermal_drift',

@@ -13,7 +13,7 @@ import pytest
 
 from tetra_gradiometer.__main__ import main
 from tetra_gradiometer.discrepancy import Settings, analyze
-from tetra_gradiometer.discrepancy.report import write_report
+from tetra_gradiometer.io.report import write_report
 from tetra_gradiometer.discrepancy.synthetic import make_case
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag

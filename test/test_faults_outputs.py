@@ -212,7 +212,7 @@ def test_a_failed_write_leaves_the_previous_output_and_no_temporary(tmp_path, mo
     def disk_full(*args):
         raise OSError('disk full')
     monkeypatch.setattr(os, 'replace', disk_full)
-    with pytest.raises(OSError, match='disk full'):
+    with pytest.raises(OutputError, match='disk full'):
         atomic_write_text(target, 'tetra_gradiometer_calibration: 2\n', CALIBRATION, force=True)
     assert target.read_text() == 'tetra_gradiometer_calibration: 1\n'
     assert [p.name for p in tmp_path.iterdir()] == ['c.yaml']

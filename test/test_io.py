@@ -5,16 +5,16 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from tetra_gradiometer import conversions as cv
+from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.core import (InterferenceParameters, Scenario, TetraGeometry, TrimManoeuvre,
                                     known_gradient_lstsq, difference_tensor, random_interference, simulate)
-from tetra_gradiometer.io.outputs import CALIBRATION, atomic_write_text
+from tetra_gradiometer.io.outputs import CALIBRATION, OutputError, atomic_write_text
 from tetra_gradiometer.io.bag import BagError, BagWriter, MagneticBag
 from tetra_gradiometer.io.calibration import (CalibrationFile, CalibrationFileError, load_calibration,
                                               save_calibration)
 from tetra_gradiometer.io.params import ParamsError, geometry_from_params, load_params, params_document
 from tetra_gradiometer.io.recording import read_recording, write_mission_bag
-from tetra_gradiometer.matching import StampMatcher
+from tetra_gradiometer.io.matching import StampMatcher
 
 GEOMETRY = TetraGeometry.regular(0.5)
 
@@ -59,7 +59,7 @@ def test_atomic_write_never_leaves_a_partial_file(tmp_path, monkeypatch):
     def fail(*args):
         raise OSError('disk full')
     monkeypatch.setattr(os, 'replace', fail)
-    with pytest.raises(OSError, match='disk full'):
+    with pytest.raises(OutputError, match='disk full'):
         atomic_write_text(target, 'tetra_gradiometer_calibration: 1\n' + 'new: 2\n' * 1000, CALIBRATION,
                           force=True)
     assert target.read_text() == old

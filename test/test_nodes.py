@@ -22,7 +22,7 @@ from tetra_gradiometer import core
 from tetra_gradiometer.io.bag import MagneticBag
 from tetra_gradiometer.io.calibration import CalibrationFile, load_calibration
 from tetra_gradiometer.io.scenario import load_scenario
-from tetra_gradiometer.nodes import scenarios
+from tetra_gradiometer.io.scenario import load_scenario_or_default
 
 NT = 1e-9
 T0 = 1_800_000_000 * 10**9
@@ -46,7 +46,7 @@ def _wait_discovered(probe, graph) -> None:
 
 def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulator_truth(tmp_path):
     calibration_file = tmp_path / 'calibration.yaml'
-    scenario, seed = scenarios.load()
+    scenario, seed = load_scenario_or_default()
     mission = core.simulate(scenario, np.random.default_rng(seed))
     survey = mission.select(mission.segment == 1)
     exact = scenario.interference.effective_parameters()

@@ -11,7 +11,7 @@ from ros_helpers import REPO, child_env, unique_domain
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.bag import MagneticBag
-from tetra_gradiometer.nodes import scenarios
+from tetra_gradiometer.io.scenario import load_scenario_or_default
 
 
 def _run(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
@@ -41,7 +41,7 @@ def test_record_writes_the_sim_driver_topics_as_simulated(tmp_path):
     bag_path = tmp_path / 'bag'
     result = _run('record', '--out', str(bag_path), '--duration', '5', '--rate', '10', '--storage', 'mcap')
     assert result.returncode == 0, result.stdout + result.stderr
-    scenario, seed = scenarios.load()
+    scenario, seed = load_scenario_or_default()
     mission = core.simulate(scenario, np.random.default_rng(seed))
     with MagneticBag(bag_path) as bag:
         stamps, fields = bag.read_sets()

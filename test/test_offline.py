@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tetra_gradiometer import conversions as cv
+from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.core import TetraGeometry, dipole_field, dipole_gradient, noise_floor
 from tetra_gradiometer.io.bag import BagWriter
 from tetra_gradiometer.io.params import params_document

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from tetra_gradiometer import conversions as cv
-from tetra_gradiometer import matching
-from tetra_gradiometer.io.bag import (BagWriter, MagneticBag, UnsupportedEncoding, decode_magnetic_field,
+from tetra_gradiometer.io import conversions as cv
+from tetra_gradiometer.io import matching
+from tetra_gradiometer.io.bag import (BagWriter, MagneticBag, _UnsupportedEncoding, decode_magnetic_field,
                                       encode_magnetic_field, encode_tensor, typestore)
 
 START = 1_767_225_600 * 10**9
@@ -58,9 +58,9 @@ def test_decoder_reads_rosbags_cdr_in_both_byte_orders(store, little_endian):
 
 
 def test_decoder_refuses_what_it_does_not_know():
-    with pytest.raises(UnsupportedEncoding):
+    with pytest.raises(_UnsupportedEncoding):
         decode_magnetic_field([b'\x00\x07\x00\x00' + bytes(120)])  # XCDR2 encapsulation
-    with pytest.raises(UnsupportedEncoding):
+    with pytest.raises(_UnsupportedEncoding):
         decode_magnetic_field([b'\x00\x01\x00\x00' + bytes(20), b'\x00\x01\x00\x00' + bytes(30)])  # truncated
 
 

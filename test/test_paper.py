@@ -17,7 +17,7 @@ from tetra_gradiometer.core.model import SYMMETRIC_EXPANSION
 from tetra_gradiometer.__main__ import main
 from tetra_gradiometer.core import TetraGeometry
 from tetra_gradiometer.core.identification import known_gradient_lstsq
-from tetra_gradiometer.tools import paper
+from tetra_gradiometer.cli import paper
 
 METHODS = {'paper_ga', 'constraint_lstsq', 'known_gradient_lstsq', 'known_gradient_lstsq_general',
            'pei_yeo_2009'}

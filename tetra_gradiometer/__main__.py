@@ -2,8 +2,9 @@
 
 Each command lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; only the chosen module is imported, so offline tools never load rclpy.
-Exit codes: 0 success, 1 bad input or data (one ``error:`` line on stderr), 2 usage.
-Set ``TETRA_DEBUG=1`` for a traceback instead of the one-line error.
+Exit codes: 0 success, 1 bad input, data or output (a :class:`~tetra_gradiometer.errors.TetraError`:
+one ``error:`` line on stderr), 2 usage. Any other exception is a bug and keeps its
+traceback. Set ``TETRA_DEBUG=1`` for a traceback of a ``TetraError`` too.
 """
 from __future__ import annotations
 
@@ -12,19 +13,20 @@ import importlib
 import os
 import sys
 
+from .errors import TetraError
+
 COMMANDS: dict[str, tuple[str, str]] = {
-    'paper': ('tetra_gradiometer.tools.paper', 'reproduce section 6 of Yu et al. 2014'),
-    'simulate': ('tetra_gradiometer.tools.simulate', 'simulate a mission into a rosbag2 file'),
-    'calibrate': ('tetra_gradiometer.tools.calibrate', 'identify the interference from a bag'),
-    'compensate': ('tetra_gradiometer.tools.compensate', 'compensate a bag into CSV (and a bag)'),
-    'discrepancy': ('tetra_gradiometer.discrepancy.cli', 'find the physics the model is missing'),
-    'node': ('tetra_gradiometer.nodes.run_node', 'run one ROS 2 node (driver|tensor|calibrator|compensator)'),
-    'bringup': ('tetra_gradiometer.nodes.bringup', 'run the four nodes together'),
-    'record': ('tetra_gradiometer.nodes.record', "record the sim driver's topics to a bag"),
-    'demo': ('tetra_gradiometer.nodes.demo', 'the main job: sim, trim, calibrate, survey, result'),
+    'paper': ('tetra_gradiometer.cli.paper', 'reproduce section 6 of Yu et al. 2014'),
+    'simulate': ('tetra_gradiometer.cli.simulate', 'simulate a mission into a rosbag2 file'),
+    'calibrate': ('tetra_gradiometer.cli.calibrate', 'identify the interference from a bag'),
+    'compensate': ('tetra_gradiometer.cli.compensate', 'compensate a bag into CSV (and a bag)'),
+    'discrepancy': ('tetra_gradiometer.cli.discrepancy', 'find the physics the model is missing'),
+    'node': ('tetra_gradiometer.cli.node', 'run one ROS 2 node (driver|tensor|calibrator|compensator)'),
+    'bringup': ('tetra_gradiometer.cli.bringup', 'run the four nodes together'),
+    'record': ('tetra_gradiometer.cli.record', "record the sim driver's topics to a bag"),
+    'demo': ('tetra_gradiometer.cli.demo', 'the main job: sim, trim, calibrate, survey, result'),
 }
 
-USER_ERRORS = (ValueError, OSError)
 
 
 def _usage() -> str:
@@ -50,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)
-    except USER_ERRORS as error:
+    except TetraError as error:
         if os.environ.get('TETRA_DEBUG'):
             raise
         print(f'error: {error}', file=sys.stderr)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+from ..errors import InputError
 
 
 def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
@@ -17,10 +18,10 @@ def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndar
         want is not None and have != want for have, want in zip(array.shape, shape)
     ):
         want = '(' + ', '.join('N' if s is None else str(s) for s in shape) + (',)' if len(shape) == 1 else ')')
-        raise ValueError(f'{name} must have shape {want}, got {array.shape}')
+        raise InputError(f'{name} must have shape {want}, got {array.shape}')
     if not np.all(np.isfinite(array)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
-        raise ValueError(f'{name} has a non-finite value at index {bad}')
+        raise InputError(f'{name} has a non-finite value at index {bad}')
     return array
 
 
@@ -51,5 +52,5 @@ def same_length(**arrays: np.ndarray) -> int:
     """Return the common first dimension of ``arrays`` or raise naming the mismatch."""
     lengths = {name: len(a) for name, a in arrays.items()}
     if len(set(lengths.values())) > 1:
-        raise ValueError(f'sample counts differ: {lengths}')
+        raise InputError(f'sample counts differ: {lengths}')
     return next(iter(lengths.values()))

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._validate import as_array, as_vectors
+from ..errors import InputError
 
 #: mu_0 / (4 pi), T m / A.
 MU0_OVER_4PI = 1.0e-7
@@ -15,7 +16,7 @@ def _relative(points: object, source: object) -> tuple[np.ndarray, np.ndarray]:
     r = points - source
     distance = np.linalg.norm(r, axis=1)
     if np.any(distance == 0.0):
-        raise ValueError(f'a point coincides with the dipole at {source.tolist()} m')
+        raise InputError(f'a point coincides with the dipole at {source.tolist()} m')
     return r, distance
 
 

@@ -9,14 +9,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._validate import as_fields, frozen_array
+from ..errors import GeometryError
 
 #: Largest condition number of ``a`` accepted by default. A regular tetrahedron has 2;
 #: noise on the tensor grows with cond(a), and past ~1e3 the array is nearly flat.
 MAX_CONDITION = 1.0e3
 
 
-class GeometryError(ValueError):
-    """The sensor positions do not span a usable tetrahedron."""
 
 
 @dataclass(frozen=True)

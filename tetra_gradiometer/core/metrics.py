@@ -9,6 +9,7 @@ import numpy as np
 
 from ._validate import as_tensors, same_length
 from .geometry import TetraGeometry
+from ..errors import InputError
 
 
 def _checked(**tensors: object) -> dict[str, np.ndarray]:
@@ -44,7 +45,7 @@ def epsilon(g_before: object, g_after: object, g_true: object) -> float:
     """
     terms = epsilon_terms(g_before, g_after, g_true)
     if np.any(np.isnan(terms)):
-        raise ValueError('epsilon is undefined: a sample has |G_before|_F == |G_true|_F')
+        raise InputError('epsilon is undefined: a sample has |G_before|_F == |G_true|_F')
     return float(np.mean(terms))
 
 

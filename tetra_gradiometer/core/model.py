@@ -19,6 +19,7 @@ import numpy as np
 
 from ._validate import as_array, as_fields, as_tensors, as_vectors, frozen_array, same_length
 from .geometry import TetraGeometry, difference_tensor
+from ..errors import InputError
 
 #: Index pairs of the 6 unique entries of a symmetric 3x3 matrix, in vector order.
 SYMMETRIC_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -81,7 +82,7 @@ class InterferenceParameters:
         """
         if symmetric:
             if not self.is_symmetric:
-                raise ValueError('k_soft is not symmetric: pack it with symmetric=False (36 parameters)')
+                raise InputError('k_soft is not symmetric: pack it with symmetric=False (36 parameters)')
             k_part = np.concatenate([[k[r, c] for r, c in SYMMETRIC_ENTRIES] for k in self.k_soft])
         else:
             k_part = self.k_soft.reshape(-1)

@@ -25,6 +25,7 @@ from ._validate import frozen_array
 from .fields import dipole_field, dipole_gradient, uniform_field
 from .geometry import TetraGeometry, difference_tensor
 from .model import SensorInterference
+from ..errors import InputError
 
 _DERIVATIVE_STEP_S = 1.0e-3
 
@@ -33,7 +34,7 @@ def _require_positive(owner: str, **values: float) -> None:
     """Raise ValueError naming the first value that is not a positive finite number."""
     for name, value in values.items():
         if not (np.isfinite(value) and value > 0):
-            raise ValueError(f'{owner}.{name} must be positive, got {value}')
+            raise InputError(f'{owner}.{name} must be positive, got {value}')
 
 
 @dataclass(frozen=True)
@@ -217,11 +218,11 @@ class Scenario:
         object.__setattr__(self, 'segments', tuple(self.segments))
         object.__setattr__(self, 'dipoles', tuple(self.dipoles))
         if not self.segments:
-            raise ValueError('a scenario needs at least one segment')
+            raise InputError('a scenario needs at least one segment')
         if not self.sample_rate_hz > 0:
-            raise ValueError(f'sample_rate_hz must be positive, got {self.sample_rate_hz}')
+            raise InputError(f'sample_rate_hz must be positive, got {self.sample_rate_hz}')
         if not self.noise_t >= 0:
-            raise ValueError(f'noise_t must be >= 0, got {self.noise_t}')
+            raise InputError(f'noise_t must be >= 0, got {self.noise_t}')
 
     @property
     def duration_s(self) -> float:
@@ -357,7 +358,7 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     """
     n = int(np.floor(scenario.duration_s * scenario.sample_rate_hz + 1e-9))  # 4.35 s x 100 Hz = 435
     if n < 1:
-        raise ValueError('the scenario is shorter than one sample period')
+        raise InputError('the scenario is shorter than one sample period')
     t = np.arange(n) / scenario.sample_rate_hz
     current = _current_function(scenario, rng)
     fields_true, position, attitude, index = _clean_fields(scenario, t)

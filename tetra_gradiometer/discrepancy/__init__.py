@@ -3,12 +3,12 @@ measured sensor readings of a recorded run disagree, name the missing physical e
 a library of candidates, add it, and show the held-out gap shrink to the noise floor.
 
 ``analyze(recording, geometry, earth_field_enu=None)`` returns a :class:`Report`;
-``write_report(report, out_dir)`` writes ``report.json``, ``report.md`` and the plots.
+``tetra_gradiometer.io.report.write_report(report, out_dir)`` writes ``report.json``,
+``report.md`` and the plots.
 The command line is ``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR``.
 """
 from .analysis import BASE_MODEL, Report, Settings, Step, analyze, criterion_text
 from .effects import CANDIDATES, LIBRARY, Candidate
-from .report import write_report
 
 __all__ = ['BASE_MODEL', 'CANDIDATES', 'Candidate', 'LIBRARY', 'Report', 'Settings', 'Step', 'analyze',
-           'criterion_text', 'write_report']
+           'criterion_text']

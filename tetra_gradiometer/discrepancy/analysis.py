@@ -48,6 +48,7 @@ from scipy.spatial.transform import Rotation
 
 from ..core.model import SYMMETRIC_ENTRIES
 from .effects import CANDIDATES, LIBRARY, Candidate, Context, PiecewiseSpline
+from ..errors import InputError
 
 NT_PER_T = 1e9
 
@@ -225,7 +226,7 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
     if window_s is not None:
         inside = (t_all >= window_s[0]) & (t_all <= window_s[1])
         if inside.sum() < 50:
-            raise ValueError(f'the window {window_s[0]:g}:{window_s[1]:g} s holds {int(inside.sum())} sample sets '
+            raise InputError(f'the window {window_s[0]:g}:{window_s[1]:g} s holds {int(inside.sum())} sample sets '
                              f'(the run spans 0-{t_all[-1] - t_all[0]:.1f} s); the workflow needs at least 50')
         keep &= inside
     optional = {}
@@ -236,7 +237,7 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
             keep &= np.isfinite(value).reshape(len(value), -1).all(axis=1)
         optional[name] = value
     if keep.sum() < 50:
-        raise ValueError(f'the recording has {int(keep.sum())} usable samples; the workflow needs at least 50')
+        raise InputError(f'the recording has {int(keep.sum())} usable samples; the workflow needs at least 50')
     notes: list[str] = []
     piece_all, jumps = _pieces(t_all, fields, optional['orientation_xyzw'], keep)
     if jumps:
@@ -252,7 +253,7 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
         starts = np.cumsum(np.diff(excluded.astype(int), prepend=0) == 1)
         piece_all = np.where(piece_all >= 0, piece_all * (len(exclude_s) + 1) + starts, -1)
         if keep.sum() < 50:
-            raise ValueError(f'{int(keep.sum())} usable samples are left outside the excluded spans; '
+            raise InputError(f'{int(keep.sum())} usable samples are left outside the excluded spans; '
                              'the workflow needs at least 50')
     index = np.flatnonzero(keep)
     if len(index) > settings.max_samples:
@@ -266,7 +267,7 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
     optional = {k: (v[index] if v is not None else None) for k, v in optional.items()}
     n = len(t)
     if n < 50:
-        raise ValueError(f'the recording has {n} usable samples; the workflow needs at least 50')
+        raise InputError(f'the recording has {n} usable samples; the workflow needs at least 50')
     quat = optional['orientation_xyzw']
     attitude = None
     earth = None
@@ -1103,11 +1104,11 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     names = settings.candidates or tuple(c.name for c in CANDIDATES)
     unknown = [n for n in names if n not in LIBRARY]
     if unknown:
-        raise ValueError(f'unknown candidate effects {unknown}; the library has {sorted(LIBRARY)}')
+        raise InputError(f'unknown candidate effects {unknown}; the library has {sorted(LIBRARY)}')
     if window_s is not None:
         window_s = (float(window_s[0]), float(window_s[1]))
         if not (np.isfinite(window_s[0]) and window_s[0] >= 0 and window_s[1] > window_s[0]):
-            raise ValueError(f'window_s needs 0 <= T0 < T1, got {window_s}')
+            raise InputError(f'window_s needs 0 <= T0 < T1, got {window_s}')
     prep = _prepare(recording, earth_field_enu, settings, window_s)
     testable, untestable = _testable(prep, tuple(names))
     excluded: list[dict[str, Any]] = []

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from ..core import (Dipole, Effects, MissionData, Scenario, SensorInterference, SurveyLine, TetraGeometry,
                     TrimManoeuvre, random_interference, simulate)
+from ..errors import InputError
 
 EFFECT_NAMES = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'time_skew', 'thermal_drift',
                 'vehicle_current')
@@ -96,7 +97,7 @@ def _unit_effect(name: str, rng: np.random.Generator, sensors: list[int]) -> tup
         b = np.zeros((4, 3))
         k[0], b[0] = ref.k_soft[0], ref.b_hard[0] * rng.uniform(0.3, 1.0)
         return Effects(), SensorInterference(k, b)
-    raise ValueError(f'unknown effect {name!r}')
+    raise InputError(f'unknown effect {name!r}')
 
 
 def _scaled(effects: Effects, interference: SensorInterference | None, factor: float) -> tuple[Effects, Any]:

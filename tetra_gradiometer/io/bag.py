@@ -36,22 +36,21 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from .. import conversions as cv
-from ..matching import StampMatcher
+from . import conversions as cv
+from .matching import StampMatcher
 from .outputs import BAG, atomic_output, check_output
+from ..errors import BagError, InputError
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
 
-class BagError(ValueError):
-    """A bag is missing, empty, or does not follow the data contract."""
 
 
 #: CDR encapsulation identifiers (first two bytes) of plain CDR (XCDR1).
 _CDR_BE, _CDR_LE = b'\x00\x00', b'\x00\x01'
 
 
-class UnsupportedEncoding(ValueError):
+class _UnsupportedEncoding(Exception):
     """A serialized message is not plain CDR with the expected layout (use the generic path)."""
 
 
@@ -87,19 +86,19 @@ def encode_tensor(stamp_ns: int, g: np.ndarray, frame_id: str = cv.ARRAY_FRAME) 
 
 
 def _decode_one(raw: bytes) -> tuple[int, float, float, float]:
-    """One MagneticField CDR -> (stamp_ns, x, y, z); raises UnsupportedEncoding."""
+    """One MagneticField CDR -> (stamp_ns, x, y, z); raises _UnsupportedEncoding."""
     kind = raw[:2]
     if kind == _CDR_LE:
         order = '<'
     elif kind == _CDR_BE:
         order = '>'
     else:
-        raise UnsupportedEncoding(f'encapsulation {kind.hex()}')
+        raise _UnsupportedEncoding(f'encapsulation {kind.hex()}')
     sec, nanosec, length = struct.unpack_from(order + 'iII', raw, 4)
     offset = 16 + length
     offset += -(offset - 4) % 8
     if offset + 96 > len(raw):
-        raise UnsupportedEncoding('message shorter than its layout')
+        raise _UnsupportedEncoding('message shorter than its layout')
     x, y, z = struct.unpack_from(order + '3d', raw, offset)
     return sec * 1_000_000_000 + nanosec, x, y, z
 
@@ -112,7 +111,7 @@ def decode_magnetic_field(raws: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
 
     Raises
     ------
-    UnsupportedEncoding
+    _UnsupportedEncoding
         A message is not plain CDR (the caller falls back to the rosbags deserializer).
     """
     n = len(raws)
@@ -282,7 +281,7 @@ class MagneticBag:
         """
         total = self.check_contract()
         if chunk_size < 1:
-            raise ValueError(f'chunk_size must be >= 1, got {chunk_size}')
+            raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
         matcher = StampMatcher(int(round(tolerance_s * 1e9)))
         self.counters = matcher.counters
         batcher = _BatchMatcher(matcher)
@@ -303,7 +302,7 @@ class MagneticBag:
                 if decode_fast:
                     try:
                         batch = decode_magnetic_field([r for _, r in raws[sensor]])
-                    except UnsupportedEncoding:
+                    except _UnsupportedEncoding:
                         decode_fast = False
                 if batch is None:
                     msgs = [self.reader.deserialize(r, c.msgtype) for c, r in raws[sensor]]

@@ -25,12 +25,11 @@ import yaml
 
 from ..core import InterferenceParameters, TensorCalibration, TetraGeometry
 from .outputs import CALIBRATION, atomic_write_text
+from ..errors import CalibrationFileError
 
 FORMAT_VERSION = 1
 
 
-class CalibrationFileError(ValueError):
-    """A calibration file is missing, truncated or malformed."""
 
 
 @dataclass(frozen=True)

@@ -171,8 +171,11 @@ def atomic_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = Fa
     """
     inputs = tuple(inputs)
     path = check_output(path, kind, force=force, inputs=inputs)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', suffix='.partial', dir=path.parent))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', suffix='.partial', dir=path.parent))
+    except OSError as error:
+        raise OutputError(f'cannot write {path}: {error.strerror or error}') from error
     try:
         tmp = work / path.name
         yield tmp
@@ -184,6 +187,9 @@ def atomic_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = Fa
         _fsync_tree(tmp)
         check_output(path, kind, force=force, inputs=inputs)  # it may have appeared meanwhile
         _move_into_place(tmp, path, work)
+    except OSError as error:  # disk full, permissions: the user's problem, said in one line
+        raise OutputError(f'cannot write {path}: {error.strerror or error} (nothing was '
+                          'replaced)') from error
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

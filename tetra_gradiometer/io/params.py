@@ -10,10 +10,9 @@ import yaml
 
 from ..core import GeometryError, TetraGeometry
 from ._yaml import read_yaml
+from ..errors import ParamsError
 
 
-class ParamsError(ValueError):
-    """A parameter file is missing, unreadable, or lacks a valid entry."""
 
 
 def load_params(path: str | os.PathLike, node: str = '/**') -> dict[str, Any]:

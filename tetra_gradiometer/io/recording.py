@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from .. import conversions as cv
+from . import conversions as cv
 from ..core import MissionData
 from .bag import BagWriter, MagneticBag, _progress
+from ..errors import InputError
 
 
 def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
@@ -43,7 +44,7 @@ def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns
     """
     stamps = mission_stamps_ns(mission, start_ns)
     if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
-        raise ValueError('mission stamps must increase (sample period below 1 ns?)')
+        raise InputError('mission stamps must increase (sample period below 1 ns?)')
     bar = _progress(len(stamps) * 4, progress, 'writing bag')
     with BagWriter(path, storage=storage, force=force, inputs=inputs, command=command) as writer:
         types = writer.types

@@ -21,6 +21,7 @@ Example::
 """
 from __future__ import annotations
 
+import copy
 import datetime as _dt
 import os
 from pathlib import Path
@@ -32,6 +33,7 @@ from ..core import (CurrentProfile, Dipole, Effects, Scenario, SensorInterferenc
                     TemperatureProfile, TetraGeometry, TrimManoeuvre, random_interference)
 from ._yaml import read_yaml
 from ..core.units import T_PER_NT
+from ..errors import InputError, ScenarioError
 
 
 #: effect name -> (key in the file, factor to SI)
@@ -44,8 +46,6 @@ EFFECT_KEYS = {
 }
 
 
-class ScenarioError(ValueError):
-    """A scenario file is missing a key or has a malformed value."""
 
 
 def igrf_field_enu(latitude_deg: float, longitude_deg: float, date: _dt.date | str,
@@ -163,7 +163,7 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
         try:
             latitude, longitude = float(spec['latitude_deg']), float(spec['longitude_deg'])
             if not (-90.0 <= latitude <= 90.0 and -180.0 <= longitude <= 360.0):
-                raise ValueError(f'latitude {latitude} / longitude {longitude} out of range')
+                raise InputError(f'latitude {latitude} / longitude {longitude} out of range')
             earth_field = igrf_field_enu(latitude, longitude, spec.get('date', '2026-01-01'),
                                          float(spec.get('altitude_m', 0.0)))
         except KeyError as error:
@@ -216,3 +216,29 @@ def load_scenario(path: str | os.PathLike) -> tuple[Scenario, int]:
         return scenario_from_dict(document)
     except ScenarioError as error:
         raise ScenarioError(f'{path}: {error}') from None
+
+
+#: The built-in scenario of the sim driver and the demo: a trim manoeuvre 3 km from the
+#: target (true gradient ~1e-5 nT/m there: the calibrator may take it as zero), then a
+#: survey line 40 m above a dipole target. Earth field 50 000 nT, a vehicle whose reference
+#: sensor is not clean (random soft iron up to 5e-3 and hard iron up to 150 nT on every
+#: sensor, sensor 1 included), 0.1 nT noise, 10 Hz, seeded.
+DEFAULT_SCENARIO: dict[str, Any] = {
+    'seed': 7,
+    'sample_rate_hz': 10.0,
+    'noise_nT': 0.1,
+    'geometry': {'regular_edge_m': 0.5},
+    'earth_field': {'enu_nT': [0.0, 20000.0, -45000.0]},
+    'dipoles': [{'position_m': [0.0, 0.0, -90.0], 'moment_Am2': [4.0e6, 0.0, 0.0]}],
+    'interference': {'random': {'k_scale': 0.005, 'b_scale_nT': 150.0, 'reference_clean': False}},
+    'segments': [
+        {'trim': {'duration_s': 120.0, 'center_m': [3000.0, 3000.0, -50.0]}},
+        {'line': {'start_m': [-150.0, 5.0, -50.0], 'end_m': [150.0, 5.0, -50.0], 'speed_m_s': 2.0,
+                  'roll_amplitude_deg': 3.0, 'pitch_amplitude_deg': 2.0}},
+    ],
+}
+
+
+def load_scenario_or_default(path: str | os.PathLike = '') -> tuple[Scenario, int]:
+    """``(Scenario, seed)`` from a scenario file, or :data:`DEFAULT_SCENARIO` when ``path`` is empty."""
+    return load_scenario(path) if path else scenario_from_dict(copy.deepcopy(DEFAULT_SCENARIO))

@@ -30,12 +30,12 @@ from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from .. import conversions as cv
+from ..io import conversions as cv
 from ..core import TetraGeometry
 from ..core.identification import MAX_COVERAGE_CONDITION, METHODS, MIN_SAMPLES, identify
 from ..errors import OutputError
 from ..io.calibration import CalibrationFile, save_calibration
-from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, WARN, declare_parameters,
+from .common import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, WARN, declare_parameters,
                    derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, resolve_node_path,
                    spin_node, status, tensor_or_nan)
 

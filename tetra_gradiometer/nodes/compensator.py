@@ -22,11 +22,11 @@ from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
-from .. import conversions as cv
+from ..io import conversions as cv
 from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.metrics import epsilon_terms
 from ..io.calibration import CalibrationFile, CalibrationFileError, check_positions, load_calibration
-from ._ros import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, Throttle, WARN,
+from .common import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, Throttle, WARN,
                    declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, resolve_node_path,
                    spin_node, status, tensor_or_nan)
 from ..core.units import NT_PER_T

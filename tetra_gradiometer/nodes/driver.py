@@ -1,7 +1,7 @@
 """``driver`` node: the magnetometer source, simulated or replayed.
 
 ``mode: sim`` flies the core mission simulator (``scenario``: a scenario YAML for
-io/scenario.py, or the built-in default of :mod:`.scenarios`: a trim manoeuvre far from the
+io/scenario.py, or the built-in default (``io.scenario.DEFAULT_SCENARIO``): a trim manoeuvre far from the
 target, then a survey line over a dipole). It publishes ``mag1``..``mag4``
 (sensor_msgs/MagneticField, T, frames tetra_mag1..4, header.stamp = sample time: the start
 time plus the simulated time of the sample), ``gradient/truth`` (the simulator's ``g_true``,
@@ -34,9 +34,10 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
-from .. import conversions as cv
-from ._ros import (NAMESPACE, OK, ParamSpec, WARN, declare_parameters, derived_qos, diagnostics_period_spec,
+from ..io import conversions as cv
+from .common import (NAMESPACE, OK, ParamSpec, WARN, declare_parameters, derived_qos, diagnostics_period_spec,
                    non_negative, one_of, positive, sensor_qos, spin_node, status)
+from ..errors import InputError
 
 PARAMETERS = [
     ParamSpec('mode', 'sim', 'Source: "sim" (core mission simulator) or "replay" (rosbag2 folder).',
@@ -86,8 +87,8 @@ def sim_frames(node: Node, scenario_path: str, seed: int, start_ns: int, max_dur
                types: cv.MessageTypes) -> tuple[Iterator[Frame], dict[str, Any]]:
     """Simulate the mission and yield one frame per sample (4 mags, truth, odom)."""
     from ..core import simulate
-    from . import scenarios
-    scenario, scenario_seed = scenarios.load(scenario_path)
+    from ..io.scenario import load_scenario_or_default
+    scenario, scenario_seed = load_scenario_or_default(scenario_path)
     mission = simulate(scenario, np.random.default_rng(scenario_seed if seed < 0 else seed))
     n = len(mission)
     if max_duration_s > 0:
@@ -175,7 +176,7 @@ class DriverNode(Node):
             period = 1.0 / (self.info['sample_rate_hz'] * self._rate) if self._rate > 0 else 0.01
         else:
             if not p['bag']:
-                raise ValueError('mode replay needs the parameter "bag" (a rosbag2 folder)')
+                raise InputError('mode replay needs the parameter "bag" (a rosbag2 folder)')
             self._frames, self.info = replay_frames(self, os.path.expanduser(p['bag']), p['max_duration_s'],
                                                     types)
             period = 0.005 if self._rate > 0 else 0.01

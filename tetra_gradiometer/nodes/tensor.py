@@ -23,10 +23,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
-from .. import conversions as cv
+from ..io import conversions as cv
 from ..core import TetraGeometry, difference_tensor
-from ..matching import StampMatcher
-from ._ros import (ERROR, MAX_FIELD_T, NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, Throttle, WARN,
+from ..io.matching import StampMatcher
+from .common import (ERROR, MAX_FIELD_T, NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, Throttle, WARN,
                    declare_parameters, derived_qos, diagnostics_period_spec, positive, sensor_qos,
                    spin_node, status)
 

@@ -14,8 +14,8 @@ from .lstsq import (MAX_COVERAGE_CONDITION, MIN_SAMPLES, attitude_coverage, cons
                     constraint_objective, known_gradient_lstsq, paper_bounds)
 from .paper_ga import paper_ga
 from .pei_yeo import pei_yeo_2009
-from .result import (Calibration, IdentifiabilityError, ReferenceSensorCalibration,
-                     TensorCalibration)
+from ...errors import IdentifiabilityError
+from .result import Calibration, ReferenceSensorCalibration, TensorCalibration
 
 __all__ = [
     'MAX_COVERAGE_CONDITION', 'METHODS', 'MIN_SAMPLES', 'Calibration', 'IdentifiabilityError',

@@ -7,7 +7,9 @@ from ..geometry import TetraGeometry
 from .lstsq import (MAX_COVERAGE_CONDITION, attitude_coverage, constraint_lstsq, known_gradient_lstsq,
                     paper_bounds)
 from .paper_ga import GENERATIONS, paper_ga
-from .result import IdentifiabilityError, TensorCalibration
+from ...errors import IdentifiabilityError
+from .result import TensorCalibration
+from ...errors import InputError
 
 #: Methods whose result is the paper's ``k, b`` (eq. 19), i.e. what a calibration file holds.
 METHODS = ('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
@@ -46,7 +48,7 @@ def identify(method: str, g_measured: np.ndarray, b_reference: np.ndarray, geome
         An unknown method, or ``paper_ga`` without ``rng``.
     """
     if method not in METHODS:
-        raise ValueError(f'unknown method {method!r}; choose one of {METHODS}')
+        raise InputError(f'unknown method {method!r}; choose one of {METHODS}')
     coverage = attitude_coverage(b_reference)
     if not coverage <= max_coverage_condition:
         raise IdentifiabilityError(
@@ -60,9 +62,9 @@ def identify(method: str, g_measured: np.ndarray, b_reference: np.ndarray, geome
         result = constraint_lstsq(g_measured, b_reference, geometry, symmetric_k=symmetric_k)
     else:
         if rng is None:
-            raise ValueError('paper_ga needs rng (a seeded numpy.random.Generator)')
+            raise InputError('paper_ga needs rng (a seeded numpy.random.Generator)')
         if generations < 1:
-            raise ValueError(f'paper_ga needs at least 1 generation, got {generations}')
+            raise InputError(f'paper_ga needs at least 1 generation, got {generations}')
         result = paper_ga(g_measured, b_reference, geometry, rng=rng, generations=generations,
                           bounds=paper_bounds(symmetric=True, wide=wide_bounds))
     result.details.setdefault('attitude_coverage_condition', coverage)

@@ -10,7 +10,8 @@ from ..design import CONSTRAINT_ROWS, constraint_design, constraint_residual, in
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters, interference_tensor, n_parameters
 from ._linear import AffineReduction, reduce_affine, solve_scaled
-from .result import IdentifiabilityError, TensorCalibration
+from ...errors import IdentifiabilityError
+from .result import TensorCalibration
 from ..units import NT_PER_T
 
 #: Fewest samples any solver accepts.

@@ -15,6 +15,7 @@ from ..geometry import TetraGeometry
 from ._linear import solve_scaled
 from .lstsq import _check_samples
 from .result import ReferenceSensorCalibration
+from ...errors import InputError
 
 
 def pei_yeo_2009(fields_measured: object, *, geometry: TetraGeometry | None = None,
@@ -42,7 +43,7 @@ def pei_yeo_2009(fields_measured: object, *, geometry: TetraGeometry | None = No
     targets = np.repeat(fields[:, :1, :], 3, axis=1)
     if g_true is not None:
         if geometry is None:
-            raise ValueError('pei_yeo_2009: g_true needs the geometry')
+            raise InputError('pei_yeo_2009: g_true needs the geometry')
         g_true = as_tensors(g_true, 'g_true')
         same_length(fields_measured=fields, g_true=g_true)
         targets = targets + np.einsum('nij,js->nsi', g_true, geometry.a)

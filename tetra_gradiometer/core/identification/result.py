@@ -13,8 +13,6 @@ from ..units import NT_PER_T
 
 
 
-class IdentifiabilityError(ValueError):
-    """The data cannot determine the parameters (too few samples or too little attitude diversity)."""
 
 
 @dataclass(frozen=True)

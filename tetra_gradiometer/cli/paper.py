@@ -32,6 +32,7 @@ from ..core.identification.paper_ga import (CROSSOVER_PROBABILITY, GENE_BITS, GE
                                             GENERATIONS, MUTATION_PROBABILITY, POPULATION)
 from ..io.outputs import PAPER, atomic_output, check_output
 from ..core.units import NT_PER_T
+from ..errors import InputError
 
 
 #: Section 6.1 as printed: soft iron K_1..K_4 (dimensionless) and hard iron B_1^h..B_4^h (nT).
@@ -163,7 +164,7 @@ def _norms(g: np.ndarray) -> np.ndarray:
 def run_reading(choices: Choices, reading: str) -> Reading:
     """Simulate one reading, identify with every method, compensate and score."""
     if reading not in READINGS:
-        raise ValueError(f'unknown reading {reading!r}; expected one of {READINGS}')
+        raise InputError(f'unknown reading {reading!r}; expected one of {READINGS}')
     scenario = choices.scenario(reading)
     geometry = scenario.geometry
     rng = np.random.default_rng([choices.seed, READINGS.index(reading)])
@@ -474,7 +475,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.generations < 1:
-        raise ValueError(f'--generations must be >= 1, got {args.generations}')
+        raise InputError(f'--generations must be >= 1, got {args.generations}')
     choices = Choices(seed=args.seed, generations=args.generations)
     results = reproduce(args.out, choices=choices, plots=not args.no_plots, force=args.force)
     print(format_table(results, 'Earth-field reading (dipole + 50 000 nT)'))

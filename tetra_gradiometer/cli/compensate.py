@@ -26,13 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import conversions as cv
+from ..io import conversions as cv
 from ..core import compensate, difference_tensor
 from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, OutputError, atomic_output, check_output
 from ..io.params import geometry_from_params, load_params
 from ..core.units import NT_PER_T
+from ..errors import InputError
 
 CSV_HEADER = 'stamp_s,' + ','.join(cv.TENSOR_NAMES)
 COMPENSATED_TOPIC = f'{cv.NAMESPACE}/gradient/compensated'
@@ -77,9 +78,9 @@ def _input_storage(bag: Path) -> str:
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     if args.csv is None and args.out_bag is None:
-        raise ValueError('nothing to write: give --csv OUT.csv and/or --out-bag DIR')
+        raise InputError('nothing to write: give --csv OUT.csv and/or --out-bag DIR')
     if not args.raw and args.calibration is None:
-        raise ValueError('--calibration is required (or --raw for the uncompensated tensor)')
+        raise InputError('--calibration is required (or --raw for the uncompensated tensor)')
     inputs = tuple(p for p in (args.bag, args.params, args.calibration) if p is not None)
     if args.csv is not None and args.out_bag is not None and Path(args.csv).resolve() == Path(args.out_bag).resolve():
         raise OutputError('--csv and --out-bag name the same path')

@@ -35,6 +35,7 @@ from ..io.params import params_document
 from ..io.recording import mission_stamps_ns, write_mission_bag
 from ..io.scenario import load_scenario
 from ..core.units import NT_PER_T
+from ..errors import InputError
 
 DEFAULT_START = '2026-01-01T00:00:00Z'
 
@@ -50,12 +51,12 @@ def parse_start(text: str) -> int:
     try:
         when = _dt.datetime.fromisoformat(text.replace('Z', '+00:00'))
     except ValueError:
-        raise ValueError(f'--start-utc: not an ISO 8601 time: {text!r}') from None
+        raise InputError(f'--start-utc: not an ISO 8601 time: {text!r}') from None
     if when.tzinfo is None:
         when = when.replace(tzinfo=_dt.timezone.utc)
     seconds = when.timestamp()
     if seconds < 0:
-        raise ValueError(f'--start-utc must not be before 1970: {text!r}')
+        raise InputError(f'--start-utc must not be before 1970: {text!r}')
     return int(round(seconds)) * 10**9
 
 

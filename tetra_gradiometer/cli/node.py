@@ -1,7 +1,7 @@
 """``python -m tetra_gradiometer node <driver|tensor|calibrator|compensator> [--params FILE]
 [--ros-args ...]``: one node in this process, as ``ros2 run tetra_gradiometer <name>`` would.
 
-Parameters come from ``--params`` (default: the package's config/tetra_gradiometer.yaml)
+Parameters come from the nodes' declared defaults, ``--params FILE``
 and any further ``--ros-args`` (e.g. ``-p rate:=10.0``, ``-r __ns:=/other``).
 """
 from __future__ import annotations
@@ -9,15 +9,16 @@ from __future__ import annotations
 import argparse
 import importlib
 
-from ._ros import DEFAULT_PARAMS_FILE
 
 NODES = ('driver', 'tensor', 'calibrator', 'compensator')
+PARAMS_HELP = ('ROS 2 parameter file (/**: ros__parameters:); default: none, every parameter at its '
+               "declared default (config/tetra_gradiometer.yaml lists them, installed to the package's "
+               'share directory)')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('name', choices=NODES, help='which node')
-    parser.add_argument('--params', default=str(DEFAULT_PARAMS_FILE) if DEFAULT_PARAMS_FILE.exists() else '',
-                        help='ROS 2 parameter file (/**: ros__parameters:); default %(default)s')
+    parser.add_argument('--params', default='', help=PARAMS_HELP)
     parser.add_argument('--ros-args', dest='ros_args', nargs=argparse.REMAINDER, default=[],
                         help='further ROS arguments, e.g. --ros-args -p rate:=10.0')
 

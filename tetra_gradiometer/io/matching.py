@@ -11,6 +11,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from ..errors import InputError
 
 N_SENSORS = 4
 
@@ -37,7 +38,7 @@ class StampMatcher:
 
     def __init__(self, tolerance_ns: int, *, max_pending: int = 1000) -> None:
         if tolerance_ns < 0:
-            raise ValueError(f'tolerance_ns must be >= 0, got {tolerance_ns}')
+            raise InputError(f'tolerance_ns must be >= 0, got {tolerance_ns}')
         self.tolerance_ns = int(tolerance_ns)
         self.max_pending = int(max_pending)
         self.counters = MatchCounters()

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from ..io.outputs import REPORT, atomic_output
-from .analysis import Report, criterion_text
-from .effects import LIBRARY
+from .outputs import REPORT, atomic_output
+from ..discrepancy.analysis import Report, criterion_text
+from ..discrepancy.effects import LIBRARY
 
 _AXES = 'xyz'
 _MAX_POINTS = 4000

@@ -21,8 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.outputs import DEMO, atomic_output, check_output
-from ._ros import DEFAULT_PARAMS_FILE
-from .run_node import ros_arguments
+from .node import PARAMS_HELP, ros_arguments
 from ..core.units import NT_PER_T
 
 
@@ -35,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='driver speed, multiple of real time (default %(default)s)')
     parser.add_argument('--method', default='known_gradient_lstsq',
                         choices=('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga'))
-    parser.add_argument('--params', default=str(DEFAULT_PARAMS_FILE) if DEFAULT_PARAMS_FILE.exists() else '')
+    parser.add_argument('--params', default='', help=PARAMS_HELP)
 
 
 def _say(text: str) -> None:
@@ -61,18 +60,17 @@ def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from ._ros import interrupt_on_signals, stop_graph
+    from ..nodes.common import interrupt_on_signals, stop_graph
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
     from ..core import summarize
     from ..io.calibration import load_calibration
-    from . import scenarios
-    from .calibrator import CalibratorNode
-    from .compensator import CompensatorNode
-    from .driver import DriverNode
-    from .probe import Probe
-    from .tensor import TensorNode
+    from ..nodes.calibrator import CalibratorNode
+    from ..nodes.compensator import CompensatorNode
+    from ..nodes.driver import DriverNode
+    from ._probe import Probe
+    from ..nodes.tensor import TensorNode
 
     calibration_file = (out / 'calibration.yaml').resolve()
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -119,7 +117,7 @@ def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
         _say(f'demo: calibrator/calibrate: {reply.message}')
         probe.wait_for(lambda: probe.status('tetra/compensator: compensation').get('compensating') == 'True',
                        20, 'the compensator to take the calibration')
-        _summarise_calibration(load_calibration(calibration_file), scenarios)
+        _summarise_calibration(load_calibration(calibration_file))
 
         _say('demo: survey pass over the dipole ...')
         with probe.lock:
@@ -179,9 +177,10 @@ def _progress(probe, done, label: str, timeout_s: float = 600.0) -> None:
         time.sleep(0.05)
 
 
-def _summarise_calibration(calibration, scenarios) -> None:
+def _summarise_calibration(calibration) -> None:
     """Print the file's diagnostics and its error against the simulator's exact parameters."""
-    scenario, _ = scenarios.load()
+    from ..io.scenario import load_scenario_or_default
+    scenario, _ = load_scenario_or_default()
     exact = scenario.interference.effective_parameters()
     d = calibration.diagnostics
     k_err = np.abs(calibration.parameters.k_soft - exact.k_soft).max()

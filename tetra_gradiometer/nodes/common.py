@@ -21,7 +21,6 @@ from typing import Any, Callable
 import numpy as np
 
 NAMESPACE = '/tetra'
-DEFAULT_PARAMS_FILE = Path(__file__).resolve().parents[2] / 'config' / 'tetra_gradiometer.yaml'
 
 #: Largest plausible magnetometer reading, tesla (the Earth's field is < 7e-5 T).
 MAX_FIELD_T = 1.0e-3
@@ -262,7 +261,7 @@ def interrupt_on_signals() -> None:
 def tensor_or_nan(msg: Any) -> np.ndarray:
     """A tensor JointState as (3, 3) T/m; a malformed one (wrong names or count) as NaN, which
     the callers' non-finite checks drop and count, so one bad message cannot stop a node."""
-    from .. import conversions as cv
+    from ..io import conversions as cv
     try:
         return cv.tensor_from_msg(msg)
     except cv.MessageError:

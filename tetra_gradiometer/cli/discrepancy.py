@@ -8,10 +8,11 @@ import time
 from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..io.recording import read_recording
-from ..tools.calibrate import parse_window
-from .analysis import Settings, analyze
-from .effects import CANDIDATES
-from .report import write_report
+from .calibrate import parse_window
+from ..discrepancy.analysis import Settings, analyze
+from ..discrepancy.effects import CANDIDATES
+from ..io.report import write_report
+from ..errors import InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     recording = read_recording(args.bag)
     candidates = tuple(n.strip() for n in args.candidates.split(',') if n.strip()) if args.candidates else None
     if args.folds < 2:
-        raise ValueError(f'--folds must be at least 2, got {args.folds}')
+        raise InputError(f'--folds must be at least 2, got {args.folds}')
     settings = Settings(n_folds=args.folds, max_effects=args.max_effects, relevance=args.relevance,
                         candidates=candidates, exclude_targets=not args.keep_targets)
     report = analyze(recording, geometry, earth, settings=settings, window_s=window)

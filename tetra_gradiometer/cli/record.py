@@ -21,9 +21,10 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
-from .. import conversions as cv
-from ._ros import DEFAULT_PARAMS_FILE, NAMESPACE, derived_qos, sensor_qos
-from .run_node import ros_arguments
+from ..io import conversions as cv
+from ..nodes.common import NAMESPACE, derived_qos, sensor_qos
+from .node import PARAMS_HELP, ros_arguments
+from ..errors import InputError
 
 
 class Recorder(Node):
@@ -74,24 +75,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--seed', type=int, default=-1, help="noise seed (default: the scenario's)")
     parser.add_argument('--rate', type=float, default=10.0, help='driver speed, x real time (default %(default)s)')
     parser.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
-    parser.add_argument('--params', default=str(DEFAULT_PARAMS_FILE) if DEFAULT_PARAMS_FILE.exists() else '')
+    parser.add_argument('--params', default='', help=PARAMS_HELP)
 
 
 def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from ._ros import interrupt_on_signals, stop_graph
+    from ..nodes.common import interrupt_on_signals, stop_graph
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
     from ..io.bag import BagWriter
     from ..io.outputs import BAG, check_output
-    from .driver import DriverNode
-    from .probe import Probe
+    from ..nodes.driver import DriverNode
+    from ._probe import Probe
 
     if not args.duration > 0:
-        raise ValueError(f'--duration must be > 0 s, got {args.duration}')
+        raise InputError(f'--duration must be > 0 s, got {args.duration}')
     inputs = tuple(p for p in (args.scenario, args.params) if p)
     check_output(args.out, BAG, force=args.force, inputs=inputs)  # refuse before starting ROS
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

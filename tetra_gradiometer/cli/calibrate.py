@@ -43,6 +43,7 @@ from ..io.calibration import CalibrationFile, save_calibration
 from ..io.outputs import CALIBRATION, check_output
 from ..io.params import geometry_from_params, load_params
 from ..core.units import NT_PER_T
+from ..errors import InputError
 
 METHODS = ('known_gradient_lstsq_general', 'known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
 DEFAULT_METHOD = 'known_gradient_lstsq_general'
@@ -55,14 +56,14 @@ def parse_window(text: str | None) -> tuple[float, float] | None:
         return None
     parts = text.split(':')
     if len(parts) != 2:
-        raise ValueError(f'--window must be T0:T1 in seconds from the first stamp, got {text!r}')
+        raise InputError(f'--window must be T0:T1 in seconds from the first stamp, got {text!r}')
     try:
         t0 = float(parts[0]) if parts[0].strip() else 0.0
         t1 = float(parts[1]) if parts[1].strip() else float('inf')
     except ValueError:
-        raise ValueError(f'--window must be T0:T1 in seconds from the first stamp, got {text!r}') from None
+        raise InputError(f'--window must be T0:T1 in seconds from the first stamp, got {text!r}') from None
     if not (np.isfinite(t0) and t0 >= 0 and t1 > t0):
-        raise ValueError(f'--window needs 0 <= T0 < T1, got {text!r}')
+        raise InputError(f'--window needs 0 <= T0 < T1, got {text!r}')
     return t0, t1
 
 
@@ -129,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     window = parse_window(args.window)
     if args.max_sets < 10:
-        raise ValueError(f'--max-sets must be at least 10, got {args.max_sets}')
+        raise InputError(f'--max-sets must be at least 10, got {args.max_sets}')
     inputs = (args.bag, args.params)
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     geometry = geometry_from_params(load_params(args.params), source=args.params)
@@ -150,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
     window_text = 'whole bag' if window is None else f'{window[0]:g}:{window[1]:g} s'
     method = args.method
     if args.generations is not None and args.generations < 1:
-        raise ValueError(f'--generations must be >= 1, got {args.generations}')
+        raise InputError(f'--generations must be >= 1, got {args.generations}')
     try:
         calibration = identify(
             method.removesuffix('_general'), g_measured, b_reference, geometry,

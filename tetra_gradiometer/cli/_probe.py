@@ -14,8 +14,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from .. import conversions as cv
-from ._ros import NAMESPACE, derived_qos
+from ..io import conversions as cv
+from ..nodes.common import NAMESPACE, derived_qos
 
 TENSOR_TOPICS = ('gradient/raw', 'gradient/compensated', 'gradient/truth')
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
+from ..errors import MessageError
 
 NAMESPACE = '/tetra'
 MAG_TOPICS = ('mag1', 'mag2', 'mag3', 'mag4')
@@ -40,8 +41,6 @@ TEMPERATURE = 'sensor_msgs/msg/Temperature'
 BATTERY_STATE = 'sensor_msgs/msg/BatteryState'
 
 
-class MessageError(ValueError):
-    """A message does not follow the contract (wrong names, count, or non-finite values)."""
 
 
 @dataclass(frozen=True)

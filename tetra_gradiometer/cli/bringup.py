@@ -6,13 +6,11 @@ import argparse
 import os
 from typing import Any
 
-from ._ros import DEFAULT_PARAMS_FILE
-from .run_node import ros_arguments
+from .node import PARAMS_HELP, ros_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--params', default=str(DEFAULT_PARAMS_FILE) if DEFAULT_PARAMS_FILE.exists() else '',
-                        help='ROS 2 parameter file; default %(default)s')
+    parser.add_argument('--params', default='', help=PARAMS_HELP)
     parser.add_argument('--mode', choices=('sim', 'replay'), help='driver mode (default: from the params)')
     parser.add_argument('--bag', help='replay: rosbag2 folder')
     parser.add_argument('--rate', type=float, help='driver speed, multiple of real time (0: as fast as the graph)')
@@ -43,10 +41,10 @@ def create_nodes(args: argparse.Namespace, driver_extra: list[Any] = ()) -> list
     """The four nodes (rclpy must be initialised), command-line overrides applied."""
     from rclpy.parameter import Parameter
 
-    from .calibrator import CalibratorNode
-    from .compensator import CompensatorNode
-    from .driver import DriverNode
-    from .tensor import TensorNode
+    from ..nodes.calibrator import CalibratorNode
+    from ..nodes.compensator import CompensatorNode
+    from ..nodes.driver import DriverNode
+    from ..nodes.tensor import TensorNode
     calibration = ([Parameter('calibration_file', value=os.path.abspath(args.calibration_file))]
                    if args.calibration_file else [])
     nodes = []
@@ -66,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from ._ros import interrupt_on_signals
+    from ..nodes.common import interrupt_on_signals
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     # Our own Ctrl-C handling (KeyboardInterrupt), so callbacks stop before the context goes.
     interrupt_on_signals()
