@@ -6,6 +6,7 @@ Exit codes: 0 success, 1 bad input, data or output (a :class:`~tetra_gradiometer
 one ``error:`` line on stderr), 2 usage. Any other exception is a bug and keeps its
 traceback. Set ``TETRA_DEBUG=1`` for a traceback of a ``TetraError`` too.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,19 +22,24 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'calibrate': ('tetra_gradiometer.cli.calibrate', 'identify the interference from a bag'),
     'compensate': ('tetra_gradiometer.cli.compensate', 'compensate a bag into CSV (and a bag)'),
     'discrepancy': ('tetra_gradiometer.cli.discrepancy', 'find the physics the model is missing'),
-    'node': ('tetra_gradiometer.cli.node', 'run one ROS 2 node (driver|tensor|calibrator|compensator)'),
+    'node': (
+        'tetra_gradiometer.cli.node',
+        'run one ROS 2 node (driver|tensor|calibrator|compensator)',
+    ),
     'bringup': ('tetra_gradiometer.cli.bringup', 'run the four nodes together'),
     'record': ('tetra_gradiometer.cli.record', "record the sim driver's topics to a bag"),
     'demo': ('tetra_gradiometer.cli.demo', 'the main job: sim, trim, calibrate, survey, result'),
 }
 
 
-
 def _usage() -> str:
     width = max(map(len, COMMANDS))
     lines = [f'  {name:<{width}}  {help_}' for name, (_, help_) in COMMANDS.items()]
-    return ('usage: python -m tetra_gradiometer <command> [options]\n\ncommands:\n' + '\n'.join(lines)
-            + '\n\n"python -m tetra_gradiometer <command> --help" describes each.')
+    return (
+        'usage: python -m tetra_gradiometer <command> [options]\n\ncommands:\n'
+        + '\n'.join(lines)
+        + '\n\n"python -m tetra_gradiometer <command> --help" describes each.'
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,8 +52,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     name = argv[0]
     module = importlib.import_module(COMMANDS[name][0])
-    parser = argparse.ArgumentParser(prog=f'python -m tetra_gradiometer {name}',
-                                     description=COMMANDS[name][1])
+    parser = argparse.ArgumentParser(
+        prog=f'python -m tetra_gradiometer {name}', description=COMMANDS[name][1]
+    )
     module.add_arguments(parser)
     args = parser.parse_args(argv[1:])
     try:

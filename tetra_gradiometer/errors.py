@@ -5,10 +5,21 @@ exception is a bug and keeps its traceback. This module imports nothing, so ``co
 use it. Each subclass also derives from ``ValueError``, so callers that catch
 ``ValueError`` (numpy and scipy style) keep working.
 """
+
 from __future__ import annotations
 
-__all__ = ['BagError', 'CalibrationFileError', 'GeometryError', 'IdentifiabilityError', 'InputError',
-           'MessageError', 'OutputError', 'ParamsError', 'ScenarioError', 'TetraError']
+__all__ = [
+    'BagError',
+    'CalibrationFileError',
+    'GeometryError',
+    'IdentifiabilityError',
+    'InputError',
+    'MessageError',
+    'OutputError',
+    'ParamsError',
+    'ScenarioError',
+    'TetraError',
+]
 
 
 class TetraError(Exception):

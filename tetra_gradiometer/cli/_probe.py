@@ -1,11 +1,13 @@
 """``Probe``: the operator/observer node of the demo, the record command and the tests.
 It calls Trigger services, collects tensors by stamp, and keeps the latest ``/diagnostics``
 status of every component. Not part of the graph's contract."""
+
 from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -33,7 +35,9 @@ class Probe(Node):
         self.diagnostics: dict[str, Any] = {}
         self.percent = float('nan')
         for topic in TENSOR_TOPICS:
-            self.create_subscription(JointState, topic, lambda msg, t=topic: self._on_tensor(t, msg), derived_qos())
+            self.create_subscription(
+                JointState, topic, lambda msg, t=topic: self._on_tensor(t, msg), derived_qos()
+            )
         self.create_subscription(Float64, 'compensated_percent', self._on_percent, derived_qos())
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
         self._trigger_clients: dict[str, Any] = {}
@@ -49,14 +53,20 @@ class Probe(Node):
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for s in msg.status:
-            self.diagnostics[s.name] = {'level': s.level[0] if isinstance(s.level, bytes) else int(s.level),
-                                        'message': s.message, **{kv.key: kv.value for kv in s.values}}
+            self.diagnostics[s.name] = {
+                'level': s.level[0] if isinstance(s.level, bytes) else int(s.level),
+                'message': s.message,
+                **{kv.key: kv.value for kv in s.values},
+            }
 
     def paired(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Stamps (n,) and raw, compensated, true tensors (n, 3, 3) on the common stamps."""
         with self.lock:
             common = sorted(set.intersection(*(set(d) for d in self.tensors.values())))
-            arrays = [np.array([self.tensors[t][s] for s in common]).reshape(-1, 3, 3) for t in TENSOR_TOPICS]
+            arrays = [
+                np.array([self.tensors[t][s] for s in common]).reshape(-1, 3, 3)
+                for t in TENSOR_TOPICS
+            ]
         return (np.array(common, dtype=np.int64), *arrays)
 
     def call(self, service: str, timeout_s: float = 30.0) -> Any:

@@ -1,5 +1,6 @@
 """``python -m tetra_gradiometer bringup [--params FILE] [--mode sim|replay] [--bag PATH]``:
 the four nodes in one process on a MultiThreadedExecutor until Ctrl-C."""
+
 from __future__ import annotations
 
 import argparse
@@ -11,19 +12,33 @@ from .node import PARAMS_HELP, ros_arguments
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--params', default='', help=PARAMS_HELP)
-    parser.add_argument('--mode', choices=('sim', 'replay'), help='driver mode (default: from the params)')
+    parser.add_argument(
+        '--mode', choices=('sim', 'replay'), help='driver mode (default: from the params)'
+    )
     parser.add_argument('--bag', help='replay: rosbag2 folder')
-    parser.add_argument('--rate', type=float, help='driver speed, multiple of real time (0: as fast as the graph)')
+    parser.add_argument(
+        '--rate', type=float, help='driver speed, multiple of real time (0: as fast as the graph)'
+    )
     parser.add_argument('--scenario', help='sim: scenario YAML (default: built-in)')
-    parser.add_argument('--calibration-file', help='calibration file of calibrator and compensator')
-    parser.add_argument('--ros-args', dest='ros_args', nargs=argparse.REMAINDER, default=[],
-                        help='further ROS arguments for all four nodes')
+    parser.add_argument(
+        '--calibration-file', help='calibration file of calibrator and compensator'
+    )
+    parser.add_argument(
+        '--ros-args',
+        dest='ros_args',
+        nargs=argparse.REMAINDER,
+        default=[],
+        help='further ROS arguments for all four nodes',
+    )
 
 
 def driver_overrides(args: argparse.Namespace) -> list[Any]:
     """Driver parameters given on the command line."""
     from rclpy.parameter import Parameter
-    out = [Parameter('min_subscribers', value=1)]  # the tensor node is here: do not lose the first sets
+
+    out = [
+        Parameter('min_subscribers', value=1)
+    ]  # the tensor node is here: do not lose the first sets
     if args.mode:
         out.append(Parameter('mode', value=args.mode))
     if args.bag:
@@ -45,8 +60,12 @@ def create_nodes(args: argparse.Namespace, driver_extra: list[Any] = ()) -> list
     from ..nodes.compensator import CompensatorNode
     from ..nodes.driver import DriverNode
     from ..nodes.tensor import TensorNode
-    calibration = ([Parameter('calibration_file', value=os.path.abspath(args.calibration_file))]
-                   if args.calibration_file else [])
+
+    calibration = (
+        [Parameter('calibration_file', value=os.path.abspath(args.calibration_file))]
+        if args.calibration_file
+        else []
+    )
     nodes = []
     try:
         nodes.append(TensorNode())
@@ -62,13 +81,17 @@ def create_nodes(args: argparse.Namespace, driver_extra: list[Any] = ()) -> list
 
 def run(args: argparse.Namespace) -> int:
     import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     from ..nodes.common import interrupt_on_signals
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+
     # Our own Ctrl-C handling (KeyboardInterrupt), so callbacks stop before the context goes.
     interrupt_on_signals()
-    rclpy.init(args=ros_arguments(args.params, args.ros_args), signal_handler_options=SignalHandlerOptions.NO)
+    rclpy.init(
+        args=ros_arguments(args.params, args.ros_args),
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
     nodes: list[Any] = []
     executor = MultiThreadedExecutor(num_threads=4)
     try:

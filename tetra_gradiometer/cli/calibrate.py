@@ -27,6 +27,7 @@ The window is read streaming; only its sets are kept. A window of more than ``--
 sets is thinned uniformly (every k-th set) to bound the solver's memory (the design holds
 9 x 36 floats per set); the printed summary says so.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,12 +39,12 @@ import numpy as np
 from ..core import difference_tensor
 from ..core.identification import MAX_COVERAGE_CONDITION, IdentifiabilityError, identify
 from ..core.identification.paper_ga import GENERATIONS
+from ..core.units import NT_PER_T
+from ..errors import InputError
 from ..io.bag import BagError, MagneticBag
 from ..io.calibration import CalibrationFile, save_calibration
 from ..io.outputs import CALIBRATION, check_output
 from ..io.params import geometry_from_params, load_params
-from ..core.units import NT_PER_T
-from ..errors import InputError
 
 METHODS = ('known_gradient_lstsq_general', 'known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
 DEFAULT_METHOD = 'known_gradient_lstsq_general'
@@ -61,7 +62,9 @@ def parse_window(text: str | None) -> tuple[float, float] | None:
         t0 = float(parts[0]) if parts[0].strip() else 0.0
         t1 = float(parts[1]) if parts[1].strip() else float('inf')
     except ValueError:
-        raise InputError(f'--window must be T0:T1 in seconds from the first stamp, got {text!r}') from None
+        raise InputError(
+            f'--window must be T0:T1 in seconds from the first stamp, got {text!r}'
+        ) from None
     if not (np.isfinite(t0) and t0 >= 0 and t1 > t0):
         raise InputError(f'--window needs 0 <= T0 < T1, got {text!r}')
     return t0, t1
@@ -70,30 +73,57 @@ def parse_window(text: str | None) -> tuple[float, float] | None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) following the data contract')
     parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
-    parser.add_argument('--window', default=None, metavar='T0:T1',
-                        help='seconds from the first set where the true gradient is zero (default: whole bag)')
-    parser.add_argument('--method', choices=METHODS, default=DEFAULT_METHOD, help=f'default: {DEFAULT_METHOD}')
+    parser.add_argument(
+        '--window',
+        default=None,
+        metavar='T0:T1',
+        help='seconds from the first set where the true gradient is zero (default: whole bag)',
+    )
+    parser.add_argument(
+        '--method', choices=METHODS, default=DEFAULT_METHOD, help=f'default: {DEFAULT_METHOD}'
+    )
     parser.add_argument('--out', required=True, help='calibration YAML to write')
-    parser.add_argument('--force', action='store_true',
-                        help='replace a previous calibration file at --out (anything else there is refused)')
+    parser.add_argument(
+        '--force',
+        action='store_true',
+        help='replace a previous calibration file at --out (anything else there is refused)',
+    )
     parser.add_argument('--seed', type=int, default=0, help='paper_ga: random seed (default 0)')
-    parser.add_argument('--generations', type=int, default=None, help='paper_ga: generations (default 1000)')
-    parser.add_argument('--wide-bounds', action='store_true',
-                        help='paper_ga: |k| <= 1, |b| <= 1000 nT instead of the printed bounds')
-    parser.add_argument('--tolerance-ms', type=float, default=2.0,
-                        help='largest spread of the four header stamps in one set (default 2 ms)')
-    parser.add_argument('--max-sets', type=int, default=DEFAULT_MAX_SETS,
-                        help=f'thin the window to at most this many sets (default {DEFAULT_MAX_SETS})')
-    parser.add_argument('--max-coverage-condition', type=float, default=MAX_COVERAGE_CONDITION,
-                        help=f'refuse windows whose attitude coverage condition number exceeds this '
-                             f'(default {MAX_COVERAGE_CONDITION:g})')
+    parser.add_argument(
+        '--generations', type=int, default=None, help='paper_ga: generations (default 1000)'
+    )
+    parser.add_argument(
+        '--wide-bounds',
+        action='store_true',
+        help='paper_ga: |k| <= 1, |b| <= 1000 nT instead of the printed bounds',
+    )
+    parser.add_argument(
+        '--tolerance-ms',
+        type=float,
+        default=2.0,
+        help='largest spread of the four header stamps in one set (default 2 ms)',
+    )
+    parser.add_argument(
+        '--max-sets',
+        type=int,
+        default=DEFAULT_MAX_SETS,
+        help=f'thin the window to at most this many sets (default {DEFAULT_MAX_SETS})',
+    )
+    parser.add_argument(
+        '--max-coverage-condition',
+        type=float,
+        default=MAX_COVERAGE_CONDITION,
+        help=f'refuse windows whose attitude coverage condition number exceeds this '
+        f'(default {MAX_COVERAGE_CONDITION:g})',
+    )
     progress = parser.add_mutually_exclusive_group()
     progress.add_argument('--progress', dest='progress', action='store_true', default=None)
     progress.add_argument('--no-progress', dest='progress', action='store_false')
 
 
-def read_window(bag_path: str, window: tuple[float, float] | None, *, tolerance_s: float,
-                progress: bool | None) -> tuple[np.ndarray, np.ndarray, float, object]:
+def read_window(
+    bag_path: str, window: tuple[float, float] | None, *, tolerance_s: float, progress: bool | None
+) -> tuple[np.ndarray, np.ndarray, float, object]:
     """Sets in the window: stamps (n,), fields (n, 4, 3); the bag's span (s); the counters."""
     stamps, fields = [], []
     first = last = None
@@ -117,8 +147,10 @@ def read_window(bag_path: str, window: tuple[float, float] | None, *, tolerance_
         counters = bag.counters
     span = (last - first) * 1e-9
     if not stamps:
-        raise BagError(f'{bag_path}: the window {window[0]:g}:{window[1]:g} s holds no sample set '
-                       f'(the bag spans 0:{span:.3f} s from its first stamp)')
+        raise BagError(
+            f'{bag_path}: the window {window[0]:g}:{window[1]:g} s holds no sample set '
+            f'(the bag spans 0:{span:.3f} s from its first stamp)'
+        )
     return np.concatenate(stamps), np.concatenate(fields), span, counters
 
 
@@ -134,13 +166,16 @@ def run(args: argparse.Namespace) -> int:
     inputs = (args.bag, args.params)
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     geometry = geometry_from_params(load_params(args.params), source=args.params)
-    stamps, fields, span, counters = read_window(args.bag, window, tolerance_s=args.tolerance_ms * 1e-3,
-                                                 progress=args.progress)
+    stamps, fields, span, counters = read_window(
+        args.bag, window, tolerance_s=args.tolerance_ms * 1e-3, progress=args.progress
+    )
     finite = np.isfinite(fields).all(axis=(1, 2))
     non_finite = int((~finite).sum())
     stamps, fields = stamps[finite], fields[finite]
     if not len(stamps):
-        raise BagError(f'{args.bag}: every set in the window has a non-finite reading ({non_finite} sets)')
+        raise BagError(
+            f'{args.bag}: every set in the window has a non-finite reading ({non_finite} sets)'
+        )
     n_window = len(stamps)
     thinned = 1
     if n_window > args.max_sets:
@@ -154,46 +189,76 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f'--generations must be >= 1, got {args.generations}')
     try:
         calibration = identify(
-            method.removesuffix('_general'), g_measured, b_reference, geometry,
-            symmetric_k=(method != 'known_gradient_lstsq_general'), rng=np.random.default_rng(args.seed),
-            generations=args.generations or GENERATIONS, wide_bounds=args.wide_bounds,
-            max_coverage_condition=args.max_coverage_condition)
+            method.removesuffix('_general'),
+            g_measured,
+            b_reference,
+            geometry,
+            symmetric_k=(method != 'known_gradient_lstsq_general'),
+            rng=np.random.default_rng(args.seed),
+            generations=args.generations or GENERATIONS,
+            wide_bounds=args.wide_bounds,
+            max_coverage_condition=args.max_coverage_condition,
+        )
     except IdentifiabilityError as error:
-        raise IdentifiabilityError(f'the window ({window_text}, {len(stamps)} sets): {error}') from None
+        raise IdentifiabilityError(
+            f'the window ({window_text}, {len(stamps)} sets): {error}'
+        ) from None
     coverage = calibration.details['attitude_coverage_condition']
     record = CalibrationFile.from_calibration(calibration, geometry)
-    extra = {'bag': str(args.bag), 'window_s': window_text, 'sets_in_window': n_window, 'thinned_every': thinned,
-             'attitude_coverage_condition': coverage, 'read_span_s': span,
-             'non_finite_sets_skipped': non_finite}
+    extra = {
+        'bag': str(args.bag),
+        'window_s': window_text,
+        'sets_in_window': n_window,
+        'thinned_every': thinned,
+        'attitude_coverage_condition': coverage,
+        'read_span_s': span,
+        'non_finite_sets_skipped': non_finite,
+    }
     if method == 'paper_ga':
         extra['seed'] = args.seed
     record = dataclasses.replace(record, diagnostics={**record.diagnostics, **extra})
     save_calibration(args.out, record, force=args.force, inputs=inputs)
 
     summary = calibration.summary()
-    print(f'calibrated {args.bag}: method {method}, window {window_text} '
-          f'({n_window} sets{f", every {thinned}th used" if thinned > 1 else ""}; read {span:.1f} s of the bag; '
-          f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
-          f'{non_finite} sets with a non-finite reading skipped)')
-    print(f'  parameters {summary["n_parameters"]}, rank {summary["rank"]} '
-          f'(null space {summary["null_space_dim"]}), condition number {summary["condition_number"]:.3g}')
-    print(f'  residual RMS {summary["residual_rms_nT_per_m"]:.4g} nT/m, attitude coverage condition number '
-          f'{coverage:.3g}' + (f', sensor noise estimate {summary["sensor_noise_nT"]:.3g} nT'
-                               if 'sensor_noise_nT' in summary else ''))
+    print(
+        f'calibrated {args.bag}: method {method}, window {window_text} '
+        f'({n_window} sets{f", every {thinned}th used" if thinned > 1 else ""}; read {span:.1f} s of the bag; '
+        f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
+        f'{non_finite} sets with a non-finite reading skipped)'
+    )
+    print(
+        f'  parameters {summary["n_parameters"]}, rank {summary["rank"]} '
+        f'(null space {summary["null_space_dim"]}), condition number {summary["condition_number"]:.3g}'
+    )
+    print(
+        f'  residual RMS {summary["residual_rms_nT_per_m"]:.4g} nT/m, attitude coverage condition number '
+        f'{coverage:.3g}'
+        + (
+            f', sensor noise estimate {summary["sensor_noise_nT"]:.3g} nT'
+            if 'sensor_noise_nT' in summary
+            else ''
+        )
+    )
     if 'objective_final' in summary:
-        print(f'  GA objective {summary["objective_initial"]:.4g} -> {summary["objective_final"]:.4g} (T/m)^2 '
-              f'after {summary["generations"]} generations, seed {args.seed}')
+        print(
+            f'  GA objective {summary["objective_initial"]:.4g} -> {summary["objective_final"]:.4g} (T/m)^2 '
+            f'after {summary["generations"]} generations, seed {args.seed}'
+        )
     errors = getattr(calibration, 'standard_errors', None)
     n_k = calibration.n_parameters - 9
     parameters = calibration.parameters
     for pair in range(3):
-        line = (f'  K_{pair + 2}1 = {_format_matrix(parameters.k_soft[pair], "{:+.6f}")}   '
-                f'B_{pair + 2}1^h = [{" ".join(f"{v:+.3f}" for v in parameters.b_hard[pair] * NT_PER_T)}] nT')
+        line = (
+            f'  K_{pair + 2}1 = {_format_matrix(parameters.k_soft[pair], "{:+.6f}")}   '
+            f'B_{pair + 2}1^h = [{" ".join(f"{v:+.3f}" for v in parameters.b_hard[pair] * NT_PER_T)}] nT'
+        )
         if errors is not None:
-            b_err = errors[n_k + 3 * pair:n_k + 3 * pair + 3] * NT_PER_T
+            b_err = errors[n_k + 3 * pair : n_k + 3 * pair + 3] * NT_PER_T
             line += f' (+-{b_err.max():.2g})'
         print(line)
     if errors is not None:
-        print(f'  largest standard error: K {errors[:n_k].max():.2g}, B^h {errors[n_k:].max() * NT_PER_T:.2g} nT')
+        print(
+            f'  largest standard error: K {errors[:n_k].max():.2g}, B^h {errors[n_k:].max() * NT_PER_T:.2g} nT'
+        )
     print(f'wrote {args.out} in {time.perf_counter() - started:.1f} s')
     return 0

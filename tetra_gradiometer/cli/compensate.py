@@ -17,6 +17,7 @@ the input's storage) as ``/tetra/gradient/compensated`` (``/tetra/gradient/raw``
 ``--raw``): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp =
 the set's stamp (``conversions.tensor_msg``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,14 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import conversions as cv
 from ..core import compensate, difference_tensor
+from ..core.units import NT_PER_T
+from ..errors import InputError
+from ..io import conversions as cv
 from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, OutputError, atomic_output, check_output
 from ..io.params import geometry_from_params, load_params
-from ..core.units import NT_PER_T
-from ..errors import InputError
 
 CSV_HEADER = 'stamp_s,' + ','.join(cv.TENSOR_NAMES)
 COMPENSATED_TOPIC = f'{cv.NAMESPACE}/gradient/compensated'
@@ -43,20 +44,41 @@ RAW_TOPIC = f'{cv.NAMESPACE}/gradient/raw'
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) following the data contract')
     parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
-    parser.add_argument('--calibration', default=None, help='calibration YAML (from "calibrate"); '
-                        'required unless --raw')
+    parser.add_argument(
+        '--calibration',
+        default=None,
+        help='calibration YAML (from "calibrate"); required unless --raw',
+    )
     parser.add_argument('--csv', default=None, help='CSV to write (stamp_s + 9 components, nT/m)')
-    parser.add_argument('--raw', action='store_true', help='write the uncompensated tensor (eq. 7)')
-    parser.add_argument('--out-bag', default=None, help='also write the tensor topic into this new bag')
-    parser.add_argument('--force', action='store_true',
-                        help='replace a previous CSV at --csv and a previous bag of ours at --out-bag '
-                             '(anything else there is refused)')
-    parser.add_argument('--out-storage', choices=sorted(STORAGES), default=None,
-                        help="storage of --out-bag (default: the input's)")
-    parser.add_argument('--tolerance-ms', type=float, default=2.0,
-                        help='largest spread of the four header stamps in one set (default 2 ms)')
-    parser.add_argument('--generic-reader', action='store_true',
-                        help='decode with rosbags and match message by message (slower; same result)')
+    parser.add_argument(
+        '--raw', action='store_true', help='write the uncompensated tensor (eq. 7)'
+    )
+    parser.add_argument(
+        '--out-bag', default=None, help='also write the tensor topic into this new bag'
+    )
+    parser.add_argument(
+        '--force',
+        action='store_true',
+        help='replace a previous CSV at --csv and a previous bag of ours at --out-bag '
+        '(anything else there is refused)',
+    )
+    parser.add_argument(
+        '--out-storage',
+        choices=sorted(STORAGES),
+        default=None,
+        help="storage of --out-bag (default: the input's)",
+    )
+    parser.add_argument(
+        '--tolerance-ms',
+        type=float,
+        default=2.0,
+        help='largest spread of the four header stamps in one set (default 2 ms)',
+    )
+    parser.add_argument(
+        '--generic-reader',
+        action='store_true',
+        help='decode with rosbags and match message by message (slower; same result)',
+    )
     progress = parser.add_mutually_exclusive_group()
     progress.add_argument('--progress', dest='progress', action='store_true', default=None)
     progress.add_argument('--no-progress', dest='progress', action='store_false')
@@ -82,7 +104,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.raw and args.calibration is None:
         raise InputError('--calibration is required (or --raw for the uncompensated tensor)')
     inputs = tuple(p for p in (args.bag, args.params, args.calibration) if p is not None)
-    if args.csv is not None and args.out_bag is not None and Path(args.csv).resolve() == Path(args.out_bag).resolve():
+    if (
+        args.csv is not None
+        and args.out_bag is not None
+        and Path(args.csv).resolve() == Path(args.out_bag).resolve()
+    ):
         raise OutputError('--csv and --out-bag name the same path')
     # Refuse before any work: nothing is read or written when an output is not ours to replace.
     if args.csv is not None:
@@ -93,7 +119,9 @@ def run(args: argparse.Namespace) -> int:
     parameters = None
     if not args.raw:
         calibration = load_calibration(args.calibration)
-        check_positions(calibration, geometry, source=str(args.calibration), target=str(args.params))
+        check_positions(
+            calibration, geometry, source=str(args.calibration), target=str(args.params)
+        )
         parameters = calibration.parameters
     bag_path = Path(args.bag)
     topic = RAW_TOPIC if args.raw else COMPENSATED_TOPIC
@@ -104,15 +132,26 @@ def run(args: argparse.Namespace) -> int:
         bag.check_contract()
         handle = writer = None
         if args.csv is not None:
-            tmp = stack.enter_context(atomic_output(args.csv, CSV, force=args.force, inputs=inputs))
+            tmp = stack.enter_context(
+                atomic_output(args.csv, CSV, force=args.force, inputs=inputs)
+            )
             handle = stack.enter_context(open(tmp, 'w', encoding='ascii', newline='\n'))
             handle.write(CSV_HEADER + '\n')
         if args.out_bag is not None:
-            writer = stack.enter_context(BagWriter(
-                args.out_bag, storage=args.out_storage or _input_storage(bag_path), force=args.force,
-                inputs=inputs, command='compensate'))
-        for stamps, fields in bag.iter_sets(tolerance_s=args.tolerance_ms * 1e-3, progress=args.progress,
-                                              fast=not args.generic_reader):
+            writer = stack.enter_context(
+                BagWriter(
+                    args.out_bag,
+                    storage=args.out_storage or _input_storage(bag_path),
+                    force=args.force,
+                    inputs=inputs,
+                    command='compensate',
+                )
+            )
+        for stamps, fields in bag.iter_sets(
+            tolerance_s=args.tolerance_ms * 1e-3,
+            progress=args.progress,
+            fast=not args.generic_reader,
+        ):
             finite = np.isfinite(fields).all(axis=(1, 2))
             if not finite.all():  # a NaN/inf reading: drop the set, count it
                 non_finite += int((~finite).sum())
@@ -131,13 +170,17 @@ def run(args: argparse.Namespace) -> int:
             last = int(stamps[-1])
         counters = bag.counters
         if n_sets == 0:
-            raise BagError(f'{bag_path}: every matched set has a non-finite reading ({non_finite} sets)')
+            raise BagError(
+                f'{bag_path}: every matched set has a non-finite reading ({non_finite} sets)'
+            )
     elapsed = time.perf_counter() - started
     kind = 'raw' if args.raw else 'compensated'
-    print(f'{kind} {n_sets} sets from {bag_path} ({(last - first) * 1e-9:.1f} s of data; '
-          f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
-          f'{non_finite} sets with a non-finite reading skipped) '
-          f'in {elapsed:.1f} s ({n_sets / max(elapsed, 1e-9):.0f} sets/s)')
+    print(
+        f'{kind} {n_sets} sets from {bag_path} ({(last - first) * 1e-9:.1f} s of data; '
+        f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
+        f'{non_finite} sets with a non-finite reading skipped) '
+        f'in {elapsed:.1f} s ({n_sets / max(elapsed, 1e-9):.0f} sets/s)'
+    )
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m)')
     if args.out_bag is not None:

@@ -9,6 +9,7 @@ Prints progress and the calibration summary (with the error of the identified pa
 against the simulator's exact ones), saves ``DIR/norms.png`` (Frobenius norms, nT/m) and
 ends with one ``RESULT`` line computed from the collected topics.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,20 +21,29 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.units import NT_PER_T
 from ..io.outputs import DEMO, atomic_output, check_output
 from .node import PARAMS_HELP, ros_arguments
-from ..core.units import NT_PER_T
-
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', default='out/demo', help='output folder (default %(default)s)')
-    parser.add_argument('--force', action='store_true',
-                        help='replace a previous demo folder at --out (anything else there is refused)')
-    parser.add_argument('--rate', type=float, default=20.0,
-                        help='driver speed, multiple of real time (default %(default)s)')
-    parser.add_argument('--method', default='known_gradient_lstsq',
-                        choices=('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga'))
+    parser.add_argument(
+        '--force',
+        action='store_true',
+        help='replace a previous demo folder at --out (anything else there is refused)',
+    )
+    parser.add_argument(
+        '--rate',
+        type=float,
+        default=20.0,
+        help='driver speed, multiple of real time (default %(default)s)',
+    )
+    parser.add_argument(
+        '--method',
+        default='known_gradient_lstsq',
+        choices=('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga'),
+    )
     parser.add_argument('--params', default='', help=PARAMS_HELP)
 
 
@@ -58,26 +68,28 @@ def run(args: argparse.Namespace) -> int:
 def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
     """The demo, writing into ``out`` (the temporary folder that becomes ``final``)."""
     import rclpy
-    from rclpy.signals import SignalHandlerOptions
-
-    from ..nodes.common import interrupt_on_signals, stop_graph
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
 
     from ..core import summarize
     from ..io.calibration import load_calibration
     from ..nodes.calibrator import CalibratorNode
+    from ..nodes.common import interrupt_on_signals, stop_graph
     from ..nodes.compensator import CompensatorNode
     from ..nodes.driver import DriverNode
-    from ._probe import Probe
     from ..nodes.tensor import TensorNode
+    from ._probe import Probe
 
     calibration_file = (out / 'calibration.yaml').resolve()
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     domain = _domain()
     interrupt_on_signals()
-    rclpy.init(args=ros_arguments(args.params, ['--log-level', 'warn']), domain_id=domain,
-               signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C: KeyboardInterrupt, clean stop
+    rclpy.init(
+        args=ros_arguments(args.params, ['--log-level', 'warn']),
+        domain_id=domain,
+        signal_handler_options=SignalHandlerOptions.NO,
+    )  # Ctrl-C: KeyboardInterrupt, clean stop
     cal = [Parameter('calibration_file', value=str(calibration_file))]
     nodes: list = []
     # One thread: in rclpy the MultiThreadedExecutor lost ~25 % of the sets at 200 sets/s in
@@ -86,61 +98,92 @@ def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
     spinner = threading.Thread(target=executor.spin, daemon=True)
     started = time.monotonic()
     try:
-        nodes = [TensorNode(), CalibratorNode(parameter_overrides=cal + [Parameter('method', value=args.method)]),
-                 CompensatorNode(parameter_overrides=cal),
-                 DriverNode(parameter_overrides=[Parameter('mode', value='sim'), Parameter('rate', value=args.rate),
-                                                 Parameter('start_paused', value=True),
-                                                 Parameter('hold_between_segments', value=True),
-                                                 Parameter('min_subscribers', value=1)])]
+        nodes = [
+            TensorNode(),
+            CalibratorNode(parameter_overrides=cal + [Parameter('method', value=args.method)]),
+            CompensatorNode(parameter_overrides=cal),
+            DriverNode(
+                parameter_overrides=[
+                    Parameter('mode', value='sim'),
+                    Parameter('rate', value=args.rate),
+                    Parameter('start_paused', value=True),
+                    Parameter('hold_between_segments', value=True),
+                    Parameter('min_subscribers', value=1),
+                ]
+            ),
+        ]
         probe = Probe('demo')
         nodes.append(probe)
         for node in nodes:
             executor.add_node(node)
         spinner.start()
         driver = 'driver'
-        _say(f'demo: ROS_DOMAIN_ID {domain}; sim at {args.rate:g}x real time; '
-             f'{nodes[3].info["samples"]} samples ({nodes[3].info["segments"]})')
-        probe.wait_for(lambda: probe.status('tetra/compensator: compensation').get('compensating') == 'False',
-                       20, 'the compensator (uncompensated before any calibration)')
-        _say('demo: compensator up, uncompensated (no calibration yet): '
-             + probe.status('tetra/compensator: compensation')['message'][:100])
+        _say(
+            f'demo: ROS_DOMAIN_ID {domain}; sim at {args.rate:g}x real time; '
+            f'{nodes[3].info["samples"]} samples ({nodes[3].info["segments"]})'
+        )
+        probe.wait_for(
+            lambda: probe.status('tetra/compensator: compensation').get('compensating') == 'False',
+            20,
+            'the compensator (uncompensated before any calibration)',
+        )
+        _say(
+            'demo: compensator up, uncompensated (no calibration yet): '
+            + probe.status('tetra/compensator: compensation')['message'][:100]
+        )
 
         _say('demo: calibrator/start; trim manoeuvre 3 km from the target ...')
         _expect(probe.call('calibrator/start'))
         _expect(probe.call(f'{driver}/resume'))
-        _progress(probe, lambda: probe.status('tetra/driver: playback').get('state') == 'holding', 'trim')
+        _progress(
+            probe, lambda: probe.status('tetra/driver: playback').get('state') == 'holding', 'trim'
+        )
         _say(f'demo: calibrator/stop: {_expect(probe.call("calibrator/stop"))}')
         reply = probe.call('calibrator/calibrate', timeout_s=120)
         if not reply.success:
             _say(f'demo: calibration failed: {reply.message}')
             return 1
         _say(f'demo: calibrator/calibrate: {reply.message}')
-        probe.wait_for(lambda: probe.status('tetra/compensator: compensation').get('compensating') == 'True',
-                       20, 'the compensator to take the calibration')
+        probe.wait_for(
+            lambda: probe.status('tetra/compensator: compensation').get('compensating') == 'True',
+            20,
+            'the compensator to take the calibration',
+        )
         _summarise_calibration(load_calibration(calibration_file))
 
         _say('demo: survey pass over the dipole ...')
         with probe.lock:
             probe.collecting = True
         _expect(probe.call(f'{driver}/resume'))
-        _progress(probe, lambda: probe.status('tetra/driver: playback').get('state') == 'finished', 'survey')
+        _progress(
+            probe,
+            lambda: probe.status('tetra/driver: playback').get('state') == 'finished',
+            'survey',
+        )
         _settle(probe)
         stamps, g_raw, g_comp, g_true = probe.paired()
         if len(stamps) < 10:
             _say(f'demo: only {len(stamps)} survey samples arrived')
             return 1
         tensor_diag = probe.status('tetra/tensor: matching')
-        _say(f'demo: survey: {len(stamps)} samples compensated; tensor node: {tensor_diag.get("message")}, '
-             f'invalid sets {tensor_diag.get("sets_dropped_invalid")}, unmatched messages '
-             f'{tensor_diag.get("messages_dropped_unmatched")}')
+        _say(
+            f'demo: survey: {len(stamps)} samples compensated; tensor node: {tensor_diag.get("message")}, '
+            f'invalid sets {tensor_diag.get("sets_dropped_invalid")}, unmatched messages '
+            f'{tensor_diag.get("messages_dropped_unmatched")}'
+        )
         metrics = summarize(g_raw, g_comp, g_true)
         _say(f'demo: compensator running compensated_percent topic: {probe.percent:.4f} %')
         _plot(out / 'norms.png', stamps, g_raw, g_comp, g_true, metrics)
-        _say(f'demo: plot {final / "norms.png"}; calibration {final / "calibration.yaml"}; '
-             f'{time.monotonic() - started:.1f} s')
-        print(f'RESULT compensated_percent={metrics["compensated_percent"]:.4f} '
-              f'rms_residual_nT_per_m={metrics["rms_residual_nT_per_m"]:.4f} '
-              f'improvement_ratio={metrics["improvement_ratio"]:.2f}', flush=True)
+        _say(
+            f'demo: plot {final / "norms.png"}; calibration {final / "calibration.yaml"}; '
+            f'{time.monotonic() - started:.1f} s'
+        )
+        print(
+            f'RESULT compensated_percent={metrics["compensated_percent"]:.4f} '
+            f'rms_residual_nT_per_m={metrics["rms_residual_nT_per_m"]:.4f} '
+            f'improvement_ratio={metrics["improvement_ratio"]:.2f}',
+            flush=True,
+        )
         return 0
     except TimeoutError as error:
         print(f'error: {error}', file=sys.stderr)
@@ -180,39 +223,62 @@ def _progress(probe, done, label: str, timeout_s: float = 600.0) -> None:
 def _summarise_calibration(calibration) -> None:
     """Print the file's diagnostics and its error against the simulator's exact parameters."""
     from ..io.scenario import load_scenario_or_default
+
     scenario, _ = load_scenario_or_default()
     exact = scenario.interference.effective_parameters()
     d = calibration.diagnostics
     k_err = np.abs(calibration.parameters.k_soft - exact.k_soft).max()
     b_err = np.abs(calibration.parameters.b_hard - exact.b_hard).max() * NT_PER_T
-    _say(f'demo: calibration {calibration.method}: {d.get("n_samples")} samples, {d.get("n_parameters")} '
-         f'parameters, rank {d.get("rank")}, fit residual {d.get("residual_rms_nT_per_m", float("nan")):.3g} nT/m, '
-         f'estimated sensor noise {d.get("sensor_noise_nT", float("nan")):.3g} nT')
-    _say(f'demo: against the simulator: max |k error| {k_err:.2e} (largest |k| '
-         f'{np.abs(exact.k_soft).max():.2e}), max |b error| {b_err:.3g} nT (largest |b| '
-         f'{np.abs(exact.b_hard).max() * NT_PER_T:.3g} nT)')
+    _say(
+        f'demo: calibration {calibration.method}: {d.get("n_samples")} samples, {d.get("n_parameters")} '
+        f'parameters, rank {d.get("rank")}, fit residual {d.get("residual_rms_nT_per_m", float("nan")):.3g} nT/m, '
+        f'estimated sensor noise {d.get("sensor_noise_nT", float("nan")):.3g} nT'
+    )
+    _say(
+        f'demo: against the simulator: max |k error| {k_err:.2e} (largest |k| '
+        f'{np.abs(exact.k_soft).max():.2e}), max |b error| {b_err:.3g} nT (largest |b| '
+        f'{np.abs(exact.b_hard).max() * NT_PER_T:.3g} nT)'
+    )
 
 
-def _plot(path: Path, stamps: np.ndarray, g_raw: np.ndarray, g_comp: np.ndarray, g_true: np.ndarray,
-          metrics: dict) -> None:
+def _plot(
+    path: Path,
+    stamps: np.ndarray,
+    g_raw: np.ndarray,
+    g_comp: np.ndarray,
+    g_true: np.ndarray,
+    metrics: dict,
+) -> None:
     import matplotlib
+
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
     t = (stamps - stamps[0]) * 1e-9
-    norm = {name: np.linalg.norm(g, axis=(1, 2)) * NT_PER_T for name, g in
-            (('raw', g_raw), ('compensated', g_comp), ('true', g_true))}
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True,
-                                      gridspec_kw={'height_ratios': [2, 1]})
+    norm = {
+        name: np.linalg.norm(g, axis=(1, 2)) * NT_PER_T
+        for name, g in (('raw', g_raw), ('compensated', g_comp), ('true', g_true))
+    }
+    fig, (top, bottom) = plt.subplots(
+        2, 1, figsize=(9, 6.5), sharex=True, gridspec_kw={'height_ratios': [2, 1]}
+    )
     top.plot(t, norm['raw'], color='tab:red', lw=1.2, label='raw $G_m$ (eq. 7)')
     top.plot(t, norm['true'], color='black', lw=2.5, alpha=0.5, label='true (simulator)')
-    top.plot(t, norm['compensated'], color='tab:blue', lw=1.0, ls='--', label='compensated (eq. 19)')
+    top.plot(
+        t, norm['compensated'], color='tab:blue', lw=1.0, ls='--', label='compensated (eq. 19)'
+    )
     top.set_ylabel('Frobenius norm (nT/m)')
-    top.set_title(f'Survey pass over a dipole: {metrics["compensated_percent"]:.3f} % compensated (eq. 24), '
-                  f'RMS residual {metrics["rms_residual_nT_per_m"]:.2f} nT/m', fontsize=10)
+    top.set_title(
+        f'Survey pass over a dipole: {metrics["compensated_percent"]:.3f} % compensated (eq. 24), '
+        f'RMS residual {metrics["rms_residual_nT_per_m"]:.2f} nT/m',
+        fontsize=10,
+    )
     top.legend(loc='upper left')
     top.grid(alpha=0.3)
     bottom.plot(t, norm['raw'] - norm['true'], color='tab:red', lw=1, label='raw - true')
-    bottom.plot(t, norm['compensated'] - norm['true'], color='tab:blue', lw=1, label='compensated - true')
+    bottom.plot(
+        t, norm['compensated'] - norm['true'], color='tab:blue', lw=1, label='compensated - true'
+    )
     bottom.set_ylabel('norm error (nT/m)')
     bottom.set_xlabel('time along the survey line (s)')
     bottom.set_yscale('symlog', linthresh=1.0)

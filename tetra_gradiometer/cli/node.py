@@ -4,23 +4,30 @@
 Parameters come from the nodes' declared defaults, ``--params FILE``
 and any further ``--ros-args`` (e.g. ``-p rate:=10.0``, ``-r __ns:=/other``).
 """
+
 from __future__ import annotations
 
 import argparse
 import importlib
 
-
 NODES = ('driver', 'tensor', 'calibrator', 'compensator')
-PARAMS_HELP = ('ROS 2 parameter file (/**: ros__parameters:); default: none, every parameter at its '
-               "declared default (config/tetra_gradiometer.yaml lists them, installed to the package's "
-               'share directory)')
+PARAMS_HELP = (
+    'ROS 2 parameter file (/**: ros__parameters:); default: none, every parameter at its '
+    "declared default (config/tetra_gradiometer.yaml lists them, installed to the package's "
+    'share directory)'
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('name', choices=NODES, help='which node')
     parser.add_argument('--params', default='', help=PARAMS_HELP)
-    parser.add_argument('--ros-args', dest='ros_args', nargs=argparse.REMAINDER, default=[],
-                        help='further ROS arguments, e.g. --ros-args -p rate:=10.0')
+    parser.add_argument(
+        '--ros-args',
+        dest='ros_args',
+        nargs=argparse.REMAINDER,
+        default=[],
+        help='further ROS arguments, e.g. --ros-args -p rate:=10.0',
+    )
 
 
 def ros_arguments(params: str, extra: list[str]) -> list[str]:

@@ -7,6 +7,7 @@ in this process; ``--duration`` is seconds of *sample* time (so a recording is t
 whatever the rate). The bag is written to a temporary folder and renamed into place only
 when complete; the command fails if any message was lost.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,10 +22,10 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
+from ..errors import InputError
 from ..io import conversions as cv
 from ..nodes.common import NAMESPACE, derived_qos, sensor_qos
 from .node import PARAMS_HELP, ros_arguments
-from ..errors import InputError
 
 
 class Recorder(Node):
@@ -39,8 +40,12 @@ class Recorder(Node):
         self._types = types
         self.counts: dict[str, int] = {}
         for sensor, topic in enumerate(cv.MAG_TOPICS):
-            self.create_subscription(MagneticField, topic, lambda m, t=cv.BAG_MAG_TOPICS[sensor]: self._mag(t, m),
-                                     sensor_qos(1000))
+            self.create_subscription(
+                MagneticField,
+                topic,
+                lambda m, t=cv.BAG_MAG_TOPICS[sensor]: self._mag(t, m),
+                sensor_qos(1000),
+            )
         self.create_subscription(JointState, 'gradient/truth', self._truth, derived_qos(1000))
         self.create_subscription(Odometry, cv.ODOM_TOPIC, self._odom, derived_qos(1000))
 
@@ -50,44 +55,69 @@ class Recorder(Node):
 
     def _mag(self, topic: str, msg: MagneticField) -> None:
         stamp = cv.stamp_to_ns(msg.header.stamp)
-        self._write(topic, cv.magnetic_field_msg(self._types, cv.magnetic_field_vector(msg), stamp,
-                                                 msg.header.frame_id), stamp)
+        self._write(
+            topic,
+            cv.magnetic_field_msg(
+                self._types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id
+            ),
+            stamp,
+        )
 
     def _truth(self, msg: JointState) -> None:
         stamp = cv.stamp_to_ns(msg.header.stamp)
-        self._write(f'{NAMESPACE}/gradient/truth', cv.tensor_msg(self._types, cv.tensor_from_msg(msg), stamp), stamp)
+        self._write(
+            f'{NAMESPACE}/gradient/truth',
+            cv.tensor_msg(self._types, cv.tensor_from_msg(msg), stamp),
+            stamp,
+        )
 
     def _odom(self, msg: Odometry) -> None:
         stamp = cv.stamp_to_ns(msg.header.stamp)
         p = msg.pose.pose.position
-        self._write(cv.ODOM_TOPIC, cv.odometry_msg(self._types, np.array([p.x, p.y, p.z]),
-                                                   cv.odometry_orientation(msg), stamp,
-                                                   frame_id=msg.header.frame_id,
-                                                   child_frame_id=msg.child_frame_id), stamp)
+        self._write(
+            cv.ODOM_TOPIC,
+            cv.odometry_msg(
+                self._types,
+                np.array([p.x, p.y, p.z]),
+                cv.odometry_orientation(msg),
+                stamp,
+                frame_id=msg.header.frame_id,
+                child_frame_id=msg.child_frame_id,
+            ),
+            stamp,
+        )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', required=True, help='rosbag2 folder to write')
-    parser.add_argument('--force', action='store_true',
-                        help='replace a previous bag of ours at --out (anything else there is refused)')
-    parser.add_argument('--duration', type=float, required=True, help='seconds of sample time to record')
+    parser.add_argument(
+        '--force',
+        action='store_true',
+        help='replace a previous bag of ours at --out (anything else there is refused)',
+    )
+    parser.add_argument(
+        '--duration', type=float, required=True, help='seconds of sample time to record'
+    )
     parser.add_argument('--scenario', default='', help='scenario YAML (default: the built-in one)')
-    parser.add_argument('--seed', type=int, default=-1, help="noise seed (default: the scenario's)")
-    parser.add_argument('--rate', type=float, default=10.0, help='driver speed, x real time (default %(default)s)')
+    parser.add_argument(
+        '--seed', type=int, default=-1, help="noise seed (default: the scenario's)"
+    )
+    parser.add_argument(
+        '--rate', type=float, default=10.0, help='driver speed, x real time (default %(default)s)'
+    )
     parser.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
     parser.add_argument('--params', default='', help=PARAMS_HELP)
 
 
 def run(args: argparse.Namespace) -> int:
     import rclpy
-    from rclpy.signals import SignalHandlerOptions
-
-    from ..nodes.common import interrupt_on_signals, stop_graph
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
 
     from ..io.bag import BagWriter
     from ..io.outputs import BAG, check_output
+    from ..nodes.common import interrupt_on_signals, stop_graph
     from ..nodes.driver import DriverNode
     from ._probe import Probe
 
@@ -98,19 +128,30 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     domain = int(os.environ.get('ROS_DOMAIN_ID') or 1 + os.getpid() % 100)
     interrupt_on_signals()
-    rclpy.init(args=ros_arguments(args.params, ['--log-level', 'warn']), domain_id=domain,
-               signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C: KeyboardInterrupt, clean stop
+    rclpy.init(
+        args=ros_arguments(args.params, ['--log-level', 'warn']),
+        domain_id=domain,
+        signal_handler_options=SignalHandlerOptions.NO,
+    )  # Ctrl-C: KeyboardInterrupt, clean stop
     nodes: list[Node] = []
     executor = SingleThreadedExecutor()
     spinner = threading.Thread(target=executor.spin, daemon=True)
     try:
-        with BagWriter(args.out, storage=args.storage, force=args.force, inputs=inputs,
-                       command='record') as writer:
-            driver = DriverNode(parameter_overrides=[
-                Parameter('mode', value='sim'), Parameter('rate', value=float(args.rate)),
-                Parameter('start_paused', value=True), Parameter('max_duration_s', value=float(args.duration)),
-                Parameter('scenario', value=os.path.abspath(args.scenario) if args.scenario else ''),
-                Parameter('seed', value=int(args.seed))])
+        with BagWriter(
+            args.out, storage=args.storage, force=args.force, inputs=inputs, command='record'
+        ) as writer:
+            driver = DriverNode(
+                parameter_overrides=[
+                    Parameter('mode', value='sim'),
+                    Parameter('rate', value=float(args.rate)),
+                    Parameter('start_paused', value=True),
+                    Parameter('max_duration_s', value=float(args.duration)),
+                    Parameter(
+                        'scenario', value=os.path.abspath(args.scenario) if args.scenario else ''
+                    ),
+                    Parameter('seed', value=int(args.seed)),
+                ]
+            )
             recorder = Recorder(writer.types)
             operator = Probe('record_operator')
             nodes = [driver, recorder, operator]
@@ -118,8 +159,12 @@ def run(args: argparse.Namespace) -> int:
                 executor.add_node(node)
             spinner.start()
             topics = [*cv.MAG_TOPICS, 'gradient/truth']
-            operator.wait_for(lambda: all(recorder.count_publishers(t) for t in topics)
-                              and recorder.count_publishers(cv.ODOM_TOPIC), 20, 'the driver')
+            operator.wait_for(
+                lambda: all(recorder.count_publishers(t) for t in topics)
+                and recorder.count_publishers(cv.ODOM_TOPIC),
+                20,
+                'the driver',
+            )
             time.sleep(0.5)
             operator.call('driver/resume')
             quiet_since = None
@@ -138,12 +183,16 @@ def run(args: argparse.Namespace) -> int:
             while not recorder.queue.empty():  # callbacks may have queued more before the stop
                 writer.write(*recorder.queue.get_nowait())
             expected = driver.sets_published
-            lost = {t: expected - recorder.counts.get(t, 0) for t in [*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC,
-                                                                      f'{NAMESPACE}/gradient/truth']}
+            lost = {
+                t: expected - recorder.counts.get(t, 0)
+                for t in [*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC, f'{NAMESPACE}/gradient/truth']
+            }
             if any(lost.values()):
                 raise OSError(f'messages were lost while recording: {lost}')
-        print(f'record: {args.out}: {expected} sets ({expected / driver.info["sample_rate_hz"]:g} s) of '
-              f'{", ".join(sorted(recorder.counts))} ({args.storage})')
+        print(
+            f'record: {args.out}: {expected} sets ({expected / driver.info["sample_rate_hz"]:g} s) of '
+            f'{", ".join(sorted(recorder.counts))} ({args.storage})'
+        )
         return 0
     except TimeoutError as error:
         raise OSError(str(error)) from None

@@ -1,7 +1,9 @@
 """Boundary checks shared by the core: shapes and finiteness, with messages that say where."""
+
 from __future__ import annotations
 
 import numpy as np
+
 from ..errors import InputError
 
 
@@ -17,7 +19,11 @@ def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndar
     if array.ndim != len(shape) or any(
         want is not None and have != want for have, want in zip(array.shape, shape)
     ):
-        want = '(' + ', '.join('N' if s is None else str(s) for s in shape) + (',)' if len(shape) == 1 else ')')
+        want = (
+            '('
+            + ', '.join('N' if s is None else str(s) for s in shape)
+            + (',)' if len(shape) == 1 else ')')
+        )
         raise InputError(f'{name} must have shape {want}, got {array.shape}')
     if not np.all(np.isfinite(array)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])

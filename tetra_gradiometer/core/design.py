@@ -4,6 +4,7 @@
 is laid out as in :mod:`tetra_gradiometer.core.model`. Solvers in
 :mod:`tetra_gradiometer.core.identification` take these matrices; nothing here solves.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +23,9 @@ CONSTRAINT_ROWS[3, [0, 4, 8]] = 1.0
 del _row, _i, _j
 
 
-def interference_design(b_reference: object, geometry: TetraGeometry, *, symmetric: bool) -> np.ndarray:
+def interference_design(
+    b_reference: object, geometry: TetraGeometry, *, symmetric: bool
+) -> np.ndarray:
     """Per-sample design ``A_n`` with ``vec(D_n) = A_n theta`` (eq. 18).
 
     Parameters
@@ -58,7 +61,12 @@ def constraint_residual(g: np.ndarray) -> np.ndarray:
     return g.reshape(len(g), 9) @ CONSTRAINT_ROWS.T
 
 
-def constraint_design(b_reference: object, geometry: TetraGeometry, *, symmetric: bool) -> np.ndarray:
+def constraint_design(
+    b_reference: object, geometry: TetraGeometry, *, symmetric: bool
+) -> np.ndarray:
     """Design of eq. 21: ``L vec(D_n)``, shape (N, 4, P); the target is ``L vec(G_m,n)``."""
-    return np.einsum('kq,nqp->nkp', CONSTRAINT_ROWS, interference_design(b_reference, geometry,
-                                                                         symmetric=symmetric))
+    return np.einsum(
+        'kq,nqp->nkp',
+        CONSTRAINT_ROWS,
+        interference_design(b_reference, geometry, symmetric=symmetric),
+    )

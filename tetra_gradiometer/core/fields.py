@@ -1,10 +1,11 @@
 """Source fields: point magnetic dipole (field and exact gradient) and a uniform field."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from ._validate import as_array, as_vectors
 from ..errors import InputError
+from ._validate import as_array, as_vectors
 
 #: mu_0 / (4 pi), T m / A.
 MU0_OVER_4PI = 1.0e-7
@@ -70,8 +71,10 @@ def dipole_gradient(points: object, moment: object, source: object) -> np.ndarra
     m_dot_r = r @ moment
     inv5 = 1.0 / distance**5
     outer_rm = r[:, :, None] * moment[None, None, :]
-    gradient = 3.0 * inv5[:, None, None] * (
-        m_dot_r[:, None, None] * np.eye(3)[None] + outer_rm + np.swapaxes(outer_rm, 1, 2)
+    gradient = (
+        3.0
+        * inv5[:, None, None]
+        * (m_dot_r[:, None, None] * np.eye(3)[None] + outer_rm + np.swapaxes(outer_rm, 1, 2))
     )
     gradient -= (15.0 * m_dot_r / distance**7)[:, None, None] * (r[:, :, None] * r[:, None, :])
     return MU0_OVER_4PI * gradient

@@ -2,20 +2,19 @@
 
 Convention (eq. 1): ``G[i, j] = dB_i / dx_j``. Sensor 1 (index 0) is the reference.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._validate import as_fields, frozen_array
 from ..errors import GeometryError
+from ._validate import as_fields, frozen_array
 
 #: Largest condition number of ``a`` accepted by default. A regular tetrahedron has 2;
 #: noise on the tensor grows with cond(a), and past ~1e3 the array is nearly flat.
 MAX_CONDITION = 1.0e3
-
-
 
 
 @dataclass(frozen=True)
@@ -62,12 +61,14 @@ class TetraGeometry:
         """Regular tetrahedron of ``edge`` metres, sensor 1 at the origin, base in the x-y plane."""
         if not edge > 0:
             raise GeometryError(f'edge must be positive, got {edge}')
-        unit = np.array([
-            [0.0, 0.0, 0.0],
-            [1.0, 0.0, 0.0],
-            [0.5, np.sqrt(3) / 2, 0.0],
-            [0.5, np.sqrt(3) / 6, np.sqrt(2.0 / 3.0)],
-        ])
+        unit = np.array(
+            [
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [0.5, np.sqrt(3) / 2, 0.0],
+                [0.5, np.sqrt(3) / 6, np.sqrt(2.0 / 3.0)],
+            ]
+        )
         return cls(unit * edge)
 
     @classmethod
@@ -75,7 +76,9 @@ class TetraGeometry:
         """From the 12-float ``sensor_positions`` parameter (x1 y1 z1 x2 ... z4, metres)."""
         flat = np.asarray(values, dtype=float).ravel()
         if flat.size != 12:
-            raise GeometryError(f'sensor_positions must hold 12 floats (4 sensors x 3), got {flat.size}')
+            raise GeometryError(
+                f'sensor_positions must hold 12 floats (4 sensors x 3), got {flat.size}'
+            )
         return cls(flat.reshape(4, 3))
 
     @property

@@ -3,13 +3,14 @@
 ``epsilon`` is the paper's (eq. 24); it compares Frobenius norms only, so direction errors
 cancel. Beside it: the RMS of the component residual and the improvement ratio.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError
 from ._validate import as_tensors, same_length
 from .geometry import TetraGeometry
-from ..errors import InputError
 
 
 def _checked(**tensors: object) -> dict[str, np.ndarray]:

@@ -11,15 +11,16 @@ Parameter vector layouts (``to_vector``/``from_vector``), SI units:
   ``(xx, xy, xz, yy, yz, zz)`` (dimensionless), then ``B_21^h, B_31^h, B_41^h`` (tesla);
 * general (36): ``K_21, K_31, K_41`` as 9 entries each, row-major, then the same 9 offsets.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InputError
 from ._validate import as_array, as_fields, as_tensors, as_vectors, frozen_array, same_length
 from .geometry import TetraGeometry, difference_tensor
-from ..errors import InputError
 
 #: Index pairs of the 6 unique entries of a symmetric 3x3 matrix, in vector order.
 SYMMETRIC_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -82,7 +83,9 @@ class InterferenceParameters:
         """
         if symmetric:
             if not self.is_symmetric:
-                raise InputError('k_soft is not symmetric: pack it with symmetric=False (36 parameters)')
+                raise InputError(
+                    'k_soft is not symmetric: pack it with symmetric=False (36 parameters)'
+                )
             k_part = np.concatenate([[k[r, c] for r, c in SYMMETRIC_ENTRIES] for k in self.k_soft])
         else:
             k_part = self.k_soft.reshape(-1)
@@ -148,7 +151,9 @@ class SensorInterference:
 
     def pair_parameters(self) -> InterferenceParameters:
         """``K_i1 = K_i - K_1``, ``B_i1^h = B_i^h - B_1^h`` (eq. 11): exact when sensor 1 is clean."""
-        return InterferenceParameters(self.k_soft[1:] - self.k_soft[0], self.b_hard[1:] - self.b_hard[0])
+        return InterferenceParameters(
+            self.k_soft[1:] - self.k_soft[0], self.b_hard[1:] - self.b_hard[0]
+        )
 
     def effective_parameters(self) -> InterferenceParameters:
         """Exact compensation parameters for the model ``B^b = B_1'`` (eq. 14).
@@ -165,8 +170,9 @@ class SensorInterference:
         return InterferenceParameters(k_effective, b_effective)
 
 
-def interference_tensor(b_reference: object, parameters: InterferenceParameters,
-                        geometry: TetraGeometry) -> np.ndarray:
+def interference_tensor(
+    b_reference: object, parameters: InterferenceParameters, geometry: TetraGeometry
+) -> np.ndarray:
     """Interference on the tensor, ``D = (k B_1m + b) a^-1`` (eq. 18).
 
     Parameters
@@ -187,8 +193,12 @@ def interference_tensor(b_reference: object, parameters: InterferenceParameters,
     return columns @ geometry.a_inv
 
 
-def compensate(g_measured: object, b_reference: object, parameters: InterferenceParameters,
-               geometry: TetraGeometry) -> np.ndarray:
+def compensate(
+    g_measured: object,
+    b_reference: object,
+    parameters: InterferenceParameters,
+    geometry: TetraGeometry,
+) -> np.ndarray:
     """Compensated tensor ``G = G_m - D`` (eq. 19).
 
     Parameters
@@ -211,8 +221,9 @@ def compensate(g_measured: object, b_reference: object, parameters: Interference
     return g_measured - interference_tensor(b_reference, parameters, geometry)
 
 
-def compensate_fields(fields_measured: object, parameters: InterferenceParameters,
-                      geometry: TetraGeometry) -> np.ndarray:
+def compensate_fields(
+    fields_measured: object, parameters: InterferenceParameters, geometry: TetraGeometry
+) -> np.ndarray:
     """Eq. 7 then eq. 19 on raw readings, shape (N, 4, 3) tesla -> (N, 3, 3) T/m."""
     fields_measured = as_fields(fields_measured, 'fields_measured')
     g_measured = difference_tensor(fields_measured, geometry)

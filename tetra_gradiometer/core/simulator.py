@@ -13,19 +13,20 @@ Truth: ``g_true`` is eq. 7 applied to the clean, noise-free fields (what a perfe
 instrument of this geometry reads: the compensation target); ``g_analytic`` is the exact
 gradient at the array centroid (it differs from ``g_true`` by the differencing truncation).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..errors import InputError
 from ._validate import frozen_array
 from .fields import dipole_field, dipole_gradient, uniform_field
 from .geometry import TetraGeometry, difference_tensor
 from .model import SensorInterference
-from ..errors import InputError
 
 _DERIVATIVE_STEP_S = 1.0e-3
 
@@ -68,8 +69,13 @@ class TrimManoeuvre:
     speed_m_s: float = 1.0
 
     def __post_init__(self) -> None:
-        _require_positive('TrimManoeuvre', duration_s=self.duration_s, roll_period_s=self.roll_period_s,
-                          pitch_period_s=self.pitch_period_s, speed_m_s=self.speed_m_s)
+        _require_positive(
+            'TrimManoeuvre',
+            duration_s=self.duration_s,
+            roll_period_s=self.roll_period_s,
+            pitch_period_s=self.pitch_period_s,
+            speed_m_s=self.speed_m_s,
+        )
 
     def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position (N, 3) m and (yaw, pitch, roll) (N, 3) rad at segment-local times (s)."""
@@ -99,8 +105,12 @@ class SurveyLine:
     sway_period_s: float = 9.0
 
     def __post_init__(self) -> None:
-        _require_positive('SurveyLine', speed_m_s=self.speed_m_s, sway_period_s=self.sway_period_s,
-                          length_m=float(np.linalg.norm(np.subtract(self.end, self.start))))
+        _require_positive(
+            'SurveyLine',
+            speed_m_s=self.speed_m_s,
+            sway_period_s=self.sway_period_s,
+            length_m=float(np.linalg.norm(np.subtract(self.end, self.start))),
+        )
 
     @property
     def duration_s(self) -> float:
@@ -130,8 +140,11 @@ class TemperatureProfile:
     period_s: float = 437.0
 
     def __call__(self, t: np.ndarray, duration_s: float) -> np.ndarray:
-        return (self.mean_c + self.ramp_c * t / max(duration_s, 1e-9)
-                + self.amplitude_c * np.sin(2 * np.pi * t / self.period_s))
+        return (
+            self.mean_c
+            + self.ramp_c * t / max(duration_s, 1e-9)
+            + self.amplitude_c * np.sin(2 * np.pi * t / self.period_s)
+        )
 
 
 @dataclass(frozen=True)
@@ -169,8 +182,13 @@ class Effects:
     vehicle_current: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        shapes = {'eddy_current': (4, 3, 3), 'sensor_misalignment': (4, 3), 'time_skew_s': (4,),
-                  'thermal_drift': (4, 3), 'vehicle_current': (4, 3)}
+        shapes = {
+            'eddy_current': (4, 3, 3),
+            'sensor_misalignment': (4, 3),
+            'time_skew_s': (4,),
+            'thermal_drift': (4, 3),
+            'vehicle_current': (4, 3),
+        }
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None:
@@ -178,8 +196,17 @@ class Effects:
 
     def active(self) -> list[str]:
         """Names of the effects that are switched on."""
-        return [name for name in ('eddy_current', 'sensor_misalignment', 'time_skew_s',
-                                  'thermal_drift', 'vehicle_current') if getattr(self, name) is not None]
+        return [
+            name
+            for name in (
+                'eddy_current',
+                'sensor_misalignment',
+                'time_skew_s',
+                'thermal_drift',
+                'vehicle_current',
+            )
+            if getattr(self, name) is not None
+        ]
 
 
 @dataclass(frozen=True)
@@ -214,7 +241,9 @@ class Scenario:
     current: CurrentProfile = field(default_factory=CurrentProfile)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, 'earth_field_enu', frozen_array(self.earth_field_enu, 'earth_field_enu', (3,)))
+        object.__setattr__(
+            self, 'earth_field_enu', frozen_array(self.earth_field_enu, 'earth_field_enu', (3,))
+        )
         object.__setattr__(self, 'segments', tuple(self.segments))
         object.__setattr__(self, 'dipoles', tuple(self.dipoles))
         if not self.segments:
@@ -265,7 +294,9 @@ class MissionData:
 
     def select(self, mask: np.ndarray) -> MissionData:
         """The samples where ``mask`` (bool (N,) or indices) selects."""
-        return MissionData(**{name: getattr(self, name)[mask] for name in self.__dataclass_fields__})
+        return MissionData(
+            **{name: getattr(self, name)[mask] for name in self.__dataclass_fields__}
+        )
 
 
 def _segment_index(scenario: Scenario, t: np.ndarray) -> np.ndarray:
@@ -274,8 +305,9 @@ def _segment_index(scenario: Scenario, t: np.ndarray) -> np.ndarray:
     return np.clip(np.searchsorted(starts, t, side='right') - 1, 0, len(scenario.segments) - 1)
 
 
-def _pose(scenario: Scenario, t: np.ndarray,
-          index: np.ndarray | None = None) -> tuple[np.ndarray, Rotation, np.ndarray]:
+def _pose(
+    scenario: Scenario, t: np.ndarray, index: np.ndarray | None = None
+) -> tuple[np.ndarray, Rotation, np.ndarray]:
     """Position (N, 3), attitude, and segment index at absolute times ``t`` (s).
 
     ``index`` forces the segment of each time (a segment's pose is smooth past its ends),
@@ -299,8 +331,9 @@ def _world_field(scenario: Scenario, points: np.ndarray) -> np.ndarray:
     return total
 
 
-def _clean_fields(scenario: Scenario, t: np.ndarray,
-                  index: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Rotation, np.ndarray]:
+def _clean_fields(
+    scenario: Scenario, t: np.ndarray, index: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, Rotation, np.ndarray]:
     """Clean body-frame readings (N, 4, 3) T at times ``t``, plus position, attitude, segment."""
     position, attitude, index = _pose(scenario, t, index)
     n = len(t)
@@ -311,15 +344,23 @@ def _clean_fields(scenario: Scenario, t: np.ndarray,
     return body, position, attitude, index
 
 
-def _current_function(scenario: Scenario, rng: np.random.Generator) -> Callable[[np.ndarray], np.ndarray]:
+def _current_function(
+    scenario: Scenario, rng: np.random.Generator
+) -> Callable[[np.ndarray], np.ndarray]:
     profile = scenario.current
-    knots = np.arange(0.0, scenario.duration_s + 2 * profile.step_s, profile.step_s) - profile.step_s
+    knots = (
+        np.arange(0.0, scenario.duration_s + 2 * profile.step_s, profile.step_s) - profile.step_s
+    )
     levels = profile.base_a + profile.step_amplitude_a * rng.uniform(-1.0, 1.0, len(knots))
     return lambda t: np.interp(t, knots, levels)
 
 
-def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray], np.ndarray],
-              index: np.ndarray | None = None) -> np.ndarray:
+def _readings(
+    scenario: Scenario,
+    t: np.ndarray,
+    current: Callable[[np.ndarray], np.ndarray],
+    index: np.ndarray | None = None,
+) -> np.ndarray:
     """Noise-free measured readings (N, 4, 3) T at times ``t`` (on segments ``index``, default
     the segments flown at ``t``): interference and effects."""
     if index is None:
@@ -332,8 +373,10 @@ def _readings(scenario: Scenario, t: np.ndarray, current: Callable[[np.ndarray],
         step = _DERIVATIVE_STEP_S
         # Within the segment of each sample: segments join with a jump in pose, and a
         # difference across the join would read it as a huge dB/dt.
-        rate = (_clean_fields(scenario, t + step, index)[0][:, 0]
-                - _clean_fields(scenario, t - step, index)[0][:, 0]) / (2 * step)
+        rate = (
+            _clean_fields(scenario, t + step, index)[0][:, 0]
+            - _clean_fields(scenario, t - step, index)[0][:, 0]
+        ) / (2 * step)
         readings += np.einsum('sij,nj->nsi', effects.eddy_current, rate)
     if effects.thermal_drift is not None:
         excess = scenario.temperature(t, scenario.duration_s) - scenario.temperature.mean_c
@@ -356,7 +399,9 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     rng : numpy.random.Generator
         Source of the noise and the current profile.
     """
-    n = int(np.floor(scenario.duration_s * scenario.sample_rate_hz + 1e-9))  # 4.35 s x 100 Hz = 435
+    n = int(
+        np.floor(scenario.duration_s * scenario.sample_rate_hz + 1e-9)
+    )  # 4.35 s x 100 Hz = 435
     if n < 1:
         raise InputError('the scenario is shorter than one sample period')
     t = np.arange(n) / scenario.sample_rate_hz
@@ -376,16 +421,27 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
         g_world += dipole_gradient(centroid_world, dipole.moment, dipole.position)
     rot = attitude.as_matrix()
     return MissionData(
-        t=t, segment=index, position_enu=position, orientation_xyzw=attitude.as_quat(),
-        b_background=fields_true[:, 0, :].copy(), fields_true=fields_true, fields_measured=measured,
+        t=t,
+        segment=index,
+        position_enu=position,
+        orientation_xyzw=attitude.as_quat(),
+        b_background=fields_true[:, 0, :].copy(),
+        fields_true=fields_true,
+        fields_measured=measured,
         g_true=difference_tensor(fields_true, scenario.geometry),
         g_analytic=np.einsum('nji,njk,nkl->nil', rot, g_world, rot),
-        temperature_c=scenario.temperature(t, scenario.duration_s), current_a=current(t),
+        temperature_c=scenario.temperature(t, scenario.duration_s),
+        current_a=current(t),
     )
 
 
-def random_interference(rng: np.random.Generator, *, k_scale: float = 5e-3, b_scale_t: float = 150e-9,
-                        reference_clean: bool = True) -> SensorInterference:
+def random_interference(
+    rng: np.random.Generator,
+    *,
+    k_scale: float = 5e-3,
+    b_scale_t: float = 150e-9,
+    reference_clean: bool = True,
+) -> SensorInterference:
     """Symmetric soft iron with entries uniform in ``±k_scale`` and hard iron uniform in
     ``±b_scale_t`` (tesla) per sensor; sensor 1 zero when ``reference_clean``."""
     k = rng.uniform(-k_scale, k_scale, (4, 3, 3))

@@ -7,8 +7,18 @@ a library of candidates, add it, and show the held-out gap shrink to the noise f
 ``report.md`` and the plots.
 The command line is ``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR``.
 """
+
 from .analysis import BASE_MODEL, Report, Settings, Step, analyze, criterion_text
 from .effects import CANDIDATES, LIBRARY, Candidate
 
-__all__ = ['BASE_MODEL', 'CANDIDATES', 'Candidate', 'LIBRARY', 'Report', 'Settings', 'Step', 'analyze',
-           'criterion_text']
+__all__ = [
+    'BASE_MODEL',
+    'CANDIDATES',
+    'Candidate',
+    'LIBRARY',
+    'Report',
+    'Settings',
+    'Step',
+    'analyze',
+    'criterion_text',
+]

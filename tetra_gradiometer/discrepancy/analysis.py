@@ -35,6 +35,7 @@ parameters and a lower CV-BIC). The loop stops when no unit passes. The ``ln n``
 per parameter is what makes a one-parameter delay win over a nine-parameter eddy term that
 explains the same.
 """
+
 from __future__ import annotations
 
 import time
@@ -47,13 +48,15 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 from ..core.model import SYMMETRIC_ENTRIES
-from .effects import CANDIDATES, LIBRARY, Candidate, Context, PiecewiseSpline
 from ..errors import InputError
+from .effects import CANDIDATES, LIBRARY, Candidate, Context, PiecewiseSpline
 
 NT_PER_T = 1e9
 
-BASE_MODEL = ("Yu et al. 2014 eq. 10: B_i' = B_i + K_i B^b + B_i^h, symmetric K_i, constant B_i^h, "
-              "sensor 1 clean (K_1 = 0, B_1^h = 0)")
+BASE_MODEL = (
+    "Yu et al. 2014 eq. 10: B_i' = B_i + K_i B^b + B_i^h, symmetric K_i, constant B_i^h, "
+    'sensor 1 clean (K_1 = 0, B_1^h = 0)'
+)
 
 
 @dataclass(frozen=True)
@@ -114,9 +117,17 @@ class Step:
     p_value: float
 
     def to_dict(self) -> dict[str, Any]:
-        return {'effect': self.effect, 'gap_before_nT': self.gap_before_nT, 'gap_after_nT': self.gap_after_nT,
-                'parameters': self.parameters, 'evidence': self.evidence, 'n_parameters': self.n_parameters,
-                'delta_bic': self.delta_bic, 'f_statistic': self.f_statistic, 'p_value': self.p_value}
+        return {
+            'effect': self.effect,
+            'gap_before_nT': self.gap_before_nT,
+            'gap_after_nT': self.gap_after_nT,
+            'parameters': self.parameters,
+            'evidence': self.evidence,
+            'n_parameters': self.n_parameters,
+            'delta_bic': self.delta_bic,
+            'f_statistic': self.f_statistic,
+            'p_value': self.p_value,
+        }
 
 
 @dataclass
@@ -167,13 +178,15 @@ class Report:
 
 def criterion_text(settings: Settings | None = None) -> str:
     s = settings or Settings()
-    return ('Blocked %d-fold cross-validation; per unit (family x sensor), the one with the lowest '
-            'CV-BIC n ln(SS_cv/n) + p ln n (p: identifiable parameters) is added when its CV-BIC is lower than the current model\'s, '
-            'the held-out F-test of its parameters gives p < %g, and it explains at least (%g x noise floor)^2 '
-            'of the held-out mean square of its own sensor; the step extends the family to the other sensors '
-            'that pass; named units are re-checked every round (removed when no longer needed, replaced by a '
-            'unit of another family with no more parameters and a lower CV-BIC); the loop stops when no unit '
-            'passes.' % (s.n_folds, s.alpha, s.relevance))
+    return (
+        'Blocked %d-fold cross-validation; per unit (family x sensor), the one with the lowest '
+        "CV-BIC n ln(SS_cv/n) + p ln n (p: identifiable parameters) is added when its CV-BIC is lower than the current model's, "
+        'the held-out F-test of its parameters gives p < %g, and it explains at least (%g x noise floor)^2 '
+        'of the held-out mean square of its own sensor; the step extends the family to the other sensors '
+        'that pass; named units are re-checked every round (removed when no longer needed, replaced by a '
+        'unit of another family with no more parameters and a lower CV-BIC); the loop stops when no unit '
+        'passes.' % (s.n_folds, s.alpha, s.relevance)
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -183,25 +196,26 @@ def criterion_text(settings: Settings | None = None) -> str:
 @dataclass
 class _Prepared:
     t: np.ndarray
-    fields: np.ndarray          # (N, 4, 3) nT
+    fields: np.ndarray  # (N, 4, 3) nT
     sensors: tuple[int, ...]
     absolute: bool
-    base_offset: np.ndarray     # (N, 4, 3) nT, the fixed part of the prediction
-    b_background: np.ndarray    # (N, 3) nT
-    b_rate: np.ndarray          # (N, 3) nT/s
-    base_cols: np.ndarray       # (N, 4, 3, pb)
+    base_offset: np.ndarray  # (N, 4, 3) nT, the fixed part of the prediction
+    b_background: np.ndarray  # (N, 3) nT
+    b_rate: np.ndarray  # (N, 3) nT/s
+    base_cols: np.ndarray  # (N, 4, 3, pb)
     base_labels: list[tuple[int, str]]
     temperature_c: np.ndarray | None
     current_a: np.ndarray | None
     attitude: np.ndarray | None  # (N, 3) yaw, pitch, roll deg
     earth_field_nT: np.ndarray | None
     notes: list[str]
-    piece: np.ndarray            # (N,) index of the continuous piece of the run
+    piece: np.ndarray  # (N,) index of the continuous piece of the run
     rotation: np.ndarray | None  # (N, 3, 3) body -> ENU
 
 
-def _sym_columns(cols: np.ndarray, sensor: int, start: int, b: np.ndarray,
-                 labels: list[tuple[int, str]]) -> int:
+def _sym_columns(
+    cols: np.ndarray, sensor: int, start: int, b: np.ndarray, labels: list[tuple[int, str]]
+) -> int:
     """Symmetric K (6) and hard iron (3) columns of ``sensor`` from ``start``."""
     k = start
     for r, c in SYMMETRIC_ENTRIES:
@@ -217,17 +231,23 @@ def _sym_columns(cols: np.ndarray, sensor: int, start: int, b: np.ndarray,
     return k
 
 
-def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
-             window_s: tuple[float, float] | None = None,
-             exclude_s: list[tuple[float, float]] | None = None) -> _Prepared:
+def _prepare(
+    recording: Any,
+    earth_field_enu: Any,
+    settings: Settings,
+    window_s: tuple[float, float] | None = None,
+    exclude_s: list[tuple[float, float]] | None = None,
+) -> _Prepared:
     t_all = np.asarray(recording.t_s, dtype=float)
     fields = np.asarray(recording.fields, dtype=float) * NT_PER_T
     keep = np.isfinite(fields).all(axis=(1, 2)) & np.concatenate([[True], np.diff(t_all) > 0])
     if window_s is not None:
         inside = (t_all >= window_s[0]) & (t_all <= window_s[1])
         if inside.sum() < 50:
-            raise InputError(f'the window {window_s[0]:g}:{window_s[1]:g} s holds {int(inside.sum())} sample sets '
-                             f'(the run spans 0-{t_all[-1] - t_all[0]:.1f} s); the workflow needs at least 50')
+            raise InputError(
+                f'the window {window_s[0]:g}:{window_s[1]:g} s holds {int(inside.sum())} sample sets '
+                f'(the run spans 0-{t_all[-1] - t_all[0]:.1f} s); the workflow needs at least 50'
+            )
         keep &= inside
     optional = {}
     for name in ('orientation_xyzw', 'temperature_c', 'current_a'):
@@ -237,12 +257,16 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
             keep &= np.isfinite(value).reshape(len(value), -1).all(axis=1)
         optional[name] = value
     if keep.sum() < 50:
-        raise InputError(f'the recording has {int(keep.sum())} usable samples; the workflow needs at least 50')
+        raise InputError(
+            f'the recording has {int(keep.sum())} usable samples; the workflow needs at least 50'
+        )
     notes: list[str] = []
     piece_all, jumps = _pieces(t_all, fields, optional['orientation_xyzw'], keep)
     if jumps:
-        notes.append(f'{jumps} jump(s) in attitude or field between recorded segments: no derivative is taken '
-                     'across them and 2 samples either side are left out')
+        notes.append(
+            f'{jumps} jump(s) in attitude or field between recorded segments: no derivative is taken '
+            'across them and 2 samples either side are left out'
+        )
         keep &= piece_all >= 0
     if exclude_s:
         # Excluded spans (target passages): left out, and no derivative is taken across them.
@@ -253,8 +277,10 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
         starts = np.cumsum(np.diff(excluded.astype(int), prepend=0) == 1)
         piece_all = np.where(piece_all >= 0, piece_all * (len(exclude_s) + 1) + starts, -1)
         if keep.sum() < 50:
-            raise InputError(f'{int(keep.sum())} usable samples are left outside the excluded spans; '
-                             'the workflow needs at least 50')
+            raise InputError(
+                f'{int(keep.sum())} usable samples are left outside the excluded spans; '
+                'the workflow needs at least 50'
+            )
     index = np.flatnonzero(keep)
     if len(index) > settings.max_samples:
         # Long or fast records: every k-th set keeps white noise white and the manoeuvre
@@ -277,21 +303,25 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
         attitude = np.degrees(rotation.as_euler('ZYX'))
         if earth_field_enu is None:
             earth = np.mean(np.einsum('nij,nj->ni', r, fields[:, 0]), axis=0)
-            notes.append('earth_field_enu not given: estimated from sensor 1 rotated to ENU by /odom '
-                         f'({np.linalg.norm(earth):.0f} nT)')
+            notes.append(
+                'earth_field_enu not given: estimated from sensor 1 rotated to ENU by /odom '
+                f'({np.linalg.norm(earth):.0f} nT)'
+            )
         else:
             earth = np.asarray(earth_field_enu, dtype=float).reshape(3) * NT_PER_T
-        b0 = np.einsum('nji,j->ni', r, earth)                       # R^T E
+        b0 = np.einsum('nji,j->ni', r, earth)  # R^T E
         base_offset = np.repeat(b0[:, None, :], 4, axis=1)
         # First pass: a constant correction of the Earth field, from sensor 1.
-        design = np.swapaxes(r, 1, 2).reshape(n * 3, 3)             # rows of R^T
+        design = np.swapaxes(r, 1, 2).reshape(n * 3, 3)  # rows of R^T
         correction = np.linalg.lstsq(design, (fields[:, 0] - b0).reshape(-1), rcond=None)[0]
         b_background = b0 + np.einsum('nji,j->ni', r, correction)
         base_cols, labels = _base_columns(r, b_background, True, t)
         sensors: tuple[int, ...] = (0, 1, 2, 3)
         absolute = True
-        notes.append('B^b = R^T E from /odom, E corrected by a constant fitted with the model '
-                     f'(|E| = {np.linalg.norm(earth + correction):.0f} nT)')
+        notes.append(
+            'B^b = R^T E from /odom, E corrected by a constant fitted with the model '
+            f'(|E| = {np.linalg.norm(earth + correction):.0f} nT)'
+        )
     else:
         r = None
         b_background = fields[:, 0].copy()
@@ -299,16 +329,39 @@ def _prepare(recording: Any, earth_field_enu: Any, settings: Settings,
         base_cols, labels = _base_columns(None, b_background, False)
         sensors = (1, 2, 3)
         absolute = False
-        notes.append('no /odom: falling back to B^b = B_1\' (the paper\'s assumption); only the pair '
-                     'differences B_i\' - B_1\' are observable, so the residual is that of sensors 2-4 '
-                     'against sensor 1; a term of sensor 1 enters every pair, so only relative values are fixed')
-    b_rate = (PiecewiseSpline(t, b_background, piece)(0.0, 1) if quat is not None
-              else _smoothed(t, b_background, piece, deriv=1))
-    return _Prepared(t, fields, sensors, absolute, base_offset, b_background, b_rate, base_cols, labels,
-                     optional['temperature_c'], optional['current_a'], attitude, earth, notes, piece, r)
+        notes.append(
+            "no /odom: falling back to B^b = B_1' (the paper's assumption); only the pair "
+            "differences B_i' - B_1' are observable, so the residual is that of sensors 2-4 "
+            'against sensor 1; a term of sensor 1 enters every pair, so only relative values are fixed'
+        )
+    b_rate = (
+        PiecewiseSpline(t, b_background, piece)(0.0, 1)
+        if quat is not None
+        else _smoothed(t, b_background, piece, deriv=1)
+    )
+    return _Prepared(
+        t,
+        fields,
+        sensors,
+        absolute,
+        base_offset,
+        b_background,
+        b_rate,
+        base_cols,
+        labels,
+        optional['temperature_c'],
+        optional['current_a'],
+        attitude,
+        earth,
+        notes,
+        piece,
+        r,
+    )
 
 
-def _refresh_background(prep: _Prepared, correction: np.ndarray, tolerance_nT: float = 0.5) -> bool:
+def _refresh_background(
+    prep: _Prepared, correction: np.ndarray, tolerance_nT: float = 0.5
+) -> bool:
     """Re-derive ``B^b = R^T (E + dE + dE' (t - t_mid))`` with the Earth-field correction of
     the joint fit (the first pass used sensor 1 alone, whose own interference biases it);
     rebuild the base columns when it moved by more than ``tolerance_nT`` (soft iron ~1e-2
@@ -328,6 +381,7 @@ def _smoothed(t: np.ndarray, values: np.ndarray, piece: np.ndarray, deriv: int =
     exact to ~1e-7 for manoeuvre signals, a quarter of the noise gain of a spline derivative.
     Pieces shorter than the window get a cubic spline."""
     from scipy.signal import savgol_filter
+
     out = np.empty_like(values, dtype=float)
     for p in np.unique(piece):
         idx = np.flatnonzero(piece == p)
@@ -343,7 +397,9 @@ def _smoothed(t: np.ndarray, values: np.ndarray, piece: np.ndarray, deriv: int =
     return out
 
 
-def _refresh_pair_background(prep: _Prepared, clean: np.ndarray, tolerance_nT: float = 0.01) -> bool:
+def _refresh_pair_background(
+    prep: _Prepared, clean: np.ndarray, tolerance_nT: float = 0.01
+) -> bool:
     """Pair view: take ``B^b`` (and the fixed part of every prediction) as sensor 1's reading
     less its named effects; rebuild the base columns when it moved. True when it did. (Here
     ``B^b`` is the regressor of sensor 1's own terms, hence the tight tolerance.)"""
@@ -362,8 +418,9 @@ def _ramp(t: np.ndarray) -> np.ndarray:
     return (t - 0.5 * (t[-1] + t[0])) / half
 
 
-def _base_columns(r: np.ndarray | None, b_background: np.ndarray, absolute: bool,
-                  t: np.ndarray | None = None) -> tuple[np.ndarray, list[tuple[int, str]]]:
+def _base_columns(
+    r: np.ndarray | None, b_background: np.ndarray, absolute: bool, t: np.ndarray | None = None
+) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Base-model regressors: (absolute view) a correction of the Earth field seen by all
     sensors, constant plus a linear drift over the run (diurnal variation, a distant target
     passed slowly), then symmetric K_i and B_i^h of sensors 2-4 on ``b_background``."""
@@ -385,8 +442,9 @@ def _base_columns(r: np.ndarray | None, b_background: np.ndarray, absolute: bool
     return cols, labels
 
 
-def _pieces(t: np.ndarray, fields: np.ndarray, quat: np.ndarray | None,
-            keep: np.ndarray) -> tuple[np.ndarray, int]:
+def _pieces(
+    t: np.ndarray, fields: np.ndarray, quat: np.ndarray | None, keep: np.ndarray
+) -> tuple[np.ndarray, int]:
     """Split the run where the attitude (or, without /odom, sensor 1's field) jumps: a step
     at least 4 x larger than the steps on both sides of it and than 0.5 deg (50 nT). Returns
     the piece index per sample (-1: left out, 2 samples either side of a jump) and the
@@ -407,15 +465,18 @@ def _pieces(t: np.ndarray, fields: np.ndarray, quat: np.ndarray | None,
     left = np.maximum(pad[:-4], pad[1:-3])
     right = np.maximum(pad[3:-1], pad[4:])
     neighbours = np.minimum(left, right)
-    neighbours = np.where(np.isfinite(neighbours), neighbours, np.maximum(np.where(np.isfinite(left), left, 0),
-                                                                           np.where(np.isfinite(right), right, 0)))
+    neighbours = np.where(
+        np.isfinite(neighbours),
+        neighbours,
+        np.maximum(np.where(np.isfinite(left), left, 0), np.where(np.isfinite(right), right, 0)),
+    )
     jump = (step > 4.0 * neighbours) & (step > floor)
     dt = np.diff(t[idx])
     gap = dt > 5.0 * np.median(dt)
     boundary = jump | gap
     piece[idx] = np.concatenate([[0], np.cumsum(boundary)])
     for j in np.flatnonzero(jump):
-        piece[idx[max(j - 1, 0):j + 3]] = -1
+        piece[idx[max(j - 1, 0) : j + 3]] = -1
     return piece, int(jump.sum())
 
 
@@ -425,12 +486,16 @@ def _testable(prep: _Prepared, names: tuple[str, ...]) -> tuple[list[Candidate],
         candidate = LIBRARY[name]
         reason = None
         if candidate.name == 'external_field' and not prep.absolute:
-            reason = ('no /odom in the bag: the world frame is unknown, and the pair differences '
-                      "B_i' - B_1' cancel a field that is the same at all sensors")
+            reason = (
+                'no /odom in the bag: the world frame is unknown, and the pair differences '
+                "B_i' - B_1' cancel a field that is the same at all sensors"
+            )
         elif 'odom' in candidate.requires and not prep.absolute:
-            reason = ('no /odom in the bag: without an absolute attitude reference only the pair differences '
-                      "B_i' - B_1' are observable; sensor 1's own soft and hard iron is absorbed into "
-                      "K_i1 (I + K_1)^-1 (its small non-symmetric remainder would look like sensor_misalignment)")
+            reason = (
+                'no /odom in the bag: without an absolute attitude reference only the pair differences '
+                "B_i' - B_1' are observable; sensor 1's own soft and hard iron is absorbed into "
+                'K_i1 (I + K_1)^-1 (its small non-symmetric remainder would look like sensor_misalignment)'
+            )
         elif 'temperature' in candidate.requires:
             if prep.temperature_c is None:
                 reason = 'no /tetra/temperature in the bag: the drift has no regressor'
@@ -440,7 +505,9 @@ def _testable(prep: _Prepared, names: tuple[str, ...]) -> tuple[list[Candidate],
             if prep.current_a is None:
                 reason = 'no /battery_state in the bag: the field has no regressor'
             elif np.ptp(prep.current_a) < 1e-3:
-                reason = 'the recorded current does not vary (< 1 mA): its field is a constant offset'
+                reason = (
+                    'the recorded current does not vary (< 1 mA): its field is a constant offset'
+                )
         if reason is None:
             out.append(candidate)
         else:
@@ -498,16 +565,18 @@ class _Gram:
         self.n = float(n * m)
 
     @staticmethod
-    def _parts(g: np.ndarray, cols: np.ndarray, targets: np.ndarray,
-               weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    def _parts(
+        g: np.ndarray, cols: np.ndarray, targets: np.ndarray, weights: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, float]:
         """Gram of ``cols``, their products with the target ``sum_j weights_j z_targets_j``,
         and the target's square."""
         c = g[np.ix_(cols, targets)] @ weights
         s = float(weights @ g[np.ix_(targets, targets)] @ weights)
         return g[np.ix_(cols, cols)], c, s
 
-    def evaluate(self, cols: np.ndarray, ty: int, offsets: list[int] = (),
-                 add_back: list[int] = ()) -> dict[str, Any]:
+    def evaluate(
+        self, cols: np.ndarray, ty: int, offsets: list[int] = (), add_back: list[int] = ()
+    ) -> dict[str, Any]:
         """Fit ``cols`` to ``z_ty - sum z_offsets + sum z_add_back``: full-data and
         cross-validated residual SS."""
         targets = np.array([ty] + list(offsets) + list(add_back), dtype=int)
@@ -568,10 +637,10 @@ def _lstsq_full(prep: _Prepared, cols: np.ndarray, target: np.ndarray) -> np.nda
 @dataclass
 class _Family:
     candidate: Candidate
-    cols: np.ndarray                 # (N, 4, 3, p)
-    offset: np.ndarray | None        # (N, 4, 3)
+    cols: np.ndarray  # (N, 4, 3, p)
+    offset: np.ndarray | None  # (N, 4, 3)
     labels: list[tuple[int, str]]
-    estimate: dict | None = None     # linearisation point of a nonlinear family
+    estimate: dict | None = None  # linearisation point of a nonlinear family
 
 
 def _soft_iron(labels: list[tuple[int, str]], coef: np.ndarray) -> np.ndarray:
@@ -605,12 +674,23 @@ def _restrict(family: _Family, sensor: int) -> _Family:
     if family.offset is not None:
         offset = np.zeros_like(family.offset)
         offset[:, sensor] = family.offset[:, sensor]
-    return _Family(family.candidate, family.cols[..., idx], offset, [family.labels[k] for k in idx],
-                   family.estimate)
+    return _Family(
+        family.candidate,
+        family.cols[..., idx],
+        offset,
+        [family.labels[k] for k in idx],
+        family.estimate,
+    )
 
 
-def _revise(steps: list[Step], step_units: list[list[int]], active: list[_Family], k: int,
-            replacement: _Family | None, message: str) -> None:
+def _revise(
+    steps: list[Step],
+    step_units: list[list[int]],
+    active: list[_Family],
+    k: int,
+    replacement: _Family | None,
+    message: str,
+) -> None:
     """Take unit ``k`` out of the model (and its step), or replace it; keep the steps
     consistent (a step whose units all changed family is renamed, an empty one dropped)."""
     owner = next(i for i, members in enumerate(step_units) if k in members)
@@ -634,10 +714,24 @@ def _revise(steps: list[Step], step_units: list[list[int]], active: list[_Family
             moved = [m for m in step_units[i] if active[m].candidate.name != steps[i].effect]
             step_units[i] = [m for m in step_units[i] if m not in moved]
             for m in moved:
-                target = next((j for j, st in enumerate(steps) if st.effect == active[m].candidate.name), None)
+                target = next(
+                    (j for j, st in enumerate(steps) if st.effect == active[m].candidate.name),
+                    None,
+                )
                 if target is None:
-                    steps.append(Step(active[m].candidate.name, steps[i].gap_before_nT, steps[i].gap_after_nT, {},
-                                      f'named when revising: {message}', active[m].cols.shape[-1], 0.0, 0.0, 1.0))
+                    steps.append(
+                        Step(
+                            active[m].candidate.name,
+                            steps[i].gap_before_nT,
+                            steps[i].gap_after_nT,
+                            {},
+                            f'named when revising: {message}',
+                            active[m].cols.shape[-1],
+                            0.0,
+                            0.0,
+                            1.0,
+                        )
+                    )
                     step_units.append([m])
                 else:
                     step_units[target].append(m)
@@ -666,16 +760,17 @@ def _merge_steps(steps: list[Step], step_units: list[list[int]]) -> None:
 class _CurrentDesign:
     """The current model's normalised design on all samples, shared by the builds of a round."""
 
-    a: np.ndarray          # (rows, p) normalised columns
-    norm: np.ndarray       # (p,)
-    gram: np.ndarray       # (p, p)
-    rhs: np.ndarray        # (p,) a^T target
-    target: np.ndarray     # (rows,)
-    sensor: np.ndarray     # (p,) sensor of each column (-2: base model)
+    a: np.ndarray  # (rows, p) normalised columns
+    norm: np.ndarray  # (p,)
+    gram: np.ndarray  # (p, p)
+    rhs: np.ndarray  # (p,) a^T target
+    target: np.ndarray  # (rows,)
+    sensor: np.ndarray  # (p,) sensor of each column (-2: base model)
 
 
-def _current_design(prep: _Prepared, cur_cols: np.ndarray, cur_sensor: np.ndarray,
-                    target: np.ndarray) -> _CurrentDesign:
+def _current_design(
+    prep: _Prepared, cur_cols: np.ndarray, cur_sensor: np.ndarray, target: np.ndarray
+) -> _CurrentDesign:
     a = _flat(cur_cols, prep.sensors)
     a = a.reshape(-1, a.shape[-1])
     norm = np.sqrt(np.einsum('rp,rp->p', a, a))
@@ -713,7 +808,7 @@ def _build(candidate: Candidate, ctx: Context, prep: _Prepared, cur: _CurrentDes
             own = np.flatnonzero(fam_sensor == sensor)
             sel = np.concatenate([np.flatnonzero(cur.sensor != sensor), p_cur + own])
             theta = _solve_fast(gram[np.ix_(sel, sel)], rhs[sel])
-            coef[own] = theta[-len(own):] / fnorm[own]
+            coef[own] = theta[-len(own) :] / fnorm[own]
         estimate = {label: float(v) for label, v in zip(labels, coef)}
         cols, offset, labels = candidate.build(ctx, estimate)
     return _Family(candidate, cols, offset, labels, estimate)
@@ -729,8 +824,10 @@ def _format(labels: list[tuple[int, str]], coef: np.ndarray, absolute: bool) -> 
         per_sensor.setdefault(_sensor_name(s), {})[name] = float(value)
     out: dict[str, Any] = {'per_sensor': per_sensor}
     if not absolute:
-        out['note'] = ('pair view (no /odom): only differences between a sensor and sensor 1 are observable; '
-                       'a value at sensor 1 is a term common to all pairs (e.g. tau_i - tau_1 is what the data fix)')
+        out['note'] = (
+            'pair view (no /odom): only differences between a sensor and sensor 1 are observable; '
+            'a value at sensor 1 is a term common to all pairs (e.g. tau_i - tau_1 is what the data fix)'
+        )
     return out
 
 
@@ -744,17 +841,27 @@ def _effect_field(family: _Family, coef: np.ndarray) -> np.ndarray:
 
 
 def _diagnostics(prep: _Prepared, residual: np.ndarray) -> dict[str, Any]:
-    drivers: dict[str, np.ndarray] = {'time_s': prep.t, 'field_rate_nT_s': np.linalg.norm(prep.b_rate, axis=1)}
+    drivers: dict[str, np.ndarray] = {
+        'time_s': prep.t,
+        'field_rate_nT_s': np.linalg.norm(prep.b_rate, axis=1),
+    }
     if prep.attitude is not None:
-        drivers.update({'heading_deg': prep.attitude[:, 0], 'pitch_deg': prep.attitude[:, 1],
-                        'roll_deg': prep.attitude[:, 2]})
+        drivers.update(
+            {
+                'heading_deg': prep.attitude[:, 0],
+                'pitch_deg': prep.attitude[:, 1],
+                'roll_deg': prep.attitude[:, 2],
+            }
+        )
     if prep.temperature_c is not None:
         drivers['temperature_c'] = prep.temperature_c
     if prep.current_a is not None:
         drivers['current_a'] = prep.current_a
     out: dict[str, Any] = {'rms_nT': {}, 'correlation': {}}
     for s in prep.sensors:
-        out['rms_nT'][f'sensor_{s + 1}'] = [float(v) for v in np.sqrt(np.mean(residual[:, s] ** 2, axis=0))]
+        out['rms_nT'][f'sensor_{s + 1}'] = [
+            float(v) for v in np.sqrt(np.mean(residual[:, s] ** 2, axis=0))
+        ]
     for name, d in drivers.items():
         if np.ptp(d) == 0:
             continue
@@ -780,11 +887,18 @@ def _diagnostics(prep: _Prepared, residual: np.ndarray) -> dict[str, Any]:
 #: Families of the full model the detector fits (every candidate of the library that is
 #: global in time; ``time_skew`` is the isotropic part of ``eddy_current`` to first order,
 #: ``external_field`` is left out so that a target's common part stays in the residual).
-_DETECTOR_FAMILIES = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'thermal_drift',
-                      'vehicle_current')
+_DETECTOR_FAMILIES = (
+    'eddy_current',
+    'sensor_misalignment',
+    'reference_interference',
+    'thermal_drift',
+    'vehicle_current',
+)
 
 
-def _lstsq_rows(prep: _Prepared, cols: np.ndarray, target: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def _lstsq_rows(
+    prep: _Prepared, cols: np.ndarray, target: np.ndarray, rows: np.ndarray
+) -> np.ndarray:
     """Least squares on the samples ``rows`` (bool, N) only; physical coefficients."""
     a = _flat(cols[rows], prep.sensors)
     a = a.reshape(-1, a.shape[-1])
@@ -801,8 +915,9 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1))
 
 
-def _full_model_residual(prep: _Prepared, names: set[str], include: np.ndarray,
-                         settings: Settings) -> np.ndarray:
+def _full_model_residual(
+    prep: _Prepared, names: set[str], include: np.ndarray, settings: Settings
+) -> np.ndarray:
     """Residual (N, 4, 3) of the base model plus every global candidate, fitted on
     ``include`` only and evaluated everywhere (the model is global in time)."""
     y = prep.fields - prep.base_offset
@@ -818,15 +933,31 @@ def _full_model_residual(prep: _Prepared, names: set[str], include: np.ndarray,
     return residual
 
 
-def _detector_columns(prep: _Prepared, names: set[str], include: np.ndarray, settings: Settings) -> np.ndarray:
+def _detector_columns(
+    prep: _Prepared, names: set[str], include: np.ndarray, settings: Settings
+) -> np.ndarray:
     """Columns (N, 4, 3, p) of the base model plus every global candidate."""
     y = prep.fields - prep.base_offset
     coef = _lstsq_rows(prep, prep.base_cols, y, include)
     prediction = prep.base_offset + np.einsum('nsap,p->nsa', prep.base_cols, coef)
-    ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, prediction,
-                  prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
-    return np.concatenate([prep.base_cols] + [LIBRARY[n].build(ctx, None)[0] for n in _DETECTOR_FAMILIES
-                                              if n in names], axis=-1)
+    ctx = Context(
+        prep.t,
+        ALL_SENSORS,
+        prep.absolute,
+        prep.b_background,
+        prep.b_rate,
+        prediction,
+        prep.temperature_c,
+        prep.current_a,
+        prep.piece,
+        prep.rotation,
+        settings.knot_s,
+    )
+    return np.concatenate(
+        [prep.base_cols]
+        + [LIBRARY[n].build(ctx, None)[0] for n in _DETECTOR_FAMILIES if n in names],
+        axis=-1,
+    )
 
 
 def _robust_start(prep: _Prepared, names: set[str], settings: Settings, width: int) -> np.ndarray:
@@ -867,7 +998,7 @@ def _robust_start(prep: _Prepared, names: set[str], settings: Settings, width: i
         return r
 
     r = fit(np.ones(count, dtype=bool))
-    _, sigma = _noise_floor(r)          # the 4th difference does not see a smooth target
+    _, sigma = _noise_floor(r)  # the 4th difference does not see a smooth target
     sigma = np.maximum(sigma, 1e-12)
 
     def block_scores(r: np.ndarray) -> np.ndarray:
@@ -897,8 +1028,9 @@ def _robust_start(prep: _Prepared, names: set[str], settings: Settings, width: i
     return best[block]
 
 
-def _target_spans(prep: _Prepared, names: set[str], settings: Settings
-                  ) -> tuple[list[dict[str, Any]], list[str], dict[str, float]]:
+def _target_spans(
+    prep: _Prepared, names: set[str], settings: Settings
+) -> tuple[list[dict[str, Any]], list[str], dict[str, float]]:
     """Spans of the run where the residual is dominated by a localized field that no
     candidate represents (a target passed close to the track).
 
@@ -913,7 +1045,8 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
     (seconds from the first sample) with the evidence, and notes.
     """
     from scipy.ndimage import uniform_filter1d
-    prep = replace(prep)                      # the detector refreshes B^b on its own copy
+
+    prep = replace(prep)  # the detector refreshes B^b on its own copy
     n = len(prep.t)
     t = prep.t
     dt = float(np.median(np.diff(t)))
@@ -928,7 +1061,7 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
         sigma = np.maximum(sigma, 1e-12)
         q = np.mean((flat / sigma) ** 2, axis=1)
         z = np.empty_like(q)
-        for p in np.unique(prep.piece):          # no average across a jump
+        for p in np.unique(prep.piece):  # no average across a jump
             idx = np.flatnonzero(prep.piece == p)
             z[idx] = uniform_filter1d(q[idx], min(width, len(idx)), mode='nearest')
         return residual, flat, sigma, z
@@ -938,10 +1071,14 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
     for _ in range(6):
         residual, flat, sigma, z = score(include)
         level = max(float(np.median(z)), 1.0)
-        info = {'median_level': float(np.median(z)), 'peak_over_level': float(np.max(z) / level),
-                'high': settings.target_high, 'low': settings.target_low}
+        info = {
+            'median_level': float(np.median(z)),
+            'peak_over_level': float(np.max(z) / level),
+            'high': settings.target_high,
+            'low': settings.target_low,
+        }
         high, low = settings.target_high * level, settings.target_low * level
-        found = [(i, j) for i, j in _runs(z > low) if np.max(z[i:j + 1]) > high]
+        found = [(i, j) for i, j in _runs(z > low) if np.max(z[i : j + 1]) > high]
         mask = np.zeros(n, dtype=bool)
         spans = []
         for i, j in found:
@@ -950,15 +1087,17 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
             margin = float(np.clip(settings.target_margin * (t[j] - t[i]), 2.0, 15.0))
             lo = int(np.searchsorted(t, t[i] - margin, side='left'))
             hi = int(np.searchsorted(t, t[j] + margin, side='right')) - 1
-            piece = prep.piece[i + int(np.argmax(z[i:j + 1]))]
-            same = np.flatnonzero(prep.piece[lo:hi + 1] == piece) + lo
+            piece = prep.piece[i + int(np.argmax(z[i : j + 1]))]
+            same = np.flatnonzero(prep.piece[lo : hi + 1] == piece) + lo
             if len(same):
                 lo, hi = int(same[0]), int(same[-1])
-            mask[lo:hi + 1] = True
+            mask[lo : hi + 1] = True
         spans = _runs(mask)
         if mask.mean() > settings.target_max_fraction:
-            notes.append(f'the residual of the full candidate model is far above the noise over '
-                         f'{100 * mask.mean():.0f} % of the run: not a localized target passage, nothing excluded')
+            notes.append(
+                f'the residual of the full candidate model is far above the noise over '
+                f'{100 * mask.mean():.0f} % of the run: not a localized target passage, nothing excluded'
+            )
             return [], notes, info
         key = tuple(spans)
         if key == last:
@@ -971,49 +1110,73 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
     confirmed = []
     for i, j in spans:
         inside = np.zeros(n, dtype=bool)
-        inside[i:j + 1] = True
+        inside[i : j + 1] = True
         with_it = ~mask | inside
         _, _, _, z_in = score(with_it)
         ratio = float(np.mean(z_in[inside]) / max(np.median(z_in[with_it & ~inside]), 1e-12))
         if ratio >= settings.target_confirm:
             confirmed.append((i, j))
         else:
-            notes.append(f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the full candidate model explains it once '
-                         f'fitted on it (mean square {ratio:.2g} x the rest of the run)')
+            notes.append(
+                f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the full candidate model explains it once '
+                f'fitted on it (mean square {ratio:.2g} x the rest of the run)'
+            )
     info['confirmed'] = len(confirmed)
     spans = confirmed
     if not spans:
         return [], notes, info
-    residual, flat, sigma, z = score(~np.isin(np.arange(n), np.concatenate([np.arange(i, j + 1) for i, j in spans])))
+    residual, flat, sigma, z = score(
+        ~np.isin(np.arange(n), np.concatenate([np.arange(i, j + 1) for i, j in spans]))
+    )
     # Evidence per span: where the residual peaks, how much of it differs between sensors.
-    common = residual.mean(axis=1, keepdims=True) if prep.absolute else np.zeros_like(residual[:, :1])
+    common = (
+        residual.mean(axis=1, keepdims=True) if prep.absolute else np.zeros_like(residual[:, :1])
+    )
     diff = residual - common
     sel = list(prep.sensors)
     out = []
     for i, j in spans:
-        k = i + int(np.argmax(z[i:j + 1]))
+        k = i + int(np.argmax(z[i : j + 1]))
         peak = float(np.sqrt(np.mean(flat[k] ** 2)))
         window = slice(max(i, k - width // 2), min(j, k + width // 2) + 1)
         d_rms = float(np.sqrt(np.mean(diff[window][:, sel] ** 2)))
         c_rms = float(np.sqrt(np.mean(common[window] ** 2)))
         turn = None
         if prep.rotation is not None:
-            turn = float(np.degrees((Rotation.from_matrix(prep.rotation[j])
-                                     * Rotation.from_matrix(prep.rotation[i]).inv()).magnitude()))
-        noise = float(np.sqrt(np.mean(sigma ** 2)))
-        reason = (f'localized field that no candidate represents (a target passed close to the track): the '
-                  f'residual of the base model plus every global candidate peaks at {peak:.3g} nT '
-                  f'({peak / noise:.0f} x the noise) at t = {t[k]:.1f} s and falls off on both sides; '
-                  f'{d_rms:.3g} nT RMS of it differs between the sensors (a gradient)')
+            turn = float(
+                np.degrees(
+                    (
+                        Rotation.from_matrix(prep.rotation[j])
+                        * Rotation.from_matrix(prep.rotation[i]).inv()
+                    ).magnitude()
+                )
+            )
+        noise = float(np.sqrt(np.mean(sigma**2)))
+        reason = (
+            f'localized field that no candidate represents (a target passed close to the track): the '
+            f'residual of the base model plus every global candidate peaks at {peak:.3g} nT '
+            f'({peak / noise:.0f} x the noise) at t = {t[k]:.1f} s and falls off on both sides; '
+            f'{d_rms:.3g} nT RMS of it differs between the sensors (a gradient)'
+        )
         if prep.absolute:
             reason += f', {c_rms:.3g} nT is common to them'
         if turn is not None:
             reason += f'; attitude change across the span {turn:.1f} deg'
-        out.append({'start_s': float(t[i]), 'end_s': float(t[j]), 'duration_s': float(t[j] - t[i]),
-                    'samples': int(j - i + 1), 'peak_time_s': float(t[k]), 'peak_residual_rms_nT': peak,
-                    'peak_over_noise': peak / noise, 'peak_difference_rms_nT': d_rms,
-                    'peak_common_rms_nT': c_rms if prep.absolute else None,
-                    'attitude_change_deg': turn, 'reason': reason})
+        out.append(
+            {
+                'start_s': float(t[i]),
+                'end_s': float(t[j]),
+                'duration_s': float(t[j] - t[i]),
+                'samples': int(j - i + 1),
+                'peak_time_s': float(t[k]),
+                'peak_residual_rms_nT': peak,
+                'peak_over_noise': peak / noise,
+                'peak_difference_rms_nT': d_rms,
+                'peak_common_rms_nT': c_rms if prep.absolute else None,
+                'attitude_change_deg': turn,
+                'reason': reason,
+            }
+        )
     return out, notes, info
 
 
@@ -1021,8 +1184,9 @@ def _target_spans(prep: _Prepared, names: set[str], settings: Settings
 # The workflow
 
 
-def _fit_current(prep: _Prepared, active: list[_Family], y: np.ndarray, settings: Settings
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Context, np.ndarray]:
+def _fit_current(
+    prep: _Prepared, active: list[_Family], y: np.ndarray, settings: Settings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Context, np.ndarray]:
     """Fit the current model on all samples, iterating what depends on the fit: ``B^b`` (the
     Earth-field correction; linear families on ``B^b`` follow it) and the linearisation point
     of the nonlinear families (Gauss-Newton: rebuilt at their current estimate). Returns the
@@ -1042,29 +1206,44 @@ def _fit_current(prep: _Prepared, active: list[_Family], y: np.ndarray, settings
         for f in active:
             bounds.append(bounds[-1] + f.cols.shape[-1])
             if f.labels[0][0] >= 0:
-                own += _effect_field(f, coef[bounds[-2]:bounds[-1]])
+                own += _effect_field(f, coef[bounds[-2] : bounds[-1]])
         basis = prediction - own
         if not prep.absolute:
             # B^b = B_1' carries sensor 1's noise; the derivatives and shifts the builders take
             # would amplify it (an interpolating spline's derivative by ~1.4/dt).
             basis = _smoothed(prep.t, basis, prep.piece)
-        ctx = Context(prep.t, ALL_SENSORS, prep.absolute, prep.b_background, prep.b_rate, basis,
-                      prep.temperature_c, prep.current_a, prep.piece, prep.rotation, settings.knot_s)
+        ctx = Context(
+            prep.t,
+            ALL_SENSORS,
+            prep.absolute,
+            prep.b_background,
+            prep.b_rate,
+            basis,
+            prep.temperature_c,
+            prep.current_a,
+            prep.piece,
+            prep.rotation,
+            settings.knot_s,
+        )
         if not prep.absolute:
             # Pair view: B^b = B_1' less the effects named in sensor 1 (its own delay or eddy
             # term must not magnetise the other sensors' model).
             moved = _refresh_pair_background(prep, prep.fields[:, 0] - own[:, 0])
-        k_hat = _soft_iron(prep.base_labels, coef[:prep.base_cols.shape[-1]])
+        k_hat = _soft_iron(prep.base_labels, coef[: prep.base_cols.shape[-1]])
         # Converged when the prediction no longer moves (a nonlinear family's offset is the
         # exact remainder of the prediction it was built on, so it must follow it).
-        settled = last is not None and float(np.max(np.abs(prediction - last))) < 1e-3 and not moved
+        settled = (
+            last is not None and float(np.max(np.abs(prediction - last))) < 1e-3 and not moved
+        )
         last = prediction
         if settled or not any(f.candidate.nonlinear for f in active) and not moved:
             break
         for k, f in enumerate(active):
             sensor = f.labels[0][0]
             if f.candidate.nonlinear:
-                estimate = {label: float(v) for label, v in zip(f.labels, coef[bounds[k]:bounds[k + 1]])}
+                estimate = {
+                    label: float(v) for label, v in zip(f.labels, coef[bounds[k] : bounds[k + 1]])
+                }
                 built = f.candidate.build(ctx, estimate)
             elif moved:
                 built = f.candidate.build(ctx, None)
@@ -1077,9 +1256,15 @@ def _fit_current(prep: _Prepared, active: list[_Family], y: np.ndarray, settings
     return cur_cols, cur_off, coef, prediction, ctx, k_hat
 
 
-def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *,
-            settings: Settings | None = None, keep_series: bool = True,
-            window_s: tuple[float, float] | None = None) -> Report:
+def analyze(
+    recording: Any,
+    geometry: Any = None,
+    earth_field_enu: Any = None,
+    *,
+    settings: Settings | None = None,
+    keep_series: bool = True,
+    window_s: tuple[float, float] | None = None,
+) -> Report:
     """Find the effects the base model is missing in a recorded run.
 
     Parameters
@@ -1114,19 +1299,30 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     excluded: list[dict[str, Any]] = []
     detector: dict[str, float] = {}
     if settings.exclude_targets:
-        excluded, target_notes, detector = _target_spans(prep, {c.name for c in testable}, settings)
+        excluded, target_notes, detector = _target_spans(
+            prep, {c.name for c in testable}, settings
+        )
         if excluded:
-            prep = _prepare(recording, earth_field_enu, settings, window_s,
-                            [(e['start_s'], e['end_s']) for e in excluded])
+            prep = _prepare(
+                recording,
+                earth_field_enu,
+                settings,
+                window_s,
+                [(e['start_s'], e['end_s']) for e in excluded],
+            )
             target_notes.append(
                 f'{len(excluded)} span(s) excluded from the fits and the gap ('
-                + ', '.join(f"{e['start_s']:.1f}-{e['end_s']:.1f} s" for e in excluded)
+                + ', '.join(f'{e["start_s"]:.1f}-{e["end_s"]:.1f} s' for e in excluded)
                 + '): a localized field that differs between the sensors and that no candidate represents '
-                  '(a target passed close to the track); see excluded_spans')
+                '(a target passed close to the track); see excluded_spans'
+            )
         prep.notes.extend(target_notes)
     if window_s is not None:
-        prep.notes.insert(0, f'analysis restricted to the window {window_s[0]:g}:{window_s[1]:g} s '
-                             '(seconds from the first sample)')
+        prep.notes.insert(
+            0,
+            f'analysis restricted to the window {window_s[0]:g}:{window_s[1]:g} s '
+            '(seconds from the first sample)',
+        )
     duration = float(prep.t[-1] - prep.t[0])
     block_s = settings.block_s or float(np.clip(duration / 40.0, 5.0, 30.0))
     n = len(prep.t)
@@ -1145,13 +1341,15 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         cur_cols, cur_off, coef, prediction, ctx, k_hat = _fit_current(prep, active, y, settings)
         residual = prep.fields - prediction
         if not prep.absolute:
-            residual = residual - residual[:, :1]      # pair view: B_i' - B_1' against the model
+            residual = residual - residual[:, :1]  # pair view: B_i' - B_1' against the model
         floor, _ = _noise_floor(_flat(residual, prep.sensors))
         taken = {(f.candidate.name, f.labels[0][0]) for f in active}
-        cur_sensor = np.concatenate([np.full(prep.base_cols.shape[-1], -2)]
-                                    + [np.full(f.cols.shape[-1], f.labels[0][0]) for f in active])
+        cur_sensor = np.concatenate(
+            [np.full(prep.base_cols.shape[-1], -2)]
+            + [np.full(f.cols.shape[-1], f.labels[0][0]) for f in active]
+        )
         units: list[_Family] = []
-        plain: dict[int, _Family] = {}     # pair view, sensor 1: the unit as it replaces a named one
+        plain: dict[int, _Family] = {}  # pair view, sensor 1: the unit as it replaces a named one
         if len(steps) < settings.max_effects:
             design = _current_design(prep, cur_cols, cur_sensor, y - cur_off)
             for c in testable:
@@ -1179,7 +1377,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         start = cur_cols.shape[-1]
         for u in units + extra_units:
             p = u.cols.shape[-1]
-            unit_cols.append(start + np.flatnonzero(usable[start:start + p]))
+            unit_cols.append(start + np.flatnonzero(usable[start : start + p]))
             start += p
             if u.offset is not None and np.any(u.offset):
                 unit_off.append([ty + len(extra)])
@@ -1196,7 +1394,9 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
                 extra.append(_flat(f.offset, prep.sensors)[..., None])
             else:
                 active_off.append([])
-        gram = _Gram(np.concatenate([a / norm] + extra, axis=-1), prep.t, block_s, settings.n_folds)
+        gram = _Gram(
+            np.concatenate([a / norm] + extra, axis=-1), prep.t, block_s, settings.n_folds
+        )
         n_obs = gram.n
 
         def bic(res: dict[str, Any]) -> float:
@@ -1219,10 +1419,18 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             own = 3 if (sensor >= 1 or (sensor == 0 and prep.absolute)) else channels
             explained = float(np.sqrt(max(gain, 0.0) / (n_obs / channels * own)))
             dbic = bic(res) - bic(ref)
-            return {'n_parameters': int(dp), 'gap_after_nT': float(np.sqrt(res['cv'] / n_obs)),
-                    'delta_bic': float(dbic), 'f_statistic': float(fstat), 'p_value': pval,
-                    'explained_rms_nT': explained, 'result': res,
-                    'passes': bool(dbic < 0 and pval < settings.alpha and explained >= settings.relevance * floor)}
+            return {
+                'n_parameters': int(dp),
+                'gap_after_nT': float(np.sqrt(res['cv'] / n_obs)),
+                'delta_bic': float(dbic),
+                'f_statistic': float(fstat),
+                'p_value': pval,
+                'explained_rms_nT': explained,
+                'result': res,
+                'passes': bool(
+                    dbic < 0 and pval < settings.alpha and explained >= settings.relevance * floor
+                ),
+            }
 
         base_idx = np.flatnonzero(usable[:base_p])
         active_cols = []
@@ -1231,7 +1439,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             hi = lo + f.cols.shape[-1]
             active_cols.append(lo + np.flatnonzero(usable[lo:hi]))
             lo = hi
-        sel_idx = np.flatnonzero(usable[:cur_cols.shape[-1]])
+        sel_idx = np.flatnonzero(usable[: cur_cols.shape[-1]])
         sel_off: list[int] = []
         cur = gram.evaluate(sel_idx, ty)
         gap_cur = float(np.sqrt(cur['cv'] / n_obs))
@@ -1242,23 +1450,36 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             rest = np.concatenate([base_idx] + [c for j, c in enumerate(active_cols) if j != k])
             without = gram.evaluate(rest, ty, add_back=active_off[k])
             if not compare(cur, without, f.labels[0][0])['passes']:
-                revised = (k, None, f'{f.candidate.name} at sensor {f.labels[0][0] + 1} is no longer needed '
-                                    f'once the other effects are in (removed)')
+                revised = (
+                    k,
+                    None,
+                    f'{f.candidate.name} at sensor {f.labels[0][0] + 1} is no longer needed '
+                    f'once the other effects are in (removed)',
+                )
                 break
             best_alt = None
             for j, u in enumerate(units):
-                if (u.labels[0][0] != f.labels[0][0] or u.candidate.name == f.candidate.name
-                        or len(unit_cols[j]) > len(active_cols[k])):
-                    continue      # only a unit with no more parameters may replace one
+                if (
+                    u.labels[0][0] != f.labels[0][0]
+                    or u.candidate.name == f.candidate.name
+                    or len(unit_cols[j]) > len(active_cols[k])
+                ):
+                    continue  # only a unit with no more parameters may replace one
                 jj = swap_index.get(j, j)
-                res = gram.evaluate(np.concatenate([rest, unit_cols[jj]]), ty, unit_off[jj], add_back=active_off[k])
+                res = gram.evaluate(
+                    np.concatenate([rest, unit_cols[jj]]), ty, unit_off[jj], add_back=active_off[k]
+                )
                 if bic(res) < bic(cur) and (best_alt is None or bic(res) < best_alt[1]):
                     best_alt = (j, bic(res))
             if best_alt is not None:
                 u = plain.get(best_alt[0], units[best_alt[0]])
-                revised = (k, u, f'{f.candidate.name} at sensor {f.labels[0][0] + 1} replaced by the more '
-                                 f'parsimonious {u.candidate.name} (CV-BIC {best_alt[1] - bic(cur):+.4g}) once the '
-                                 'other effects are in')
+                revised = (
+                    k,
+                    u,
+                    f'{f.candidate.name} at sensor {f.labels[0][0] + 1} replaced by the more '
+                    f'parsimonious {u.candidate.name} (CV-BIC {best_alt[1] - bic(cur):+.4g}) once the '
+                    'other effects are in',
+                )
                 break
         if revised is not None and revisions < 4 * settings.max_effects:
             revisions += 1
@@ -1275,11 +1496,18 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             table = []
             for k, u in enumerate(units):
                 if k in chosen or (chosen and u.candidate.name != units[chosen[0]].candidate.name):
-                    continue      # after the first unit, the step extends its family to other sensors
-                res = gram.evaluate(np.concatenate([sel_idx, unit_cols[k]]), ty, sel_off + unit_off[k])
+                    continue  # after the first unit, the step extends its family to other sensors
+                res = gram.evaluate(
+                    np.concatenate([sel_idx, unit_cols[k]]), ty, sel_off + unit_off[k]
+                )
                 row = compare(res, cur, u.labels[0][0])
-                row.update({'effect': u.candidate.name, 'unit': k,
-                            'sensor': 'all' if u.labels[0][0] < 0 else u.labels[0][0] + 1})
+                row.update(
+                    {
+                        'effect': u.candidate.name,
+                        'unit': k,
+                        'sensor': 'all' if u.labels[0][0] < 0 else u.labels[0][0] + 1,
+                    }
+                )
                 table.append(row)
             table.sort(key=lambda row: row['delta_bic'])
             if first_table is None:
@@ -1292,29 +1520,53 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
             sel_idx = np.concatenate([sel_idx, unit_cols[best['unit']]])
             sel_off = sel_off + unit_off[best['unit']]
             cur = best['result']
-        rounds.append({'gap_nT': gap_cur, 'noise_floor_nT': floor,
-                       'model': [f'{f.candidate.name}@{_sensor_name(f.labels[0][0])}' for f in active],
-                       'candidates': [{k: v for k, v in row.items() if k not in ('unit', 'result')}
-                                      for row in (first_table or [])]})
+        rounds.append(
+            {
+                'gap_nT': gap_cur,
+                'noise_floor_nT': floor,
+                'model': [f'{f.candidate.name}@{_sensor_name(f.labels[0][0])}' for f in active],
+                'candidates': [
+                    {k: v for k, v in row.items() if k not in ('unit', 'result')}
+                    for row in (first_table or [])
+                ],
+            }
+        )
         if not chosen:
             break
         name = units[chosen[0]].candidate.name
         gap_after = float(np.sqrt(cur['cv'] / n_obs))
-        sensors_added = ['all' if units[k].labels[0][0] < 0 else units[k].labels[0][0] + 1 for k in chosen]
+        sensors_added = [
+            'all' if units[k].labels[0][0] < 0 else units[k].labels[0][0] + 1 for k in chosen
+        ]
         first = [row for row in first_table if row['unit'] == chosen[0]][0]
         rivals = [row for row in first_table if row['effect'] != name]
-        evidence = (f"added for sensor(s) {', '.join(map(str, sensors_added))}: held-out gap {gap_cur:.3g} -> "
-                    f"{gap_after:.3g} nT (noise floor {floor:.3g} nT); first unit (sensor {first['sensor']}): "
-                    f"{first['n_parameters']} parameters explain {first['explained_rms_nT']:.3g} nT RMS of the "
-                    f"held-out residual, CV-BIC {first['delta_bic']:+.4g}, held-out F = {first['f_statistic']:.4g} "
-                    f"(p = {first['p_value']:.3g})")
+        evidence = (
+            f'added for sensor(s) {", ".join(map(str, sensors_added))}: held-out gap {gap_cur:.3g} -> '
+            f'{gap_after:.3g} nT (noise floor {floor:.3g} nT); first unit (sensor {first["sensor"]}): '
+            f'{first["n_parameters"]} parameters explain {first["explained_rms_nT"]:.3g} nT RMS of the '
+            f'held-out residual, CV-BIC {first["delta_bic"]:+.4g}, held-out F = {first["f_statistic"]:.4g} '
+            f'(p = {first["p_value"]:.3g})'
+        )
         if rivals:
             r = rivals[0]
-            evidence += (f"; best other family: {r['effect']} at sensor {r['sensor']} with {r['n_parameters']} "
-                         f"parameters, gap {r['gap_after_nT']:.3g} nT, CV-BIC {r['delta_bic']:+.4g}")
+            evidence += (
+                f'; best other family: {r["effect"]} at sensor {r["sensor"]} with {r["n_parameters"]} '
+                f'parameters, gap {r["gap_after_nT"]:.3g} nT, CV-BIC {r["delta_bic"]:+.4g}'
+            )
         n_params = sum(len(unit_cols[k]) for k in chosen)
-        steps.append(Step(name, gap_cur, gap_after, {}, evidence, n_params, first['delta_bic'],
-                          first['f_statistic'], first['p_value']))
+        steps.append(
+            Step(
+                name,
+                gap_cur,
+                gap_after,
+                {},
+                evidence,
+                n_params,
+                first['delta_bic'],
+                first['f_statistic'],
+                first['p_value'],
+            )
+        )
         step_units.append(list(range(len(active), len(active) + len(chosen))))
         active.extend(units[k] for k in chosen)
         _merge_steps(steps, step_units)
@@ -1328,7 +1580,7 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         values: list[np.ndarray] = []
         fld = np.zeros_like(y)
         for k in members:
-            c = coef[bounds[k]:bounds[k + 1]]
+            c = coef[bounds[k] : bounds[k + 1]]
             labels += active[k].labels
             values.append(c)
             fld += _effect_field(active[k], c)
@@ -1336,7 +1588,10 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
         step.parameters = _format(labels, np.concatenate(values), prep.absolute)
         step.parameters['units'] = LIBRARY[step.effect].parameters
         step.parameters['rms_contribution_nT'] = {
-            f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2))) for s in ALL_SENSORS if np.any(fld[:, s])}
+            f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2)))
+            for s in ALL_SENSORS
+            if np.any(fld[:, s])
+        }
         effect_fields.append(fld)
     base_params = _format(prep.base_labels, coef[:base_p], prep.absolute)
     if 'all_sensors' in base_params['per_sensor']:
@@ -1345,46 +1600,96 @@ def analyze(recording: Any, geometry: Any = None, earth_field_enu: Any = None, *
     adequate = gap_final <= settings.adequate_ratio * floor_final
     notes = list(prep.notes) + notes_revision
     if not adequate:
-        notes.append(f'the final gap {gap_final:.3g} nT exceeds {settings.adequate_ratio} x the noise floor '
-                     f'({floor_final:.3g} nT) but no candidate in the library explains the rest: '
-                     'an effect outside the library (or a target close to the track) remains')
+        notes.append(
+            f'the final gap {gap_final:.3g} nT exceeds {settings.adequate_ratio} x the noise floor '
+            f'({floor_final:.3g} nT) but no candidate in the library explains the rest: '
+            'an effect outside the library (or a target close to the track) remains'
+        )
         if excluded:
-            notes.append('target passage(s) were excluded, but the rest of the run is not at the noise floor either: '
-                         "the target's field may reach the manoeuvre (a trim flown near the target); analyse a run, "
-                         'or a --window, flown away from targets')
-    diagnostics = {'base': _diagnostics(prep, residuals[0]), 'final': _diagnostics(prep, residuals[-1])}
+            notes.append(
+                'target passage(s) were excluded, but the rest of the run is not at the noise floor either: '
+                "the target's field may reach the manoeuvre (a trim flown near the target); analyse a run, "
+                'or a --window, flown away from targets'
+            )
+    diagnostics = {
+        'base': _diagnostics(prep, residuals[0]),
+        'final': _diagnostics(prep, residuals[-1]),
+    }
     if geometry is not None:
         from ..core.geometry import difference_tensor
+
         if prep.absolute:
             g = difference_tensor(residuals[-1] / NT_PER_T, geometry) * NT_PER_T
         else:
-            g = difference_tensor(np.concatenate([np.zeros((n, 1, 3)), residuals[-1][:, 1:]], axis=1)
-                                  / NT_PER_T, geometry) * NT_PER_T
+            g = (
+                difference_tensor(
+                    np.concatenate([np.zeros((n, 1, 3)), residuals[-1][:, 1:]], axis=1) / NT_PER_T,
+                    geometry,
+                )
+                * NT_PER_T
+            )
         diagnostics['final_tensor_rms_nT_per_m'] = float(np.sqrt(np.mean(g**2)))
-    data = {'samples': n, 'duration_s': duration, 'sample_rate_hz': float((n - 1) / duration) if duration else 0.0,
-            'cv_block_s': block_s, 'folds': settings.n_folds, 'has_odom': prep.absolute,
-            'has_temperature': prep.temperature_c is not None, 'has_current': prep.current_a is not None,
-            'missing_topics': dict(getattr(recording, 'missing', {}) or {}),
-            'window_s': None if window_s is None else [window_s[0], window_s[1] if np.isfinite(window_s[1]) else None],
-            'excluded_s': float(sum(e['duration_s'] for e in excluded)), 'target_detector': detector}
+    data = {
+        'samples': n,
+        'duration_s': duration,
+        'sample_rate_hz': float((n - 1) / duration) if duration else 0.0,
+        'cv_block_s': block_s,
+        'folds': settings.n_folds,
+        'has_odom': prep.absolute,
+        'has_temperature': prep.temperature_c is not None,
+        'has_current': prep.current_a is not None,
+        'missing_topics': dict(getattr(recording, 'missing', {}) or {}),
+        'window_s': None
+        if window_s is None
+        else [window_s[0], window_s[1] if np.isfinite(window_s[1]) else None],
+        'excluded_s': float(sum(e['duration_s'] for e in excluded)),
+        'target_detector': detector,
+    }
     if prep.earth_field_nT is not None:
         data['earth_field_enu_nT'] = [float(v) for v in prep.earth_field_nT + coef[:3]]
         data['earth_field_drift_enu_nT'] = [float(v) for v in coef[3:6]]
-        data['earth_field_source'] = ('params, corrected by the fit' if earth_field_enu is not None
-                                      else 'estimated from sensor 1 and /odom, refined by the fit')
+        data['earth_field_source'] = (
+            'params, corrected by the fit'
+            if earth_field_enu is not None
+            else 'estimated from sensor 1 and /odom, refined by the fit'
+        )
         if earth_field_enu is not None:
             data['earth_field_params_enu_nT'] = [float(v) for v in prep.earth_field_nT]
     report = Report(
-        named_effects=[s.effect for s in steps], steps=steps, gap_initial_nT=gaps[0], gap_final_nT=gap_final,
-        noise_floor_nT=floor_final, base_model=BASE_MODEL + ('; B^b = R^T earth_field_enu from /odom'
-                                                              if prep.absolute else "; B^b = B_1' (no /odom)"),
-        adequate=bool(adequate), untestable=untestable,
-        view='absolute' if prep.absolute else 'pair', notes=notes, rounds=rounds, diagnostics=diagnostics,
-        base_parameters=base_params, data=data, runtime_s=0.0, excluded_spans=excluded)
+        named_effects=[s.effect for s in steps],
+        steps=steps,
+        gap_initial_nT=gaps[0],
+        gap_final_nT=gap_final,
+        noise_floor_nT=floor_final,
+        base_model=BASE_MODEL
+        + (
+            '; B^b = R^T earth_field_enu from /odom'
+            if prep.absolute
+            else "; B^b = B_1' (no /odom)"
+        ),
+        adequate=bool(adequate),
+        untestable=untestable,
+        view='absolute' if prep.absolute else 'pair',
+        notes=notes,
+        rounds=rounds,
+        diagnostics=diagnostics,
+        base_parameters=base_params,
+        data=data,
+        runtime_s=0.0,
+        excluded_spans=excluded,
+    )
     if keep_series:
-        report.series = {'t': prep.t, 'sensors': prep.sensors, 'residuals': residuals, 'gaps': gaps,
-                         'floors': floors, 'effect_fields': effect_fields, 'b_rate': prep.b_rate,
-                         'attitude': prep.attitude, 'temperature_c': prep.temperature_c,
-                         'current_a': prep.current_a}
+        report.series = {
+            't': prep.t,
+            'sensors': prep.sensors,
+            'residuals': residuals,
+            'gaps': gaps,
+            'floors': floors,
+            'effect_fields': effect_fields,
+            'b_rate': prep.b_rate,
+            'attitude': prep.attitude,
+            'temperature_c': prep.temperature_c,
+            'current_a': prep.current_a,
+        }
     report.runtime_s = float(time.perf_counter() - started)
     return report

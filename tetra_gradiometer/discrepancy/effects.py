@@ -11,10 +11,11 @@ Families that are nonlinear in their parameters (``time_skew``: a shift of the s
 own prediction in time; ``sensor_misalignment``: a rotation of it) are linearised around
 their current estimate and iterated (Gauss-Newton with the exact remainder as offset).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy.interpolate import CubicSpline, make_interp_spline
@@ -47,7 +48,7 @@ class Context:
     temperature_c: np.ndarray | None
     current_a: np.ndarray | None
     piece: np.ndarray | None = None
-    rotation: np.ndarray | None = None      # (N, 3, 3) body -> ENU, with /odom
+    rotation: np.ndarray | None = None  # (N, 3, 3) body -> ENU, with /odom
     knot_s: float = 30.0
 
 
@@ -147,7 +148,9 @@ def _misalignment(ctx: Context, estimate: dict | None) -> Built:
             cols[:, s, :, k] = np.cross(np.eye(3)[a], p)
             labels.append((s, f'omega_{"xyz"[a]}_rad'))
             k += 1
-        omega = np.array([(estimate or {}).get((s, f'omega_{"xyz"[a]}_rad'), 0.0) for a in range(3)])
+        omega = np.array(
+            [(estimate or {}).get((s, f'omega_{"xyz"[a]}_rad'), 0.0) for a in range(3)]
+        )
         if np.any(omega):
             rotated = Rotation.from_rotvec(omega).apply(p)
             offset[:, s] = rotated - p - np.cross(omega, p)
@@ -169,7 +172,9 @@ def _reference(ctx: Context, estimate: dict | None) -> Built:
     return cols, None, labels
 
 
-def _per_sensor_scalar(ctx: Context, series: np.ndarray, unit: str, reference_offset: bool) -> Built:
+def _per_sensor_scalar(
+    ctx: Context, series: np.ndarray, unit: str, reference_offset: bool
+) -> Built:
     n = len(ctx.t)
     extra = 3 if (reference_offset and 0 in ctx.sensors) else 0
     cols = _empty(n, 3 * len(ctx.sensors) + extra)
@@ -203,6 +208,7 @@ def _current(ctx: Context, estimate: dict | None) -> Built:
 def spline_basis(t: np.ndarray, knot_s: float) -> np.ndarray:
     """Cubic B-spline basis (N, nk) on [t0, t1] with about ``knot_s`` between knots."""
     from scipy.interpolate import BSpline
+
     span = max(t[-1] - t[0], 1e-9)
     intervals = max(1, int(round(span / knot_s)))
     inner = np.linspace(t[0], t[-1], intervals + 1)
@@ -217,7 +223,7 @@ def _external(ctx: Context, estimate: dict | None) -> Built:
     labels = []
     for a in range(3):
         # R^T e_a (world axis a seen in the body frame) is row a of R; the same at every sensor.
-        cols[..., a * nk:(a + 1) * nk] = (ctx.rotation[:, a, :, None] * phi[:, None, :])[:, None]
+        cols[..., a * nk : (a + 1) * nk] = (ctx.rotation[:, a, :, None] * phi[:, None, :])[:, None]
         labels += [(-1, f'{"enu"[a]}_{k}_nT') for k in range(nk)]
     return cols, None, labels
 
@@ -230,47 +236,70 @@ CANDIDATES: tuple[Candidate, ...] = (
         'for a hull whose time constant is short against the manoeuvre, is proportional to '
         'the rate of change of the body-frame background field: E_i dB^b/dt with a general '
         '3x3 E_i (seconds) per sensor (the Tolles-Lawson eddy term).',
-        'E_i, 3x3 per sensor, seconds (nT per nT/s)', (), _eddy),
+        'E_i, 3x3 per sensor, seconds (nT per nT/s)',
+        (),
+        _eddy,
+    ),
     Candidate(
         'sensor_misalignment',
         "A sensor's axes rotated against the array (body) frame by a small mounting error: it "
         'reads R_i B instead of B. To first order that is omega_i x B, a skew-symmetric '
         'matrix times the field, which the symmetric soft-iron K_i of the base model cannot '
         'represent (the second-order part is symmetric and is absorbed by K_i).',
-        'rotation vector omega_i per sensor, rad', (), _misalignment, nonlinear=True),
+        'rotation vector omega_i per sensor, rad',
+        (),
+        _misalignment,
+        nonlinear=True,
+    ),
     Candidate(
         'reference_interference',
         "The reference sensor (sensor 1) is not clean: the vehicle's soft iron K_1 B^b and "
         'hard iron B_1^h reach it too. Only an absolute reference (attitude from /odom and the '
-        "Earth field) shows it: the pair differences absorb it into K_i1 (I + K_1)^-1. Its "
+        'Earth field) shows it: the pair differences absorb it into K_i1 (I + K_1)^-1. Its '
         'isotropic part K_1 = c I is indistinguishable from a different Earth-field strength.',
-        'symmetric K_1 (6) and B_1^h (3, nT)', ('odom',), _reference),
+        'symmetric K_1 (6) and B_1^h (3, nT)',
+        ('odom',),
+        _reference,
+    ),
     Candidate(
         'time_skew',
         "A sensor's samples stamped late or early by a constant delay tau_i (a filter group "
         'delay or a clock offset in its driver): it reads B_i(t - tau_i), to first order '
         'B_i(t) - tau_i dB_i/dt. One parameter per sensor, the same delay on all three axes '
         '(an isotropic eddy term would look alike, with nine times the parameters).',
-        'delay tau_i per sensor, s (positive: the reading is late)', (), _time_skew, nonlinear=True),
+        'delay tau_i per sensor, s (positive: the reading is late)',
+        (),
+        _time_skew,
+        nonlinear=True,
+    ),
     Candidate(
         'thermal_drift',
         'Offsets of the fluxgates (and of the hard iron near them) that change with the '
         'temperature of the electronics and the housing: c_i (T - T_ref) with the temperature '
         'from /tetra/temperature, c_i in nT/degC per sensor and axis.',
-        'c_i per sensor and axis, nT/degC (plus the reference offset)', ('temperature',), _thermal),
+        'c_i per sensor and axis, nT/degC (plus the reference offset)',
+        ('temperature',),
+        _thermal,
+    ),
     Candidate(
         'vehicle_current',
         'The field of the currents drawn from the battery (thrusters, payload) along the '
         "vehicle's wiring: by Biot-Savart proportional to the current, v_i I(t) with I from "
         '/battery_state, v_i in nT/A per sensor and axis.',
-        'v_i per sensor and axis, nT/A', ('current',), _current),
+        'v_i per sensor and axis, nT/A',
+        ('current',),
+        _current,
+    ),
     Candidate(
         'external_field',
         'A field from outside the vehicle that the Earth-field model lacks: a distant target or '
         'geology along the track, or the diurnal variation. It is fixed in the world frame (it does '
         'not turn with the vehicle), the same at all four sensors, and varies slowly: x(t) in ENU '
         '(a cubic B-spline in time, knots every 30 s), seen in the body frame as R^T x(t).',
-        'spline weights per ENU axis, nT (all sensors)', ('odom',), _external),
+        'spline weights per ENU axis, nT (all sensors)',
+        ('odom',),
+        _external,
+    ),
 )
 
 #: name -> candidate.

@@ -4,6 +4,7 @@
 noise and base interference, hides the named effects in random sensors, and scales each so
 that its RMS contribution over the sensors it affects is ``factor x noise``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -12,12 +13,28 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..core import (Dipole, Effects, MissionData, Scenario, SensorInterference, SurveyLine, TetraGeometry,
-                    TrimManoeuvre, random_interference, simulate)
+from ..core import (
+    Dipole,
+    Effects,
+    MissionData,
+    Scenario,
+    SensorInterference,
+    SurveyLine,
+    TetraGeometry,
+    TrimManoeuvre,
+    random_interference,
+    simulate,
+)
 from ..errors import InputError
 
-EFFECT_NAMES = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'time_skew', 'thermal_drift',
-                'vehicle_current')
+EFFECT_NAMES = (
+    'eddy_current',
+    'sensor_misalignment',
+    'reference_interference',
+    'time_skew',
+    'thermal_drift',
+    'vehicle_current',
+)
 
 
 @dataclass
@@ -26,11 +43,14 @@ class Case:
 
     scenario: Scenario
     mission: MissionData
-    hidden: dict[str, dict[str, Any]]   # effect -> {'sensors': [...], 'rms_nT': float}
+    hidden: dict[str, dict[str, Any]]  # effect -> {'sensors': [...], 'rms_nT': float}
 
-    def recording(self, *, odom: bool = True, temperature: bool = True, battery: bool = True) -> Any:
+    def recording(
+        self, *, odom: bool = True, temperature: bool = True, battery: bool = True
+    ) -> Any:
         """The mission as an io.recording.Recording (what read_recording returns)."""
         from ..io.recording import Recording, mission_stamps_ns
+
         m = self.mission
         missing = {}
         if not odom:
@@ -39,8 +59,14 @@ class Case:
             missing['/tetra/temperature'] = 'not recorded'
         if not battery:
             missing['/battery_state'] = 'not recorded'
-        return Recording(mission_stamps_ns(m, 0), m.fields_measured, m.orientation_xyzw if odom else None,
-                         m.temperature_c if temperature else None, m.current_a if battery else None, missing)
+        return Recording(
+            mission_stamps_ns(m, 0),
+            m.fields_measured,
+            m.orientation_xyzw if odom else None,
+            m.temperature_c if temperature else None,
+            m.current_a if battery else None,
+            missing,
+        )
 
 
 def random_geometry(rng: np.random.Generator) -> TetraGeometry:
@@ -56,16 +82,24 @@ def random_earth_field(rng: np.random.Generator) -> np.ndarray:
     """25 000-65 000 nT, inclination -75..75 deg, any declination; tesla, ENU."""
     magnitude = rng.uniform(25e-6, 65e-6)
     inc, dec = np.radians(rng.uniform(-75, 75)), rng.uniform(0, 2 * np.pi)
-    return magnitude * np.array([np.cos(inc) * np.sin(dec), np.cos(inc) * np.cos(dec), -np.sin(inc)])
+    return magnitude * np.array(
+        [np.cos(inc) * np.sin(dec), np.cos(inc) * np.cos(dec), -np.sin(inc)]
+    )
 
 
 def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
     """A trim manoeuvre (random rates, amplitudes, periods), sometimes followed by a survey line."""
     trim_s = duration_s if rng.random() < 0.5 else duration_s * rng.uniform(0.6, 0.8)
-    trim = TrimManoeuvre(duration_s=trim_s, heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
-                         roll_amplitude_deg=rng.uniform(8, 30), roll_period_s=rng.uniform(7, 16),
-                         pitch_amplitude_deg=rng.uniform(6, 25), pitch_period_s=rng.uniform(10, 25),
-                         initial_heading_deg=rng.uniform(0, 360), speed_m_s=rng.uniform(0.5, 2.0))
+    trim = TrimManoeuvre(
+        duration_s=trim_s,
+        heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
+        roll_amplitude_deg=rng.uniform(8, 30),
+        roll_period_s=rng.uniform(7, 16),
+        pitch_amplitude_deg=rng.uniform(6, 25),
+        pitch_period_s=rng.uniform(10, 25),
+        initial_heading_deg=rng.uniform(0, 360),
+        speed_m_s=rng.uniform(0.5, 2.0),
+    )
     segments: tuple = (trim,)
     rest = duration_s - trim_s
     if rest > 1.0:
@@ -73,12 +107,21 @@ def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
         heading = rng.uniform(0, 2 * np.pi)
         start = np.array([0.0, 0.0, -50.0])
         end = start + speed * rest * np.array([np.cos(heading), np.sin(heading), 0.0])
-        segments += (SurveyLine(tuple(start), tuple(end), speed_m_s=speed, roll_amplitude_deg=rng.uniform(0, 5),
-                                pitch_amplitude_deg=rng.uniform(0, 4)),)
+        segments += (
+            SurveyLine(
+                tuple(start),
+                tuple(end),
+                speed_m_s=speed,
+                roll_amplitude_deg=rng.uniform(0, 5),
+                pitch_amplitude_deg=rng.uniform(0, 4),
+            ),
+        )
     return segments
 
 
-def _unit_effect(name: str, rng: np.random.Generator, sensors: list[int]) -> tuple[Effects, SensorInterference | None]:
+def _unit_effect(
+    name: str, rng: np.random.Generator, sensors: list[int]
+) -> tuple[Effects, SensorInterference | None]:
     mask = np.zeros(4)
     mask[sensors] = 1.0
     if name == 'eddy_current':
@@ -86,7 +129,9 @@ def _unit_effect(name: str, rng: np.random.Generator, sensors: list[int]) -> tup
     if name == 'sensor_misalignment':
         return Effects(sensor_misalignment=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
     if name == 'time_skew':
-        return Effects(time_skew_s=rng.choice([-1.0, 1.0], 4) * rng.uniform(0.5, 1.0, 4) * mask), None
+        return Effects(
+            time_skew_s=rng.choice([-1.0, 1.0], 4) * rng.uniform(0.5, 1.0, 4) * mask
+        ), None
     if name == 'thermal_drift':
         return Effects(thermal_drift=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
     if name == 'vehicle_current':
@@ -100,27 +145,55 @@ def _unit_effect(name: str, rng: np.random.Generator, sensors: list[int]) -> tup
     raise InputError(f'unknown effect {name!r}')
 
 
-def _scaled(effects: Effects, interference: SensorInterference | None, factor: float) -> tuple[Effects, Any]:
-    kwargs = {n: (getattr(effects, n) * factor if getattr(effects, n) is not None else None)
-              for n in ('eddy_current', 'sensor_misalignment', 'time_skew_s', 'thermal_drift', 'vehicle_current')}
-    inter = None if interference is None else SensorInterference(interference.k_soft * factor,
-                                                                 interference.b_hard * factor)
+def _scaled(
+    effects: Effects, interference: SensorInterference | None, factor: float
+) -> tuple[Effects, Any]:
+    kwargs = {
+        n: (getattr(effects, n) * factor if getattr(effects, n) is not None else None)
+        for n in (
+            'eddy_current',
+            'sensor_misalignment',
+            'time_skew_s',
+            'thermal_drift',
+            'vehicle_current',
+        )
+    }
+    inter = (
+        None
+        if interference is None
+        else SensorInterference(interference.k_soft * factor, interference.b_hard * factor)
+    )
     return Effects(**kwargs), inter
 
 
 def _combine(a: Effects, b: Effects) -> Effects:
     out = {}
-    for n in ('eddy_current', 'sensor_misalignment', 'time_skew_s', 'thermal_drift', 'vehicle_current'):
+    for n in (
+        'eddy_current',
+        'sensor_misalignment',
+        'time_skew_s',
+        'thermal_drift',
+        'vehicle_current',
+    ):
         va, vb = getattr(a, n), getattr(b, n)
         out[n] = vb if va is None else (va if vb is None else va + vb)
     return Effects(**out)
 
 
-def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 180.0, factor: tuple[float, float]
-              = (20.0, 80.0), noise_nT: tuple[float, float] = (0.02, 0.2), rate_hz: float = 10.0,
-              far_target: bool | None = None, sensors: dict[str, list[int]] | None = None,
-              near_target: bool = False, target_depth_m: tuple[float, float] = (20.0, 50.0),
-              target_moment_am2: tuple[float, float] = (1e4, 1e5)) -> Case:
+def make_case(
+    seed: int,
+    effects: tuple[str, ...] = (),
+    *,
+    duration_s: float = 180.0,
+    factor: tuple[float, float] = (20.0, 80.0),
+    noise_nT: tuple[float, float] = (0.02, 0.2),
+    rate_hz: float = 10.0,
+    far_target: bool | None = None,
+    sensors: dict[str, list[int]] | None = None,
+    near_target: bool = False,
+    target_depth_m: tuple[float, float] = (20.0, 50.0),
+    target_moment_am2: tuple[float, float] = (1e4, 1e5),
+) -> Case:
     """A mission with ``effects`` hidden, each ``factor`` (drawn uniformly) x noise RMS over
     the sensors it affects. Sensor choice (unless ``sensors`` names them, 1-based),
     magnitudes, geometry, Earth field, manoeuvre and noise come from ``seed``.
@@ -131,20 +204,39 @@ def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 1
     its own, so the rest of the case is the same as without it."""
     rng = np.random.default_rng(seed)
     noise = rng.uniform(*noise_nT) * 1e-9
-    interference = random_interference(rng, k_scale=rng.uniform(1e-3, 1e-2), b_scale_t=rng.uniform(20e-9, 300e-9))
+    interference = random_interference(
+        rng, k_scale=rng.uniform(1e-3, 1e-2), b_scale_t=rng.uniform(20e-9, 300e-9)
+    )
     dipoles: tuple = ()
     if far_target if far_target is not None else rng.random() < 0.3:
         direction = rng.normal(size=3)
         direction[2] = -abs(direction[2])
-        position = np.array([0.0, 0.0, -50.0]) + rng.uniform(800.0, 2000.0) * direction / np.linalg.norm(direction)
+        position = np.array([0.0, 0.0, -50.0]) + rng.uniform(
+            800.0, 2000.0
+        ) * direction / np.linalg.norm(direction)
         dipoles = (Dipole(position, rng.normal(0, 2e6, 3)),)
-    base = Scenario(geometry=random_geometry(rng), earth_field_enu=random_earth_field(rng),
-                    segments=random_segments(rng, duration_s), sample_rate_hz=rate_hz, dipoles=dipoles,
-                    interference=interference, noise_t=0.0,
-                    temperature=_random_temperature(rng), current=_random_current(rng))
+    base = Scenario(
+        geometry=random_geometry(rng),
+        earth_field_enu=random_earth_field(rng),
+        segments=random_segments(rng, duration_s),
+        sample_rate_hz=rate_hz,
+        dipoles=dipoles,
+        interference=interference,
+        noise_t=0.0,
+        temperature=_random_temperature(rng),
+        current=_random_current(rng),
+    )
     if near_target:
-        base = replace(base, **_target_pass(np.random.default_rng([seed, 4242]), duration_s, target_depth_m,
-                                            target_moment_am2, dipoles))
+        base = replace(
+            base,
+            **_target_pass(
+                np.random.default_rng([seed, 4242]),
+                duration_s,
+                target_depth_m,
+                target_moment_am2,
+                dipoles,
+            ),
+        )
     clean = simulate(base, np.random.default_rng(seed + 1)).fields_measured
     total_effects, total_inter = Effects(), interference
     hidden: dict[str, dict[str, Any]] = {}
@@ -161,15 +253,24 @@ def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 1
             chosen = sorted(rng.choice(free, size=size, replace=False).tolist())
         free = [s for s in free if s not in chosen]
         unit, inter = _unit_effect(name, rng, chosen)
-        probe = replace(base, effects=unit, interference=interference if inter is None else
-                        SensorInterference(interference.k_soft + inter.k_soft, interference.b_hard + inter.b_hard))
+        probe = replace(
+            base,
+            effects=unit,
+            interference=interference
+            if inter is None
+            else SensorInterference(
+                interference.k_soft + inter.k_soft, interference.b_hard + inter.b_hard
+            ),
+        )
         delta = simulate(probe, np.random.default_rng(seed + 1)).fields_measured - clean
         unit_rms = float(np.sqrt(np.mean(delta[:, chosen] ** 2)))
         target = rng.uniform(*factor) * noise
         scaled, inter = _scaled(unit, inter, target / unit_rms)
         total_effects = _combine(total_effects, scaled)
         if inter is not None:
-            total_inter = SensorInterference(total_inter.k_soft + inter.k_soft, total_inter.b_hard + inter.b_hard)
+            total_inter = SensorInterference(
+                total_inter.k_soft + inter.k_soft, total_inter.b_hard + inter.b_hard
+            )
         hidden[name] = {'sensors': [s + 1 for s in chosen], 'rms_nT': target * 1e9}
     scenario = replace(base, effects=total_effects, interference=total_inter, noise_t=noise)
     mission = simulate(scenario, np.random.default_rng(seed + 1))
@@ -178,28 +279,46 @@ def make_case(seed: int, effects: tuple[str, ...] = (), *, duration_s: float = 1
     return Case(scenario, mission, hidden)
 
 
-def _target_pass(rng: np.random.Generator, duration_s: float, depth_m: tuple[float, float],
-                 moment_am2: tuple[float, float], dipoles: tuple) -> dict[str, Any]:
+def _target_pass(
+    rng: np.random.Generator,
+    duration_s: float,
+    depth_m: tuple[float, float],
+    moment_am2: tuple[float, float],
+    dipoles: tuple,
+) -> dict[str, Any]:
     """Segments (trim, then a survey line over a target) and the dipoles with the target added."""
     trim_s = duration_s * rng.uniform(0.55, 0.7)
-    trim = TrimManoeuvre(duration_s=trim_s, center=(2000.0, 2000.0, -40.0),
-                         heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
-                         roll_amplitude_deg=rng.uniform(8, 30), roll_period_s=rng.uniform(7, 16),
-                         pitch_amplitude_deg=rng.uniform(6, 25), pitch_period_s=rng.uniform(10, 25),
-                         initial_heading_deg=rng.uniform(0, 360), speed_m_s=rng.uniform(0.5, 2.0))
+    trim = TrimManoeuvre(
+        duration_s=trim_s,
+        center=(2000.0, 2000.0, -40.0),
+        heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
+        roll_amplitude_deg=rng.uniform(8, 30),
+        roll_period_s=rng.uniform(7, 16),
+        pitch_amplitude_deg=rng.uniform(6, 25),
+        pitch_period_s=rng.uniform(10, 25),
+        initial_heading_deg=rng.uniform(0, 360),
+        speed_m_s=rng.uniform(0.5, 2.0),
+    )
     rest = duration_s - trim_s
     speed = rng.uniform(1.0, 2.5)
     heading = rng.uniform(0, 2 * np.pi)
     direction = np.array([np.cos(heading), np.sin(heading), 0.0])
     start = np.array([0.0, 0.0, -40.0])
     end = start + speed * rest * direction
-    line = SurveyLine(tuple(start), tuple(end), speed_m_s=speed, roll_amplitude_deg=rng.uniform(0, 3),
-                      pitch_amplitude_deg=rng.uniform(0, 2))
+    line = SurveyLine(
+        tuple(start),
+        tuple(end),
+        speed_m_s=speed,
+        roll_amplitude_deg=rng.uniform(0, 3),
+        pitch_amplitude_deg=rng.uniform(0, 2),
+    )
     closest = start + rng.uniform(0.3, 0.7) * speed * rest * direction
-    offset = rng.uniform(0.0, 0.5)                       # lateral share of the distance
+    offset = rng.uniform(0.0, 0.5)  # lateral share of the distance
     distance = rng.uniform(*depth_m)
     lateral = np.array([-direction[1], direction[0], 0.0]) * rng.choice([-1, 1])
-    position = closest + distance * (offset * lateral + np.sqrt(1 - offset**2) * np.array([0.0, 0.0, -1.0]))
+    position = closest + distance * (
+        offset * lateral + np.sqrt(1 - offset**2) * np.array([0.0, 0.0, -1.0])
+    )
     moment = rng.normal(size=3)
     moment *= rng.uniform(*moment_am2) / np.linalg.norm(moment)
     return {'segments': (trim, line), 'dipoles': tuple(dipoles) + (Dipole(position, moment),)}
@@ -207,10 +326,18 @@ def _target_pass(rng: np.random.Generator, duration_s: float, depth_m: tuple[flo
 
 def _random_temperature(rng: np.random.Generator):
     from ..core import TemperatureProfile
-    return TemperatureProfile(mean_c=rng.uniform(2, 25), ramp_c=rng.uniform(-6, 6), amplitude_c=rng.uniform(0.3, 2),
-                              period_s=rng.uniform(60, 500))
+
+    return TemperatureProfile(
+        mean_c=rng.uniform(2, 25),
+        ramp_c=rng.uniform(-6, 6),
+        amplitude_c=rng.uniform(0.3, 2),
+        period_s=rng.uniform(60, 500),
+    )
 
 
 def _random_current(rng: np.random.Generator):
     from ..core import CurrentProfile
-    return CurrentProfile(base_a=rng.uniform(-15, -3), step_amplitude_a=rng.uniform(2, 8), step_s=rng.uniform(8, 30))
+
+    return CurrentProfile(
+        base_a=rng.uniform(-15, -3), step_amplitude_a=rng.uniform(2, 8), step_s=rng.uniform(8, 30)
+    )

@@ -1,4 +1,5 @@
 """Reading a YAML file with errors that name the file and what it was meant to be."""
+
 from __future__ import annotations
 
 import os

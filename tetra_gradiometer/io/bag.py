@@ -20,30 +20,29 @@ Fast paths (the generic ones stay, and a test checks both agree):
   and the tensor JointState directly (:func:`encode_magnetic_field`,
   :func:`encode_tensor`), byte-identical to rosbags' serializer.
 """
+
 from __future__ import annotations
 
 import os
 import struct
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from ..errors import BagError, InputError
 from . import conversions as cv
 from .matching import StampMatcher
 from .outputs import BAG, atomic_output, check_output
-from ..errors import BagError, InputError
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
-
-
 
 
 #: CDR encapsulation identifiers (first two bytes) of plain CDR (XCDR1).
@@ -80,8 +79,12 @@ def encode_tensor(stamp_ns: int, g: np.ndarray, frame_id: str = cv.ARRAY_FRAME) 
     for name in cv.TENSOR_NAMES:
         body += _cdr_string(name, len(body))
     body += b'\x00' * (-len(body) % 4) + struct.pack('<I', 9)
-    body += b'\x00' * (-len(body) % 8) + struct.pack('<9d', *np.asarray(g, dtype=float).reshape(9).tolist())
-    body += struct.pack('<II', 0, 0)  # velocity[], effort[]: empty (offset is 4-aligned after doubles)
+    body += b'\x00' * (-len(body) % 8) + struct.pack(
+        '<9d', *np.asarray(g, dtype=float).reshape(9).tolist()
+    )
+    body += struct.pack(
+        '<II', 0, 0
+    )  # velocity[], effort[]: empty (offset is 4-aligned after doubles)
     return _CDR_LE + b'\x00\x00' + body
 
 
@@ -129,11 +132,13 @@ def decode_magnetic_field(raws: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
             if offset + 96 <= size:
                 sec = block[:, 4:8].copy().view(order + 'i4')[:, 0].astype(np.int64)
                 nanosec = block[:, 8:12].copy().view(order + 'u4')[:, 0].astype(np.int64)
-                values = block[:, offset:offset + 24].copy().view(order + 'f8').astype(float)
+                values = block[:, offset : offset + 24].copy().view(order + 'f8').astype(float)
                 return sec * 1_000_000_000 + nanosec, values
     decoded = [_decode_one(r) for r in raws]
-    return (np.array([d[0] for d in decoded], dtype=np.int64),
-            np.array([d[1:] for d in decoded], dtype=float).reshape(n, 3))
+    return (
+        np.array([d[0] for d in decoded], dtype=np.int64),
+        np.array([d[1:] for d in decoded], dtype=float).reshape(n, 3),
+    )
 
 
 class _BatchMatcher:
@@ -148,13 +153,21 @@ class _BatchMatcher:
     def __init__(self, matcher: StampMatcher) -> None:
         self.matcher = matcher
         self.pending: list[tuple[np.ndarray, np.ndarray]] = [
-            (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) for _ in range(4)]
+            (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) for _ in range(4)
+        ]
 
-    def add(self, batches: list[tuple[np.ndarray, np.ndarray]], *, final: bool = False,
-            fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def add(
+        self,
+        batches: list[tuple[np.ndarray, np.ndarray]],
+        *,
+        final: bool = False,
+        fast: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Add per-sensor ``(stamps, values)``; return the completed sets as arrays."""
-        self.pending = [(np.concatenate([p[0], b[0]]), np.concatenate([p[1], b[1]]))
-                        for p, b in zip(self.pending, batches)]
+        self.pending = [
+            (np.concatenate([p[0], b[0]]), np.concatenate([p[1], b[1]]))
+            for p, b in zip(self.pending, batches)
+        ]
         out_stamps: list[np.ndarray] = []
         out_fields: list[np.ndarray] = []
         if fast and self.matcher.pending_oldest_ns() is None:
@@ -163,8 +176,11 @@ class _BatchMatcher:
                 reference = self.pending[0][0][:k]
                 last = self.matcher._last  # noqa: SLF001 (same package: keep the matcher's state)
                 same = all(np.array_equal(p[0][:k], reference) for p in self.pending[1:])
-                if (same and np.all(np.diff(reference) > 0)
-                        and all(l is None or reference[0] > l for l in last)):
+                if (
+                    same
+                    and np.all(np.diff(reference) > 0)
+                    and all(l is None or reference[0] > l for l in last)
+                ):
                     out_stamps.append(reference.copy())
                     out_fields.append(np.stack([p[1][:k] for p in self.pending], axis=1))
                     self.matcher.counters.matched += k
@@ -258,15 +274,23 @@ class MagneticBag:
         for topic in cv.BAG_MAG_TOPICS:
             wrong = [c.msgtype for c in self._connections(topic) if c.msgtype != cv.MAGNETIC_FIELD]
             if wrong:
-                raise BagError(f'{self.path}: {topic} has type {wrong[0]}, expected {cv.MAGNETIC_FIELD}')
+                raise BagError(
+                    f'{self.path}: {topic} has type {wrong[0]}, expected {cv.MAGNETIC_FIELD}'
+                )
         count = sum(c.msgcount for t in cv.BAG_MAG_TOPICS for c in self._connections(t))
         if count == 0:
             raise BagError(f'{self.path}: the magnetometer topics hold no messages (empty bag)')
         return count
 
-    def iter_sets(self, *, tolerance_s: float = 2e-3, chunk_size: int = 20_000,
-                  window_s: tuple[float, float] | None = None,
-                  progress: bool | None = None, fast: bool = True) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    def iter_sets(
+        self,
+        *,
+        tolerance_s: float = 2e-3,
+        chunk_size: int = 20_000,
+        window_s: tuple[float, float] | None = None,
+        progress: bool | None = None,
+        fast: bool = True,
+    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """Matched sets in chunks: ``(stamps_ns (n,) int64, fields (n, 4, 3) tesla)``.
 
         ``window_s`` keeps sets whose stamp, in seconds from the first set's stamp, lies in
@@ -285,8 +309,11 @@ class MagneticBag:
         matcher = StampMatcher(int(round(tolerance_s * 1e9)))
         self.counters = matcher.counters
         batcher = _BatchMatcher(matcher)
-        index = {c.id: cv.BAG_MAG_TOPICS.index(c.topic) for c in self.reader.connections
-                 if c.topic in cv.BAG_MAG_TOPICS}
+        index = {
+            c.id: cv.BAG_MAG_TOPICS.index(c.topic)
+            for c in self.reader.connections
+            if c.topic in cv.BAG_MAG_TOPICS
+        }
         connections = [c for c in self.reader.connections if c.id in index]
         first: list[int] = []
         bar = _progress(total, progress, 'reading magnetometers')
@@ -306,8 +333,12 @@ class MagneticBag:
                         decode_fast = False
                 if batch is None:
                     msgs = [self.reader.deserialize(r, c.msgtype) for c, r in raws[sensor]]
-                    batch = (np.array([cv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64),
-                             np.array([cv.magnetic_field_vector(m) for m in msgs], dtype=float).reshape(-1, 3))
+                    batch = (
+                        np.array([cv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64),
+                        np.array([cv.magnetic_field_vector(m) for m in msgs], dtype=float).reshape(
+                            -1, 3
+                        ),
+                    )
                 batches.append(batch)
                 raws[sensor] = []
             stamps, fields = batcher.add(batches, final=final, fast=fast)
@@ -318,7 +349,7 @@ class MagneticBag:
                 keep = (t >= window_s[0]) & (t <= window_s[1])
                 stamps, fields = stamps[keep], fields[keep]
             for start in range(0, len(stamps), chunk_size):
-                yield stamps[start:start + chunk_size], fields[start:start + chunk_size]
+                yield stamps[start : start + chunk_size], fields[start : start + chunk_size]
 
         try:
             for connection, _, raw in self.reader.messages(connections=connections):
@@ -333,8 +364,10 @@ class MagneticBag:
         finally:  # also when the caller stops early (generator closed)
             bar.close()
         if matcher.counters.matched == 0:
-            raise BagError(f'{self.path}: no sample set could be matched by header stamp within '
-                           f'{tolerance_s * 1e3:g} ms ({matcher.counters.dropped_messages} messages unmatched)')
+            raise BagError(
+                f'{self.path}: no sample set could be matched by header stamp within '
+                f'{tolerance_s * 1e3:g} ms ({matcher.counters.dropped_messages} messages unmatched)'
+            )
 
     def read_sets(self, **options: Any) -> tuple[np.ndarray, np.ndarray]:
         """All matched sets at once (see :meth:`iter_sets` for the options)."""
@@ -347,9 +380,11 @@ class MagneticBag:
         connections = self._connections(topic)
         if not connections:
             return None
-        extract = {cv.ODOMETRY: cv.odometry_orientation,
-                   cv.TEMPERATURE: lambda m: np.array([m.temperature]),
-                   cv.BATTERY_STATE: lambda m: np.array([m.current])}.get(connections[0].msgtype)
+        extract = {
+            cv.ODOMETRY: cv.odometry_orientation,
+            cv.TEMPERATURE: lambda m: np.array([m.temperature]),
+            cv.BATTERY_STATE: lambda m: np.array([m.current]),
+        }.get(connections[0].msgtype)
         if extract is None:
             raise BagError(f'{self.path}: {topic} has unsupported type {connections[0].msgtype}')
         stamps, values = [], []
@@ -360,7 +395,9 @@ class MagneticBag:
         if not stamps:
             return None
         order = np.argsort(stamps, kind='stable')
-        return Series(np.asarray(stamps, dtype=np.int64)[order], np.asarray(values, dtype=float)[order])
+        return Series(
+            np.asarray(stamps, dtype=np.int64)[order], np.asarray(values, dtype=float)[order]
+        )
 
 
 class BagWriter:
@@ -377,8 +414,15 @@ class BagWriter:
     command : the writing command, recorded in the folder's marker file
     """
 
-    def __init__(self, path: str | os.PathLike, *, storage: str = 'sqlite3', force: bool = False,
-                 inputs: Iterable[str | os.PathLike] = (), command: str = '') -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        storage: str = 'sqlite3',
+        force: bool = False,
+        inputs: Iterable[str | os.PathLike] = (),
+        command: str = '',
+    ) -> None:
         if storage not in STORAGES:
             raise BagError(f'storage must be one of {sorted(STORAGES)}, got {storage!r}')
         self.path = check_output(path, BAG, force=force, inputs=inputs)
@@ -414,7 +458,9 @@ class BagWriter:
     def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
         """Write one message, logged at ``stamp_ns``."""
         connection = self._connection(topic, msg.__msgtype__)
-        self._writer.write(connection, int(stamp_ns), self.store.serialize_cdr(msg, msg.__msgtype__))
+        self._writer.write(
+            connection, int(stamp_ns), self.store.serialize_cdr(msg, msg.__msgtype__)
+        )
 
     def write_raw(self, topic: str, msgtype: str, data: bytes, stamp_ns: int) -> None:
         """Write one already serialized (CDR) message, logged at ``stamp_ns``."""
@@ -429,8 +475,12 @@ class BagWriter:
     def write_sample(self, stamp_ns: int, sample: np.ndarray) -> None:
         """One set of ``/tetra/mag1..4`` at header and log stamp ``stamp_ns``, fields (4, 3) T."""
         for sensor, (topic, frame) in enumerate(zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES)):
-            self.write_raw(topic, cv.MAGNETIC_FIELD, encode_magnetic_field(stamp_ns, sample[sensor], frame),
-                           stamp_ns)
+            self.write_raw(
+                topic,
+                cv.MAGNETIC_FIELD,
+                encode_magnetic_field(stamp_ns, sample[sensor], frame),
+                stamp_ns,
+            )
 
     def write_tensors(self, topic: str, stamps_ns: np.ndarray, tensors: np.ndarray) -> None:
         """A tensor topic from tensors (N, 3, 3) T/m (JointState CDR encoded directly)."""
@@ -441,6 +491,13 @@ class BagWriter:
 def _progress(total: int, enabled: bool | None, description: str) -> Any:
     """A tqdm bar on long input; silent when not a terminal unless asked for."""
     from tqdm import tqdm
+
     show = sys.stderr.isatty() if enabled is None else enabled
-    return tqdm(total=total, desc=description, unit='msg', disable=not show or total < 50_000,
-                mininterval=0.5, file=sys.stderr)
+    return tqdm(
+        total=total,
+        desc=description,
+        unit='msg',
+        disable=not show or total < 50_000,
+        mininterval=0.5,
+        file=sys.stderr,
+    )

@@ -11,6 +11,7 @@ Format (version 1)::
     b_hard_T: [[...]]     # B_21^h, B_31^h, B_41^h (3 x 3), tesla
     diagnostics: {...}    # rank, condition number, residual (nT/m), ...
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -24,12 +25,10 @@ import numpy as np
 import yaml
 
 from ..core import InterferenceParameters, TensorCalibration, TetraGeometry
-from .outputs import CALIBRATION, atomic_write_text
 from ..errors import CalibrationFileError
+from .outputs import CALIBRATION, atomic_write_text
 
 FORMAT_VERSION = 1
-
-
 
 
 @dataclass(frozen=True)
@@ -44,21 +43,32 @@ class CalibrationFile:
     created_utc: str = ''
 
     @classmethod
-    def from_calibration(cls, calibration: TensorCalibration, geometry: TetraGeometry) -> CalibrationFile:
+    def from_calibration(
+        cls, calibration: TensorCalibration, geometry: TetraGeometry
+    ) -> CalibrationFile:
         summary = calibration.summary()
-        return cls(parameters=calibration.parameters, method=calibration.method,
-                   symmetric_k=calibration.symmetric, sensor_positions=geometry.to_flat(),
-                   diagnostics={k: v for k, v in summary.items() if np.isscalar(v)},
-                   created_utc=_dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ'))
+        return cls(
+            parameters=calibration.parameters,
+            method=calibration.method,
+            symmetric_k=calibration.symmetric,
+            sensor_positions=geometry.to_flat(),
+            diagnostics={k: v for k, v in summary.items() if np.isscalar(v)},
+            created_utc=_dt.datetime.now(_dt.UTC).strftime('%Y-%m-%dT%H:%M:%SZ'),
+        )
 
     def to_yaml(self) -> str:
         document = {
-            'tetra_gradiometer_calibration': FORMAT_VERSION, 'method': self.method,
-            'symmetric_k': bool(self.symmetric_k), 'created_utc': self.created_utc,
+            'tetra_gradiometer_calibration': FORMAT_VERSION,
+            'method': self.method,
+            'symmetric_k': bool(self.symmetric_k),
+            'created_utc': self.created_utc,
             'sensor_positions': [float(v) for v in self.sensor_positions],
-            'k_soft': self.parameters.k_soft.tolist(), 'b_hard_T': self.parameters.b_hard.tolist(),
-            'diagnostics': {k: (float(v) if isinstance(v, (float, np.floating)) else v)
-                            for k, v in self.diagnostics.items()},
+            'k_soft': self.parameters.k_soft.tolist(),
+            'b_hard_T': self.parameters.b_hard.tolist(),
+            'diagnostics': {
+                k: (float(v) if isinstance(v, (float, np.floating)) else v)
+                for k, v in self.diagnostics.items()
+            },
         }
         return yaml.safe_dump(document, sort_keys=False)
 
@@ -68,15 +78,23 @@ class CalibrationFile:
             document = yaml.safe_load(text)
         except yaml.YAMLError as error:
             raise CalibrationFileError(f'{source} is not valid YAML: {error}') from None
-        if not isinstance(document, dict) or document.get('tetra_gradiometer_calibration') != FORMAT_VERSION:
-            raise CalibrationFileError(f'{source} is not a tetra_gradiometer calibration (version {FORMAT_VERSION})')
+        if (
+            not isinstance(document, dict)
+            or document.get('tetra_gradiometer_calibration') != FORMAT_VERSION
+        ):
+            raise CalibrationFileError(
+                f'{source} is not a tetra_gradiometer calibration (version {FORMAT_VERSION})'
+            )
         try:
             parameters = InterferenceParameters(document['k_soft'], document['b_hard_T'])
-            return cls(parameters=parameters, method=str(document['method']),
-                       symmetric_k=bool(document['symmetric_k']),
-                       sensor_positions=[float(v) for v in document['sensor_positions']],
-                       diagnostics=dict(document.get('diagnostics') or {}),
-                       created_utc=str(document.get('created_utc', '')))
+            return cls(
+                parameters=parameters,
+                method=str(document['method']),
+                symmetric_k=bool(document['symmetric_k']),
+                sensor_positions=[float(v) for v in document['sensor_positions']],
+                diagnostics=dict(document.get('diagnostics') or {}),
+                created_utc=str(document.get('created_utc', '')),
+            )
         except (KeyError, TypeError, ValueError) as error:
             raise CalibrationFileError(f'{source} is malformed: {error}') from None
 
@@ -85,21 +103,35 @@ class CalibrationFile:
 POSITION_TOLERANCE_M = 1e-6
 
 
-def check_positions(calibration: CalibrationFile, geometry: TetraGeometry, *, source: str,
-                    target: str = 'this array') -> None:
+def check_positions(
+    calibration: CalibrationFile,
+    geometry: TetraGeometry,
+    *,
+    source: str,
+    target: str = 'this array',
+) -> None:
     """Raise :class:`CalibrationFileError` when ``calibration`` was made for other sensor
     positions than ``geometry`` (beyond :data:`POSITION_TOLERANCE_M`)."""
     positions = np.asarray(calibration.sensor_positions, dtype=float)
     if positions.shape != (12,):
-        raise CalibrationFileError(f'{source}: sensor_positions must hold 12 floats, got {positions.size}')
+        raise CalibrationFileError(
+            f'{source}: sensor_positions must hold 12 floats, got {positions.size}'
+        )
     offset = float(np.abs(positions - geometry.positions.ravel()).max())
     if offset > POSITION_TOLERANCE_M:
-        raise CalibrationFileError(f'{source} was made for other sensor positions than {target} '
-                                   f'(they differ by up to {offset:.3g} m)')
+        raise CalibrationFileError(
+            f'{source} was made for other sensor positions than {target} '
+            f'(they differ by up to {offset:.3g} m)'
+        )
 
 
-def save_calibration(path: str | os.PathLike, calibration: CalibrationFile, *, force: bool = False,
-                     inputs: Iterable[str | os.PathLike] = ()) -> Path:
+def save_calibration(
+    path: str | os.PathLike,
+    calibration: CalibrationFile,
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Path:
     """Write atomically (temporary file, then rename).
 
     Refused (:class:`~tetra_gradiometer.errors.OutputError`) when ``path`` exists and is not
@@ -115,5 +147,7 @@ def load_calibration(path: str | os.PathLike) -> CalibrationFile:
     try:
         text = path.read_text(encoding='utf-8')
     except OSError as error:
-        raise CalibrationFileError(f'cannot read calibration file {path}: {error.strerror}') from None
+        raise CalibrationFileError(
+            f'cannot read calibration file {path}: {error.strerror}'
+        ) from None
     return CalibrationFile.from_yaml(text, source=str(path))

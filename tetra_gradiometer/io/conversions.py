@@ -15,13 +15,16 @@ Contract (README, "Topics"):
 * ``/tetra/temperature``: ``sensor_msgs/Temperature`` (degC);
   ``/battery_state``: ``sensor_msgs/BatteryState`` (``current`` in A).
 """
+
 from __future__ import annotations
 
 import array
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
+
 from ..errors import MessageError
 
 NAMESPACE = '/tetra'
@@ -41,8 +44,6 @@ TEMPERATURE = 'sensor_msgs/msg/Temperature'
 BATTERY_STATE = 'sensor_msgs/msg/BatteryState'
 
 
-
-
 @dataclass(frozen=True)
 class MessageTypes:
     """The message classes to build, by ROS name, and how a float64[] field is given."""
@@ -57,21 +58,38 @@ class MessageTypes:
 def rclpy_types() -> MessageTypes:
     """Message classes of the rclpy wheels (imports them on first use)."""
     from builtin_interfaces.msg import Time
-    from geometry_msgs.msg import (Point, Pose, PoseWithCovariance, Quaternion, Twist,
-                                   TwistWithCovariance, Vector3)
+    from geometry_msgs.msg import (
+        Point,
+        Pose,
+        PoseWithCovariance,
+        Quaternion,
+        Twist,
+        TwistWithCovariance,
+        Vector3,
+    )
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import BatteryState, JointState, MagneticField, Temperature
     from std_msgs.msg import Header
+
     classes = {
-        'builtin_interfaces/msg/Time': Time, 'std_msgs/msg/Header': Header,
-        'geometry_msgs/msg/Vector3': Vector3, 'geometry_msgs/msg/Point': Point,
-        'geometry_msgs/msg/Quaternion': Quaternion, 'geometry_msgs/msg/Pose': Pose,
+        'builtin_interfaces/msg/Time': Time,
+        'std_msgs/msg/Header': Header,
+        'geometry_msgs/msg/Vector3': Vector3,
+        'geometry_msgs/msg/Point': Point,
+        'geometry_msgs/msg/Quaternion': Quaternion,
+        'geometry_msgs/msg/Pose': Pose,
         'geometry_msgs/msg/PoseWithCovariance': PoseWithCovariance,
-        'geometry_msgs/msg/Twist': Twist, 'geometry_msgs/msg/TwistWithCovariance': TwistWithCovariance,
-        MAGNETIC_FIELD: MagneticField, JOINT_STATE: JointState, ODOMETRY: Odometry,
-        TEMPERATURE: Temperature, BATTERY_STATE: BatteryState,
+        'geometry_msgs/msg/Twist': Twist,
+        'geometry_msgs/msg/TwistWithCovariance': TwistWithCovariance,
+        MAGNETIC_FIELD: MagneticField,
+        JOINT_STATE: JointState,
+        ODOMETRY: Odometry,
+        TEMPERATURE: Temperature,
+        BATTERY_STATE: BatteryState,
     }
-    return MessageTypes(classes, lambda values: array.array('d', np.asarray(values, float).tolist()))
+    return MessageTypes(
+        classes, lambda values: array.array('d', np.asarray(values, float).tolist())
+    )
 
 
 def rosbags_types(typestore: Any) -> MessageTypes:
@@ -92,14 +110,20 @@ def header(types: MessageTypes, stamp_ns: int, frame_id: str) -> Any:
 
 
 def _vector3(types: MessageTypes, values: np.ndarray) -> Any:
-    return types['geometry_msgs/msg/Vector3'](x=float(values[0]), y=float(values[1]), z=float(values[2]))
+    return types['geometry_msgs/msg/Vector3'](
+        x=float(values[0]), y=float(values[1]), z=float(values[2])
+    )
 
 
-def magnetic_field_msg(types: MessageTypes, field_t: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+def magnetic_field_msg(
+    types: MessageTypes, field_t: np.ndarray, stamp_ns: int, frame_id: str
+) -> Any:
     """``sensor_msgs/MagneticField`` from a field (3,) in tesla; covariance unknown (zeros)."""
-    return types[MAGNETIC_FIELD](header=header(types, stamp_ns, frame_id),
-                                 magnetic_field=_vector3(types, field_t),
-                                 magnetic_field_covariance=np.zeros(9))
+    return types[MAGNETIC_FIELD](
+        header=header(types, stamp_ns, frame_id),
+        magnetic_field=_vector3(types, field_t),
+        magnetic_field_covariance=np.zeros(9),
+    )
 
 
 def magnetic_field_vector(msg: Any) -> np.ndarray:
@@ -108,12 +132,19 @@ def magnetic_field_vector(msg: Any) -> np.ndarray:
     return np.array([field.x, field.y, field.z], dtype=float)
 
 
-def tensor_msg(types: MessageTypes, g: np.ndarray, stamp_ns: int, frame_id: str = ARRAY_FRAME) -> Any:
+def tensor_msg(
+    types: MessageTypes, g: np.ndarray, stamp_ns: int, frame_id: str = ARRAY_FRAME
+) -> Any:
     """Tensor carrier: ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m."""
     values = np.asarray(g, dtype=float).reshape(9)
     empty = types.float_sequence(np.zeros(0))
-    return types[JOINT_STATE](header=header(types, stamp_ns, frame_id), name=list(TENSOR_NAMES),
-                              position=types.float_sequence(values), velocity=empty, effort=empty)
+    return types[JOINT_STATE](
+        header=header(types, stamp_ns, frame_id),
+        name=list(TENSOR_NAMES),
+        position=types.float_sequence(values),
+        velocity=empty,
+        effort=empty,
+    )
 
 
 def tensor_from_msg(msg: Any) -> np.ndarray:
@@ -127,26 +158,42 @@ def tensor_from_msg(msg: Any) -> np.ndarray:
     names = list(msg.name)
     values = np.asarray(msg.position, dtype=float)
     if sorted(names) != sorted(TENSOR_NAMES) or len(values) != 9:
-        raise MessageError(f'a tensor JointState needs names {TENSOR_NAMES} with 9 positions, '
-                           f'got names {names} and {len(values)} positions')
+        raise MessageError(
+            f'a tensor JointState needs names {TENSOR_NAMES} with 9 positions, '
+            f'got names {names} and {len(values)} positions'
+        )
     return values[[names.index(n) for n in TENSOR_NAMES]].reshape(3, 3)
 
 
-def odometry_msg(types: MessageTypes, position_enu: np.ndarray, orientation_xyzw: np.ndarray,
-                 stamp_ns: int, *, frame_id: str = 'world', child_frame_id: str = 'base_link') -> Any:
+def odometry_msg(
+    types: MessageTypes,
+    position_enu: np.ndarray,
+    orientation_xyzw: np.ndarray,
+    stamp_ns: int,
+    *,
+    frame_id: str = 'world',
+    child_frame_id: str = 'base_link',
+) -> Any:
     """``nav_msgs/Odometry``: position (3,) m ENU, orientation (4,) x, y, z, w (body -> ENU)."""
     q = np.asarray(orientation_xyzw, dtype=float)
     pose = types['geometry_msgs/msg/Pose'](
-        position=types['geometry_msgs/msg/Point'](x=float(position_enu[0]), y=float(position_enu[1]),
-                                                   z=float(position_enu[2])),
-        orientation=types['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
-                                                          w=float(q[3])))
+        position=types['geometry_msgs/msg/Point'](
+            x=float(position_enu[0]), y=float(position_enu[1]), z=float(position_enu[2])
+        ),
+        orientation=types['geometry_msgs/msg/Quaternion'](
+            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+        ),
+    )
     zero = np.zeros(3)
-    twist = types['geometry_msgs/msg/Twist'](linear=_vector3(types, zero), angular=_vector3(types, zero))
+    twist = types['geometry_msgs/msg/Twist'](
+        linear=_vector3(types, zero), angular=_vector3(types, zero)
+    )
     return types[ODOMETRY](
-        header=header(types, stamp_ns, frame_id), child_frame_id=child_frame_id,
+        header=header(types, stamp_ns, frame_id),
+        child_frame_id=child_frame_id,
         pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=pose, covariance=np.zeros(36)),
-        twist=types['geometry_msgs/msg/TwistWithCovariance'](twist=twist, covariance=np.zeros(36)))
+        twist=types['geometry_msgs/msg/TwistWithCovariance'](twist=twist, covariance=np.zeros(36)),
+    )
 
 
 def odometry_orientation(msg: Any) -> np.ndarray:
@@ -155,10 +202,13 @@ def odometry_orientation(msg: Any) -> np.ndarray:
     return np.array([q.x, q.y, q.z, q.w], dtype=float)
 
 
-def temperature_msg(types: MessageTypes, celsius: float, stamp_ns: int, frame_id: str = ARRAY_FRAME) -> Any:
+def temperature_msg(
+    types: MessageTypes, celsius: float, stamp_ns: int, frame_id: str = ARRAY_FRAME
+) -> Any:
     """``sensor_msgs/Temperature`` in degC."""
-    return types[TEMPERATURE](header=header(types, stamp_ns, frame_id), temperature=float(celsius),
-                              variance=0.0)
+    return types[TEMPERATURE](
+        header=header(types, stamp_ns, frame_id), temperature=float(celsius), variance=0.0
+    )
 
 
 def battery_msg(types: MessageTypes, current_a: float, stamp_ns: int) -> Any:
@@ -166,7 +216,20 @@ def battery_msg(types: MessageTypes, current_a: float, stamp_ns: int) -> Any:
     nan = float('nan')
     empty = types.float_sequence(np.zeros(0))
     return types[BATTERY_STATE](
-        header=header(types, stamp_ns, 'base_link'), voltage=nan, temperature=nan,
-        current=float(current_a), charge=nan, capacity=nan, design_capacity=nan, percentage=nan,
-        power_supply_status=0, power_supply_health=0, power_supply_technology=0, present=True,
-        cell_voltage=empty, cell_temperature=empty, location='', serial_number='')
+        header=header(types, stamp_ns, 'base_link'),
+        voltage=nan,
+        temperature=nan,
+        current=float(current_a),
+        charge=nan,
+        capacity=nan,
+        design_capacity=nan,
+        percentage=nan,
+        power_supply_status=0,
+        power_supply_health=0,
+        power_supply_technology=0,
+        present=True,
+        cell_voltage=empty,
+        cell_temperature=empty,
+        location='',
+        serial_number='',
+    )

@@ -5,12 +5,14 @@ and count incomplete sets the same way. Each sensor's stamps must increase; a se
 four queue heads when they lie within ``tolerance_ns`` of each other. A head that cannot
 match any more (another sensor has already moved past it) is dropped and counted.
 """
+
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+
 from ..errors import InputError
 
 N_SENSORS = 4

@@ -19,6 +19,7 @@ Every file or folder a command writes goes through :func:`atomic_output`:
   output is first moved aside into that temporary folder, then deleted. On any error (or a
   kill) the target is as it was; a killed run may leave a ``.NAME.*.partial`` folder.
 """
+
 from __future__ import annotations
 
 import json
@@ -33,8 +34,22 @@ from pathlib import Path
 
 from ..errors import OutputError
 
-__all__ = ['BAG', 'CALIBRATION', 'CSV', 'DEMO', 'MARKER', 'OutputError', 'OutputKind', 'PAPER',
-           'PARAMS', 'REPORT', 'TRUTH', 'atomic_output', 'atomic_write_text', 'check_output']
+__all__ = [
+    'BAG',
+    'CALIBRATION',
+    'CSV',
+    'DEMO',
+    'MARKER',
+    'OutputError',
+    'OutputKind',
+    'PAPER',
+    'PARAMS',
+    'REPORT',
+    'TRUTH',
+    'atomic_output',
+    'atomic_write_text',
+    'check_output',
+]
 
 #: Name of the marker file inside every folder this package writes (JSON: kind, command).
 MARKER = '.tetra_gradiometer_output'
@@ -47,6 +62,7 @@ def _starts_with(prefix: bytes) -> Callable[[Path], bool]:
                 return handle.read(len(prefix)) == prefix
         except OSError:
             return False
+
     return recognize
 
 
@@ -86,9 +102,13 @@ class OutputKind:
 
 
 CSV = OutputKind('tensor CSV', recognize=_starts_with(b'stamp_s,gxx,'))
-CALIBRATION = OutputKind('calibration file', recognize=_starts_with(b'tetra_gradiometer_calibration:'))
-PARAMS = OutputKind('simulated params file',
-                    recognize=_starts_with(b'# Written by "python -m tetra_gradiometer simulate"'))
+CALIBRATION = OutputKind(
+    'calibration file', recognize=_starts_with(b'tetra_gradiometer_calibration:')
+)
+PARAMS = OutputKind(
+    'simulated params file',
+    recognize=_starts_with(b'# Written by "python -m tetra_gradiometer simulate"'),
+)
 TRUTH = OutputKind('simulation truth file', recognize=_truth_npz)
 BAG = OutputKind('rosbag2 folder', folder=True)
 REPORT = OutputKind('discrepancy report folder', folder=True)
@@ -115,8 +135,13 @@ def _bag_folder_around(path: Path) -> Path | None:
     return None
 
 
-def check_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = False,
-                 inputs: Iterable[str | os.PathLike] = ()) -> Path:
+def check_output(
+    path: str | os.PathLike,
+    kind: OutputKind,
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Path:
     """Raise :class:`OutputError` unless ``path`` may be written as ``kind``; return it.
 
     Parameters
@@ -136,32 +161,47 @@ def check_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = Fal
         source_resolved = Path(source).resolve()
         if _inside(source_resolved, resolved):
             relation = 'is' if source_resolved == resolved else 'contains'
-            raise OutputError(f'{path} {relation} the input {source}: refusing to write there '
-                              '(nothing was written)')
+            raise OutputError(
+                f'{path} {relation} the input {source}: refusing to write there '
+                '(nothing was written)'
+            )
         if _inside(resolved, source_resolved):
-            raise OutputError(f'{path} lies inside the input {source}: refusing to write there '
-                              '(nothing was written)')
+            raise OutputError(
+                f'{path} lies inside the input {source}: refusing to write there '
+                '(nothing was written)'
+            )
     bag = _bag_folder_around(resolved)
     if bag is not None:
-        raise OutputError(f'{path} lies inside the rosbag2 folder {bag}: refusing to write there '
-                          '(nothing was written)')
+        raise OutputError(
+            f'{path} lies inside the rosbag2 folder {bag}: refusing to write there '
+            '(nothing was written)'
+        )
     if not os.path.lexists(path):
         return path
     if kind.folder and path.is_dir() and not path.is_symlink() and not any(path.iterdir()):
         return path  # an empty folder: nothing to lose
     if not kind.holds(path):
         what = 'folder' if path.is_dir() else 'file'
-        raise OutputError(f'{path} exists and is not a {kind.name} written by tetra_gradiometer '
-                          f'(an existing {what}): refusing to replace it (nothing was written)')
+        raise OutputError(
+            f'{path} exists and is not a {kind.name} written by tetra_gradiometer '
+            f'(an existing {what}): refusing to replace it (nothing was written)'
+        )
     if not force:
-        raise OutputError(f'{path} exists (a previous {kind.name}); --force replaces it '
-                          '(nothing was written)')
+        raise OutputError(
+            f'{path} exists (a previous {kind.name}); --force replaces it (nothing was written)'
+        )
     return path
 
 
 @contextmanager
-def atomic_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = False,
-                  inputs: Iterable[str | os.PathLike] = (), command: str = '') -> Iterator[Path]:
+def atomic_output(
+    path: str | os.PathLike,
+    kind: OutputKind,
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+    command: str = '',
+) -> Iterator[Path]:
     """Yield a private temporary path to fill as ``kind``; on success it becomes ``path``.
 
     The yielded path does not exist yet: create the file, or the folder (``mkdir`` or a
@@ -182,20 +222,28 @@ def atomic_output(path: str | os.PathLike, kind: OutputKind, *, force: bool = Fa
         if kind.folder:
             if not tmp.is_dir():
                 raise OutputError(f'{path}: nothing was written')
-            (tmp / MARKER).write_text(json.dumps({'kind': kind.name, 'command': command}) + '\n',
-                                      encoding='utf-8')
+            (tmp / MARKER).write_text(
+                json.dumps({'kind': kind.name, 'command': command}) + '\n', encoding='utf-8'
+            )
         _fsync_tree(tmp)
         check_output(path, kind, force=force, inputs=inputs)  # it may have appeared meanwhile
         _move_into_place(tmp, path, work)
     except OSError as error:  # disk full, permissions: the user's problem, said in one line
-        raise OutputError(f'cannot write {path}: {error.strerror or error} (nothing was '
-                          'replaced)') from error
+        raise OutputError(
+            f'cannot write {path}: {error.strerror or error} (nothing was replaced)'
+        ) from error
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def atomic_write_text(path: str | os.PathLike, text: str, kind: OutputKind, *,
-                      force: bool = False, inputs: Iterable[str | os.PathLike] = ()) -> Path:
+def atomic_write_text(
+    path: str | os.PathLike,
+    text: str,
+    kind: OutputKind,
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Path:
     """Write ``text`` (UTF-8) to ``path`` as ``kind`` through :func:`atomic_output`."""
     with atomic_output(path, kind, force=force, inputs=inputs) as tmp:
         tmp.write_text(text, encoding='utf-8')

@@ -1,4 +1,5 @@
 """ROS 2 parameter files (``/**: ros__parameters:``) as the offline tools read them."""
+
 from __future__ import annotations
 
 import os
@@ -9,10 +10,8 @@ import numpy as np
 import yaml
 
 from ..core import GeometryError, TetraGeometry
-from ._yaml import read_yaml
 from ..errors import ParamsError
-
-
+from ._yaml import read_yaml
 
 
 def load_params(path: str | os.PathLike, node: str = '/**') -> dict[str, Any]:
@@ -24,7 +23,9 @@ def load_params(path: str | os.PathLike, node: str = '/**') -> dict[str, Any]:
     path = Path(path)
     document = read_yaml(path, 'params', ParamsError)
     if not isinstance(document, dict) or not document:
-        raise ParamsError(f'params file {path} has no node sections (expected "/**: ros__parameters:")')
+        raise ParamsError(
+            f'params file {path} has no node sections (expected "/**: ros__parameters:")'
+        )
     section = document.get(node)
     if section is None and len(document) == 1:
         section = next(iter(document.values()))
@@ -41,9 +42,13 @@ def geometry_from_params(params: dict[str, Any], source: str = 'params') -> Tetr
     try:
         flat = np.asarray(values, dtype=float).ravel()
     except (TypeError, ValueError):
-        raise ParamsError(f'{source}: sensor_positions must be 12 numbers, got {values!r}') from None
+        raise ParamsError(
+            f'{source}: sensor_positions must be 12 numbers, got {values!r}'
+        ) from None
     if flat.size != 12 or not np.all(np.isfinite(flat)):
-        raise ParamsError(f'{source}: sensor_positions must be 12 finite floats, got {flat.size} values')
+        raise ParamsError(
+            f'{source}: sensor_positions must be 12 finite floats, got {flat.size} values'
+        )
     try:
         return TetraGeometry.from_flat(flat)
     except GeometryError as error:
@@ -57,7 +62,9 @@ def earth_field_from_params(params: dict[str, Any], source: str = 'params') -> n
         return None
     field = np.asarray(values, dtype=float).ravel()
     if field.size != 3 or not np.all(np.isfinite(field)):
-        raise ParamsError(f'{source}: earth_field_enu must be 3 finite floats (tesla), got {values!r}')
+        raise ParamsError(
+            f'{source}: earth_field_enu must be 3 finite floats (tesla), got {values!r}'
+        )
     return field
 
 

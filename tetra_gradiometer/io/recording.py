@@ -4,6 +4,7 @@
 contract; ``read_recording`` reads a bag's matched sets with the optional topics
 (``/odom``, ``/tetra/temperature``, ``/battery_state``) interpolated onto the set stamps.
 """
+
 from __future__ import annotations
 
 import os
@@ -14,10 +15,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from . import conversions as cv
 from ..core import MissionData
-from .bag import BagWriter, MagneticBag, _progress
 from ..errors import InputError
+from . import conversions as cv
+from .bag import BagWriter, MagneticBag, _progress
 
 
 def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
@@ -25,10 +26,20 @@ def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
     return start_ns + np.round(mission.t * 1e9).astype(np.int64)
 
 
-def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns: int = 1_767_225_600 * 10**9,
-                      storage: str = 'sqlite3', odom: bool = True, temperature: bool = True,
-                      battery: bool = True, progress: bool | None = None, force: bool = False,
-                      inputs: Iterable[str | os.PathLike] = (), command: str = '') -> Path:
+def write_mission_bag(
+    path: str | os.PathLike,
+    mission: MissionData,
+    *,
+    start_ns: int = 1_767_225_600 * 10**9,
+    storage: str = 'sqlite3',
+    odom: bool = True,
+    temperature: bool = True,
+    battery: bool = True,
+    progress: bool | None = None,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+    command: str = '',
+) -> Path:
     """Write the four magnetometers (and the optional topics) of ``mission`` to a bag.
 
     Parameters
@@ -54,12 +65,23 @@ def write_mission_bag(path: str | os.PathLike, mission: MissionData, *, start_ns
                 bar.update(4000)
             writer.write_sample(stamp, mission.fields_measured[i])
             if odom:
-                writer.write(cv.ODOM_TOPIC, cv.odometry_msg(types, mission.position_enu[i],
-                                                            mission.orientation_xyzw[i], stamp), stamp)
+                writer.write(
+                    cv.ODOM_TOPIC,
+                    cv.odometry_msg(
+                        types, mission.position_enu[i], mission.orientation_xyzw[i], stamp
+                    ),
+                    stamp,
+                )
             if temperature:
-                writer.write(cv.TEMPERATURE_TOPIC, cv.temperature_msg(types, mission.temperature_c[i], stamp), stamp)
+                writer.write(
+                    cv.TEMPERATURE_TOPIC,
+                    cv.temperature_msg(types, mission.temperature_c[i], stamp),
+                    stamp,
+                )
             if battery:
-                writer.write(cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp)
+                writer.write(
+                    cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp
+                )
     bar.close()
     return Path(path)
 
@@ -94,7 +116,9 @@ class Recording:
         return len(self.stamps_ns)
 
 
-def _interp_orientation(series_stamps: np.ndarray, quats: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+def _interp_orientation(
+    series_stamps: np.ndarray, quats: np.ndarray, stamps: np.ndarray
+) -> np.ndarray:
     if len(series_stamps) == 1:
         return np.repeat(quats, len(stamps), axis=0)
     t0 = series_stamps[0]
@@ -103,19 +127,29 @@ def _interp_orientation(series_stamps: np.ndarray, quats: np.ndarray, stamps: np
     return slerp(clipped).as_quat()
 
 
-def read_recording(path: str | os.PathLike, *, tolerance_s: float = 2e-3,
-                   window_s: tuple[float, float] | None = None, progress: bool | None = None) -> Recording:
+def read_recording(
+    path: str | os.PathLike,
+    *,
+    tolerance_s: float = 2e-3,
+    window_s: tuple[float, float] | None = None,
+    progress: bool | None = None,
+) -> Recording:
     """Read a bag per the data contract into a :class:`Recording` (whole, in memory).
 
     Optional topics are interpolated onto the set stamps (slerp for orientation, linear for
     scalars, held at the ends); an absent topic is named in ``missing``.
     """
     with MagneticBag(path) as bag:
-        stamps, fields = bag.read_sets(tolerance_s=tolerance_s, window_s=window_s, progress=progress)
+        stamps, fields = bag.read_sets(
+            tolerance_s=tolerance_s, window_s=window_s, progress=progress
+        )
         extras: dict[str, np.ndarray | None] = {}
         missing: dict[str, str] = {}
-        for name, topic in (('orientation_xyzw', cv.ODOM_TOPIC), ('temperature_c', cv.TEMPERATURE_TOPIC),
-                            ('current_a', cv.BATTERY_TOPIC)):
+        for name, topic in (
+            ('orientation_xyzw', cv.ODOM_TOPIC),
+            ('temperature_c', cv.TEMPERATURE_TOPIC),
+            ('current_a', cv.BATTERY_TOPIC),
+        ):
             series = bag.read_series(topic)
             if series is None:
                 extras[name] = None

@@ -1,5 +1,6 @@
 """``report.json``, ``report.md`` and the PNG plots of a discrepancy :class:`Report`, in one
 report folder written atomically (:func:`~tetra_gradiometer.io.outputs.atomic_output`)."""
+
 from __future__ import annotations
 
 import json
@@ -10,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from .outputs import REPORT, atomic_output
 from ..discrepancy.analysis import Report, criterion_text
 from ..discrepancy.effects import LIBRARY
+from .outputs import REPORT, atomic_output
 
 _AXES = 'xyz'
 _MAX_POINTS = 4000
@@ -33,8 +34,10 @@ def report_json(report: Report) -> str:
 
 def _pyplot():
     import matplotlib
+
     matplotlib.use('Agg', force=True)
     import matplotlib.pyplot as plt
+
     return plt
 
 
@@ -46,10 +49,22 @@ def _thin(n: int) -> slice:
     return slice(None, None, max(1, int(np.ceil(n / _MAX_POINTS))))
 
 
-def _plot_residuals(plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...], panels: list[tuple[str, np.ndarray]],
-                    title: str, spans: list[dict[str, Any]] = ()) -> None:
-    fig, axes = plt.subplots(len(sensors), len(panels), figsize=(5.5 * len(panels), 1.9 * len(sensors) + 0.8),
-                             sharex=True, squeeze=False)
+def _plot_residuals(
+    plt: Any,
+    path: Path,
+    t: np.ndarray,
+    sensors: tuple[int, ...],
+    panels: list[tuple[str, np.ndarray]],
+    title: str,
+    spans: list[dict[str, Any]] = (),
+) -> None:
+    fig, axes = plt.subplots(
+        len(sensors),
+        len(panels),
+        figsize=(5.5 * len(panels), 1.9 * len(sensors) + 0.8),
+        sharex=True,
+        squeeze=False,
+    )
     k = _thin(len(t))
     for col, (label, residual) in enumerate(panels):
         for row, s in enumerate(sensors):
@@ -89,14 +104,20 @@ def _plot_gap(plt: Any, path: Path, report: Report) -> None:
     plt.close(fig)
 
 
-def _plot_effect(plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...], name: str, field: np.ndarray) -> None:
-    fig, axes = plt.subplots(len(sensors), 1, figsize=(7, 1.7 * len(sensors) + 0.8), sharex=True, squeeze=False)
+def _plot_effect(
+    plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...], name: str, field: np.ndarray
+) -> None:
+    fig, axes = plt.subplots(
+        len(sensors), 1, figsize=(7, 1.7 * len(sensors) + 0.8), sharex=True, squeeze=False
+    )
     k = _thin(len(t))
     for row, s in enumerate(sensors):
         ax = axes[row, 0]
         for a in range(3):
             ax.plot(t[k], field[k, s, a], lw=0.7, label=_AXES[a])
-        ax.set_title(f'sensor {s + 1}: RMS {np.sqrt(np.mean(field[:, s] ** 2)):.3g} nT', fontsize=8)
+        ax.set_title(
+            f'sensor {s + 1}: RMS {np.sqrt(np.mean(field[:, s] ** 2)):.3g} nT', fontsize=8
+        )
         ax.set_ylabel('nT', fontsize=7)
         ax.tick_params(labelsize=7)
     axes[0, 0].legend(fontsize=6, loc='upper right')
@@ -111,17 +132,26 @@ def _plot_diagnostics(plt: Any, path: Path, report: Report) -> None:
     series = report.series
     residual = series['residuals'][0]
     sensors = series['sensors']
-    drivers: list[tuple[str, np.ndarray]] = [('|dB^b/dt|, nT/s', np.linalg.norm(series['b_rate'], axis=1))]
+    drivers: list[tuple[str, np.ndarray]] = [
+        ('|dB^b/dt|, nT/s', np.linalg.norm(series['b_rate'], axis=1))
+    ]
     if series['attitude'] is not None:
-        drivers += [('heading, deg', series['attitude'][:, 0]), ('pitch, deg', series['attitude'][:, 1]),
-                    ('roll, deg', series['attitude'][:, 2])]
+        drivers += [
+            ('heading, deg', series['attitude'][:, 0]),
+            ('pitch, deg', series['attitude'][:, 1]),
+            ('roll, deg', series['attitude'][:, 2]),
+        ]
     if series['temperature_c'] is not None:
         drivers.append(('temperature, degC', series['temperature_c']))
     if series['current_a'] is not None:
         drivers.append(('current, A', series['current_a']))
     k = _thin(len(series['t']))
-    fig, axes = plt.subplots(len(sensors), len(drivers), figsize=(2.3 * len(drivers) + 0.5, 1.8 * len(sensors) + 0.8),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(sensors),
+        len(drivers),
+        figsize=(2.3 * len(drivers) + 0.5, 1.8 * len(sensors) + 0.8),
+        squeeze=False,
+    )
     for row, s in enumerate(sensors):
         for col, (label, d) in enumerate(drivers):
             ax = axes[row, col]
@@ -132,8 +162,10 @@ def _plot_diagnostics(plt: Any, path: Path, report: Report) -> None:
                 ax.set_xlabel(label, fontsize=7)
             if col == 0:
                 ax.set_ylabel(f'sensor {s + 1}, nT', fontsize=7)
-    fig.suptitle('Base-model residual (measured - simulated) against attitude, field rate, temperature, current',
-                 fontsize=9)
+    fig.suptitle(
+        'Base-model residual (measured - simulated) against attitude, field rate, temperature, current',
+        fontsize=9,
+    )
     fig.tight_layout()
     _save(fig, path)
     plt.close(fig)
@@ -154,17 +186,25 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
     if report.named_effects:
         lines.append(f'Named effects, in the order added: **{", ".join(report.named_effects)}**.')
     else:
-        lines.append('No effect from the library is missing: **the base model is adequate**.'
-                     if report.adequate else 'No effect from the library explains the remaining gap.')
-    lines += ['', f'Held-out gap (RMS of measured - simulated over all sensors and axes): '
-              f'**{report.gap_initial_nT:.4g} nT** with the base model, **{report.gap_final_nT:.4g} nT** at the end; '
-              f'noise floor {report.noise_floor_nT:.4g} nT '
-              f'(ratio {report.gap_final_nT / report.noise_floor_nT:.3g}). '
-              f'Adequate: **{"yes" if report.adequate else "no"}**.', '',
-              f'- Base model: {report.base_model}', f'- Residual view: {report.view} '
-              f'({"every sensor against R^T E" if report.view == "absolute" else "pair differences against sensor 1"})',
-              f'- Data: {d["data"]["samples"]} samples, {d["data"]["duration_s"]:.1f} s, '
-              f'{d["data"]["sample_rate_hz"]:.3g} Hz; analysed in {report.runtime_s:.2f} s']
+        lines.append(
+            'No effect from the library is missing: **the base model is adequate**.'
+            if report.adequate
+            else 'No effect from the library explains the remaining gap.'
+        )
+    lines += [
+        '',
+        f'Held-out gap (RMS of measured - simulated over all sensors and axes): '
+        f'**{report.gap_initial_nT:.4g} nT** with the base model, **{report.gap_final_nT:.4g} nT** at the end; '
+        f'noise floor {report.noise_floor_nT:.4g} nT '
+        f'(ratio {report.gap_final_nT / report.noise_floor_nT:.3g}). '
+        f'Adequate: **{"yes" if report.adequate else "no"}**.',
+        '',
+        f'- Base model: {report.base_model}',
+        f'- Residual view: {report.view} '
+        f'({"every sensor against R^T E" if report.view == "absolute" else "pair differences against sensor 1"})',
+        f'- Data: {d["data"]["samples"]} samples, {d["data"]["duration_s"]:.1f} s, '
+        f'{d["data"]["sample_rate_hz"]:.3g} Hz; analysed in {report.runtime_s:.2f} s',
+    ]
     if d['data'].get('window_s'):
         w = d['data']['window_s']
         end = 'the end' if w[1] is None else f'{w[1]:g} s'
@@ -172,42 +212,73 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
     for note in report.notes:
         lines.append(f'- Note: {note}')
     if report.excluded_spans:
-        lines += ['', '## Excluded spans (target passages)', '',
-                  'Spans where the residual is dominated by a localized field that no candidate represents '
-                  '(it differs between the sensors and rises and falls within the span: a target passed close '
-                  'to the track). They are left out of every fit and of the held-out gap, with a margin; '
-                  '"adequate" refers to the rest of the run.', '',
-                  '| start, s | end, s | peak at, s | peak residual, nT | x noise | between sensors, nT | '
-                  'common, nT | attitude change, deg |', '|---|---|---|---|---|---|---|---|']
+        lines += [
+            '',
+            '## Excluded spans (target passages)',
+            '',
+            'Spans where the residual is dominated by a localized field that no candidate represents '
+            '(it differs between the sensors and rises and falls within the span: a target passed close '
+            'to the track). They are left out of every fit and of the held-out gap, with a margin; '
+            '"adequate" refers to the rest of the run.',
+            '',
+            '| start, s | end, s | peak at, s | peak residual, nT | x noise | between sensors, nT | '
+            'common, nT | attitude change, deg |',
+            '|---|---|---|---|---|---|---|---|',
+        ]
         for e in report.excluded_spans:
-            common = '-' if e['peak_common_rms_nT'] is None else f"{e['peak_common_rms_nT']:.3g}"
-            turn = '-' if e['attitude_change_deg'] is None else f"{e['attitude_change_deg']:.1f}"
-            lines.append(f"| {e['start_s']:.1f} | {e['end_s']:.1f} | {e['peak_time_s']:.1f} | "
-                         f"{e['peak_residual_rms_nT']:.3g} | {e['peak_over_noise']:.0f} | "
-                         f"{e['peak_difference_rms_nT']:.3g} | {common} | {turn} |")
-        lines += [''] + [f"- {e['start_s']:.1f}-{e['end_s']:.1f} s: {e['reason']}" for e in report.excluded_spans]
-    lines += ['', '## Method', '',
-              'The recorded run is simulated with the base model: each sensor\'s reading is predicted from the '
-              'background field B^b (from /odom and the Earth field, or B_1\' without /odom). The residual '
-              '(measured - simulated) is examined against time, attitude, field rate, temperature and current, '
-              'and each candidate family of the library is added to the model as extra regressors and tested on '
-              'held-out data.', '', f'Criterion: {criterion_text()}',
-              'The noise floor is the white-noise RMS estimated from the fourth difference of the residual '
-              '(median absolute deviation, so steps and spikes do not count).', '']
+            common = '-' if e['peak_common_rms_nT'] is None else f'{e["peak_common_rms_nT"]:.3g}'
+            turn = '-' if e['attitude_change_deg'] is None else f'{e["attitude_change_deg"]:.1f}'
+            lines.append(
+                f'| {e["start_s"]:.1f} | {e["end_s"]:.1f} | {e["peak_time_s"]:.1f} | '
+                f'{e["peak_residual_rms_nT"]:.3g} | {e["peak_over_noise"]:.0f} | '
+                f'{e["peak_difference_rms_nT"]:.3g} | {common} | {turn} |'
+            )
+        lines += [''] + [
+            f'- {e["start_s"]:.1f}-{e["end_s"]:.1f} s: {e["reason"]}'
+            for e in report.excluded_spans
+        ]
+    lines += [
+        '',
+        '## Method',
+        '',
+        "The recorded run is simulated with the base model: each sensor's reading is predicted from the "
+        "background field B^b (from /odom and the Earth field, or B_1' without /odom). The residual "
+        '(measured - simulated) is examined against time, attitude, field rate, temperature and current, '
+        'and each candidate family of the library is added to the model as extra regressors and tested on '
+        'held-out data.',
+        '',
+        f'Criterion: {criterion_text()}',
+        'The noise floor is the white-noise RMS estimated from the fourth difference of the residual '
+        '(median absolute deviation, so steps and spikes do not count).',
+        '',
+    ]
     if 'gap' in figures:
         lines += [f'![gap per step]({figures["gap"]})', '']
     if report.steps:
-        lines += ['## Steps', '', '| # | effect | gap before, nT | gap after, nT | parameters | CV-BIC change | F | p |',
-                  '|---|---|---|---|---|---|---|---|']
+        lines += [
+            '## Steps',
+            '',
+            '| # | effect | gap before, nT | gap after, nT | parameters | CV-BIC change | F | p |',
+            '|---|---|---|---|---|---|---|---|',
+        ]
         for i, s in enumerate(report.steps, 1):
-            lines.append(f'| {i} | {s.effect} | {s.gap_before_nT:.4g} | {s.gap_after_nT:.4g} | {s.n_parameters} | '
-                         f'{s.delta_bic:+.4g} | {s.f_statistic:.4g} | {s.p_value:.3g} |')
+            lines.append(
+                f'| {i} | {s.effect} | {s.gap_before_nT:.4g} | {s.gap_after_nT:.4g} | {s.n_parameters} | '
+                f'{s.delta_bic:+.4g} | {s.f_statistic:.4g} | {s.p_value:.3g} |'
+            )
         lines.append('')
         for i, s in enumerate(report.steps, 1):
-            lines += [f'### {i}. {s.effect}', '', f'**What it is.** {LIBRARY[s.effect].physics}', '',
-                      f'**Evidence.** {s.evidence}.', '',
-                      f'**Fitted parameters** ({s.parameters.get("units", "")}; final joint fit):',
-                      _fmt_params(s.parameters), '']
+            lines += [
+                f'### {i}. {s.effect}',
+                '',
+                f'**What it is.** {LIBRARY[s.effect].physics}',
+                '',
+                f'**Evidence.** {s.evidence}.',
+                '',
+                f'**Fitted parameters** ({s.parameters.get("units", "")}; final joint fit):',
+                _fmt_params(s.parameters),
+                '',
+            ]
             if 'note' in s.parameters:
                 lines += [f'({s.parameters["note"]})', '']
             key = f'step{i}'
@@ -223,17 +294,26 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
     lines += ['## Candidates per round', '']
     for i, r in enumerate(report.rounds):
         model = ', '.join(r['model']) or 'base model'
-        lines += [f'Round {i + 1} (model: {model}; held-out gap {r["gap_nT"]:.4g} nT, noise floor '
-                  f'{r["noise_floor_nT"]:.4g} nT):', '',
-                  '| candidate | parameters | gap after, nT | explained RMS, nT | CV-BIC change | F | p | passes |',
-                  '|---|---|---|---|---|---|---|---|']
+        lines += [
+            f'Round {i + 1} (model: {model}; held-out gap {r["gap_nT"]:.4g} nT, noise floor '
+            f'{r["noise_floor_nT"]:.4g} nT):',
+            '',
+            '| candidate | parameters | gap after, nT | explained RMS, nT | CV-BIC change | F | p | passes |',
+            '|---|---|---|---|---|---|---|---|',
+        ]
         for c in r['candidates']:
-            lines.append(f'| {c["effect"]} | {c["n_parameters"]} | {c["gap_after_nT"]:.4g} | '
-                         f'{c["explained_rms_nT"]:.3g} | {c["delta_bic"]:+.4g} | {c["f_statistic"]:.4g} | '
-                         f'{c["p_value"]:.3g} | {"yes" if c["passes"] else "no"} |')
+            lines.append(
+                f'| {c["effect"]} | {c["n_parameters"]} | {c["gap_after_nT"]:.4g} | '
+                f'{c["explained_rms_nT"]:.3g} | {c["delta_bic"]:+.4g} | {c["f_statistic"]:.4g} | '
+                f'{c["p_value"]:.3g} | {"yes" if c["passes"] else "no"} |'
+            )
         lines.append('')
-    lines += ['## Where the base model disagrees', '',
-              'Largest correlation of the base-model residual (any sensor and axis) with each driver:', '']
+    lines += [
+        '## Where the base model disagrees',
+        '',
+        'Largest correlation of the base-model residual (any sensor and axis) with each driver:',
+        '',
+    ]
     for name, c in report.diagnostics['base']['correlation'].items():
         lines.append(f'- {name}: r = {c["r"]:+.3f} ({c["where"]})')
     lines.append('')
@@ -244,8 +324,14 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def write_report(report: Report, out_dir: str | os.PathLike, *, plots: bool = True, force: bool = False,
-                 inputs: Iterable[str | os.PathLike] = ()) -> Path:
+def write_report(
+    report: Report,
+    out_dir: str | os.PathLike,
+    *,
+    plots: bool = True,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Path:
     """Write ``report.json``, ``report.md`` and (with ``plots``) the PNGs into the folder
     ``out_dir``, atomically (a previous report folder is replaced only with ``force``;
     :func:`~tetra_gradiometer.io.outputs.atomic_output`)."""
@@ -267,19 +353,34 @@ def _write_report_files(report: Report, out: Path, *, plots: bool) -> None:
         _plot_diagnostics(plt, out / figures['diagnostics'], report)
         if not report.steps:
             figures['step0'] = 'residual_base.png'
-            _plot_residuals(plt, out / figures['step0'], t, sensors, [('base model', residuals[0])],
-                            'Residual (measured - simulated) of the base model'
-                            + (' (grey: excluded spans)' if report.excluded_spans else ''), report.excluded_spans)
+            _plot_residuals(
+                plt,
+                out / figures['step0'],
+                t,
+                sensors,
+                [('base model', residuals[0])],
+                'Residual (measured - simulated) of the base model'
+                + (' (grey: excluded spans)' if report.excluded_spans else ''),
+                report.excluded_spans,
+            )
         for i, step in enumerate(report.steps, 1):
             figures[f'step{i}'] = f'residual_step{i}_{step.effect}.png'
-            _plot_residuals(plt, out / figures[f'step{i}'], t, sensors,
-                            [('before', residuals[i - 1]), (f'after + {step.effect}', residuals[i])],
-                            f'Step {i}: residual before and after adding {step.effect}'
-                            + (' (grey: excluded spans)' if report.excluded_spans else ''), report.excluded_spans)
+            _plot_residuals(
+                plt,
+                out / figures[f'step{i}'],
+                t,
+                sensors,
+                [('before', residuals[i - 1]), (f'after + {step.effect}', residuals[i])],
+                f'Step {i}: residual before and after adding {step.effect}'
+                + (' (grey: excluded spans)' if report.excluded_spans else ''),
+                report.excluded_spans,
+            )
             field = s['effect_fields'][i - 1] if i - 1 < len(s['effect_fields']) else None
             if field is not None and f'effect_{step.effect}' not in figures:
                 figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
                 shown = tuple(k for k in range(4) if np.any(field[:, k])) or sensors
-                _plot_effect(plt, out / figures[f'effect_{step.effect}'], t, shown, step.effect, field)
+                _plot_effect(
+                    plt, out / figures[f'effect_{step.effect}'], t, shown, step.effect, field
+                )
     (out / 'report.json').write_text(report_json(report), encoding='utf-8')
     (out / 'report.md').write_text(report_markdown(report, figures), encoding='utf-8')

@@ -19,6 +19,7 @@ Example::
       - line: {start_m: [-200, 30, -50], end_m: [200, 30, -50], speed_m_s: 2}
     effects: {}                                # see EFFECT_KEYS
 """
+
 from __future__ import annotations
 
 import copy
@@ -29,12 +30,21 @@ from typing import Any
 
 import numpy as np
 
-from ..core import (CurrentProfile, Dipole, Effects, Scenario, SensorInterference, SurveyLine,
-                    TemperatureProfile, TetraGeometry, TrimManoeuvre, random_interference)
-from ._yaml import read_yaml
+from ..core import (
+    CurrentProfile,
+    Dipole,
+    Effects,
+    Scenario,
+    SensorInterference,
+    SurveyLine,
+    TemperatureProfile,
+    TetraGeometry,
+    TrimManoeuvre,
+    random_interference,
+)
 from ..core.units import T_PER_NT
 from ..errors import InputError, ScenarioError
-
+from ._yaml import read_yaml
 
 #: effect name -> (key in the file, factor to SI)
 EFFECT_KEYS = {
@@ -46,12 +56,12 @@ EFFECT_KEYS = {
 }
 
 
-
-
-def igrf_field_enu(latitude_deg: float, longitude_deg: float, date: _dt.date | str,
-                   altitude_m: float = 0.0) -> np.ndarray:
+def igrf_field_enu(
+    latitude_deg: float, longitude_deg: float, date: _dt.date | str, altitude_m: float = 0.0
+) -> np.ndarray:
     """IGRF-14 main field (3,) in tesla, ENU, at a place and date (ppigrf)."""
     import ppigrf
+
     when = _dt.datetime.fromisoformat(str(date)) if not isinstance(date, _dt.date) else date
     if not isinstance(when, _dt.datetime):
         when = _dt.datetime(when.year, when.month, when.day)
@@ -59,7 +69,9 @@ def igrf_field_enu(latitude_deg: float, longitude_deg: float, date: _dt.date | s
     return np.array([east.item(), north.item(), up.item()]) * T_PER_NT
 
 
-def _vec(section: dict, key: str, shape: tuple[int, ...], where: str, factor: float = 1.0) -> np.ndarray:
+def _vec(
+    section: dict, key: str, shape: tuple[int, ...], where: str, factor: float = 1.0
+) -> np.ndarray:
     if key not in section:
         raise ScenarioError(f'{where}: missing "{key}"')
     try:
@@ -74,8 +86,20 @@ def _vec(section: dict, key: str, shape: tuple[int, ...], where: str, factor: fl
 
 
 #: Top-level keys a scenario file may hold.
-TOP_LEVEL_KEYS = {'seed', 'sample_rate_hz', 'noise_nT', 'geometry', 'earth_field', 'dipoles', 'interference',
-                  'segments', 'effects', 'temperature', 'current', 'description'}
+TOP_LEVEL_KEYS = {
+    'seed',
+    'sample_rate_hz',
+    'noise_nT',
+    'geometry',
+    'earth_field',
+    'dipoles',
+    'interference',
+    'segments',
+    'effects',
+    'temperature',
+    'current',
+    'description',
+}
 
 
 def _positive(spec: dict, key: str, where: str, *, allow_zero: bool = False) -> None:
@@ -86,7 +110,9 @@ def _positive(spec: dict, key: str, where: str, *, allow_zero: bool = False) -> 
     except (TypeError, ValueError):
         raise ScenarioError(f'{where}.{key}: not a number: {spec[key]!r}') from None
     if not np.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
-        raise ScenarioError(f'{where}.{key} must be {"non-negative" if allow_zero else "positive"}, got {value}')
+        raise ScenarioError(
+            f'{where}.{key} must be {"non-negative" if allow_zero else "positive"}, got {value}'
+        )
 
 
 def _finite(spec: dict, key: str, where: str) -> None:
@@ -102,7 +128,9 @@ def _finite(spec: dict, key: str, where: str) -> None:
 def _segment(entry: dict, index: int) -> TrimManoeuvre | SurveyLine:
     where = f'segments[{index}]'
     if not isinstance(entry, dict) or len(entry) != 1 or next(iter(entry)) not in ('trim', 'line'):
-        raise ScenarioError(f'{where}: expected {{trim: {{...}}}} or {{line: {{...}}}}, got {entry!r}')
+        raise ScenarioError(
+            f'{where}: expected {{trim: {{...}}}} or {{line: {{...}}}}, got {entry!r}'
+        )
     kind, spec = next(iter(entry.items()))
     spec = dict(spec or {})
     where = f'{where}.{kind}'
@@ -119,7 +147,11 @@ def _segment(entry: dict, index: int) -> TrimManoeuvre | SurveyLine:
             raise ScenarioError(f'{where}: start_m and end_m are the same point')
     try:
         if kind == 'trim':
-            center = tuple(_vec(spec, 'center_m', (3,), where)) if 'center_m' in spec else (0.0, 0.0, -50.0)
+            center = (
+                tuple(_vec(spec, 'center_m', (3,), where))
+                if 'center_m' in spec
+                else (0.0, 0.0, -50.0)
+            )
             spec.pop('center_m', None)
             return TrimManoeuvre(center=center, **spec)
         start, end = _vec(spec, 'start_m', (3,), where), _vec(spec, 'end_m', (3,), where)
@@ -164,28 +196,41 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
             latitude, longitude = float(spec['latitude_deg']), float(spec['longitude_deg'])
             if not (-90.0 <= latitude <= 90.0 and -180.0 <= longitude <= 360.0):
                 raise InputError(f'latitude {latitude} / longitude {longitude} out of range')
-            earth_field = igrf_field_enu(latitude, longitude, spec.get('date', '2026-01-01'),
-                                         float(spec.get('altitude_m', 0.0)))
+            earth_field = igrf_field_enu(
+                latitude,
+                longitude,
+                spec.get('date', '2026-01-01'),
+                float(spec.get('altitude_m', 0.0)),
+            )
         except KeyError as error:
             raise ScenarioError(f'earth_field.igrf: missing {error}') from None
         except (TypeError, ValueError) as error:
             raise ScenarioError(f'earth_field.igrf: {error}') from None
     else:
         earth_field = _vec(earth, 'enu_nT', (3,), 'earth_field', T_PER_NT)
-    dipoles = [Dipole(_vec(d, 'position_m', (3,), f'dipoles[{i}]'), _vec(d, 'moment_Am2', (3,), f'dipoles[{i}]'))
-               for i, d in enumerate(document.get('dipoles', []))]
+    dipoles = [
+        Dipole(
+            _vec(d, 'position_m', (3,), f'dipoles[{i}]'),
+            _vec(d, 'moment_Am2', (3,), f'dipoles[{i}]'),
+        )
+        for i, d in enumerate(document.get('dipoles', []))
+    ]
     interference_spec = document.get('interference', {})
     if 'random' in interference_spec:
         spec = interference_spec['random'] or {}
         _positive(spec, 'k_scale', 'interference.random', allow_zero=True)
         _positive(spec, 'b_scale_nT', 'interference.random', allow_zero=True)
         interference = random_interference(
-            np.random.default_rng([seed, 1]), k_scale=float(spec.get('k_scale', 5e-3)),
+            np.random.default_rng([seed, 1]),
+            k_scale=float(spec.get('k_scale', 5e-3)),
             b_scale_t=float(spec.get('b_scale_nT', 150.0)) * T_PER_NT,
-            reference_clean=bool(spec.get('reference_clean', True)))
+            reference_clean=bool(spec.get('reference_clean', True)),
+        )
     elif interference_spec:
-        interference = SensorInterference(_vec(interference_spec, 'k_soft', (4, 3, 3), 'interference'),
-                                          _vec(interference_spec, 'b_hard_nT', (4, 3), 'interference', T_PER_NT))
+        interference = SensorInterference(
+            _vec(interference_spec, 'k_soft', (4, 3, 3), 'interference'),
+            _vec(interference_spec, 'b_hard_nT', (4, 3), 'interference', T_PER_NT),
+        )
     else:
         interference = SensorInterference.zero()
     effects_spec = document.get('effects') or {}
@@ -193,16 +238,29 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
     if unknown:
         raise ScenarioError(f'effects: unknown {sorted(unknown)}; known: {sorted(EFFECT_KEYS)}')
     shapes = {'eddy_current': (4, 3, 3), 'time_skew_s': (4,)}
-    effects = Effects(**{name: _vec(effects_spec[name], key, shapes.get(name, (4, 3)), f'effects.{name}', factor)
-                         for name, (key, factor) in EFFECT_KEYS.items() if name in effects_spec})
+    effects = Effects(
+        **{
+            name: _vec(
+                effects_spec[name], key, shapes.get(name, (4, 3)), f'effects.{name}', factor
+            )
+            for name, (key, factor) in EFFECT_KEYS.items()
+            if name in effects_spec
+        }
+    )
     segments = [_segment(entry, i) for i, entry in enumerate(document.get('segments') or [])]
     try:
         scenario = Scenario(
-            geometry=geometry, earth_field_enu=earth_field, segments=segments,
-            sample_rate_hz=float(document.get('sample_rate_hz', 10.0)), dipoles=dipoles,
-            interference=interference, noise_t=float(document.get('noise_nT', 0.1)) * T_PER_NT, effects=effects,
+            geometry=geometry,
+            earth_field_enu=earth_field,
+            segments=segments,
+            sample_rate_hz=float(document.get('sample_rate_hz', 10.0)),
+            dipoles=dipoles,
+            interference=interference,
+            noise_t=float(document.get('noise_nT', 0.1)) * T_PER_NT,
+            effects=effects,
             temperature=TemperatureProfile(**document.get('temperature', {})),
-            current=CurrentProfile(**document.get('current', {})))
+            current=CurrentProfile(**document.get('current', {})),
+        )
     except (TypeError, ValueError) as error:
         raise ScenarioError(f'scenario: {error}') from None
     return scenario, seed
@@ -233,8 +291,15 @@ DEFAULT_SCENARIO: dict[str, Any] = {
     'interference': {'random': {'k_scale': 0.005, 'b_scale_nT': 150.0, 'reference_clean': False}},
     'segments': [
         {'trim': {'duration_s': 120.0, 'center_m': [3000.0, 3000.0, -50.0]}},
-        {'line': {'start_m': [-150.0, 5.0, -50.0], 'end_m': [150.0, 5.0, -50.0], 'speed_m_s': 2.0,
-                  'roll_amplitude_deg': 3.0, 'pitch_amplitude_deg': 2.0}},
+        {
+            'line': {
+                'start_m': [-150.0, 5.0, -50.0],
+                'end_m': [150.0, 5.0, -50.0],
+                'speed_m_s': 2.0,
+                'roll_amplitude_deg': 3.0,
+                'pitch_amplitude_deg': 2.0,
+            }
+        },
     ],
 }
 

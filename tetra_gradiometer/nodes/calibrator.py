@@ -19,6 +19,7 @@ Methods: ``known_gradient_lstsq`` (the true gradient is taken as zero: a trim fa
 targets; general 3x3 ``K_i1`` unless ``symmetric_k``), ``constraint_lstsq`` and
 ``paper_ga`` (the paper's symmetry/trace objective; see NOTES.md on its rank deficiency).
 """
+
 from __future__ import annotations
 
 import threading
@@ -30,14 +31,29 @@ from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ..io import conversions as cv
 from ..core import TetraGeometry
 from ..core.identification import MAX_COVERAGE_CONDITION, METHODS, MIN_SAMPLES, identify
 from ..errors import OutputError
+from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, save_calibration
-from .common import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, WARN, declare_parameters,
-                   derived_qos, diagnostics_period_spec, latched_qos, one_of, positive, resolve_node_path,
-                   spin_node, status, tensor_or_nan)
+from .common import (
+    NAMESPACE,
+    OK,
+    POSITIONS_SPEC,
+    WARN,
+    ParamSpec,
+    StampPairer,
+    declare_parameters,
+    derived_qos,
+    diagnostics_period_spec,
+    latched_qos,
+    one_of,
+    positive,
+    resolve_node_path,
+    spin_node,
+    status,
+    tensor_or_nan,
+)
 
 
 def _path(value: str) -> str | None:
@@ -46,22 +62,47 @@ def _path(value: str) -> str | None:
 
 PARAMETERS = [
     POSITIONS_SPEC,
-    ParamSpec('method', 'known_gradient_lstsq', f'Identification method: one of {list(METHODS)}.',
-              one_of(*METHODS)),
-    ParamSpec('symmetric_k', False, 'known_gradient_lstsq/constraint_lstsq: symmetric K_i1 (the '
-              "paper's 27 parameters) instead of a general 3x3 per sensor pair (36). paper_ga is "
-              'always symmetric.'),
-    ParamSpec('calibration_file', 'calibration.yaml', 'Where ~/calibrate writes the parameters (YAML, '
-              'written atomically; only a previous calibration file is replaced). Read-only after '
-              'start-up; "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros).', _path),
-    ParamSpec('min_samples', 100, f'Fewest sample sets ~/calibrate accepts (the solvers need >= {MIN_SAMPLES}).',
-              int_range=(MIN_SAMPLES, 10_000_000)),
-    ParamSpec('max_samples', 200_000, 'Most sample sets kept while collecting (older ones are dropped).',
-              int_range=(MIN_SAMPLES, 10_000_000)),
-    ParamSpec('max_coverage_condition', MAX_COVERAGE_CONDITION,
-              'Refuse samples whose attitude-coverage condition number (of [B_1\' 1], unit columns) '
-              'exceeds this: the body-frame field spans too few directions.', positive,
-              float_range=(1.0, 1e12)),
+    ParamSpec(
+        'method',
+        'known_gradient_lstsq',
+        f'Identification method: one of {list(METHODS)}.',
+        one_of(*METHODS),
+    ),
+    ParamSpec(
+        'symmetric_k',
+        False,
+        'known_gradient_lstsq/constraint_lstsq: symmetric K_i1 (the '
+        "paper's 27 parameters) instead of a general 3x3 per sensor pair (36). paper_ga is "
+        'always symmetric.',
+    ),
+    ParamSpec(
+        'calibration_file',
+        'calibration.yaml',
+        'Where ~/calibrate writes the parameters (YAML, '
+        'written atomically; only a previous calibration file is replaced). Read-only after '
+        'start-up; "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros).',
+        _path,
+    ),
+    ParamSpec(
+        'min_samples',
+        100,
+        f'Fewest sample sets ~/calibrate accepts (the solvers need >= {MIN_SAMPLES}).',
+        int_range=(MIN_SAMPLES, 10_000_000),
+    ),
+    ParamSpec(
+        'max_samples',
+        200_000,
+        'Most sample sets kept while collecting (older ones are dropped).',
+        int_range=(MIN_SAMPLES, 10_000_000),
+    ),
+    ParamSpec(
+        'max_coverage_condition',
+        MAX_COVERAGE_CONDITION,
+        "Refuse samples whose attitude-coverage condition number (of [B_1' 1], unit columns) "
+        'exceeds this: the body-frame field spans too few directions.',
+        positive,
+        float_range=(1.0, 1e12),
+    ),
     ParamSpec('ga_seed', 0, 'paper_ga: random seed.', int_range=(0, 2**31 - 1)),
     ParamSpec('ga_generations', 1000, 'paper_ga: generations.', int_range=(1, 1_000_000)),
     diagnostics_period_spec(),
@@ -74,9 +115,19 @@ class CalibratorNode(Node):
     def __init__(self, **kwargs) -> None:
         kwargs.setdefault('namespace', NAMESPACE)
         super().__init__('calibrator', **kwargs)
-        p = declare_parameters(self, PARAMETERS, dynamic=(
-            'method', 'symmetric_k', 'min_samples', 'max_samples', 'max_coverage_condition',
-            'ga_seed', 'ga_generations'))
+        p = declare_parameters(
+            self,
+            PARAMETERS,
+            dynamic=(
+                'method',
+                'symmetric_k',
+                'min_samples',
+                'max_samples',
+                'max_coverage_condition',
+                'ga_seed',
+                'ga_generations',
+            ),
+        )
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._calibration_path = resolve_node_path(p['calibration_file'])
         self._lock = threading.Lock()
@@ -92,7 +143,9 @@ class CalibratorNode(Node):
         self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
-        self.create_subscription(MagneticField, 'reference_field', self._on_reference, derived_qos())
+        self.create_subscription(
+            MagneticField, 'reference_field', self._on_reference, derived_qos()
+        )
         self.create_service(Trigger, '~/start', self._on_start)
         self.create_service(Trigger, '~/stop', self._on_stop)
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
@@ -144,7 +197,9 @@ class CalibratorNode(Node):
         self._publish_diagnostics()
         return response
 
-    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+    def _on_calibrate(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
         ok, message = self._calibrate()
         response.success, response.message = ok, message
         self._last_ok, self._last_result = ok, message
@@ -165,14 +220,25 @@ class CalibratorNode(Node):
         minimum = int(self.get_parameter('min_samples').value)
         limit = float(self.get_parameter('max_coverage_condition').value)
         if len(g) < minimum:
-            return False, (f'{len(g)} samples are too few (need at least {minimum}); call ~/start, '
-                           f'fly the trim manoeuvre, then ~/stop')
+            return False, (
+                f'{len(g)} samples are too few (need at least {minimum}); call ~/start, '
+                f'fly the trim manoeuvre, then ~/stop'
+            )
         try:
-            result = identify(method, g, b, self._geometry, symmetric_k=symmetric,
-                              rng=np.random.default_rng(self.get_parameter('ga_seed').value),
-                              generations=int(self.get_parameter('ga_generations').value),
-                              max_coverage_condition=limit)
-        except (ValueError, np.linalg.LinAlgError) as error:  # IdentifiabilityError is a ValueError
+            result = identify(
+                method,
+                g,
+                b,
+                self._geometry,
+                symmetric_k=symmetric,
+                rng=np.random.default_rng(self.get_parameter('ga_seed').value),
+                generations=int(self.get_parameter('ga_generations').value),
+                max_coverage_condition=limit,
+            )
+        except (
+            ValueError,
+            np.linalg.LinAlgError,
+        ) as error:  # IdentifiabilityError is a ValueError
             return False, str(error)
         calibration = CalibrationFile.from_calibration(result, self._geometry)
         path = self._calibration_path
@@ -184,18 +250,31 @@ class CalibratorNode(Node):
         self._calibrations += 1
         self._state = 'calibrated' if not self._collecting else 'collecting'
         s = result.summary()
-        return True, (f'{s["method"]}: {s["n_samples"]} samples, {s["n_parameters"]} parameters, rank '
-                      f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
-                      f'{s["attitude_coverage_condition"]:.3g}, fit residual {s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}')
+        return True, (
+            f'{s["method"]}: {s["n_samples"]} samples, {s["n_parameters"]} parameters, rank '
+            f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
+            f'{s["attitude_coverage_condition"]:.3g}, fit residual {s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}'
+        )
 
     def _publish_diagnostics(self) -> None:
         level = WARN if self._last_ok is False else OK
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
-        array.status.append(status(
-            'tetra/calibrator: calibration', level, f'{self._state}: {self._last_result}', cv.ARRAY_FRAME,
-            {'state': self._state, 'samples': self.n_samples, 'calibrations': self._calibrations,
-             'method': self.get_parameter('method').value, 'calibration_file': str(self._calibration_path)}))
+        array.status.append(
+            status(
+                'tetra/calibrator: calibration',
+                level,
+                f'{self._state}: {self._last_result}',
+                cv.ARRAY_FRAME,
+                {
+                    'state': self._state,
+                    'samples': self.n_samples,
+                    'calibrations': self._calibrations,
+                    'method': self.get_parameter('method').value,
+                    'calibration_file': str(self._calibration_path),
+                },
+            )
+        )
         self._diag_pub.publish(array)
 
 

@@ -8,15 +8,17 @@ QoS (docs/ros.md has the full table):
 * derived topics (tensors, reference field, metrics): reliable, volatile, keep last 100;
 * ``calibration``: reliable, transient local, keep last 1 (latched).
 """
+
 from __future__ import annotations
 
 import math
 import os
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -31,25 +33,41 @@ DERIVED_DEPTH = 1000
 def sensor_qos(depth: int) -> Any:
     """Sensor-data QoS (best effort, volatile) with a queue of ``depth`` messages."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
-                      reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=int(depth),
+        reliability=ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 def derived_qos(depth: int = DERIVED_DEPTH) -> Any:
     """Reliable, volatile QoS for derived topics."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=int(depth),
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 def latched_qos() -> Any:
     """Reliable, transient-local, depth 1: late joiners get the last message."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
 
 
 # --------------------------------------------------------------------------- parameters
+
 
 def ros_home() -> Path:
     """``$ROS_HOME``, else ``~/.ros`` (where ROS 2 keeps a node's files)."""
@@ -81,8 +99,13 @@ class ParamSpec:
 
 
 def _descriptor(spec: ParamSpec, read_only: bool) -> Any:
-    from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                    ParameterType)
+    from rcl_interfaces.msg import (
+        FloatingPointRange,
+        IntegerRange,
+        ParameterDescriptor,
+        ParameterType,
+    )
+
     default = spec.default
     if isinstance(default, bool):
         kind = ParameterType.PARAMETER_BOOL
@@ -96,18 +119,29 @@ def _descriptor(spec: ParamSpec, read_only: bool) -> Any:
         kind = ParameterType.PARAMETER_DOUBLE_ARRAY
     else:
         raise TypeError(f'parameter {spec.name}: unsupported default {default!r}')
-    descriptor = ParameterDescriptor(name=spec.name, type=kind, description=spec.description,
-                                     read_only=read_only)
+    descriptor = ParameterDescriptor(
+        name=spec.name, type=kind, description=spec.description, read_only=read_only
+    )
     if spec.float_range is not None:
-        descriptor.floating_point_range = [FloatingPointRange(
-            from_value=float(spec.float_range[0]), to_value=float(spec.float_range[1]), step=0.0)]
+        descriptor.floating_point_range = [
+            FloatingPointRange(
+                from_value=float(spec.float_range[0]),
+                to_value=float(spec.float_range[1]),
+                step=0.0,
+            )
+        ]
     if spec.int_range is not None:
-        descriptor.integer_range = [IntegerRange(
-            from_value=int(spec.int_range[0]), to_value=int(spec.int_range[1]), step=0)]
+        descriptor.integer_range = [
+            IntegerRange(
+                from_value=int(spec.int_range[0]), to_value=int(spec.int_range[1]), step=0
+            )
+        ]
     return descriptor
 
 
-def declare_parameters(node: Any, specs: list[ParamSpec], dynamic: tuple[str, ...] = ()) -> dict[str, Any]:
+def declare_parameters(
+    node: Any, specs: list[ParamSpec], dynamic: tuple[str, ...] = ()
+) -> dict[str, Any]:
     """Declare ``specs`` on ``node`` with descriptors and validation; return their values.
 
     Only the parameters named in ``dynamic`` may change at run time (the node reads them
@@ -118,6 +152,7 @@ def declare_parameters(node: Any, specs: list[ParamSpec], dynamic: tuple[str, ..
     ValueError) when a start-up value (params file, override) is refused.
     """
     from rcl_interfaces.msg import SetParametersResult
+
     by_name = {spec.name: spec for spec in specs}
 
     def on_set(parameters: list) -> Any:
@@ -149,12 +184,14 @@ def non_negative(value: Any) -> str | None:
 def one_of(*choices: str) -> Validator:
     def check(value: Any) -> str | None:
         return None if value in choices else f'must be one of {list(choices)}, got {value!r}'
+
     return check
 
 
 def valid_positions(value: Any) -> str | None:
     """``sensor_positions``: 12 finite floats forming a non-degenerate tetrahedron."""
     from ..core import GeometryError, TetraGeometry
+
     flat = np.asarray(list(value), dtype=float)
     if flat.size != 12 or not np.all(np.isfinite(flat)):
         return f'must be 12 finite floats (x1 y1 z1 ... z4, metres), got {flat.size} values'
@@ -166,24 +203,43 @@ def valid_positions(value: Any) -> str | None:
 
 
 #: Regular tetrahedron of 0.5 m edge, sensor 1 at the origin (as config/tetra_gradiometer.yaml).
-DEFAULT_POSITIONS = (0.0, 0.0, 0.0,
-                     0.5, 0.0, 0.0,
-                     0.25, 0.4330127018922193, 0.0,
-                     0.25, 0.14433756729740643, 0.408248290463863)
+DEFAULT_POSITIONS = (
+    0.0,
+    0.0,
+    0.0,
+    0.5,
+    0.0,
+    0.0,
+    0.25,
+    0.4330127018922193,
+    0.0,
+    0.25,
+    0.14433756729740643,
+    0.408248290463863,
+)
 
 POSITIONS_SPEC = ParamSpec(
-    'sensor_positions', DEFAULT_POSITIONS,
+    'sensor_positions',
+    DEFAULT_POSITIONS,
     'Positions of magnetometers 1..4 in the body frame (x forward, y left, z up), metres, '
     'as x1 y1 z1 x2 ... z4; sensor 1 is the reference. Must not be coplanar.',
-    valid_positions, read_only=True)
+    valid_positions,
+    read_only=True,
+)
 
 
 def diagnostics_period_spec() -> ParamSpec:
-    return ParamSpec('diagnostics_period_s', 1.0, 'Period of /diagnostics publication, seconds.',
-                     positive, float_range=(0.01, 60.0))
+    return ParamSpec(
+        'diagnostics_period_s',
+        1.0,
+        'Period of /diagnostics publication, seconds.',
+        positive,
+        float_range=(0.01, 60.0),
+    )
 
 
 # --------------------------------------------------------------------------- helpers
+
 
 class Throttle:
     """True at most once per ``period_s`` (wall clock): for throttled warnings."""
@@ -228,6 +284,7 @@ class StampPairer:
 def key_values(values: dict[str, Any]) -> list:
     """``diagnostic_msgs/KeyValue`` list from a dict (floats to 6 significant digits)."""
     from diagnostic_msgs.msg import KeyValue
+
     out = []
     for key, value in values.items():
         text = f'{value:.6g}' if isinstance(value, float) else str(value)
@@ -238,8 +295,14 @@ def key_values(values: dict[str, Any]) -> list:
 def status(name: str, level: int, message: str, hardware_id: str, values: dict[str, Any]) -> Any:
     """A ``diagnostic_msgs/DiagnosticStatus``; ``level`` 0 OK, 1 WARN, 2 ERROR, 3 STALE."""
     from diagnostic_msgs.msg import DiagnosticStatus
-    return DiagnosticStatus(level=bytes([level]), name=name, message=message,
-                            hardware_id=hardware_id, values=key_values(values))
+
+    return DiagnosticStatus(
+        level=bytes([level]),
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
+        values=key_values(values),
+    )
 
 
 OK, WARN, ERROR = 0, 1, 2
@@ -262,6 +325,7 @@ def tensor_or_nan(msg: Any) -> np.ndarray:
     """A tensor JointState as (3, 3) T/m; a malformed one (wrong names or count) as NaN, which
     the callers' non-finite checks drop and count, so one bad message cannot stop a node."""
     from ..io import conversions as cv
+
     try:
         return cv.tensor_from_msg(msg)
     except cv.MessageError:
@@ -276,6 +340,7 @@ def spin_node(factory: Callable[[], Any], name: str, args: list[str] | None) -> 
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException
+
     rclpy.init(args=args)
     try:
         node = factory()
@@ -297,6 +362,7 @@ def stop_graph(executor: Any, spinner: Any, nodes: list[Any]) -> None:
     """Stop an in-process graph (demo, record): the executor, then its spin thread, then the
     nodes and the context, in that order (joining the thread first avoids a crash at exit)."""
     import rclpy
+
     executor.shutdown(timeout_sec=2)
     if spinner.is_alive():
         spinner.join(timeout=5)

@@ -12,8 +12,8 @@ same stamp it publishes the running ``epsilon`` (eq. 24, over the samples compen
 with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 (std_msgs/Float64). A new calibration, or ``~/reset_metrics``, restarts the running metric.
 """
-from __future__ import annotations
 
+from __future__ import annotations
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -22,26 +22,57 @@ from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
-from ..io import conversions as cv
 from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.metrics import epsilon_terms
-from ..io.calibration import CalibrationFile, CalibrationFileError, check_positions, load_calibration
-from .common import (NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, StampPairer, Throttle, WARN,
-                   declare_parameters, derived_qos, diagnostics_period_spec, latched_qos, resolve_node_path,
-                   spin_node, status, tensor_or_nan)
 from ..core.units import NT_PER_T
+from ..io import conversions as cv
+from ..io.calibration import (
+    CalibrationFile,
+    CalibrationFileError,
+    check_positions,
+    load_calibration,
+)
+from .common import (
+    NAMESPACE,
+    OK,
+    POSITIONS_SPEC,
+    WARN,
+    ParamSpec,
+    StampPairer,
+    Throttle,
+    declare_parameters,
+    derived_qos,
+    diagnostics_period_spec,
+    latched_qos,
+    resolve_node_path,
+    spin_node,
+    status,
+    tensor_or_nan,
+)
 
 PARAMETERS = [
     POSITIONS_SPEC,
-    ParamSpec('calibration_file', 'calibration.yaml', 'Calibration loaded at start (YAML, as the '
-              'calibrator writes it); "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros). '
-              'Missing or corrupt: run uncompensated.'),
-    ParamSpec('max_pending', 1000, 'Bound of the stamp-pairing buffers, messages.', int_range=(1, 1_000_000)),
-    ParamSpec('warn_throttle_s', 5.0, 'Least interval between repeated warnings, s.',
-              float_range=(0.0, 3600.0)),
+    ParamSpec(
+        'calibration_file',
+        'calibration.yaml',
+        'Calibration loaded at start (YAML, as the '
+        'calibrator writes it); "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros). '
+        'Missing or corrupt: run uncompensated.',
+    ),
+    ParamSpec(
+        'max_pending',
+        1000,
+        'Bound of the stamp-pairing buffers, messages.',
+        int_range=(1, 1_000_000),
+    ),
+    ParamSpec(
+        'warn_throttle_s',
+        5.0,
+        'Least interval between repeated warnings, s.',
+        float_range=(0.0, 3600.0),
+    ),
     diagnostics_period_spec(),
 ]
-
 
 
 class CompensatorNode(Node):
@@ -53,8 +84,8 @@ class CompensatorNode(Node):
         p = declare_parameters(self, PARAMETERS)
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._types = cv.rclpy_types()
-        self._inputs = StampPairer(2, p['max_pending'])     # raw, reference
-        self._truth = StampPairer(2, p['max_pending'])      # (raw, compensated), truth
+        self._inputs = StampPairer(2, p['max_pending'])  # raw, reference
+        self._truth = StampPairer(2, p['max_pending'])  # (raw, compensated), truth
         self._warn = Throttle(p['warn_throttle_s'])
         self._parameters: InterferenceParameters | None = None
         self._source = ''
@@ -71,7 +102,9 @@ class CompensatorNode(Node):
         self._load_file(str(resolve_node_path(p['calibration_file'])))
         self.create_subscription(String, 'calibration', self._on_calibration, latched_qos())
         self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
-        self.create_subscription(MagneticField, 'reference_field', self._on_reference, derived_qos())
+        self.create_subscription(
+            MagneticField, 'reference_field', self._on_reference, derived_qos()
+        )
         self.create_subscription(JointState, 'gradient/truth', self._on_truth, derived_qos())
         self.create_service(Trigger, '~/reset_metrics', self._on_reset)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
@@ -90,12 +123,17 @@ class CompensatorNode(Node):
 
     def _on_calibration(self, msg: String) -> None:
         try:
-            self._apply(CalibrationFile.from_yaml(msg.data, source='the calibration topic'), 'topic calibration')
+            self._apply(
+                CalibrationFile.from_yaml(msg.data, source='the calibration topic'),
+                'topic calibration',
+            )
         except CalibrationFileError as error:
             self._refuse(str(error))
 
     def _apply(self, calibration: CalibrationFile, source: str) -> None:
-        check_positions(calibration, self._geometry, source=source, target='sensor_positions of this node')
+        check_positions(
+            calibration, self._geometry, source=source, target='sensor_positions of this node'
+        )
         self._parameters = calibration.parameters
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
         self._problem = ''
@@ -127,7 +165,9 @@ class CompensatorNode(Node):
         if not (np.all(np.isfinite(g_raw)) and np.all(np.isfinite(b_reference))):
             self.dropped_non_finite += 1
             if self._warn():
-                self.get_logger().warning(f'dropped a non-finite or malformed input at stamp {stamp_ns} ns')
+                self.get_logger().warning(
+                    f'dropped a non-finite or malformed input at stamp {stamp_ns} ns'
+                )
             return
         if self._parameters is None:
             g = g_raw
@@ -168,18 +208,29 @@ class CompensatorNode(Node):
     def _publish_diagnostics(self) -> None:
         if self.compensating:
             level = WARN if self._problem else OK
-            text = f'compensating with {self._source}' + (f'; refused a newer one: {self._problem}'
-                                                          if self._problem else '')
+            text = f'compensating with {self._source}' + (
+                f'; refused a newer one: {self._problem}' if self._problem else ''
+            )
         else:
             level, text = WARN, f'UNCOMPENSATED: {self._problem}'
         eps = self._eps_sum / self._eps_count if self._eps_count else float('nan')
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
-        array.status.append(status(
-            'tetra/compensator: compensation', level, text, cv.ARRAY_FRAME,
-            {'compensating': self.compensating, 'published': self.published,
-             'dropped_non_finite': self.dropped_non_finite, 'epsilon': float(eps),
-             'scored_samples': self._eps_count}))
+        array.status.append(
+            status(
+                'tetra/compensator: compensation',
+                level,
+                text,
+                cv.ARRAY_FRAME,
+                {
+                    'compensating': self.compensating,
+                    'published': self.published,
+                    'dropped_non_finite': self.dropped_non_finite,
+                    'epsilon': float(eps),
+                    'scored_samples': self._eps_count,
+                },
+            )
+        )
         self._diag_pub.publish(array)
 
 

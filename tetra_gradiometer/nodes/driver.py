@@ -19,13 +19,15 @@ driver moves on and counts a timeout).
 scenario segment until ``~/resume`` (so a trim can be calibrated before the survey starts).
 State, segment and counts go to ``/diagnostics``.
 """
+
 from __future__ import annotations
 
 import os
 import time
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -34,33 +36,85 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
-from ..io import conversions as cv
-from .common import (NAMESPACE, OK, ParamSpec, WARN, declare_parameters, derived_qos, diagnostics_period_spec,
-                   non_negative, one_of, positive, sensor_qos, spin_node, status)
 from ..errors import InputError
+from ..io import conversions as cv
+from .common import (
+    NAMESPACE,
+    OK,
+    WARN,
+    ParamSpec,
+    declare_parameters,
+    derived_qos,
+    diagnostics_period_spec,
+    non_negative,
+    one_of,
+    positive,
+    sensor_qos,
+    spin_node,
+    status,
+)
 
 PARAMETERS = [
-    ParamSpec('mode', 'sim', 'Source: "sim" (core mission simulator) or "replay" (rosbag2 folder).',
-              one_of('sim', 'replay')),
-    ParamSpec('scenario', '', 'sim: scenario YAML file (io/scenario.py format); empty: the built-in '
-              'default (trim far from the target, then a survey line over it).'),
-    ParamSpec('seed', -1, 'sim: noise seed; -1 uses the scenario\'s own seed.', int_range=(-1, 2**31 - 1)),
+    ParamSpec(
+        'mode',
+        'sim',
+        'Source: "sim" (core mission simulator) or "replay" (rosbag2 folder).',
+        one_of('sim', 'replay'),
+    ),
+    ParamSpec(
+        'scenario',
+        '',
+        'sim: scenario YAML file (io/scenario.py format); empty: the built-in '
+        'default (trim far from the target, then a survey line over it).',
+    ),
+    ParamSpec(
+        'seed', -1, "sim: noise seed; -1 uses the scenario's own seed.", int_range=(-1, 2**31 - 1)
+    ),
     ParamSpec('bag', '', 'replay: rosbag2 folder (sqlite3 or mcap).'),
-    ParamSpec('rate', 1.0, 'Speed: multiple of real time; 0 = as fast as the graph takes it '
-              '(paced by gradient/raw).', non_negative, float_range=(0.0, 10000.0)),
+    ParamSpec(
+        'rate',
+        1.0,
+        'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by gradient/raw).',
+        non_negative,
+        float_range=(0.0, 10000.0),
+    ),
     ParamSpec('start_paused', False, 'Wait for ~/resume before publishing.'),
-    ParamSpec('min_subscribers', 0, 'Do not publish until every magnetometer topic has at least this many '
-              'subscriptions (e.g. 1: wait for the tensor node instead of losing the first sets).',
-              int_range=(0, 1000)),
-    ParamSpec('hold_between_segments', False, 'sim: pause after each scenario segment until ~/resume.'),
-    ParamSpec('max_duration_s', 0.0, 'Play only this much sample time, s (0: all).', non_negative,
-              float_range=(0.0, 1e9)),
-    ParamSpec('max_in_flight', 4, 'rate 0: sets published ahead of the last gradient/raw received.',
-              int_range=(1, 10000)),
-    ParamSpec('ack_timeout_s', 0.5, 'rate 0: move on after this long without gradient/raw, s.', positive,
-              float_range=(1e-3, 60.0)),
-    ParamSpec('publisher_depth', 100, 'Queue depth of the magnetometer publishers (best effort).',
-              int_range=(1, 10000)),
+    ParamSpec(
+        'min_subscribers',
+        0,
+        'Do not publish until every magnetometer topic has at least this many '
+        'subscriptions (e.g. 1: wait for the tensor node instead of losing the first sets).',
+        int_range=(0, 1000),
+    ),
+    ParamSpec(
+        'hold_between_segments', False, 'sim: pause after each scenario segment until ~/resume.'
+    ),
+    ParamSpec(
+        'max_duration_s',
+        0.0,
+        'Play only this much sample time, s (0: all).',
+        non_negative,
+        float_range=(0.0, 1e9),
+    ),
+    ParamSpec(
+        'max_in_flight',
+        4,
+        'rate 0: sets published ahead of the last gradient/raw received.',
+        int_range=(1, 10000),
+    ),
+    ParamSpec(
+        'ack_timeout_s',
+        0.5,
+        'rate 0: move on after this long without gradient/raw, s.',
+        positive,
+        float_range=(1e-3, 60.0),
+    ),
+    ParamSpec(
+        'publisher_depth',
+        100,
+        'Queue depth of the magnetometer publishers (best effort).',
+        int_range=(1, 10000),
+    ),
     diagnostics_period_spec(),
 ]
 
@@ -83,11 +137,18 @@ class Frame:
     items: list[tuple[str, int, Any]]
 
 
-def sim_frames(node: Node, scenario_path: str, seed: int, start_ns: int, max_duration_s: float,
-               types: cv.MessageTypes) -> tuple[Iterator[Frame], dict[str, Any]]:
+def sim_frames(
+    node: Node,
+    scenario_path: str,
+    seed: int,
+    start_ns: int,
+    max_duration_s: float,
+    types: cv.MessageTypes,
+) -> tuple[Iterator[Frame], dict[str, Any]]:
     """Simulate the mission and yield one frame per sample (4 mags, truth, odom)."""
     from ..core import simulate
     from ..io.scenario import load_scenario_or_default
+
     scenario, scenario_seed = load_scenario_or_default(scenario_path)
     mission = simulate(scenario, np.random.default_rng(scenario_seed if seed < 0 else seed))
     n = len(mission)
@@ -95,26 +156,46 @@ def sim_frames(node: Node, scenario_path: str, seed: int, start_ns: int, max_dur
         n = int(np.searchsorted(mission.t, max_duration_s, side='left'))
     kinds = [type(s).__name__ for s in scenario.segments]
     info = {'samples': n, 'segments': ', '.join(kinds), 'sample_rate_hz': scenario.sample_rate_hz}
-    node.get_logger().info(f'sim: {n} samples at {scenario.sample_rate_hz:g} Hz, segments {kinds}, '
-                           f'{len(scenario.dipoles)} dipole(s)')
+    node.get_logger().info(
+        f'sim: {n} samples at {scenario.sample_rate_hz:g} Hz, segments {kinds}, '
+        f'{len(scenario.dipoles)} dipole(s)'
+    )
 
     def frames() -> Iterator[Frame]:
         for i in range(n):
             pace = int(round(mission.t[i] * 1e9))
             stamp = start_ns + pace
-            items = [(MAG, s, cv.magnetic_field_msg(types, mission.fields_measured[i, s], stamp, cv.MAG_FRAMES[s]))
-                     for s in range(4)]
+            items = [
+                (
+                    MAG,
+                    s,
+                    cv.magnetic_field_msg(
+                        types, mission.fields_measured[i, s], stamp, cv.MAG_FRAMES[s]
+                    ),
+                )
+                for s in range(4)
+            ]
             items.append((TRUTH, 0, cv.tensor_msg(types, mission.g_true[i], stamp)))
-            items.append((ODOM, 0, cv.odometry_msg(types, mission.position_enu[i], mission.orientation_xyzw[i],
-                                                   stamp)))
+            items.append(
+                (
+                    ODOM,
+                    0,
+                    cv.odometry_msg(
+                        types, mission.position_enu[i], mission.orientation_xyzw[i], stamp
+                    ),
+                )
+            )
             yield Frame(pace, int(mission.segment[i]), stamp, items)
+
     return frames(), info
 
 
-def replay_frames(node: Node, path: str, max_duration_s: float,
-                  types: cv.MessageTypes) -> tuple[Iterator[Frame], dict[str, Any]]:
+def replay_frames(
+    node: Node, path: str, max_duration_s: float, types: cv.MessageTypes
+) -> tuple[Iterator[Frame], dict[str, Any]]:
     """Yield one frame per recorded message, paced by log time."""
     from ..io.bag import MagneticBag
+
     bag = MagneticBag(path).__enter__()
     try:
         count = bag.check_contract()
@@ -127,7 +208,9 @@ def replay_frames(node: Node, path: str, max_duration_s: float,
     reader = bag.reader
     connections = [c for c in reader.connections if c.topic in topics]
     info = {'messages': count, 'topics': ', '.join(sorted({c.topic for c in connections}))}
-    node.get_logger().info(f'replay: {path}: {count} magnetometer messages; topics {info["topics"]}')
+    node.get_logger().info(
+        f'replay: {path}: {count} magnetometer messages; topics {info["topics"]}'
+    )
 
     def frames() -> Iterator[Frame]:
         first = None
@@ -140,17 +223,30 @@ def replay_frames(node: Node, path: str, max_duration_s: float,
                 key, sensor = topics[connection.topic]
                 stamp = cv.stamp_to_ns(msg.header.stamp)
                 if key == MAG:
-                    out = cv.magnetic_field_msg(types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id)
+                    out = cv.magnetic_field_msg(
+                        types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id
+                    )
                 elif key == TRUTH:
                     out = cv.tensor_msg(types, cv.tensor_from_msg(msg), stamp)
                 else:
                     p = msg.pose.pose.position
-                    out = cv.odometry_msg(types, np.array([p.x, p.y, p.z]), cv.odometry_orientation(msg), stamp,
-                                          frame_id=msg.header.frame_id, child_frame_id=msg.child_frame_id)
-                yield Frame(log_ns - first, 0, stamp if (key == MAG and sensor == 0) else None,
-                            [(key, sensor, out)])
+                    out = cv.odometry_msg(
+                        types,
+                        np.array([p.x, p.y, p.z]),
+                        cv.odometry_orientation(msg),
+                        stamp,
+                        frame_id=msg.header.frame_id,
+                        child_frame_id=msg.child_frame_id,
+                    )
+                yield Frame(
+                    log_ns - first,
+                    0,
+                    stamp if (key == MAG and sensor == 0) else None,
+                    [(key, sensor, out)],
+                )
         finally:
             bag.__exit__(None, None, None)
+
     return frames(), info
 
 
@@ -171,14 +267,16 @@ class DriverNode(Node):
         types = cv.rclpy_types()
         if self._mode == 'sim':
             start_ns = self.get_clock().now().nanoseconds
-            self._frames, self.info = sim_frames(self, p['scenario'], p['seed'], start_ns,
-                                                 p['max_duration_s'], types)
+            self._frames, self.info = sim_frames(
+                self, p['scenario'], p['seed'], start_ns, p['max_duration_s'], types
+            )
             period = 1.0 / (self.info['sample_rate_hz'] * self._rate) if self._rate > 0 else 0.01
         else:
             if not p['bag']:
                 raise InputError('mode replay needs the parameter "bag" (a rosbag2 folder)')
-            self._frames, self.info = replay_frames(self, os.path.expanduser(p['bag']), p['max_duration_s'],
-                                                    types)
+            self._frames, self.info = replay_frames(
+                self, os.path.expanduser(p['bag']), p['max_duration_s'], types
+            )
             period = 0.005 if self._rate > 0 else 0.01
         self._next: Frame | None = next(self._frames, None)
         self.state = 'paused' if p['start_paused'] else 'playing'
@@ -191,7 +289,8 @@ class DriverNode(Node):
 
         self._pubs = {
             (MAG, s): self.create_publisher(MagneticField, topic, sensor_qos(p['publisher_depth']))
-            for s, topic in enumerate(cv.MAG_TOPICS)}
+            for s, topic in enumerate(cv.MAG_TOPICS)
+        }
         self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
         self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_TOPIC, derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -210,7 +309,10 @@ class DriverNode(Node):
             return
         now = time.monotonic()
         if self._min_subscribers and self._matched_since is None:
-            if any(self._pubs[(MAG, s)].get_subscription_count() < self._min_subscribers for s in range(4)):
+            if any(
+                self._pubs[(MAG, s)].get_subscription_count() < self._min_subscribers
+                for s in range(4)
+            ):
                 return
             self._matched_since = now
         if self._matched_since is not None and now - self._matched_since < MATCH_SETTLE_S:
@@ -259,7 +361,9 @@ class DriverNode(Node):
     def _set_state(self, state: str) -> None:
         if state != self.state:
             self.state = state
-            self.get_logger().info(f'{state} (segment {self.segment}, {self.sets_published} sets published)')
+            self.get_logger().info(
+                f'{state} (segment {self.segment}, {self.sets_published} sets published)'
+            )
             self._publish_diagnostics()
 
     def _on_resume(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -288,12 +392,23 @@ class DriverNode(Node):
     def _publish_diagnostics(self) -> None:
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
-        array.status.append(status(
-            'tetra/driver: playback', WARN if self.ack_timeouts else OK,
-            f'{self.state} ({self._mode}, segment {self.segment})', cv.ARRAY_FRAME,
-            {'state': self.state, 'mode': self._mode, 'segment': self.segment,
-             'sets_published': self.sets_published, 'ack_timeouts': self.ack_timeouts,
-             'rate': self._rate, **self.info}))
+        array.status.append(
+            status(
+                'tetra/driver: playback',
+                WARN if self.ack_timeouts else OK,
+                f'{self.state} ({self._mode}, segment {self.segment})',
+                cv.ARRAY_FRAME,
+                {
+                    'state': self.state,
+                    'mode': self._mode,
+                    'segment': self.segment,
+                    'sets_published': self.sets_published,
+                    'ack_timeouts': self.ack_timeouts,
+                    'rate': self._rate,
+                    **self.info,
+                },
+            )
+        )
         self._diag_pub.publish(array)
 
 

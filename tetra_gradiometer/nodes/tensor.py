@@ -14,6 +14,7 @@ drops and counts incomplete sets and sets with a non-finite or implausible readi
 out-of-order readings; a sensor silent for ``stale_timeout_s`` is ERROR and no tensor is
 published until it is back.
 """
+
 from __future__ import annotations
 
 import time
@@ -23,31 +24,79 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
-from ..io import conversions as cv
 from ..core import TetraGeometry, difference_tensor
+from ..io import conversions as cv
 from ..io.matching import StampMatcher
-from .common import (ERROR, MAX_FIELD_T, NAMESPACE, OK, POSITIONS_SPEC, ParamSpec, Throttle, WARN,
-                   declare_parameters, derived_qos, diagnostics_period_spec, positive, sensor_qos,
-                   spin_node, status)
+from .common import (
+    ERROR,
+    MAX_FIELD_T,
+    NAMESPACE,
+    OK,
+    POSITIONS_SPEC,
+    WARN,
+    ParamSpec,
+    Throttle,
+    declare_parameters,
+    derived_qos,
+    diagnostics_period_spec,
+    positive,
+    sensor_qos,
+    spin_node,
+    status,
+)
 
 PARAMETERS = [
     POSITIONS_SPEC,
-    ParamSpec('stamp_tolerance_s', 2e-3, 'Largest spread of the four header stamps within one set, s.',
-              positive, float_range=(1e-9, 10.0)),
-    ParamSpec('max_field_t', MAX_FIELD_T, 'A reading with |B| above this (tesla) is implausible: '
-              'its set is dropped.', positive, float_range=(1e-9, 1.0)),
-    ParamSpec('stale_timeout_s', 1.0, 'A sensor silent this long (s, wall clock) is ERROR on '
-              '/diagnostics and no tensor is published until it returns.', positive,
-              float_range=(1e-3, 3600.0)),
-    ParamSpec('sensor_queue_depth', 50, 'Depth of the magnetometer subscriptions (best effort), messages.',
-              int_range=(1, 10000)),
-    ParamSpec('max_pending', 1000, 'Per-sensor bound of the stamp matcher queue, messages.',
-              int_range=(1, 1000000)),
-    ParamSpec('jump_back_s', 1.0, 'A stamp this much older than its sensor\'s previous one (s) means the '
-              'source restarted (e.g. a new replay): the matcher is reset instead of dropping everything as '
-              'out of order.', positive, float_range=(1e-6, 1e9)),
-    ParamSpec('warn_throttle_s', 5.0, 'Least interval between repeated warnings, s.', positive,
-              float_range=(0.0, 3600.0)),
+    ParamSpec(
+        'stamp_tolerance_s',
+        2e-3,
+        'Largest spread of the four header stamps within one set, s.',
+        positive,
+        float_range=(1e-9, 10.0),
+    ),
+    ParamSpec(
+        'max_field_t',
+        MAX_FIELD_T,
+        'A reading with |B| above this (tesla) is implausible: its set is dropped.',
+        positive,
+        float_range=(1e-9, 1.0),
+    ),
+    ParamSpec(
+        'stale_timeout_s',
+        1.0,
+        'A sensor silent this long (s, wall clock) is ERROR on '
+        '/diagnostics and no tensor is published until it returns.',
+        positive,
+        float_range=(1e-3, 3600.0),
+    ),
+    ParamSpec(
+        'sensor_queue_depth',
+        50,
+        'Depth of the magnetometer subscriptions (best effort), messages.',
+        int_range=(1, 10000),
+    ),
+    ParamSpec(
+        'max_pending',
+        1000,
+        'Per-sensor bound of the stamp matcher queue, messages.',
+        int_range=(1, 1000000),
+    ),
+    ParamSpec(
+        'jump_back_s',
+        1.0,
+        "A stamp this much older than its sensor's previous one (s) means the "
+        'source restarted (e.g. a new replay): the matcher is reset instead of dropping everything as '
+        'out of order.',
+        positive,
+        float_range=(1e-6, 1e9),
+    ),
+    ParamSpec(
+        'warn_throttle_s',
+        5.0,
+        'Least interval between repeated warnings, s.',
+        positive,
+        float_range=(0.0, 3600.0),
+    ),
     diagnostics_period_spec(),
 ]
 
@@ -66,7 +115,10 @@ class TensorNode(Node):
         self._max_pending = int(p['max_pending'])
         self._jump_back_ns = int(round(p['jump_back_s'] * 1e9))
         self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
-        self._earlier = {'dropped_messages': 0, 'out_of_order': 0}  # counts of matchers reset before
+        self._earlier = {
+            'dropped_messages': 0,
+            'out_of_order': 0,
+        }  # counts of matchers reset before
         self._last_stamp: list[int | None] = [None] * 4
         self.resets = 0
         self._types = cv.rclpy_types()
@@ -89,11 +141,17 @@ class TensorNode(Node):
         self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         qos = sensor_qos(p['sensor_queue_depth'])
-        self._subs = [self.create_subscription(MagneticField, topic, lambda msg, s=i: self._on_mag(s, msg), qos)
-                      for i, topic in enumerate(cv.MAG_TOPICS)]
+        self._subs = [
+            self.create_subscription(
+                MagneticField, topic, lambda msg, s=i: self._on_mag(s, msg), qos
+            )
+            for i, topic in enumerate(cv.MAG_TOPICS)
+        ]
         self._diag_timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
-        self.get_logger().info(f'matching {", ".join(cv.MAG_TOPICS)} within {p["stamp_tolerance_s"] * 1e3:g} ms; '
-                               f'array condition number {self._geometry.condition_number:.3g}')
+        self.get_logger().info(
+            f'matching {", ".join(cv.MAG_TOPICS)} within {p["stamp_tolerance_s"] * 1e3:g} ms; '
+            f'array condition number {self._geometry.condition_number:.3g}'
+        )
 
     # ----------------------------------------------------------------- callbacks
 
@@ -125,8 +183,10 @@ class TensorNode(Node):
         self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
         self._last_stamp = [None] * 4
         self.resets += 1
-        self.get_logger().warning(f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * 1e-9:.3g} s in time: '
-                                  f'stamp matching restarted')
+        self.get_logger().warning(
+            f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * 1e-9:.3g} s in time: '
+            f'stamp matching restarted'
+        )
 
     def _emit(self, stamp_ns: int, fields: np.ndarray) -> None:
         """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T)."""
@@ -140,7 +200,8 @@ class TensorNode(Node):
                 names = [cv.MAG_TOPICS[s] for s in np.flatnonzero(bad)]
                 self.get_logger().warning(
                     f'dropped a set at stamp {stamp_ns} ns: non-finite or |B| > {self._max_field:g} T on '
-                    f'{", ".join(names)} ({self.sets_invalid} sets dropped so far)')
+                    f'{", ".join(names)} ({self.sets_invalid} sets dropped so far)'
+                )
             return
         if self._stale_sensors():
             self.sets_stale += 1
@@ -150,7 +211,9 @@ class TensorNode(Node):
             self.sets_invalid += 1
             return
         self._raw_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
-        self._ref_pub.publish(cv.magnetic_field_msg(self._types, fields[0], stamp_ns, cv.MAG_FRAMES[0]))
+        self._ref_pub.publish(
+            cv.magnetic_field_msg(self._types, fields[0], stamp_ns, cv.MAG_FRAMES[0])
+        )
         self.sets_published += 1
 
     def _stale_sensors(self) -> list[int]:
@@ -170,33 +233,66 @@ class TensorNode(Node):
         for s, topic in enumerate(cv.MAG_TOPICS):
             staleness = now - self._last_arrival[s]
             if s in stale:
-                level, text = ERROR, (f'stale: silent for {staleness:.2f} s (> {self._stale_timeout:g} s)'
-                                      if self._ever[s] else 'no data received')
+                level, text = (
+                    ERROR,
+                    (
+                        f'stale: silent for {staleness:.2f} s (> {self._stale_timeout:g} s)'
+                        if self._ever[s]
+                        else 'no data received'
+                    ),
+                )
             elif self._invalid[s]:
                 level, text = WARN, f'{self._invalid[s]} non-finite or implausible readings'
             else:
                 level, text = OK, 'ok'
-            array.status.append(status(
-                f'tetra/tensor: {topic}', level, text, cv.MAG_FRAMES[s],
-                {'rate_hz': float(self._rate[s]), 'staleness_s': float(staleness),
-                 'received': self._received[s], 'dropped_invalid': self._invalid[s]}))
+            array.status.append(
+                status(
+                    f'tetra/tensor: {topic}',
+                    level,
+                    text,
+                    cv.MAG_FRAMES[s],
+                    {
+                        'rate_hz': float(self._rate[s]),
+                        'staleness_s': float(staleness),
+                        'received': self._received[s],
+                        'dropped_invalid': self._invalid[s],
+                    },
+                )
+            )
         counters = self._matcher.counters
         dropped = counters.dropped_messages + self._earlier['dropped_messages']
         level = ERROR if stale else (WARN if self.sets_invalid or dropped else OK)
-        text = (f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}' if stale
-                else f'{self.sets_published} tensors published')
-        array.status.append(status(
-            'tetra/tensor: matching', level, text, cv.ARRAY_FRAME,
-            {'sets_published': self.sets_published, 'sets_dropped_invalid': self.sets_invalid,
-             'sets_dropped_stale': self.sets_stale,
-             'messages_dropped_unmatched': counters.dropped_messages + self._earlier['dropped_messages'],
-             'messages_out_of_order': counters.out_of_order + self._earlier['out_of_order'],
-             'matcher_resets': self.resets}))
+        text = (
+            f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}'
+            if stale
+            else f'{self.sets_published} tensors published'
+        )
+        array.status.append(
+            status(
+                'tetra/tensor: matching',
+                level,
+                text,
+                cv.ARRAY_FRAME,
+                {
+                    'sets_published': self.sets_published,
+                    'sets_dropped_invalid': self.sets_invalid,
+                    'sets_dropped_stale': self.sets_stale,
+                    'messages_dropped_unmatched': counters.dropped_messages
+                    + self._earlier['dropped_messages'],
+                    'messages_out_of_order': counters.out_of_order + self._earlier['out_of_order'],
+                    'matcher_resets': self.resets,
+                },
+            )
+        )
         self._diag_pub.publish(array)
-        silent = [s for s in stale if self._ever[s]]  # went quiet after data (not: not started yet)
+        silent = [
+            s for s in stale if self._ever[s]
+        ]  # went quiet after data (not: not started yet)
         if silent and self._stale_warn():
-            self.get_logger().warning(f'stale sensor(s): {", ".join(cv.MAG_TOPICS[s] for s in silent)}; '
-                                      f'no tensor is published until they return')
+            self.get_logger().warning(
+                f'stale sensor(s): {", ".join(cv.MAG_TOPICS[s] for s in silent)}; '
+                f'no tensor is published until they return'
+            )
 
 
 def main(args: list[str] | None = None) -> int:

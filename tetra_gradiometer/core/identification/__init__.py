@@ -9,16 +9,36 @@
 
 ``identify(method, ...)`` runs the first three by name after the attitude-coverage check.
 """
+
+from ...errors import IdentifiabilityError
 from .dispatch import METHODS, identify
-from .lstsq import (MAX_COVERAGE_CONDITION, MIN_SAMPLES, attitude_coverage, constraint_lstsq,
-                    constraint_objective, known_gradient_lstsq, paper_bounds)
+from .lstsq import (
+    MAX_COVERAGE_CONDITION,
+    MIN_SAMPLES,
+    attitude_coverage,
+    constraint_lstsq,
+    constraint_objective,
+    known_gradient_lstsq,
+    paper_bounds,
+)
 from .paper_ga import paper_ga
 from .pei_yeo import pei_yeo_2009
-from ...errors import IdentifiabilityError
 from .result import Calibration, ReferenceSensorCalibration, TensorCalibration
 
 __all__ = [
-    'MAX_COVERAGE_CONDITION', 'METHODS', 'MIN_SAMPLES', 'Calibration', 'IdentifiabilityError',
-    'ReferenceSensorCalibration', 'TensorCalibration', 'attitude_coverage', 'constraint_lstsq',
-    'constraint_objective', 'identify', 'known_gradient_lstsq', 'paper_bounds', 'paper_ga', 'pei_yeo_2009',
+    'MAX_COVERAGE_CONDITION',
+    'METHODS',
+    'MIN_SAMPLES',
+    'Calibration',
+    'IdentifiabilityError',
+    'ReferenceSensorCalibration',
+    'TensorCalibration',
+    'attitude_coverage',
+    'constraint_lstsq',
+    'constraint_objective',
+    'identify',
+    'known_gradient_lstsq',
+    'paper_bounds',
+    'paper_ga',
+    'pei_yeo_2009',
 ]

@@ -1,4 +1,5 @@
 """Column-scaled least squares with rank and conditioning reported (shared by the solvers)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -12,10 +13,10 @@ RANK_RTOL = 1.0e-9
 
 @dataclass(frozen=True)
 class LinearSolution:
-    theta: np.ndarray          # (P,) solution, unscaled units
+    theta: np.ndarray  # (P,) solution, unscaled units
     rank: int
-    condition_number: float    # over the retained singular values
-    residual: np.ndarray       # (M,) y - A theta
+    condition_number: float  # over the retained singular values
+    residual: np.ndarray  # (M,) y - A theta
     covariance_unit: np.ndarray  # (P, P) (A^T A)^+ in unscaled units (times sigma^2 = covariance)
 
 
@@ -40,8 +41,13 @@ def solve_scaled(design: np.ndarray, target: np.ndarray) -> LinearSolution:
     theta = theta_scaled / scale
     cov_scaled = (vt.T * inv_s**2) @ vt
     covariance_unit = cov_scaled / np.outer(scale, scale)
-    return LinearSolution(theta=theta, rank=rank, condition_number=float(s[0] / s[keep][-1]),
-                          residual=target - design @ theta, covariance_unit=covariance_unit)
+    return LinearSolution(
+        theta=theta,
+        rank=rank,
+        condition_number=float(s[0] / s[keep][-1]),
+        residual=target - design @ theta,
+        covariance_unit=covariance_unit,
+    )
 
 
 @dataclass(frozen=True)
@@ -50,7 +56,7 @@ class AffineReduction:
     exactly to 4 rows per output (see :func:`reduce_affine`)."""
 
     regressors: np.ndarray  # (4, 4) R: upper-triangular, X^T X = R^T R, X = [B_1' 1]
-    targets: np.ndarray     # (4, Q) Q_x^T T: the targets projected on span(X)
+    targets: np.ndarray  # (4, Q) Q_x^T T: the targets projected on span(X)
 
 
 def reduce_affine(b_reference: np.ndarray, targets: np.ndarray) -> AffineReduction:

@@ -1,18 +1,19 @@
 """Exact linear solvers: the paper's objective solved directly, and identification on
 data whose true gradient is known (trim manoeuvres)."""
+
 from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from ...errors import IdentifiabilityError
 from .._validate import as_tensors, as_vectors, same_length
 from ..design import CONSTRAINT_ROWS, constraint_design, constraint_residual, interference_design
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters, interference_tensor, n_parameters
-from ._linear import AffineReduction, reduce_affine, solve_scaled
-from ...errors import IdentifiabilityError
-from .result import TensorCalibration
 from ..units import NT_PER_T
+from ._linear import AffineReduction, reduce_affine, solve_scaled
+from .result import TensorCalibration
 
 #: Fewest samples any solver accepts.
 MIN_SAMPLES = 10
@@ -61,7 +62,9 @@ def _noise_whitener(geometry: TetraGeometry) -> np.ndarray:
     return geometry.a @ (np.eye(3) - np.ones((3, 3)) / 6.0)
 
 
-def _reduced_design(reduction: AffineReduction, geometry: TetraGeometry, *, symmetric: bool) -> np.ndarray:
+def _reduced_design(
+    reduction: AffineReduction, geometry: TetraGeometry, *, symmetric: bool
+) -> np.ndarray:
     """The interference design (eq. 18) at the 4 pseudo-samples of ``reduction``, (4, 9, P):
     the offset columns weighted by the pseudo-samples' 4th regressor instead of 1."""
     r = reduction.regressors
@@ -73,12 +76,20 @@ def _reduced_design(reduction: AffineReduction, geometry: TetraGeometry, *, symm
 
 def _check_samples(n: int, method: str) -> None:
     if n < MIN_SAMPLES:
-        raise IdentifiabilityError(f'{method}: {n} samples are too few (need at least {MIN_SAMPLES})')
+        raise IdentifiabilityError(
+            f'{method}: {n} samples are too few (need at least {MIN_SAMPLES})'
+        )
 
 
-def known_gradient_lstsq(g_measured: object, b_reference: object, geometry: TetraGeometry, *,
-                         g_true: object | None = None, symmetric_k: bool = True,
-                         max_coverage_condition: float = MAX_COVERAGE_CONDITION) -> TensorCalibration:
+def known_gradient_lstsq(
+    g_measured: object,
+    b_reference: object,
+    geometry: TetraGeometry,
+    *,
+    g_true: object | None = None,
+    symmetric_k: bool = True,
+    max_coverage_condition: float = MAX_COVERAGE_CONDITION,
+) -> TensorCalibration:
     """Identify ``k``, ``b`` where the true gradient is known (zero on a trim manoeuvre).
 
     Solves ``G_m - G_true = D(theta)`` (eq. 18) by generalised least squares, whitened for
@@ -125,7 +136,9 @@ def known_gradient_lstsq(g_measured: object, b_reference: object, geometry: Tetr
     reduction = reduce_affine(b_reference, target_w.reshape(n, 9))
     design = _reduced_design(reduction, geometry, symmetric=symmetric_k)
     n_par = design.shape[2]
-    design_w = np.einsum('nRjp,jk->nRkp', design.reshape(4, 3, 3, n_par), whitener).reshape(-1, n_par)
+    design_w = np.einsum('nRjp,jk->nRkp', design.reshape(4, 3, 3, n_par), whitener).reshape(
+        -1, n_par
+    )
     solution = solve_scaled(design_w, reduction.targets.reshape(-1))
     parameters = InterferenceParameters.from_vector(solution.theta, symmetric=symmetric_k)
     residual = g_measured - g_true - interference_tensor(b_reference, parameters, geometry)
@@ -133,16 +146,25 @@ def known_gradient_lstsq(g_measured: object, b_reference: object, geometry: Tetr
     dof = max(residual.size - solution.rank, 1)
     sigma2 = float(np.sum(residual_w**2)) / dof
     return TensorCalibration(
-        method=method, n_samples=n, n_parameters=n_par, rank=solution.rank,
+        method=method,
+        n_samples=n,
+        n_parameters=n_par,
+        rank=solution.rank,
         condition_number=solution.condition_number,
         residual_rms=float(np.sqrt(np.mean(residual**2))),
-        details={'attitude_coverage_condition': coverage, 'sensor_noise_nT': float(np.sqrt(sigma2) * NT_PER_T)},
-        parameters=parameters, symmetric=symmetric_k, covariance=sigma2 * solution.covariance_unit,
+        details={
+            'attitude_coverage_condition': coverage,
+            'sensor_noise_nT': float(np.sqrt(sigma2) * NT_PER_T),
+        },
+        parameters=parameters,
+        symmetric=symmetric_k,
+        covariance=sigma2 * solution.covariance_unit,
     )
 
 
-def constraint_objective(g_measured: object, b_reference: object, geometry: TetraGeometry, *,
-                         symmetric_k: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def constraint_objective(
+    g_measured: object, b_reference: object, geometry: TetraGeometry, *, symmetric_k: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """The linear system behind eqs. 21-22: ``F(theta) = |A theta - y|^2``.
 
     Returns
@@ -159,9 +181,14 @@ def constraint_objective(g_measured: object, b_reference: object, geometry: Tetr
     return design.reshape(-1, design.shape[2]), constraint_residual(g_measured).reshape(-1)
 
 
-def constraint_lstsq(g_measured: object, b_reference: object, geometry: TetraGeometry, *,
-                     symmetric_k: bool = True,
-                     bounds: tuple[np.ndarray, np.ndarray] | None = None) -> TensorCalibration:
+def constraint_lstsq(
+    g_measured: object,
+    b_reference: object,
+    geometry: TetraGeometry,
+    *,
+    symmetric_k: bool = True,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
+) -> TensorCalibration:
     """The paper's objective (eqs. 21-22) solved exactly as the linear least squares it is.
 
     The design has rank at most 15 of 27: the symmetric, traceless part of ``D`` is
@@ -197,15 +224,28 @@ def constraint_lstsq(g_measured: object, b_reference: object, geometry: TetraGeo
         scale = np.linalg.norm(design, axis=0)
         scale[scale == 0.0] = 1.0
         lower, upper = (np.asarray(b, dtype=float) for b in bounds)
-        bounded = lsq_linear(design / scale, target, bounds=(lower * scale, upper * scale),
-                             method='bvls', lsmr_tol='auto')
+        bounded = lsq_linear(
+            design / scale,
+            target,
+            bounds=(lower * scale, upper * scale),
+            method='bvls',
+            lsmr_tol='auto',
+        )
         theta = bounded.x / scale
     parameters = InterferenceParameters.from_vector(theta, symmetric=symmetric_k)
     # Residual of eq. 21 on every sample: the asymmetry and trace left after compensation.
-    residual = constraint_residual(g_measured - interference_tensor(b_reference, parameters, geometry))
+    residual = constraint_residual(
+        g_measured - interference_tensor(b_reference, parameters, geometry)
+    )
     details['objective_F'] = float(np.sum(residual**2))
     return TensorCalibration(
-        method='constraint_lstsq', n_samples=n, n_parameters=design.shape[1], rank=solution.rank,
-        condition_number=solution.condition_number, residual_rms=float(np.sqrt(np.mean(residual**2))),
-        details=details, parameters=parameters, symmetric=symmetric_k,
+        method='constraint_lstsq',
+        n_samples=n,
+        n_parameters=design.shape[1],
+        rank=solution.rank,
+        condition_number=solution.condition_number,
+        residual_rms=float(np.sqrt(np.mean(residual**2))),
+        details=details,
+        parameters=parameters,
+        symmetric=symmetric_k,
     )

@@ -12,6 +12,7 @@ probability 0.9, crossover 0.8, mutation 0.8, bounds of eq. 23. Not printed, our
 * reinsertion by fitness: offspring replace the 27 worst parents, so the 3 best survive;
 * 1000 generations (not printed), standard binary decoding over the closed bound interval.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -55,9 +56,16 @@ def _sus(fitness: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarra
     return rng.permutation(np.minimum(chosen, len(fitness) - 1))
 
 
-def paper_ga(g_measured: object, b_reference: object, geometry: TetraGeometry, *,
-             rng: np.random.Generator, bounds: tuple[np.ndarray, np.ndarray] | None = None,
-             wide_bounds: bool = False, generations: int = GENERATIONS) -> TensorCalibration:
+def paper_ga(
+    g_measured: object,
+    b_reference: object,
+    geometry: TetraGeometry,
+    *,
+    rng: np.random.Generator,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    wide_bounds: bool = False,
+    generations: int = GENERATIONS,
+) -> TensorCalibration:
     """Minimise ``F(k, b)`` (eqs. 21-23) with the paper's GA.
 
     Parameters
@@ -112,17 +120,25 @@ def paper_ga(g_measured: object, b_reference: object, geometry: TetraGeometry, *
         mutate = np.flatnonzero(rng.random(n_offspring) < MUTATION_PROBABILITY)
         offspring[mutate, rng.integers(0, length, size=len(mutate))] ^= 1
         offspring_scores = objective(_decode(offspring, lower, upper))
-        worst = np.argsort(scores)[POPULATION - n_offspring:]
+        worst = np.argsort(scores)[POPULATION - n_offspring :]
         population[worst], scores[worst] = offspring, offspring_scores
         history.append(float(scores.min()))
     best = int(np.argmin(scores))
-    theta = _decode(population[best:best + 1], lower, upper)[0]
+    theta = _decode(population[best : best + 1], lower, upper)[0]
     return TensorCalibration(
-        method='paper_ga', n_samples=len(target) // 4, n_parameters=n_par, rank=exact.rank,
+        method='paper_ga',
+        n_samples=len(target) // 4,
+        n_parameters=n_par,
+        rank=exact.rank,
         condition_number=exact.condition_number,
         residual_rms=float(np.sqrt(scores[best] / len(target))),
-        details={'objective_initial': initial, 'objective_final': float(scores[best]),
-                 'generations': generations, 'wide_bounds': bool(wide_bounds and bounds is None),
-                 'objective_history': history[:: max(1, generations // 100)]},
-        parameters=InterferenceParameters.from_vector(theta, symmetric=True), symmetric=True,
+        details={
+            'objective_initial': initial,
+            'objective_final': float(scores[best]),
+            'generations': generations,
+            'wide_bounds': bool(wide_bounds and bounds is None),
+            'objective_history': history[:: max(1, generations // 100)],
+        },
+        parameters=InterferenceParameters.from_vector(theta, symmetric=True),
+        symmetric=True,
     )

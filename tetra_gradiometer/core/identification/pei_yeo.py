@@ -6,20 +6,22 @@ tensor is formed by differencing (eq. 7); no tensor constraint is used. Our read
 (3x3 + offset, the usual single-magnetometer calibration form) fitted by least squares
 so that ``B_i,c - B_1'`` matches the known true difference (zero in a uniform field).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
+from ...errors import InputError
 from .._validate import as_fields, as_tensors, same_length
 from ..geometry import TetraGeometry
 from ._linear import solve_scaled
 from .lstsq import _check_samples
 from .result import ReferenceSensorCalibration
-from ...errors import InputError
 
 
-def pei_yeo_2009(fields_measured: object, *, geometry: TetraGeometry | None = None,
-                 g_true: object | None = None) -> ReferenceSensorCalibration:
+def pei_yeo_2009(
+    fields_measured: object, *, geometry: TetraGeometry | None = None, g_true: object | None = None
+) -> ReferenceSensorCalibration:
     """Fit ``M_i``, ``o_i`` for sensors 2-4 against sensor 1.
 
     Parameters
@@ -59,8 +61,12 @@ def pei_yeo_2009(fields_measured: object, *, geometry: TetraGeometry | None = No
         residuals.append(np.concatenate([s.residual for s in solutions]))
     return ReferenceSensorCalibration(
         # 4 coefficients per axis, 3 axes, 3 sensors: the rank counts all 36.
-        method='pei_yeo_2009', n_samples=n, n_parameters=36, rank=3 * sum(ranks),
+        method='pei_yeo_2009',
+        n_samples=n,
+        n_parameters=36,
+        rank=3 * sum(ranks),
         condition_number=max(conditions),
         residual_rms=float(np.sqrt(np.mean(np.concatenate(residuals) ** 2))),
-        matrices=np.array(matrices), offsets=np.array(offsets),
+        matrices=np.array(matrices),
+        offsets=np.array(offsets),
     )

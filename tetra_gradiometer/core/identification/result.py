@@ -1,4 +1,5 @@
 """What every identification returns: parameters (or maps) plus diagnostics."""
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -10,9 +11,6 @@ from .._validate import as_fields
 from ..geometry import TetraGeometry, difference_tensor
 from ..model import InterferenceParameters, compensate_fields
 from ..units import NT_PER_T
-
-
-
 
 
 @dataclass(frozen=True)
@@ -57,10 +55,14 @@ class Calibration(ABC):
     def summary(self) -> dict:
         """Diagnostics as plain types (residual in nT/m)."""
         return {
-            'method': self.method, 'n_samples': self.n_samples, 'n_parameters': self.n_parameters,
-            'rank': self.rank, 'null_space_dim': self.null_space_dim,
+            'method': self.method,
+            'n_samples': self.n_samples,
+            'n_parameters': self.n_parameters,
+            'rank': self.rank,
+            'null_space_dim': self.null_space_dim,
             'condition_number': float(self.condition_number),
-            self.residual_key: float(self.residual_rms * NT_PER_T), **self.details,
+            self.residual_key: float(self.residual_rms * NT_PER_T),
+            **self.details,
         }
 
 
@@ -99,7 +101,9 @@ class ReferenceSensorCalibration(Calibration):
     def corrected_fields(self, fields_measured: object) -> np.ndarray:
         """Sensors 2-4 mapped onto sensor 1, shape (N, 4, 3), tesla."""
         fields = as_fields(fields_measured, 'fields_measured').copy()
-        fields[:, 1:] = np.einsum('sij,nsj->nsi', self.matrices, fields[:, 1:]) + self.offsets[None]
+        fields[:, 1:] = (
+            np.einsum('sij,nsj->nsi', self.matrices, fields[:, 1:]) + self.offsets[None]
+        )
         return fields
 
     def compensate_fields(self, fields_measured: object, geometry: TetraGeometry) -> np.ndarray:
