@@ -1,4 +1,4 @@
-"""``python -m tetra_gradiometer calibrate BAG --params FILE [--window T0:T1] [--method NAME] --out CALIB.yaml``.
+"""``python -m tetra_gradiometer calibrate BAG --params FILE --out CALIB.yaml [options]``.
 
 Identifies the interference parameters ``k``, ``b`` (eq. 18) from the magnetometer sets of
 a bag and writes them as a calibration file (:mod:`tetra_gradiometer.io.calibration`),
@@ -6,22 +6,9 @@ atomically.
 
 The window, in seconds from the bag's first matched set (``T0:T1``, either end may be
 left out; default the whole bag), is where the **true gradient is taken as zero**: a trim
-manoeuvre in a uniform field, away from targets. Methods:
-
-=================================  ========================================================
-``known_gradient_lstsq_general``   default. Known (zero) gradient, a general 3x3 ``K_i1``
-                                   per sensor pair: 36 parameters, all observable; exact
-                                   also when sensor 1 carries its own soft and hard iron
-                                   (effective ``K_i1 (I + K_1)^-1`` is not symmetric).
-``known_gradient_lstsq``           the same with the paper's symmetric ``K_i1`` (27).
-``constraint_lstsq``               the paper's objective (symmetry + zero trace, eqs.
-                                   20-22) solved exactly; rank <= 15 of 27, so half of the
-                                   interference is invisible to it. Does not use the
-                                   zero-gradient assumption.
-``paper_ga``                       the paper's genetic algorithm as printed, seeded
-                                   (``--seed``), within the paper's bounds (eq. 23) or
-                                   ``--wide-bounds``.
-=================================  ========================================================
+manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and ``paper_ga``
+do not use that assumption). ``--method`` is one of the registry's methods whose result is
+a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help`` describes them).
 
 The window is read streaming; only its sets are kept. A window of more than ``--max-sets``
 sets is thinned uniformly (every k-th set) to bound the solver's memory (the design holds
@@ -37,17 +24,23 @@ import time
 import numpy as np
 
 from ..core import difference_tensor
-from ..core.identification import MAX_COVERAGE_CONDITION, IdentifiabilityError, identify
+from ..core.identification import (
+    CALIBRATION_METHODS,
+    DEFAULT_METHOD,
+    MAX_COVERAGE_CONDITION,
+    METHODS,
+    IdentifiabilityError,
+    Options,
+    identify,
+)
 from ..core.identification.paper_ga import GENERATIONS
-from ..core.units import NT_PER_T
+from ..core.units import NT_PER_T, S_PER_MS, S_PER_NS
 from ..errors import InputError
 from ..io.bag import BagError, MagneticBag
 from ..io.calibration import CalibrationFile, save_calibration
 from ..io.outputs import CALIBRATION, check_output
 from ..io.params import geometry_from_params, load_params
 
-METHODS = ('known_gradient_lstsq_general', 'known_gradient_lstsq', 'constraint_lstsq', 'paper_ga')
-DEFAULT_METHOD = 'known_gradient_lstsq_general'
 DEFAULT_MAX_SETS = 50_000
 
 
@@ -80,7 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help='seconds from the first set where the true gradient is zero (default: whole bag)',
     )
     parser.add_argument(
-        '--method', choices=METHODS, default=DEFAULT_METHOD, help=f'default: {DEFAULT_METHOD}'
+        '--method',
+        choices=CALIBRATION_METHODS,
+        default=DEFAULT_METHOD,
+        help='; '.join(f'{name}: {METHODS[name].description}' for name in CALIBRATION_METHODS)
+        + f' (default: {DEFAULT_METHOD})',
     )
     parser.add_argument('--out', required=True, help='calibration YAML to write')
     parser.add_argument(
@@ -134,7 +131,7 @@ def read_window(
             last = int(chunk_stamps[-1])
             beyond = False
             if window is not None:
-                t = (chunk_stamps - first) * 1e-9
+                t = (chunk_stamps - first) * S_PER_NS
                 keep = (t >= window[0]) & (t <= window[1])
                 chunk_stamps, chunk_fields = chunk_stamps[keep], chunk_fields[keep]
                 beyond = t[-1] > window[1]
@@ -145,7 +142,7 @@ def read_window(
                 sets.close()
                 break
         counters = bag.counters
-    span = (last - first) * 1e-9
+    span = (last - first) * S_PER_NS
     if not stamps:
         raise BagError(
             f'{bag_path}: the window {window[0]:g}:{window[1]:g} s holds no sample set '
@@ -167,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     geometry = geometry_from_params(load_params(args.params), source=args.params)
     stamps, fields, span, counters = read_window(
-        args.bag, window, tolerance_s=args.tolerance_ms * 1e-3, progress=args.progress
+        args.bag, window, tolerance_s=args.tolerance_ms * S_PER_MS, progress=args.progress
     )
     finite = np.isfinite(fields).all(axis=(1, 2))
     non_finite = int((~finite).sum())
@@ -188,17 +185,13 @@ def run(args: argparse.Namespace) -> int:
     if args.generations is not None and args.generations < 1:
         raise InputError(f'--generations must be >= 1, got {args.generations}')
     try:
-        calibration = identify(
-            method.removesuffix('_general'),
-            g_measured,
-            b_reference,
-            geometry,
-            symmetric_k=(method != 'known_gradient_lstsq_general'),
+        options = Options(
             rng=np.random.default_rng(args.seed),
             generations=args.generations or GENERATIONS,
             wide_bounds=args.wide_bounds,
             max_coverage_condition=args.max_coverage_condition,
         )
+        calibration = identify(method, g_measured, b_reference, geometry, options)
     except IdentifiabilityError as error:
         raise IdentifiabilityError(
             f'the window ({window_text}, {len(stamps)} sets): {error}'

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import compensate, difference_tensor
-from ..core.units import NT_PER_T
+from ..core.units import NS_PER_S, NT_PER_T, S_PER_MS, S_PER_NS
 from ..errors import InputError
 from ..io import conversions as cv
 from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
@@ -86,7 +86,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def format_rows(stamps_ns: np.ndarray, tensors_t_per_m: np.ndarray) -> str:
     """CSV rows (with trailing newline) for stamps (n,) ns and tensors (n, 3, 3) T/m."""
-    seconds, nanoseconds = np.divmod(np.asarray(stamps_ns, dtype=np.int64), 1_000_000_000)
+    seconds, nanoseconds = np.divmod(np.asarray(stamps_ns, dtype=np.int64), NS_PER_S)
     values = tensors_t_per_m.reshape(len(stamps_ns), 9) * NT_PER_T
     row = '%d.%09d,' + ','.join(['%.6f'] * 9)
     table = np.column_stack([seconds, nanoseconds]).astype(object)
@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
                 )
             )
         for stamps, fields in bag.iter_sets(
-            tolerance_s=args.tolerance_ms * 1e-3,
+            tolerance_s=args.tolerance_ms * S_PER_MS,
             progress=args.progress,
             fast=not args.generic_reader,
         ):
@@ -176,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - started
     kind = 'raw' if args.raw else 'compensated'
     print(
-        f'{kind} {n_sets} sets from {bag_path} ({(last - first) * 1e-9:.1f} s of data; '
+        f'{kind} {n_sets} sets from {bag_path} ({(last - first) * S_PER_NS:.1f} s of data; '
         f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
         f'{non_finite} sets with a non-finite reading skipped) '
         f'in {elapsed:.1f} s ({n_sets / max(elapsed, 1e-9):.0f} sets/s)'

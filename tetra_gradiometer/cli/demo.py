@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.units import NT_PER_T
+from ..core.identification import CALIBRATION_METHODS, DEFAULT_METHOD
+from ..core.units import NT_PER_T, S_PER_NS
 from ..io.outputs import DEMO, atomic_output, check_output
 from .node import PARAMS_HELP, ros_arguments
 
@@ -41,8 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         '--method',
-        default='known_gradient_lstsq',
-        choices=('known_gradient_lstsq', 'constraint_lstsq', 'paper_ga'),
+        default=DEFAULT_METHOD,
+        choices=CALIBRATION_METHODS,
+        help='the calibrator node\'s method (default %(default)s)',
     )
     parser.add_argument('--params', default='', help=PARAMS_HELP)
 
@@ -254,7 +256,7 @@ def _plot(
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    t = (stamps - stamps[0]) * 1e-9
+    t = (stamps - stamps[0]) * S_PER_NS
     norm = {
         name: np.linalg.norm(g, axis=(1, 2)) * NT_PER_T
         for name, g in (('raw', g_raw), ('compensated', g_comp), ('true', g_true))

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import TrimManoeuvre, simulate
-from ..core.units import NT_PER_T
+from ..core.units import NS_PER_S, NT_PER_T
 from ..errors import InputError
 from ..io.bag import STORAGES
 from ..io.outputs import BAG, PARAMS, TRUTH, atomic_output, atomic_write_text, check_output
@@ -58,7 +58,7 @@ def parse_start(text: str) -> int:
     seconds = when.timestamp()
     if seconds < 0:
         raise InputError(f'--start-utc must not be before 1970: {text!r}')
-    return int(round(seconds)) * 10**9
+    return int(round(seconds)) * NS_PER_S
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,6 +11,7 @@ import numpy as np
 from ..errors import InputError
 from ._validate import as_tensors, same_length
 from .geometry import TetraGeometry
+from .units import NT_PER_T
 
 
 def _checked(**tensors: object) -> dict[str, np.ndarray]:
@@ -91,6 +92,6 @@ def summarize(g_before: object, g_after: object, g_true: object) -> dict[str, fl
     return {
         'epsilon': eps,
         'compensated_percent': compensated_percent(eps),
-        'rms_residual_nT_per_m': rms_residual(g_after, g_true) * 1e9,
+        'rms_residual_nT_per_m': rms_residual(g_after, g_true) * NT_PER_T,
         'improvement_ratio': improvement_ratio(g_before, g_after, g_true),
     }

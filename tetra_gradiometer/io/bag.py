@@ -37,6 +37,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
 from .matching import StampMatcher
@@ -55,7 +56,7 @@ class _UnsupportedEncoding(Exception):
 
 def encode_magnetic_field(stamp_ns: int, field_t: np.ndarray, frame_id: str) -> bytes:
     """Little-endian CDR of a ``sensor_msgs/MagneticField`` with zero covariance."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     frame = frame_id.encode('utf-8') + b'\x00'
     head = _CDR_LE + b'\x00\x00' + struct.pack('<iII', sec, nanosec, len(frame)) + frame
     pad = -(len(head) - 4) % 8
@@ -72,7 +73,7 @@ def _cdr_string(text: str, length_so_far: int) -> bytes:
 def encode_tensor(stamp_ns: int, g: np.ndarray, frame_id: str = cv.ARRAY_FRAME) -> bytes:
     """Little-endian CDR of the tensor ``sensor_msgs/JointState`` (``conversions.tensor_msg``):
     names ``gxx..gzz``, positions ``g`` (3, 3) T/m row-major, empty velocity and effort."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     body = struct.pack('<iI', sec, nanosec)
     body += _cdr_string(frame_id, len(body))
     body += b'\x00' * (-len(body) % 4) + struct.pack('<I', len(cv.TENSOR_NAMES))
@@ -103,7 +104,7 @@ def _decode_one(raw: bytes) -> tuple[int, float, float, float]:
     if offset + 96 > len(raw):
         raise _UnsupportedEncoding('message shorter than its layout')
     x, y, z = struct.unpack_from(order + '3d', raw, offset)
-    return sec * 1_000_000_000 + nanosec, x, y, z
+    return sec * NS_PER_S + nanosec, x, y, z
 
 
 def decode_magnetic_field(raws: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
@@ -133,7 +134,7 @@ def decode_magnetic_field(raws: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
                 sec = block[:, 4:8].copy().view(order + 'i4')[:, 0].astype(np.int64)
                 nanosec = block[:, 8:12].copy().view(order + 'u4')[:, 0].astype(np.int64)
                 values = block[:, offset : offset + 24].copy().view(order + 'f8').astype(float)
-                return sec * 1_000_000_000 + nanosec, values
+                return sec * NS_PER_S + nanosec, values
     decoded = [_decode_one(r) for r in raws]
     return (
         np.array([d[0] for d in decoded], dtype=np.int64),
@@ -306,7 +307,7 @@ class MagneticBag:
         total = self.check_contract()
         if chunk_size < 1:
             raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
-        matcher = StampMatcher(int(round(tolerance_s * 1e9)))
+        matcher = StampMatcher(int(round(tolerance_s * NS_PER_S)))
         self.counters = matcher.counters
         batcher = _BatchMatcher(matcher)
         index = {
@@ -345,7 +346,7 @@ class MagneticBag:
             if len(stamps) and not first:
                 first.append(int(stamps[0]))
             if window_s is not None and len(stamps):
-                t = (stamps - first[0]) * 1e-9
+                t = (stamps - first[0]) * S_PER_NS
                 keep = (t >= window_s[0]) & (t <= window_s[1])
                 stamps, fields = stamps[keep], fields[keep]
             for start in range(0, len(stamps), chunk_size):

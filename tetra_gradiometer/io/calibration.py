@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..core import InterferenceParameters, TensorCalibration, TetraGeometry
+from ..core import Calibration, InterferenceParameters, TensorCalibration, TetraGeometry
 from ..errors import CalibrationFileError
 from .outputs import CALIBRATION, atomic_write_text
 
@@ -43,9 +43,13 @@ class CalibrationFile:
     created_utc: str = ''
 
     @classmethod
-    def from_calibration(
-        cls, calibration: TensorCalibration, geometry: TetraGeometry
-    ) -> CalibrationFile:
+    def from_calibration(cls, calibration: Calibration, geometry: TetraGeometry) -> CalibrationFile:
+        """The file of a ``k, b`` calibration (:class:`TensorCalibration`); other results
+        (Pei & Yeo's per-sensor maps) raise :class:`CalibrationFileError`."""
+        if not isinstance(calibration, TensorCalibration):
+            raise CalibrationFileError(
+                f'{calibration.method} gives no k, b: it cannot be written as a calibration file'
+            )
         summary = calibration.summary()
         return cls(
             parameters=calibration.parameters,

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ..core.units import NS_PER_S
 from ..errors import MessageError
 
 NAMESPACE = '/tetra'
@@ -99,12 +100,12 @@ def rosbags_types(typestore: Any) -> MessageTypes:
 
 def stamp_to_ns(stamp: Any) -> int:
     """``builtin_interfaces/Time`` -> integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
 def header(types: MessageTypes, stamp_ns: int, frame_id: str) -> Any:
     """A ``std_msgs/Header`` at ``stamp_ns`` (integer nanoseconds)."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     time = types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
     return types['std_msgs/msg/Header'](stamp=time, frame_id=frame_id)
 

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..core import MissionData
+from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
 from . import conversions as cv
 from .bag import BagWriter, MagneticBag, _progress
@@ -23,14 +24,14 @@ from .bag import BagWriter, MagneticBag, _progress
 
 def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
     """Header stamps (N,) int64 ns of a mission starting at ``start_ns``."""
-    return start_ns + np.round(mission.t * 1e9).astype(np.int64)
+    return start_ns + np.round(mission.t * NS_PER_S).astype(np.int64)
 
 
 def write_mission_bag(
     path: str | os.PathLike,
     mission: MissionData,
     *,
-    start_ns: int = 1_767_225_600 * 10**9,
+    start_ns: int = 1_767_225_600 * NS_PER_S,
     storage: str = 'sqlite3',
     odom: bool = True,
     temperature: bool = True,
@@ -110,7 +111,7 @@ class Recording:
     @property
     def t_s(self) -> np.ndarray:
         """Seconds from the first sample, (N,)."""
-        return (self.stamps_ns - self.stamps_ns[0]) * 1e-9
+        return (self.stamps_ns - self.stamps_ns[0]) * S_PER_NS
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -122,8 +123,8 @@ def _interp_orientation(
     if len(series_stamps) == 1:
         return np.repeat(quats, len(stamps), axis=0)
     t0 = series_stamps[0]
-    slerp = Slerp((series_stamps - t0) * 1e-9, Rotation.from_quat(quats))
-    clipped = np.clip((stamps - t0) * 1e-9, 0.0, (series_stamps[-1] - t0) * 1e-9)
+    slerp = Slerp((series_stamps - t0) * S_PER_NS, Rotation.from_quat(quats))
+    clipped = np.clip((stamps - t0) * S_PER_NS, 0.0, (series_stamps[-1] - t0) * S_PER_NS)
     return slerp(clipped).as_quat()
 
 

@@ -15,9 +15,9 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
   the write replaces only a previous calibration file: any other file there is left
   untouched and the call answers success=false.
 
-Methods: ``known_gradient_lstsq`` (the true gradient is taken as zero: a trim far from
-targets; general 3x3 ``K_i1`` unless ``symmetric_k``), ``constraint_lstsq`` and
-``paper_ga`` (the paper's symmetry/trace objective; see NOTES.md on its rank deficiency).
+``method`` is one of ``core.identification.CALIBRATION_METHODS`` (the registry;
+default ``known_gradient_lstsq_general``: the true gradient is taken as zero, a trim far
+from targets).
 """
 
 from __future__ import annotations
@@ -32,8 +32,16 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..core import TetraGeometry
-from ..core.identification import MAX_COVERAGE_CONDITION, METHODS, MIN_SAMPLES, identify
-from ..errors import OutputError
+from ..core.identification import (
+    CALIBRATION_METHODS,
+    DEFAULT_METHOD,
+    MAX_COVERAGE_CONDITION,
+    METHODS,
+    MIN_SAMPLES,
+    Options,
+    identify,
+)
+from ..errors import OutputError, TetraError
 from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, save_calibration
 from .common import (
@@ -64,16 +72,11 @@ PARAMETERS = [
     POSITIONS_SPEC,
     ParamSpec(
         'method',
-        'known_gradient_lstsq',
-        f'Identification method: one of {list(METHODS)}.',
-        one_of(*METHODS),
-    ),
-    ParamSpec(
-        'symmetric_k',
-        False,
-        'known_gradient_lstsq/constraint_lstsq: symmetric K_i1 (the '
-        "paper's 27 parameters) instead of a general 3x3 per sensor pair (36). paper_ga is "
-        'always symmetric.',
+        DEFAULT_METHOD,
+        'Identification method: '
+        + '; '.join(f'{name} ({METHODS[name].description})' for name in CALIBRATION_METHODS)
+        + '.',
+        one_of(*CALIBRATION_METHODS),
     ),
     ParamSpec(
         'calibration_file',
@@ -120,7 +123,6 @@ class CalibratorNode(Node):
             PARAMETERS,
             dynamic=(
                 'method',
-                'symmetric_k',
                 'min_samples',
                 'max_samples',
                 'max_coverage_condition',
@@ -216,7 +218,6 @@ class CalibratorNode(Node):
             g = np.array(self._g).reshape(-1, 3, 3)
             b = np.array(self._b).reshape(-1, 3)
         method = self.get_parameter('method').value
-        symmetric = bool(self.get_parameter('symmetric_k').value)
         minimum = int(self.get_parameter('min_samples').value)
         limit = float(self.get_parameter('max_coverage_condition').value)
         if len(g) < minimum:
@@ -225,20 +226,13 @@ class CalibratorNode(Node):
                 f'fly the trim manoeuvre, then ~/stop'
             )
         try:
-            result = identify(
-                method,
-                g,
-                b,
-                self._geometry,
-                symmetric_k=symmetric,
+            options = Options(
                 rng=np.random.default_rng(self.get_parameter('ga_seed').value),
                 generations=int(self.get_parameter('ga_generations').value),
                 max_coverage_condition=limit,
             )
-        except (
-            ValueError,
-            np.linalg.LinAlgError,
-        ) as error:  # IdentifiabilityError is a ValueError
+            result = identify(method, g, b, self._geometry, options)
+        except (TetraError, np.linalg.LinAlgError) as error:
             return False, str(error)
         calibration = CalibrationFile.from_calibration(result, self._geometry)
         path = self._calibration_path

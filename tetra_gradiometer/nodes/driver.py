@@ -36,6 +36,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
+from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
 from ..io import conversions as cv
 from .common import (
@@ -163,7 +164,7 @@ def sim_frames(
 
     def frames() -> Iterator[Frame]:
         for i in range(n):
-            pace = int(round(mission.t[i] * 1e9))
+            pace = int(round(mission.t[i] * NS_PER_S))
             stamp = start_ns + pace
             items = [
                 (
@@ -217,7 +218,7 @@ def replay_frames(
         try:
             for connection, log_ns, raw in reader.messages(connections=connections):
                 first = log_ns if first is None else first
-                if max_duration_s > 0 and (log_ns - first) * 1e-9 > max_duration_s:
+                if max_duration_s > 0 and (log_ns - first) * S_PER_NS > max_duration_s:
                     break
                 msg = reader.deserialize(raw, connection.msgtype)
                 key, sensor = topics[connection.topic]
@@ -329,7 +330,7 @@ class DriverNode(Node):
                 self._set_state('holding')
                 return
             if self._rate > 0:
-                if frame.pace_ns > self._origin[1] + (now - self._origin[0]) * self._rate * 1e9:
+                if frame.pace_ns > self._origin[1] + (now - self._origin[0]) * self._rate * NS_PER_S:
                     return
             elif len(self._in_flight) >= self._window:
                 if now - self._last_progress < self._ack_timeout:

@@ -25,6 +25,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
 from ..core import TetraGeometry, difference_tensor
+from ..core.units import NS_PER_S, S_PER_NS
 from ..io import conversions as cv
 from ..io.matching import StampMatcher
 from .common import (
@@ -111,9 +112,9 @@ class TensorNode(Node):
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._max_field = float(p['max_field_t'])
         self._stale_timeout = float(p['stale_timeout_s'])
-        self._tolerance_ns = int(round(p['stamp_tolerance_s'] * 1e9))
+        self._tolerance_ns = int(round(p['stamp_tolerance_s'] * NS_PER_S))
         self._max_pending = int(p['max_pending'])
-        self._jump_back_ns = int(round(p['jump_back_s'] * 1e9))
+        self._jump_back_ns = int(round(p['jump_back_s'] * NS_PER_S))
         self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
         self._earlier = {
             'dropped_messages': 0,
@@ -184,7 +185,7 @@ class TensorNode(Node):
         self._last_stamp = [None] * 4
         self.resets += 1
         self.get_logger().warning(
-            f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * 1e-9:.3g} s in time: '
+            f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * S_PER_NS:.3g} s in time: '
             f'stamp matching restarted'
         )
 

@@ -7,11 +7,12 @@
 ``pei_yeo_2009``                reference [8]: sensors mapped onto sensor 1, then differenced
 ==============================  ==========================================================
 
-``identify(method, ...)`` runs the first three by name after the attitude-coverage check.
+``registry.METHODS`` names them all (with ``known_gradient_lstsq_general``, the 36-parameter
+known-gradient solve); ``identify(method, ...)`` runs one by name after the attitude-coverage
+check.
 """
 
 from ...errors import IdentifiabilityError
-from .dispatch import METHODS, identify
 from .lstsq import (
     MAX_COVERAGE_CONDITION,
     MIN_SAMPLES,
@@ -23,13 +24,18 @@ from .lstsq import (
 )
 from .paper_ga import paper_ga
 from .pei_yeo import pei_yeo_2009
+from .registry import CALIBRATION_METHODS, DEFAULT_METHOD, METHODS, Method, Options, identify
 from .result import Calibration, ReferenceSensorCalibration, TensorCalibration
 
 __all__ = [
+    'CALIBRATION_METHODS',
+    'DEFAULT_METHOD',
     'MAX_COVERAGE_CONDITION',
     'METHODS',
     'MIN_SAMPLES',
     'Calibration',
+    'Method',
+    'Options',
     'IdentifiabilityError',
     'ReferenceSensorCalibration',
     'TensorCalibration',
