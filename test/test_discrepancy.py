@@ -6,23 +6,64 @@ interference and, in some cases, a distant target; each hidden effect sits in ra
 sensors with an RMS contribution of 20-80 x the noise there. The workflow is never told
 which effect is hidden.
 """
+
 import itertools
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from tetra_gradiometer.discrepancy import CANDIDATES, LIBRARY, Settings, analyze
+from tetra_gradiometer.core.discrepancy import CANDIDATES, LIBRARY, Settings, analyze
+from tetra_gradiometer.core.discrepancy.synthetic import EFFECT_NAMES, make_case
 from tetra_gradiometer.io.report import write_report
-from tetra_gradiometer.discrepancy.synthetic import EFFECT_NAMES, make_case
 
-REQUIRED = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'time_skew', 'thermal_drift',
-            'vehicle_current')
+REQUIRED = (
+    'eddy_current',
+    'sensor_misalignment',
+    'reference_interference',
+    'time_skew',
+    'thermal_drift',
+    'vehicle_current',
+)
 
 
 def _run(case, *, earth=True, **recording):
-    return analyze(case.recording(**recording), case.scenario.geometry,
-                   case.scenario.earth_field_enu if earth else None, keep_series=False)
+    return analyze(
+        case.recording(**recording),
+        case.scenario.geometry,
+        case.scenario.earth_field_enu if earth else None,
+        keep_series=False,
+    )
+
+
+def test_discrepancy_core_loads_nothing_beyond_numpy_scipy_and_the_core():
+    code = (
+        'import sys, tetra_gradiometer.core.discrepancy\n'
+        'import tetra_gradiometer.core.discrepancy.synthetic\n'
+        'bad = sorted({m.split(".")[0] for m in sys.modules} & '
+        '{"rclpy", "rosbags", "yaml", "matplotlib", "ppigrf", "pandas", "tqdm"})\n'
+        'bad += sorted(m for m in sys.modules if m.startswith("tetra_gradiometer.") and '
+        'not m.startswith(("tetra_gradiometer.core", "tetra_gradiometer.errors")))\n'
+        'print(",".join(bad))\n'
+    )
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ''
+
+
+def test_every_consumer_reads_the_one_registry():
+    # Synthetic cases hide exactly the library entries the simulator produces; the command
+    # line offers the whole library.
+    import argparse
+
+    from tetra_gradiometer.cli.discrepancy import add_arguments
+
+    assert EFFECT_NAMES == tuple(c.name for c in CANDIDATES if c.simulated is not None)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    help_text = next(a.help for a in parser._actions if a.dest == 'candidates')
+    assert help_text is not None and help_text.endswith(','.join(LIBRARY))
 
 
 def test_library_holds_the_required_named_effects_with_physics():
@@ -99,6 +140,7 @@ def test_parsimony_time_skew_is_not_called_eddy_current():
     taus = [v['tau_s'] for v in report.steps[0].parameters['per_sensor'].values()]
     sensors = case.hidden['time_skew']['sensors']
     truth = case.scenario.effects.time_skew_s
+    assert truth is not None
     for s in sensors:
         est = report.steps[0].parameters['per_sensor'][f'sensor_{s}']['tau_s']
         assert est == pytest.approx(truth[s - 1], rel=0.05)
@@ -110,9 +152,11 @@ def test_misalignment_estimate_matches_the_truth():
     report = _run(case)
     assert report.named_effects == ['sensor_misalignment']
     per_sensor = report.steps[0].parameters['per_sensor']
+    rotations = case.scenario.effects.sensor_misalignment
+    assert rotations is not None
     for s in case.hidden['sensor_misalignment']['sensors']:
         est = np.array([per_sensor[f'sensor_{s}'][f'omega_{a}_rad'] for a in 'xyz'])
-        truth = case.scenario.effects.sensor_misalignment[s - 1]
+        truth = rotations[s - 1]
         assert np.linalg.norm(est - truth) < 0.05 * np.linalg.norm(truth)
 
 
@@ -121,8 +165,16 @@ def test_report_files_and_schema(tmp_path):
     report = analyze(case.recording(), case.scenario.geometry, case.scenario.earth_field_enu)
     out = write_report(report, tmp_path / 'out')
     data = json.loads((out / 'report.json').read_text())
-    for key in ('named_effects', 'steps', 'gap_initial_nT', 'gap_final_nT', 'noise_floor_nT', 'base_model',
-                'untestable', 'adequate'):
+    for key in (
+        'named_effects',
+        'steps',
+        'gap_initial_nT',
+        'gap_final_nT',
+        'noise_floor_nT',
+        'base_model',
+        'untestable',
+        'adequate',
+    ):
         assert key in data
     assert data['named_effects'] == [s['effect'] for s in data['steps']]
     for step in data['steps']:
@@ -135,7 +187,9 @@ def test_report_files_and_schema(tmp_path):
     assert 'gap.png' in pngs and 'diagnostics.png' in pngs
     assert any(p.startswith('residual_step1_') for p in pngs)
     assert any(p.startswith('effect_') for p in pngs)
-    assert [p.name for p in out.glob('.*')] == ['.tetra_gradiometer_output']  # the marker, no temporary
+    assert [p.name for p in out.glob('.*')] == [
+        '.tetra_gradiometer_output'
+    ]  # the marker, no temporary
     assert not list(out.parent.glob('.*partial'))
 
 
@@ -149,13 +203,19 @@ def test_settings_reject_unknown_candidates():
 def test_without_odom_an_effect_of_sensor_1_is_named_and_taken_out_of_the_background(effect):
     # Sensor 1 is the pair view's reference: its term enters every pair, and B^b = B_1'
     # carries it; a large one (200-400 x the noise) must still leave the noise floor.
-    case = make_case(515, (effect,), duration_s=120.0, factor=(200.0, 400.0), sensors={effect: [1]})
+    case = make_case(
+        515, (effect,), duration_s=120.0, factor=(200.0, 400.0), sensors={effect: [1]}
+    )
     report = _run(case, earth=False, odom=False)
     assert report.named_effects == [effect]
     assert report.gap_final_nT <= 1.1 * report.noise_floor_nT
     if effect == 'time_skew':
-        tau = case.scenario.effects.time_skew_s[0]
+        delays = case.scenario.effects.time_skew_s
+        assert delays is not None
+        tau = delays[0]
         values = {s: v['tau_s'] for s, v in report.steps[0].parameters['per_sensor'].items()}
         # Only relative delays are observable: tau_i - tau_1 = -tau_1 for the clean sensors.
         for s in ('sensor_2', 'sensor_3', 'sensor_4'):
-            assert values.get(s, 0.0) - values.get('sensor_1', 0.0) == pytest.approx(-tau, rel=0.02)
+            assert values.get(s, 0.0) - values.get('sensor_1', 0.0) == pytest.approx(
+                -tau, rel=0.02
+            )

@@ -1,11 +1,12 @@
 """``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR`` through real bags:
 sqlite3 and mcap, and a bag with the optional topics missing."""
+
 import json
 
 import pytest
 
 from tetra_gradiometer.__main__ import main
-from tetra_gradiometer.discrepancy.synthetic import make_case
+from tetra_gradiometer.core.discrepancy.synthetic import make_case
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
 
@@ -20,11 +21,18 @@ def _bag(tmp_path, seed, effects, *, storage='sqlite3', earth=True, **topics):
     return case, bag, tmp_path / 'params.yaml'
 
 
-@pytest.mark.parametrize('storage, effects', [('sqlite3', ('time_skew',)),
-                                              ('mcap', ('eddy_current', 'vehicle_current'))])
+@pytest.mark.parametrize(
+    'storage, effects',
+    [('sqlite3', ('time_skew',)), ('mcap', ('eddy_current', 'vehicle_current'))],
+)
 def test_cli_names_the_hidden_effects(tmp_path, capsys, storage, effects):
-    case, bag, params = _bag(tmp_path, 21 if storage == 'sqlite3' else 22, effects, storage=storage,
-                             earth=storage == 'sqlite3')
+    case, bag, params = _bag(
+        tmp_path,
+        21 if storage == 'sqlite3' else 22,
+        effects,
+        storage=storage,
+        earth=storage == 'sqlite3',
+    )
     out = tmp_path / 'out'
     assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(out)]) == 0
     report = json.loads((out / 'report.json').read_text())
@@ -36,13 +44,27 @@ def test_cli_names_the_hidden_effects(tmp_path, capsys, storage, effects):
 
 
 def test_cli_with_topics_missing_says_which_candidates_were_untestable(tmp_path, capsys):
-    case, bag, params = _bag(tmp_path, 23, ('sensor_misalignment',), earth=False, odom=False, temperature=False,
-                             battery=False)
+    case, bag, params = _bag(
+        tmp_path,
+        23,
+        ('sensor_misalignment',),
+        earth=False,
+        odom=False,
+        temperature=False,
+        battery=False,
+    )
     out = tmp_path / 'out'
-    assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(out), '--no-plots']) == 0
+    assert (
+        main(['discrepancy', str(bag), '--params', str(params), '--out', str(out), '--no-plots'])
+        == 0
+    )
     report = json.loads((out / 'report.json').read_text())
-    assert set(report['untestable']) == {'reference_interference', 'thermal_drift', 'vehicle_current',
-                                        'external_field'}
+    assert set(report['untestable']) == {
+        'reference_interference',
+        'thermal_drift',
+        'vehicle_current',
+        'external_field',
+    }
     assert report['view'] == 'pair'
     assert report['named_effects'] == ['sensor_misalignment']
     text = (out / 'report.md').read_text()
@@ -52,7 +74,15 @@ def test_cli_with_topics_missing_says_which_candidates_were_untestable(tmp_path,
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
     (tmp_path / 'params.yaml').write_text(params_document({'sensor_positions': [0.0] * 12}))
-    code = main(['discrepancy', str(tmp_path / 'nope'), '--params', str(tmp_path / 'params.yaml'),
-                 '--out', str(tmp_path / 'out')])
+    code = main(
+        [
+            'discrepancy',
+            str(tmp_path / 'nope'),
+            '--params',
+            str(tmp_path / 'params.yaml'),
+            '--out',
+            str(tmp_path / 'out'),
+        ]
+    )
     assert code == 1
     assert capsys.readouterr().err.startswith('error:')

@@ -6,20 +6,27 @@ the sensors and no candidate represents it. The workflow must find the passage o
 leave it out (saying so), and still name exactly the hidden effect with the gap at the
 noise floor. Genuine effects (in turns, slow, large) must not be taken for a target.
 """
+
 import json
 
 import numpy as np
 import pytest
 
 from tetra_gradiometer.__main__ import main
-from tetra_gradiometer.discrepancy import Settings, analyze
-from tetra_gradiometer.io.report import write_report
-from tetra_gradiometer.discrepancy.synthetic import make_case
+from tetra_gradiometer.core.discrepancy import Settings, analyze
+from tetra_gradiometer.core.discrepancy.synthetic import make_case
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
+from tetra_gradiometer.io.report import write_report
 
-EFFECTS = ('eddy_current', 'sensor_misalignment', 'reference_interference', 'time_skew', 'thermal_drift',
-           'vehicle_current')
+EFFECTS = (
+    'eddy_current',
+    'sensor_misalignment',
+    'reference_interference',
+    'time_skew',
+    'thermal_drift',
+    'vehicle_current',
+)
 
 
 def _closest_approach(case):
@@ -39,7 +46,7 @@ def _check_spans(case, report):
     t_closest, _ = _closest_approach(case)
     assert any(s['start_s'] <= t_closest <= s['end_s'] for s in report.excluded_spans)
     for span in report.excluded_spans:
-        assert span['start_s'] >= _trim_s(case) - 0.5       # the manoeuvre (where effects show) is kept
+        assert span['start_s'] >= _trim_s(case) - 0.5  # the manoeuvre (where effects show) is kept
         assert 'target' in span['reason'] and span['peak_over_noise'] > 4
     assert report.data['excluded_s'] > 0
 
@@ -51,8 +58,12 @@ def test_target_pass_is_excluded_and_the_hidden_effect_named(hidden):
     case = make_case(seed, effects, duration_s=150.0, near_target=True)
     _, distance = _closest_approach(case)
     assert 20.0 <= distance <= 50.5
-    report = analyze(case.recording(), case.scenario.geometry,
-                     case.scenario.earth_field_enu if seed % 2 else None, keep_series=False)
+    report = analyze(
+        case.recording(),
+        case.scenario.geometry,
+        case.scenario.earth_field_enu if seed % 2 else None,
+        keep_series=False,
+    )
     assert report.named_effects == list(effects), (report.named_effects, report.excluded_spans)
     assert report.adequate
     assert report.gap_final_nT <= 1.1 * report.noise_floor_nT
@@ -67,11 +78,21 @@ def test_without_the_exclusion_the_target_leaves_the_model_inadequate():
     # The limit the exclusion removes: the same run analysed with the passage in.
     # (The base model only: a full search over a run that no candidate can fit costs a minute.)
     case = make_case(44, ('time_skew',), duration_s=150.0, near_target=True)
-    kept = analyze(case.recording(), case.scenario.geometry, case.scenario.earth_field_enu, keep_series=False,
-                   settings=Settings(exclude_targets=False, max_effects=0))
+    kept = analyze(
+        case.recording(),
+        case.scenario.geometry,
+        case.scenario.earth_field_enu,
+        keep_series=False,
+        settings=Settings(exclude_targets=False, max_effects=0),
+    )
     assert not kept.adequate and kept.excluded_spans == []
-    report = analyze(case.recording(), case.scenario.geometry, case.scenario.earth_field_enu, keep_series=False,
-                     settings=Settings(max_effects=0))
+    report = analyze(
+        case.recording(),
+        case.scenario.geometry,
+        case.scenario.earth_field_enu,
+        keep_series=False,
+        settings=Settings(max_effects=0),
+    )
     assert report.excluded_spans
     # Most of the base model's gap is the target: without it the gap is the hidden delay's.
     assert kept.gap_initial_nT > 5 * report.gap_initial_nT
@@ -88,13 +109,19 @@ def test_without_odom_the_pair_view_excludes_the_target_gradient(effect):
     assert all(s['peak_common_rms_nT'] is None for s in report.excluded_spans)
 
 
-@pytest.mark.parametrize('effect', ['eddy_current', 'time_skew', 'sensor_misalignment', 'thermal_drift',
-                                    'vehicle_current'])
+@pytest.mark.parametrize(
+    'effect',
+    ['eddy_current', 'time_skew', 'sensor_misalignment', 'thermal_drift', 'vehicle_current'],
+)
 def test_large_genuine_effects_are_not_taken_for_a_target(effect):
     # 300-1000 x the noise, in turns (eddy, delay, misalignment) or slow (temperature, current):
     # the full candidate model explains them everywhere, so nothing is localized.
-    case = make_case(70 + EFFECTS.index(effect), (effect,), duration_s=120.0, factor=(300.0, 1000.0))
-    report = analyze(case.recording(), case.scenario.geometry, case.scenario.earth_field_enu, keep_series=False)
+    case = make_case(
+        70 + EFFECTS.index(effect), (effect,), duration_s=120.0, factor=(300.0, 1000.0)
+    )
+    report = analyze(
+        case.recording(), case.scenario.geometry, case.scenario.earth_field_enu, keep_series=False
+    )
     assert report.excluded_spans == [], report.excluded_spans
     assert report.named_effects == [effect]
     assert report.data['target_detector']['peak_over_level'] < Settings().target_high
@@ -103,8 +130,13 @@ def test_large_genuine_effects_are_not_taken_for_a_target(effect):
 def test_window_restricts_the_analysis_to_the_trim():
     case = make_case(45, ('thermal_drift',), duration_s=150.0, near_target=True)
     trim = _trim_s(case)
-    report = analyze(case.recording(), case.scenario.geometry, case.scenario.earth_field_enu, keep_series=False,
-                     window_s=(0.0, trim - 1.0))
+    report = analyze(
+        case.recording(),
+        case.scenario.geometry,
+        case.scenario.earth_field_enu,
+        keep_series=False,
+        window_s=(0.0, trim - 1.0),
+    )
     assert report.data['window_s'] == [0.0, trim - 1.0]
     assert report.data['duration_s'] <= trim - 1.0
     assert report.excluded_spans == []
@@ -120,27 +152,65 @@ def test_report_and_cli_say_what_was_excluded(tmp_path, capsys):
     case = make_case(46, ('vehicle_current',), duration_s=120.0, near_target=True)
     bag = write_mission_bag(tmp_path / 'bag', case.mission)
     params = tmp_path / 'params.yaml'
-    params.write_text(params_document({'sensor_positions': case.scenario.geometry.to_flat(),
-                                       'earth_field_enu': [float(v) for v in case.scenario.earth_field_enu]}))
+    params.write_text(
+        params_document(
+            {
+                'sensor_positions': case.scenario.geometry.to_flat(),
+                'earth_field_enu': [float(v) for v in case.scenario.earth_field_enu],
+            }
+        )
+    )
     out = tmp_path / 'out'
-    assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(out), '--no-plots']) == 0
+    assert (
+        main(['discrepancy', str(bag), '--params', str(params), '--out', str(out), '--no-plots'])
+        == 0
+    )
     data = json.loads((out / 'report.json').read_text())
     assert data['named_effects'] == ['vehicle_current'] and data['adequate'] is True
-    assert data['excluded_spans'] and {'start_s', 'end_s', 'reason'} <= set(data['excluded_spans'][0])
+    assert data['excluded_spans'] and {'start_s', 'end_s', 'reason'} <= set(
+        data['excluded_spans'][0]
+    )
     text = (out / 'report.md').read_text()
     assert '## Excluded spans' in text and 'target' in text
     assert 'excluded' in capsys.readouterr().err
     # --window: only the trim, nothing to exclude.
     out2 = tmp_path / 'out2'
     trim = _trim_s(case)
-    assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(out2), '--no-plots',
-                 '--window', f':{trim - 1.0:.1f}']) == 0
+    assert (
+        main(
+            [
+                'discrepancy',
+                str(bag),
+                '--params',
+                str(params),
+                '--out',
+                str(out2),
+                '--no-plots',
+                '--window',
+                f':{trim - 1.0:.1f}',
+            ]
+        )
+        == 0
+    )
     data = json.loads((out2 / 'report.json').read_text())
     assert data['excluded_spans'] == [] and data['named_effects'] == ['vehicle_current']
     assert data['data']['window_s'] == [0.0, pytest.approx(trim - 1.0, abs=0.05)]
     capsys.readouterr()
-    assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(tmp_path / 'o3'),
-                 '--window', 'nonsense']) == 1
+    assert (
+        main(
+            [
+                'discrepancy',
+                str(bag),
+                '--params',
+                str(params),
+                '--out',
+                str(tmp_path / 'o3'),
+                '--window',
+                'nonsense',
+            ]
+        )
+        == 1
+    )
     assert capsys.readouterr().err.startswith('error:')
 
 

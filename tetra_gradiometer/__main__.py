@@ -2,9 +2,10 @@
 
 Each command lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; only the chosen module is imported, so offline tools never load rclpy.
-Exit codes: 0 success, 1 bad input, data or output (a :class:`~tetra_gradiometer.errors.TetraError`:
-one ``error:`` line on stderr), 2 usage. Any other exception is a bug and keeps its
-traceback. Set ``TETRA_DEBUG=1`` for a traceback of a ``TetraError`` too.
+Exit codes: 0 success, 1 bad input, data or output (a
+:class:`~tetra_gradiometer.errors.TetraError`: one ``error:`` line on stderr), 2 usage.
+Any other exception is a bug and keeps its traceback. Set ``TETRA_DEBUG=1`` for a traceback
+of a ``TetraError`` too.
 """
 
 from __future__ import annotations

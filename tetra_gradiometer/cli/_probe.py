@@ -1,12 +1,15 @@
-"""``Probe``: the operator/observer node of the demo, the record command and the tests.
-It calls Trigger services, collects tensors by stamp, and keeps the latest ``/diagnostics``
+"""The operator side of the in-process graphs of ``demo`` and ``record`` (and of the tests):
+:func:`init_local_ros` starts rclpy for them, and :class:`Probe`, the operator/observer node,
+calls Trigger services, collects tensors by stamp, and keeps the latest ``/diagnostics``
 status of every component. Not part of the graph's contract."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -20,6 +23,33 @@ from ..io import conversions as cv
 from ..nodes.common import NAMESPACE, derived_qos
 
 TENSOR_TOPICS = ('gradient/raw', 'gradient/compensated', 'gradient/truth')
+
+
+def init_local_ros(params: str) -> int:
+    """Start rclpy for a graph in this process and return its ``ROS_DOMAIN_ID``.
+
+    The domain is the environment's, else one derived from the pid (1..100); discovery stays
+    on this host unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` says otherwise; ``params`` is a
+    ROS 2 parameter file ('' for none); the nodes log warnings and errors only. Ctrl-C and
+    SIGTERM raise KeyboardInterrupt (rclpy's own handler is off), so the caller stops its
+    executor before the context goes (``nodes.common.stop_graph``).
+    """
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from ..nodes.common import interrupt_on_signals
+    from .node import ros_arguments
+
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    value = os.environ.get('ROS_DOMAIN_ID')
+    domain = int(value) if value else 1 + os.getpid() % 100
+    interrupt_on_signals()
+    rclpy.init(
+        args=ros_arguments(params, ['--log-level', 'warn']),
+        domain_id=domain,
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
+    return domain
 
 
 class Probe(Node):
@@ -36,7 +66,7 @@ class Probe(Node):
         self.percent = float('nan')
         for topic in TENSOR_TOPICS:
             self.create_subscription(
-                JointState, topic, lambda msg, t=topic: self._on_tensor(t, msg), derived_qos()
+                JointState, topic, partial(self._on_tensor, topic), derived_qos()
             )
         self.create_subscription(Float64, 'compensated_percent', self._on_percent, derived_qos())
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
@@ -63,11 +93,11 @@ class Probe(Node):
         """Stamps (n,) and raw, compensated, true tensors (n, 3, 3) on the common stamps."""
         with self.lock:
             common = sorted(set.intersection(*(set(d) for d in self.tensors.values())))
-            arrays = [
+            raw, compensated, truth = (
                 np.array([self.tensors[t][s] for s in common]).reshape(-1, 3, 3)
                 for t in TENSOR_TOPICS
-            ]
-        return (np.array(common, dtype=np.int64), *arrays)
+            )
+        return np.array(common, dtype=np.int64), raw, compensated, truth
 
     def call(self, service: str, timeout_s: float = 30.0) -> Any:
         """Call a std_srvs/Trigger service (spun by another thread); return the response."""

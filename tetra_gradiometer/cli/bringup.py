@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Sequence
 from typing import Any
 
 from .node import PARAMS_HELP, ros_arguments
@@ -52,7 +53,7 @@ def driver_overrides(args: argparse.Namespace) -> list[Any]:
     return out
 
 
-def create_nodes(args: argparse.Namespace, driver_extra: list[Any] = ()) -> list[Any]:
+def create_nodes(args: argparse.Namespace, driver_extra: Sequence[Any] = ()) -> list[Any]:
     """The four nodes (rclpy must be initialised), command-line overrides applied."""
     from rclpy.parameter import Parameter
 
@@ -66,7 +67,7 @@ def create_nodes(args: argparse.Namespace, driver_extra: list[Any] = ()) -> list
         if args.calibration_file
         else []
     )
-    nodes = []
+    nodes: list[Any] = []
     try:
         nodes.append(TensorNode())
         nodes.append(CalibratorNode(parameter_overrides=list(calibration)))

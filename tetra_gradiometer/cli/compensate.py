@@ -1,7 +1,9 @@
-"""``python -m tetra_gradiometer compensate BAG --params FILE --calibration CALIB.yaml --csv OUT.csv [--raw] [--out-bag DIR]``.
+"""``python -m tetra_gradiometer compensate BAG --params FILE --calibration CALIB.yaml
+--csv OUT.csv [--raw] [--out-bag DIR]``.
 
 Streams the bag's matched magnetometer sets, forms the tensor (eq. 7) and compensates it
-(eq. 19) with the calibration's ``k``, ``b``; ``--raw`` skips the compensation.
+(eq. 19) with the calibration's ``k``, ``b``; ``--raw`` skips the compensation. The work is
+:func:`tetra_gradiometer.io.bag_compensation.compensate_bag`.
 
 CSV (written to a temporary file, renamed into place at the end)::
 
@@ -22,23 +24,18 @@ from __future__ import annotations
 
 import argparse
 import time
-from contextlib import ExitStack
 from pathlib import Path
 
-import numpy as np
-
-from ..core import compensate, difference_tensor
-from ..core.units import NS_PER_S, NT_PER_T, S_PER_MS, S_PER_NS
+from ..core.units import S_PER_MS
 from ..errors import InputError
-from ..io import conversions as cv
-from ..io.bag import STORAGES, BagError, BagWriter, MagneticBag
-from ..io.calibration import check_positions, load_calibration
-from ..io.outputs import BAG, CSV, OutputError, atomic_output, check_output
+from ..io.bag import STORAGES
+from ..io.bag_compensation import (
+    calibration_parameters,
+    check_outputs,
+    compensate_bag,
+)
 from ..io.params import geometry_from_params, load_params
-
-CSV_HEADER = 'stamp_s,' + ','.join(cv.TENSOR_NAMES)
-COMPENSATED_TOPIC = f'{cv.NAMESPACE}/gradient/compensated'
-RAW_TOPIC = f'{cv.NAMESPACE}/gradient/raw'
+from ._args import add_force_argument, add_progress_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,12 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         '--out-bag', default=None, help='also write the tensor topic into this new bag'
     )
-    parser.add_argument(
-        '--force',
-        action='store_true',
-        help='replace a previous CSV at --csv and a previous bag of ours at --out-bag '
-        '(anything else there is refused)',
-    )
+    add_force_argument(parser, 'a previous CSV at --csv and a previous bag of ours at --out-bag')
     parser.add_argument(
         '--out-storage',
         choices=sorted(STORAGES),
@@ -79,22 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action='store_true',
         help='decode with rosbags and match message by message (slower; same result)',
     )
-    progress = parser.add_mutually_exclusive_group()
-    progress.add_argument('--progress', dest='progress', action='store_true', default=None)
-    progress.add_argument('--no-progress', dest='progress', action='store_false')
-
-
-def format_rows(stamps_ns: np.ndarray, tensors_t_per_m: np.ndarray) -> str:
-    """CSV rows (with trailing newline) for stamps (n,) ns and tensors (n, 3, 3) T/m."""
-    seconds, nanoseconds = np.divmod(np.asarray(stamps_ns, dtype=np.int64), NS_PER_S)
-    values = tensors_t_per_m.reshape(len(stamps_ns), 9) * NT_PER_T
-    row = '%d.%09d,' + ','.join(['%.6f'] * 9)
-    table = np.column_stack([seconds, nanoseconds]).astype(object)
-    return ''.join(row % (s, ns, *v) + '\n' for (s, ns), v in zip(table, values.tolist()))
-
-
-def _input_storage(bag: Path) -> str:
-    return 'mcap' if any(bag.glob('*.mcap')) else 'sqlite3'
+    add_progress_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -104,85 +81,40 @@ def run(args: argparse.Namespace) -> int:
     if not args.raw and args.calibration is None:
         raise InputError('--calibration is required (or --raw for the uncompensated tensor)')
     inputs = tuple(p for p in (args.bag, args.params, args.calibration) if p is not None)
-    if (
-        args.csv is not None
-        and args.out_bag is not None
-        and Path(args.csv).resolve() == Path(args.out_bag).resolve()
-    ):
-        raise OutputError('--csv and --out-bag name the same path')
     # Refuse before any work: nothing is read or written when an output is not ours to replace.
-    if args.csv is not None:
-        check_output(args.csv, CSV, force=args.force, inputs=inputs)
-    if args.out_bag is not None:
-        check_output(args.out_bag, BAG, force=args.force, inputs=inputs)
+    check_outputs(args.csv, args.out_bag, force=args.force, inputs=inputs)
     geometry = geometry_from_params(load_params(args.params), source=args.params)
-    parameters = None
-    if not args.raw:
-        calibration = load_calibration(args.calibration)
-        check_positions(
-            calibration, geometry, source=str(args.calibration), target=str(args.params)
-        )
-        parameters = calibration.parameters
-    bag_path = Path(args.bag)
-    topic = RAW_TOPIC if args.raw else COMPENSATED_TOPIC
-    n_sets = non_finite = 0
-    first = last = None
-    with ExitStack() as stack:
-        bag = stack.enter_context(MagneticBag(bag_path))
-        bag.check_contract()
-        handle = writer = None
-        if args.csv is not None:
-            tmp = stack.enter_context(
-                atomic_output(args.csv, CSV, force=args.force, inputs=inputs)
-            )
-            handle = stack.enter_context(open(tmp, 'w', encoding='ascii', newline='\n'))
-            handle.write(CSV_HEADER + '\n')
-        if args.out_bag is not None:
-            writer = stack.enter_context(
-                BagWriter(
-                    args.out_bag,
-                    storage=args.out_storage or _input_storage(bag_path),
-                    force=args.force,
-                    inputs=inputs,
-                    command='compensate',
-                )
-            )
-        for stamps, fields in bag.iter_sets(
-            tolerance_s=args.tolerance_ms * S_PER_MS,
-            progress=args.progress,
-            fast=not args.generic_reader,
-        ):
-            finite = np.isfinite(fields).all(axis=(1, 2))
-            if not finite.all():  # a NaN/inf reading: drop the set, count it
-                non_finite += int((~finite).sum())
-                stamps, fields = stamps[finite], fields[finite]
-                if not len(stamps):
-                    continue
-            tensors = difference_tensor(fields, geometry)
-            if parameters is not None:
-                tensors = compensate(tensors, fields[:, 0, :], parameters, geometry)
-            if handle is not None:
-                handle.write(format_rows(stamps, tensors))
-            if writer is not None:
-                writer.write_tensors(topic, stamps, tensors)
-            n_sets += len(stamps)
-            first = int(stamps[0]) if first is None else first
-            last = int(stamps[-1])
-        counters = bag.counters
-        if n_sets == 0:
-            raise BagError(
-                f'{bag_path}: every matched set has a non-finite reading ({non_finite} sets)'
-            )
+    parameters = (
+        None
+        if args.raw
+        else calibration_parameters(args.calibration, geometry, target=str(args.params))
+    )
+    counts = compensate_bag(
+        args.bag,
+        geometry,
+        parameters,
+        csv=args.csv,
+        out_bag=args.out_bag,
+        out_storage=args.out_storage,
+        tolerance_s=args.tolerance_ms * S_PER_MS,
+        fast=not args.generic_reader,
+        progress=args.progress,
+        force=args.force,
+        inputs=inputs,
+    )
     elapsed = time.perf_counter() - started
     kind = 'raw' if args.raw else 'compensated'
+    counters = counts.counters
     print(
-        f'{kind} {n_sets} sets from {bag_path} ({(last - first) * S_PER_NS:.1f} s of data; '
-        f'{counters.dropped_messages} messages unmatched, {counters.out_of_order} out of order, '
-        f'{non_finite} sets with a non-finite reading skipped) '
-        f'in {elapsed:.1f} s ({n_sets / max(elapsed, 1e-9):.0f} sets/s)'
+        f'{kind} {counts.n_sets} sets from {Path(args.bag)} ({counts.span_s:.1f} s of data; '
+        f'{counters.dropped_messages} messages unmatched '
+        f'({counters.evicted_messages} evicted from a full queue), '
+        f'{counters.out_of_order} out of order, '
+        f'{counts.non_finite_sets} sets with a non-finite reading skipped) '
+        f'in {elapsed:.1f} s ({counts.n_sets / max(elapsed, 1e-9):.0f} sets/s)'
     )
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m)')
     if args.out_bag is not None:
-        print(f'bag: {args.out_bag} ({topic}, T/m)')
+        print(f'bag: {args.out_bag} ({counts.topic}, T/m)')
     return 0

@@ -13,18 +13,27 @@ ends with one ``RESULT`` line computed from the collected topics.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..core.identification import CALIBRATION_METHODS, DEFAULT_METHOD
 from ..core.units import NT_PER_T, S_PER_NS
 from ..io.outputs import DEMO, atomic_output, check_output
-from .node import PARAMS_HELP, ros_arguments
+from .node import PARAMS_HELP
+
+if TYPE_CHECKING:
+    from ..io.calibration import CalibrationFile
+    from ._probe import Probe
+
+#: The /diagnostics statuses the demo follows.
+COMPENSATION = 'tetra/compensator: compensation'
+PLAYBACK = 'tetra/driver: playback'
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,19 +53,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         '--method',
         default=DEFAULT_METHOD,
         choices=CALIBRATION_METHODS,
-        help='the calibrator node\'s method (default %(default)s)',
+        help="the calibrator node's method (default %(default)s)",
     )
     parser.add_argument('--params', default='', help=PARAMS_HELP)
 
 
 def _say(text: str) -> None:
     print(text, flush=True)
-
-
-def _domain() -> int:
-    """This run's ROS_DOMAIN_ID: the environment's, else one derived from the pid (1..100)."""
-    value = os.environ.get('ROS_DOMAIN_ID')
-    return int(value) if value else 1 + os.getpid() % 100
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,113 +72,38 @@ def run(args: argparse.Namespace) -> int:
 
 def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
     """The demo, writing into ``out`` (the temporary folder that becomes ``final``)."""
-    import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
 
-    from ..core import summarize
-    from ..io.calibration import load_calibration
-    from ..nodes.calibrator import CalibratorNode
-    from ..nodes.common import interrupt_on_signals, stop_graph
-    from ..nodes.compensator import CompensatorNode
-    from ..nodes.driver import DriverNode
-    from ..nodes.tensor import TensorNode
-    from ._probe import Probe
+    from ..nodes.common import stop_graph
+    from ._probe import Probe, init_local_ros
 
     calibration_file = (out / 'calibration.yaml').resolve()
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    domain = _domain()
-    interrupt_on_signals()
-    rclpy.init(
-        args=ros_arguments(args.params, ['--log-level', 'warn']),
-        domain_id=domain,
-        signal_handler_options=SignalHandlerOptions.NO,
-    )  # Ctrl-C: KeyboardInterrupt, clean stop
-    cal = [Parameter('calibration_file', value=str(calibration_file))]
-    nodes: list = []
+    domain = init_local_ros(args.params)  # Ctrl-C: KeyboardInterrupt, clean stop
+    nodes: list[Any] = []
     # One thread: in rclpy the MultiThreadedExecutor lost ~25 % of the sets at 200 sets/s in
     # one process (GIL and task overhead); the single-threaded one lost none.
     executor = SingleThreadedExecutor()
     spinner = threading.Thread(target=executor.spin, daemon=True)
     started = time.monotonic()
     try:
-        nodes = [
-            TensorNode(),
-            CalibratorNode(parameter_overrides=cal + [Parameter('method', value=args.method)]),
-            CompensatorNode(parameter_overrides=cal),
-            DriverNode(
-                parameter_overrides=[
-                    Parameter('mode', value='sim'),
-                    Parameter('rate', value=args.rate),
-                    Parameter('start_paused', value=True),
-                    Parameter('hold_between_segments', value=True),
-                    Parameter('min_subscribers', value=1),
-                ]
-            ),
-        ]
+        nodes = _graph(args.method, args.rate, calibration_file)
+        driver = nodes[-1]
         probe = Probe('demo')
         nodes.append(probe)
         for node in nodes:
             executor.add_node(node)
         spinner.start()
-        driver = 'driver'
         _say(
             f'demo: ROS_DOMAIN_ID {domain}; sim at {args.rate:g}x real time; '
-            f'{nodes[3].info["samples"]} samples ({nodes[3].info["segments"]})'
+            f'{driver.info["samples"]} samples ({driver.info["segments"]})'
         )
-        probe.wait_for(
-            lambda: probe.status('tetra/compensator: compensation').get('compensating') == 'False',
-            20,
-            'the compensator (uncompensated before any calibration)',
-        )
-        _say(
-            'demo: compensator up, uncompensated (no calibration yet): '
-            + probe.status('tetra/compensator: compensation')['message'][:100]
-        )
-
-        _say('demo: calibrator/start; trim manoeuvre 3 km from the target ...')
-        _expect(probe.call('calibrator/start'))
-        _expect(probe.call(f'{driver}/resume'))
-        _progress(
-            probe, lambda: probe.status('tetra/driver: playback').get('state') == 'holding', 'trim'
-        )
-        _say(f'demo: calibrator/stop: {_expect(probe.call("calibrator/stop"))}')
-        reply = probe.call('calibrator/calibrate', timeout_s=120)
-        if not reply.success:
-            _say(f'demo: calibration failed: {reply.message}')
+        if not _calibrate(probe, calibration_file):
             return 1
-        _say(f'demo: calibrator/calibrate: {reply.message}')
-        probe.wait_for(
-            lambda: probe.status('tetra/compensator: compensation').get('compensating') == 'True',
-            20,
-            'the compensator to take the calibration',
-        )
-        _summarise_calibration(load_calibration(calibration_file))
-
-        _say('demo: survey pass over the dipole ...')
-        with probe.lock:
-            probe.collecting = True
-        _expect(probe.call(f'{driver}/resume'))
-        _progress(
-            probe,
-            lambda: probe.status('tetra/driver: playback').get('state') == 'finished',
-            'survey',
-        )
-        _settle(probe)
-        stamps, g_raw, g_comp, g_true = probe.paired()
+        stamps, g_raw, g_comp, g_true = _survey(probe)
         if len(stamps) < 10:
             _say(f'demo: only {len(stamps)} survey samples arrived')
             return 1
-        tensor_diag = probe.status('tetra/tensor: matching')
-        _say(
-            f'demo: survey: {len(stamps)} samples compensated; tensor node: {tensor_diag.get("message")}, '
-            f'invalid sets {tensor_diag.get("sets_dropped_invalid")}, unmatched messages '
-            f'{tensor_diag.get("messages_dropped_unmatched")}'
-        )
-        metrics = summarize(g_raw, g_comp, g_true)
-        _say(f'demo: compensator running compensated_percent topic: {probe.percent:.4f} %')
-        _plot(out / 'norms.png', stamps, g_raw, g_comp, g_true, metrics)
+        metrics = _report(probe, stamps, g_raw, g_comp, g_true, out)
         _say(
             f'demo: plot {final / "norms.png"}; calibration {final / "calibration.yaml"}; '
             f'{time.monotonic() - started:.1f} s'
@@ -194,7 +122,108 @@ def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
         stop_graph(executor, spinner, nodes)
 
 
-def _settle(probe, quiet_s: float = 1.0, timeout_s: float = 30.0) -> None:
+def _graph(method: str, rate: float, calibration_file: Path) -> list[Any]:
+    """tensor, calibrator, compensator and the sim driver (paused, holding between segments)."""
+    from rclpy.parameter import Parameter
+
+    from ..nodes.calibrator import CalibratorNode
+    from ..nodes.compensator import CompensatorNode
+    from ..nodes.driver import DriverNode
+    from ..nodes.tensor import TensorNode
+
+    cal = [Parameter('calibration_file', value=str(calibration_file))]
+    nodes: list[Any] = []
+    try:
+        nodes.append(TensorNode())
+        nodes.append(CalibratorNode(parameter_overrides=cal + [Parameter('method', value=method)]))
+        nodes.append(CompensatorNode(parameter_overrides=cal))
+        driver = [
+            Parameter('mode', value='sim'),
+            Parameter('rate', value=rate),
+            Parameter('start_paused', value=True),
+            Parameter('hold_between_segments', value=True),
+            Parameter('min_subscribers', value=1),
+        ]
+        nodes.append(DriverNode(parameter_overrides=driver))
+    except BaseException:
+        for node in nodes:
+            node.destroy_node()
+        raise
+    return nodes
+
+
+def _compensating(probe: Probe) -> str | None:
+    """The compensator's ``compensating`` diagnostic value ('True', 'False') or None."""
+    return probe.status(COMPENSATION).get('compensating')
+
+
+def _calibrate(probe: Probe, calibration_file: Path) -> bool:
+    """Trim manoeuvre between ``calibrator/start`` and ``/stop``, then ``calibrator/calibrate``;
+    wait for the compensator to take the calibration. False when the calibration is refused."""
+    from ..io.calibration import load_calibration
+
+    probe.wait_for(
+        lambda: _compensating(probe) == 'False',
+        20,
+        'the compensator (uncompensated before any calibration)',
+    )
+    _say(
+        'demo: compensator up, uncompensated (no calibration yet): '
+        + probe.status(COMPENSATION)['message'][:100]
+    )
+    _say('demo: calibrator/start; trim manoeuvre 3 km from the target ...')
+    _expect(probe.call('calibrator/start'))
+    _expect(probe.call('driver/resume'))
+    _progress(probe, lambda: probe.status(PLAYBACK).get('state') == 'holding', 'trim')
+    _say(f'demo: calibrator/stop: {_expect(probe.call("calibrator/stop"))}')
+    reply = probe.call('calibrator/calibrate', timeout_s=120)
+    if not reply.success:
+        _say(f'demo: calibration failed: {reply.message}')
+        return False
+    _say(f'demo: calibrator/calibrate: {reply.message}')
+    probe.wait_for(
+        lambda: _compensating(probe) == 'True', 20, 'the compensator to take the calibration'
+    )
+    _summarise_calibration(load_calibration(calibration_file))
+    return True
+
+
+def _survey(probe: Probe) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Play the survey pass while the probe collects; stamps (n,) ns and the raw,
+    compensated and true tensors (n, 3, 3) T/m on their common stamps."""
+    _say('demo: survey pass over the dipole ...')
+    with probe.lock:
+        probe.collecting = True
+    _expect(probe.call('driver/resume'))
+    _progress(probe, lambda: probe.status(PLAYBACK).get('state') == 'finished', 'survey')
+    _settle(probe)
+    return probe.paired()
+
+
+def _report(
+    probe: Probe,
+    stamps: np.ndarray,
+    g_raw: np.ndarray,
+    g_comp: np.ndarray,
+    g_true: np.ndarray,
+    out: Path,
+) -> dict[str, float]:
+    """Print the survey's counts, save ``out/norms.png``; return the eq. 24 metrics."""
+    from ..core import summarize
+
+    tensor_diag = probe.status('tetra/tensor: matching')
+    _say(
+        f'demo: survey: {len(stamps)} samples compensated; tensor node: '
+        f'{tensor_diag.get("message")}, invalid sets {tensor_diag.get("sets_dropped_invalid")}, '
+        f'unmatched messages {tensor_diag.get("messages_dropped_unmatched")}'
+    )
+    metrics = summarize(g_raw, g_comp, g_true)
+    _say(f'demo: compensator running compensated_percent topic: {probe.percent:.4f} %')
+    _plot(out / 'norms.png', stamps, g_raw, g_comp, g_true, metrics)
+    return metrics
+
+
+def _settle(probe: Probe, quiet_s: float = 1.0, timeout_s: float = 30.0) -> None:
     """Wait until no tensor has arrived for ``quiet_s`` (the graph has drained)."""
     deadline = time.monotonic() + timeout_s
     last, since = dict(probe.counts), time.monotonic()
@@ -204,13 +233,15 @@ def _settle(probe, quiet_s: float = 1.0, timeout_s: float = 30.0) -> None:
             last, since = dict(probe.counts), time.monotonic()
 
 
-def _expect(reply) -> str:
+def _expect(reply: Any) -> str:
     if not reply.success:
         raise TimeoutError(f'service refused: {reply.message}')
     return reply.message
 
 
-def _progress(probe, done, label: str, timeout_s: float = 600.0) -> None:
+def _progress(
+    probe: Probe, done: Callable[[], bool], label: str, timeout_s: float = 600.0
+) -> None:
     deadline = time.monotonic() + timeout_s
     last = 0.0
     while not done():
@@ -222,7 +253,7 @@ def _progress(probe, done, label: str, timeout_s: float = 600.0) -> None:
         time.sleep(0.05)
 
 
-def _summarise_calibration(calibration) -> None:
+def _summarise_calibration(calibration: CalibrationFile) -> None:
     """Print the file's diagnostics and its error against the simulator's exact parameters."""
     from ..io.scenario import load_scenario_or_default
 
@@ -231,10 +262,12 @@ def _summarise_calibration(calibration) -> None:
     d = calibration.diagnostics
     k_err = np.abs(calibration.parameters.k_soft - exact.k_soft).max()
     b_err = np.abs(calibration.parameters.b_hard - exact.b_hard).max() * NT_PER_T
+    residual = d.get('residual_rms_nT_per_m', float('nan'))
+    noise = d.get('sensor_noise_nT', float('nan'))
     _say(
-        f'demo: calibration {calibration.method}: {d.get("n_samples")} samples, {d.get("n_parameters")} '
-        f'parameters, rank {d.get("rank")}, fit residual {d.get("residual_rms_nT_per_m", float("nan")):.3g} nT/m, '
-        f'estimated sensor noise {d.get("sensor_noise_nT", float("nan")):.3g} nT'
+        f'demo: calibration {calibration.method}: {d.get("n_samples")} samples, '
+        f'{d.get("n_parameters")} parameters, rank {d.get("rank")}, fit residual '
+        f'{residual:.3g} nT/m, estimated sensor noise {noise:.3g} nT'
     )
     _say(
         f'demo: against the simulator: max |k error| {k_err:.2e} (largest |k| '
@@ -251,19 +284,15 @@ def _plot(
     g_true: np.ndarray,
     metrics: dict,
 ) -> None:
-    import matplotlib
-
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # the object API: no pyplot, no global backend
 
     t = (stamps - stamps[0]) * S_PER_NS
     norm = {
         name: np.linalg.norm(g, axis=(1, 2)) * NT_PER_T
         for name, g in (('raw', g_raw), ('compensated', g_comp), ('true', g_true))
     }
-    fig, (top, bottom) = plt.subplots(
-        2, 1, figsize=(9, 6.5), sharex=True, gridspec_kw={'height_ratios': [2, 1]}
-    )
+    fig = Figure(figsize=(9, 6.5))
+    top, bottom = fig.subplots(2, 1, sharex=True, gridspec_kw={'height_ratios': [2, 1]})
     top.plot(t, norm['raw'], color='tab:red', lw=1.2, label='raw $G_m$ (eq. 7)')
     top.plot(t, norm['true'], color='black', lw=2.5, alpha=0.5, label='true (simulator)')
     top.plot(
@@ -288,4 +317,3 @@ def _plot(
     bottom.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, format='png', dpi=110)
-    plt.close(fig)

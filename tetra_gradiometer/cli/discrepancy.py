@@ -6,14 +6,13 @@ import argparse
 import sys
 import time
 
-from ..discrepancy.analysis import Settings, analyze
-from ..discrepancy.effects import CANDIDATES
+from ..core.discrepancy import CANDIDATES, RecordedRun, Settings, analyze
 from ..errors import InputError
 from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..io.recording import read_recording
 from ..io.report import write_report
-from .calibrate import parse_window
+from ._args import parse_window
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,6 +75,14 @@ def run(args: argparse.Namespace) -> int:
     geometry = geometry_from_params(params, str(args.params))
     earth = earth_field_from_params(params, str(args.params))
     recording = read_recording(args.bag)
+    run_data = RecordedRun(
+        recording.t_s,
+        recording.fields,
+        recording.orientation_xyzw,
+        recording.temperature_c,
+        recording.current_a,
+        recording.missing,
+    )
     candidates = (
         tuple(n.strip() for n in args.candidates.split(',') if n.strip())
         if args.candidates
@@ -90,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         candidates=candidates,
         exclude_targets=not args.keep_targets,
     )
-    report = analyze(recording, geometry, earth, settings=settings, window_s=window)
+    report = analyze(run_data, geometry, earth, settings=settings, window_s=window)
     out = write_report(report, args.out, plots=not args.no_plots, force=args.force, inputs=inputs)
     for note in report.notes:
         print(f'note: {note}', file=sys.stderr)
@@ -103,8 +110,9 @@ def run(args: argparse.Namespace) -> int:
         )
     named = ', '.join(report.named_effects) or 'none'
     print(
-        f'named effects: {named}; held-out gap {report.gap_initial_nT:.4g} -> {report.gap_final_nT:.4g} nT, '
-        f'noise floor {report.noise_floor_nT:.4g} nT; adequate: {"yes" if report.adequate else "no"}; '
+        f'named effects: {named}; held-out gap {report.gap_initial_nT:.4g} -> '
+        f'{report.gap_final_nT:.4g} nT, noise floor {report.noise_floor_nT:.4g} nT; '
+        f'adequate: {"yes" if report.adequate else "no"}; '
         f'{time.perf_counter() - started:.1f} s; report in {out}'
     )
     return 0

@@ -15,7 +15,9 @@ import os
 import queue
 import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from functools import partial
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -25,7 +27,10 @@ from sensor_msgs.msg import JointState, MagneticField
 from ..errors import InputError
 from ..io import conversions as cv
 from ..nodes.common import NAMESPACE, derived_qos, sensor_qos
-from .node import PARAMS_HELP, ros_arguments
+from .node import PARAMS_HELP
+
+if TYPE_CHECKING:
+    from ..nodes.driver import DriverNode
 
 
 class Recorder(Node):
@@ -43,7 +48,7 @@ class Recorder(Node):
             self.create_subscription(
                 MagneticField,
                 topic,
-                lambda m, t=cv.BAG_MAG_TOPICS[sensor]: self._mag(t, m),
+                partial(self._mag, cv.BAG_MAG_TOPICS[sensor]),
                 sensor_qos(1000),
             )
         self.create_subscription(JointState, 'gradient/truth', self._truth, derived_qos(1000))
@@ -110,91 +115,102 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
-
     from ..io.bag import BagWriter
     from ..io.outputs import BAG, check_output
-    from ..nodes.common import interrupt_on_signals, stop_graph
-    from ..nodes.driver import DriverNode
-    from ._probe import Probe
+    from ..nodes.common import stop_graph
+    from ._probe import Probe, init_local_ros
 
     if not args.duration > 0:
         raise InputError(f'--duration must be > 0 s, got {args.duration}')
     inputs = tuple(p for p in (args.scenario, args.params) if p)
     check_output(args.out, BAG, force=args.force, inputs=inputs)  # refuse before starting ROS
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    domain = int(os.environ.get('ROS_DOMAIN_ID') or 1 + os.getpid() % 100)
-    interrupt_on_signals()
-    rclpy.init(
-        args=ros_arguments(args.params, ['--log-level', 'warn']),
-        domain_id=domain,
-        signal_handler_options=SignalHandlerOptions.NO,
-    )  # Ctrl-C: KeyboardInterrupt, clean stop
+    init_local_ros(args.params)
     nodes: list[Node] = []
-    executor = SingleThreadedExecutor()
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    executor, spinner = _executor()
     try:
         with BagWriter(
             args.out, storage=args.storage, force=args.force, inputs=inputs, command='record'
         ) as writer:
-            driver = DriverNode(
-                parameter_overrides=[
-                    Parameter('mode', value='sim'),
-                    Parameter('rate', value=float(args.rate)),
-                    Parameter('start_paused', value=True),
-                    Parameter('max_duration_s', value=float(args.duration)),
-                    Parameter(
-                        'scenario', value=os.path.abspath(args.scenario) if args.scenario else ''
-                    ),
-                    Parameter('seed', value=int(args.seed)),
-                ]
-            )
+            driver = _driver(args)
             recorder = Recorder(writer.types)
             operator = Probe('record_operator')
             nodes = [driver, recorder, operator]
             for node in nodes:
                 executor.add_node(node)
             spinner.start()
-            topics = [*cv.MAG_TOPICS, 'gradient/truth']
+            topics = [*cv.MAG_TOPICS, 'gradient/truth', cv.ODOM_TOPIC]
             operator.wait_for(
-                lambda: all(recorder.count_publishers(t) for t in topics)
-                and recorder.count_publishers(cv.ODOM_TOPIC),
-                20,
-                'the driver',
+                lambda: all(recorder.count_publishers(t) > 0 for t in topics), 20, 'the driver'
             )
             time.sleep(0.5)
             operator.call('driver/resume')
-            quiet_since = None
-            while True:  # drain into the bag until the driver is done and nothing more arrives
-                try:
-                    writer.write(*recorder.queue.get(timeout=0.1))
-                    quiet_since = None
-                except queue.Empty:
-                    if driver.state == 'finished':
-                        quiet_since = quiet_since or time.monotonic()
-                        if time.monotonic() - quiet_since > 2.0:
-                            break
+            _drain(writer, recorder, lambda: driver.state == 'finished')
             executor.shutdown(timeout_sec=2)
             if spinner.is_alive():
                 spinner.join(timeout=5)
             while not recorder.queue.empty():  # callbacks may have queued more before the stop
                 writer.write(*recorder.queue.get_nowait())
             expected = driver.sets_published
-            lost = {
-                t: expected - recorder.counts.get(t, 0)
-                for t in [*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC, f'{NAMESPACE}/gradient/truth']
-            }
-            if any(lost.values()):
-                raise OSError(f'messages were lost while recording: {lost}')
+            _check_complete(recorder.counts, expected)
+        seconds = expected / driver.info['sample_rate_hz']
         print(
-            f'record: {args.out}: {expected} sets ({expected / driver.info["sample_rate_hz"]:g} s) of '
-            f'{", ".join(sorted(recorder.counts))} ({args.storage})'
+            f'record: {args.out}: {expected} sets ({seconds:g} s) '
+            f'of {", ".join(sorted(recorder.counts))} ({args.storage})'
         )
         return 0
     except TimeoutError as error:
         raise OSError(str(error)) from None
     finally:
         stop_graph(executor, spinner, nodes)
+
+
+def _executor() -> tuple[Any, threading.Thread]:
+    """A single-threaded executor and the thread that will spin it."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor()
+    return executor, threading.Thread(target=executor.spin, daemon=True)
+
+
+def _driver(args: argparse.Namespace) -> DriverNode:
+    """The sim driver, paused, playing ``--duration`` s of ``--scenario`` at ``--rate``."""
+    from rclpy.parameter import Parameter
+
+    from ..nodes.driver import DriverNode
+
+    scenario = os.path.abspath(args.scenario) if args.scenario else ''
+    return DriverNode(
+        parameter_overrides=[
+            Parameter('mode', value='sim'),
+            Parameter('rate', value=float(args.rate)),
+            Parameter('start_paused', value=True),
+            Parameter('max_duration_s', value=float(args.duration)),
+            Parameter('scenario', value=scenario),
+            Parameter('seed', value=int(args.seed)),
+        ]
+    )
+
+
+def _drain(writer: Any, recorder: Recorder, finished: Callable[[], bool]) -> None:
+    """Write the recorder's queue into the bag until the driver has finished and nothing more
+    arrived for 2 s."""
+    quiet_since = None
+    while True:
+        try:
+            writer.write(*recorder.queue.get(timeout=0.1))
+            quiet_since = None
+        except queue.Empty:
+            if finished():
+                quiet_since = quiet_since or time.monotonic()
+                if time.monotonic() - quiet_since > 2.0:
+                    return
+
+
+def _check_complete(counts: dict[str, int], expected: int) -> None:
+    """Raise OSError unless every recorded topic got ``expected`` messages."""
+    lost = {
+        t: expected - counts.get(t, 0)
+        for t in [*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC, f'{NAMESPACE}/gradient/truth']
+    }
+    if any(lost.values()):
+        raise OSError(f'messages were lost while recording: {lost}')

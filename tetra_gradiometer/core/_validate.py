@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from .types import ArrayLike, FloatArray
 
 
-def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+def as_array(value: ArrayLike, name: str, shape: tuple[int | None, ...]) -> FloatArray:
     """Return ``value`` as a finite float64 array of ``shape`` (``None`` = any length).
 
     Raises
@@ -17,7 +18,7 @@ def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndar
     """
     array = np.asarray(value, dtype=float)
     if array.ndim != len(shape) or any(
-        want is not None and have != want for have, want in zip(array.shape, shape)
+        want is not None and have != want for have, want in zip(array.shape, shape, strict=True)
     ):
         want = (
             '('
@@ -31,7 +32,7 @@ def as_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndar
     return array
 
 
-def frozen_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+def frozen_array(value: ArrayLike, name: str, shape: tuple[int | None, ...]) -> FloatArray:
     """Like :func:`as_array`, but a read-only copy: for frozen dataclasses, so that neither the
     caller nor anyone else can change them afterwards."""
     array = as_array(value, name, shape).copy()
@@ -39,17 +40,17 @@ def frozen_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.
     return array
 
 
-def as_fields(value: object, name: str = 'fields') -> np.ndarray:
+def as_fields(value: ArrayLike, name: str = 'fields') -> FloatArray:
     """Sensor fields, shape (N, 4, 3), tesla."""
     return as_array(value, name, (None, 4, 3))
 
 
-def as_tensors(value: object, name: str = 'tensors') -> np.ndarray:
+def as_tensors(value: ArrayLike, name: str = 'tensors') -> FloatArray:
     """Gradient tensors, shape (N, 3, 3), T/m."""
     return as_array(value, name, (None, 3, 3))
 
 
-def as_vectors(value: object, name: str = 'vectors') -> np.ndarray:
+def as_vectors(value: ArrayLike, name: str = 'vectors') -> FloatArray:
     """Vectors, shape (N, 3)."""
     return as_array(value, name, (None, 3))
 

@@ -12,6 +12,7 @@ import numpy as np
 from ._validate import as_vectors
 from .geometry import TetraGeometry
 from .model import SYMMETRIC_EXPANSION
+from .types import ArrayLike, FloatArray
 
 #: Rows of the symmetry/trace conditions of eq. 20 on a row-major vec of a 3x3 tensor:
 #: ``G12 - G21``, ``G13 - G31``, ``G23 - G32``, ``G11 + G22 + G33``.
@@ -24,8 +25,8 @@ del _row, _i, _j
 
 
 def interference_design(
-    b_reference: object, geometry: TetraGeometry, *, symmetric: bool
-) -> np.ndarray:
+    b_reference: ArrayLike, geometry: TetraGeometry, *, symmetric: bool
+) -> FloatArray:
     """Per-sample design ``A_n`` with ``vec(D_n) = A_n theta`` (eq. 18).
 
     Parameters
@@ -56,14 +57,14 @@ def interference_design(
     return np.concatenate([k_columns, np.broadcast_to(b_columns, (n, 9, 9))], axis=2)
 
 
-def constraint_residual(g: np.ndarray) -> np.ndarray:
+def constraint_residual(g: np.ndarray) -> FloatArray:
     """The four eq. 20 quantities of each tensor, shape (N, 4), T/m (zero for a true gradient)."""
     return g.reshape(len(g), 9) @ CONSTRAINT_ROWS.T
 
 
 def constraint_design(
-    b_reference: object, geometry: TetraGeometry, *, symmetric: bool
-) -> np.ndarray:
+    b_reference: ArrayLike, geometry: TetraGeometry, *, symmetric: bool
+) -> FloatArray:
     """Design of eq. 21: ``L vec(D_n)``, shape (N, 4, P); the target is ``L vec(G_m,n)``."""
     return np.einsum(
         'kq,nqp->nkp',

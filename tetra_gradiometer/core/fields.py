@@ -6,12 +6,13 @@ import numpy as np
 
 from ..errors import InputError
 from ._validate import as_array, as_vectors
+from .types import ArrayLike, FloatArray
 
 #: mu_0 / (4 pi), T m / A.
 MU0_OVER_4PI = 1.0e-7
 
 
-def _relative(points: object, source: object) -> tuple[np.ndarray, np.ndarray]:
+def _relative(points: ArrayLike, source: ArrayLike) -> tuple[FloatArray, FloatArray]:
     points = as_vectors(points, 'points')
     source = as_array(source, 'dipole position', (3,))
     r = points - source
@@ -21,7 +22,7 @@ def _relative(points: object, source: object) -> tuple[np.ndarray, np.ndarray]:
     return r, distance
 
 
-def dipole_field(points: object, moment: object, source: object) -> np.ndarray:
+def dipole_field(points: ArrayLike, moment: ArrayLike, source: ArrayLike) -> FloatArray:
     """Field of a point dipole, ``B = mu0/4pi (3 r (m.r) / r^5 - m / r^3)``.
 
     Parameters
@@ -46,7 +47,7 @@ def dipole_field(points: object, moment: object, source: object) -> np.ndarray:
     )
 
 
-def dipole_gradient(points: object, moment: object, source: object) -> np.ndarray:
+def dipole_gradient(points: ArrayLike, moment: ArrayLike, source: ArrayLike) -> FloatArray:
     """Exact gradient tensor of a point dipole, ``G[n, i, j] = dB_i/dx_j``.
 
     ``dB_i/dx_j = mu0/4pi [3 (delta_ij (m.r) + r_i m_j + m_i r_j) / r^5
@@ -80,7 +81,7 @@ def dipole_gradient(points: object, moment: object, source: object) -> np.ndarra
     return MU0_OVER_4PI * gradient
 
 
-def uniform_field(n_samples: int, field: object) -> np.ndarray:
+def uniform_field(n_samples: int, field: ArrayLike) -> FloatArray:
     """A uniform field repeated for ``n_samples`` points, shape (N, 3), tesla."""
     field = as_array(field, 'uniform field', (3,))
     return np.broadcast_to(field, (n_samples, 3)).copy()

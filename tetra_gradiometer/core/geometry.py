@@ -8,9 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import GeometryError
 from ._validate import as_fields, frozen_array
+from .types import ArrayLike, FloatArray
 
 #: Largest condition number of ``a`` accepted by default. A regular tetrahedron has 2;
 #: noise on the tensor grows with cond(a), and past ~1e3 the array is nearly flat.
@@ -47,7 +49,8 @@ class TetraGeometry:
         if not np.isfinite(condition) or condition > self.max_condition:
             raise GeometryError(
                 f'sensor positions are degenerate: condition number of a (eq. 6) is '
-                f'{condition:.3g} > {self.max_condition:.3g}; the four sensors must not be coplanar'
+                f'{condition:.3g} > {self.max_condition:.3g}; '
+                'the four sensors must not be coplanar'
             )
         a_inv = np.linalg.inv(a)
         a.setflags(write=False)
@@ -58,7 +61,8 @@ class TetraGeometry:
 
     @classmethod
     def regular(cls, edge: float = 0.5) -> TetraGeometry:
-        """Regular tetrahedron of ``edge`` metres, sensor 1 at the origin, base in the x-y plane."""
+        """Regular tetrahedron of ``edge`` metres, sensor 1 at the origin, base in the x-y
+        plane."""
         if not edge > 0:
             raise GeometryError(f'edge must be positive, got {edge}')
         unit = np.array(
@@ -72,12 +76,27 @@ class TetraGeometry:
         return cls(unit * edge)
 
     @classmethod
-    def from_flat(cls, values: object) -> TetraGeometry:
-        """From the 12-float ``sensor_positions`` parameter (x1 y1 z1 x2 ... z4, metres)."""
-        flat = np.asarray(values, dtype=float).ravel()
+    def from_flat(cls, values: npt.ArrayLike) -> TetraGeometry:
+        """From the 12-float ``sensor_positions`` parameter (x1 y1 z1 x2 ... z4, metres).
+
+        The one check of ``sensor_positions``: the parameter file reader and the nodes call it
+        and only relabel its error.
+
+        Raises
+        ------
+        GeometryError
+            Not 12 numbers, or (nearly) coplanar positions.
+        InputError
+            A non-finite value (the message names its index).
+        """
+        try:
+            flat = np.asarray(values, dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise GeometryError(f'sensor_positions must be 12 numbers, got {values!r}') from None
         if flat.size != 12:
             raise GeometryError(
-                f'sensor_positions must hold 12 floats (4 sensors x 3), got {flat.size}'
+                f'sensor_positions must be 12 finite floats, got {flat.size} values '
+                '(4 sensors x 3 = 12 floats, metres)'
             )
         return cls(flat.reshape(4, 3))
 
@@ -87,7 +106,7 @@ class TetraGeometry:
         return float(np.linalg.cond(self.a))
 
     @property
-    def centroid(self) -> np.ndarray:
+    def centroid(self) -> FloatArray:
         """Centre of the four sensors, shape (3,), metres."""
         return self.positions.mean(axis=0)
 
@@ -96,7 +115,7 @@ class TetraGeometry:
         return [float(v) for v in self.positions.ravel()]
 
 
-def sensor_differences(fields: np.ndarray) -> np.ndarray:
+def sensor_differences(fields: np.ndarray) -> FloatArray:
     """``(B_21 B_31 B_41)`` as matrices with those columns (eq. 5).
 
     Parameters
@@ -112,7 +131,7 @@ def sensor_differences(fields: np.ndarray) -> np.ndarray:
     return np.swapaxes(fields[:, 1:, :] - fields[:, :1, :], 1, 2)
 
 
-def difference_tensor(fields: object, geometry: TetraGeometry) -> np.ndarray:
+def difference_tensor(fields: ArrayLike, geometry: TetraGeometry) -> FloatArray:
     """Gradient tensor by differencing (eq. 7): ``G = (B_21 B_31 B_41) a^-1``.
 
     Parameters

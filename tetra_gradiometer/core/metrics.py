@@ -11,16 +11,17 @@ import numpy as np
 from ..errors import InputError
 from ._validate import as_tensors, same_length
 from .geometry import TetraGeometry
+from .types import ArrayLike, FloatArray
 from .units import NT_PER_T
 
 
-def _checked(**tensors: object) -> dict[str, np.ndarray]:
+def _checked(**tensors: ArrayLike) -> dict[str, FloatArray]:
     arrays = {name: as_tensors(value, name) for name, value in tensors.items()}
     same_length(**arrays)
     return arrays
 
 
-def epsilon_terms(g_before: object, g_after: object, g_true: object) -> np.ndarray:
+def epsilon_terms(g_before: ArrayLike, g_after: ArrayLike, g_true: ArrayLike) -> FloatArray:
     """Per-sample terms of eq. 24, ``|(|G_a|_F - |G_l|_F) / (|G_b|_F - |G_l|_F)|``, shape (N,);
     NaN where ``|G_b|_F == |G_l|_F`` (undefined).
 
@@ -37,7 +38,7 @@ def epsilon_terms(g_before: object, g_after: object, g_true: object) -> np.ndarr
     return np.where(denominator == 0.0, np.nan, terms)
 
 
-def epsilon(g_before: object, g_after: object, g_true: object) -> float:
+def epsilon(g_before: ArrayLike, g_after: ArrayLike, g_true: ArrayLike) -> float:
     """Eq. 24: the mean of :func:`epsilon_terms` (dimensionless).
 
     Raises
@@ -56,13 +57,13 @@ def compensated_percent(eps: float) -> float:
     return 100.0 * (1.0 - eps)
 
 
-def rms_residual(g: object, g_true: object) -> float:
+def rms_residual(g: ArrayLike, g_true: ArrayLike) -> float:
     """RMS over samples and all 9 components of ``g - g_true``, T/m."""
     t = _checked(g=g, g_true=g_true)
     return float(np.sqrt(np.mean((t['g'] - t['g_true']) ** 2)))
 
 
-def improvement_ratio(g_before: object, g_after: object, g_true: object) -> float:
+def improvement_ratio(g_before: ArrayLike, g_after: ArrayLike, g_true: ArrayLike) -> float:
     """``rms_residual(g_before) / rms_residual(g_after)`` (dimensionless)."""
     after = rms_residual(g_after, g_true)
     return float('inf') if after == 0.0 else rms_residual(g_before, g_true) / after
@@ -86,7 +87,7 @@ def noise_floor(sigma: float, geometry: TetraGeometry) -> float:
     return float(sigma * np.sqrt(variance.mean()))
 
 
-def summarize(g_before: object, g_after: object, g_true: object) -> dict[str, float]:
+def summarize(g_before: ArrayLike, g_after: ArrayLike, g_true: ArrayLike) -> dict[str, float]:
     """All four metrics, residuals in nT/m, as the reports print them."""
     eps = epsilon(g_before, g_after, g_true)
     return {

@@ -21,12 +21,13 @@ import numpy as np
 from ..errors import InputError
 from ._validate import as_array, as_fields, as_tensors, as_vectors, frozen_array, same_length
 from .geometry import TetraGeometry, difference_tensor
+from .types import ArrayLike, FloatArray
 
 #: Index pairs of the 6 unique entries of a symmetric 3x3 matrix, in vector order.
 SYMMETRIC_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-def _symmetric_expansion() -> np.ndarray:
+def _symmetric_expansion() -> FloatArray:
     """(9, 6) matrix mapping the 6 unique entries to the row-major 9 entries."""
     expand = np.zeros((9, 6))
     for col, (r, c) in enumerate(SYMMETRIC_ENTRIES):
@@ -73,7 +74,7 @@ class InterferenceParameters:
         scale = max(float(np.abs(self.k_soft).max()), 1e-300)
         return bool(np.abs(self.k_soft - np.swapaxes(self.k_soft, 1, 2)).max() <= 1e-12 * scale)
 
-    def to_vector(self, *, symmetric: bool) -> np.ndarray:
+    def to_vector(self, *, symmetric: bool) -> FloatArray:
         """Pack into the 27- or 36-element vector described in the module docstring.
 
         Raises
@@ -92,7 +93,7 @@ class InterferenceParameters:
         return np.concatenate([k_part, self.b_hard.reshape(-1)])
 
     @classmethod
-    def from_vector(cls, theta: object, *, symmetric: bool) -> InterferenceParameters:
+    def from_vector(cls, theta: ArrayLike, *, symmetric: bool) -> InterferenceParameters:
         """Unpack a 27- (symmetric) or 36-element (general) vector, SI units."""
         size = n_parameters(symmetric=symmetric)
         theta = as_array(theta, 'parameter vector', (size,))
@@ -128,7 +129,7 @@ class SensorInterference:
         """A clean vehicle."""
         return cls(np.zeros((4, 3, 3)), np.zeros((4, 3)))
 
-    def apply(self, fields_true: object, b_background: object) -> np.ndarray:
+    def apply(self, fields_true: ArrayLike, b_background: ArrayLike) -> FloatArray:
         """Measured fields ``B_i' = B_i + K_i B^b + B_i^h`` (eq. 10).
 
         Parameters
@@ -150,7 +151,8 @@ class SensorInterference:
         return fields_true + induced + self.b_hard[None]
 
     def pair_parameters(self) -> InterferenceParameters:
-        """``K_i1 = K_i - K_1``, ``B_i1^h = B_i^h - B_1^h`` (eq. 11): exact when sensor 1 is clean."""
+        """``K_i1 = K_i - K_1``, ``B_i1^h = B_i^h - B_1^h`` (eq. 11): exact when sensor 1 is
+        clean."""
         return InterferenceParameters(
             self.k_soft[1:] - self.k_soft[0], self.b_hard[1:] - self.b_hard[0]
         )
@@ -171,8 +173,8 @@ class SensorInterference:
 
 
 def interference_tensor(
-    b_reference: object, parameters: InterferenceParameters, geometry: TetraGeometry
-) -> np.ndarray:
+    b_reference: ArrayLike, parameters: InterferenceParameters, geometry: TetraGeometry
+) -> FloatArray:
     """Interference on the tensor, ``D = (k B_1m + b) a^-1`` (eq. 18).
 
     Parameters
@@ -194,11 +196,11 @@ def interference_tensor(
 
 
 def compensate(
-    g_measured: object,
-    b_reference: object,
+    g_measured: ArrayLike,
+    b_reference: ArrayLike,
     parameters: InterferenceParameters,
     geometry: TetraGeometry,
-) -> np.ndarray:
+) -> FloatArray:
     """Compensated tensor ``G = G_m - D`` (eq. 19).
 
     Parameters
@@ -222,8 +224,8 @@ def compensate(
 
 
 def compensate_fields(
-    fields_measured: object, parameters: InterferenceParameters, geometry: TetraGeometry
-) -> np.ndarray:
+    fields_measured: ArrayLike, parameters: InterferenceParameters, geometry: TetraGeometry
+) -> FloatArray:
     """Eq. 7 then eq. 19 on raw readings, shape (N, 4, 3) tesla -> (N, 3, 3) T/m."""
     fields_measured = as_fields(fields_measured, 'fields_measured')
     g_measured = difference_tensor(fields_measured, geometry)

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
@@ -292,8 +293,8 @@ class MissionData:
     def __len__(self) -> int:
         return len(self.t)
 
-    def select(self, mask: np.ndarray) -> MissionData:
-        """The samples where ``mask`` (bool (N,) or indices) selects."""
+    def select(self, mask: npt.NDArray[np.bool_] | npt.NDArray[np.intp] | slice) -> MissionData:
+        """The samples that ``mask`` (bool (N,), indices or a slice) selects."""
         return MissionData(
             **{name: getattr(self, name)[mask] for name in self.__dataclass_fields__}
         )

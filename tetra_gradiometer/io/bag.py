@@ -25,14 +25,14 @@ from __future__ import annotations
 
 import os
 import struct
-import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Generator, Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
@@ -40,8 +40,12 @@ from rosbags.typesys import Stores, get_typestore
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
-from .matching import StampMatcher
+from .matching import MatchCounters, StampMatcher
 from .outputs import BAG, atomic_output, check_output
+from .progress import progress_bar
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
@@ -167,7 +171,7 @@ class _BatchMatcher:
         """Add per-sensor ``(stamps, values)``; return the completed sets as arrays."""
         self.pending = [
             (np.concatenate([p[0], b[0]]), np.concatenate([p[1], b[1]]))
-            for p, b in zip(self.pending, batches)
+            for p, b in zip(self.pending, batches, strict=True)
         ]
         out_stamps: list[np.ndarray] = []
         out_fields: list[np.ndarray] = []
@@ -175,18 +179,10 @@ class _BatchMatcher:
             k = min(len(p[0]) for p in self.pending)
             if k > 0:
                 reference = self.pending[0][0][:k]
-                last = self.matcher._last  # noqa: SLF001 (same package: keep the matcher's state)
                 same = all(np.array_equal(p[0][:k], reference) for p in self.pending[1:])
-                if (
-                    same
-                    and np.all(np.diff(reference) > 0)
-                    and all(l is None or reference[0] > l for l in last)
-                ):
+                if same and self.matcher.take_run(reference):
                     out_stamps.append(reference.copy())
                     out_fields.append(np.stack([p[1][:k] for p in self.pending], axis=1))
-                    self.matcher.counters.matched += k
-                    for sensor in range(4):
-                        last[sensor] = int(reference[-1])
                     self.pending = [(p[0][k:], p[1][k:]) for p in self.pending]
                     if not final:
                         return _join(out_stamps, out_fields)
@@ -238,7 +234,7 @@ class MagneticBag:
         if not self.path.exists():
             raise BagError(f'bag not found: {self.path}')
         self._reader: AnyReader | None = None
-        self.counters = None
+        self.counters = MatchCounters()
 
     def __enter__(self) -> MagneticBag:
         try:
@@ -291,7 +287,7 @@ class MagneticBag:
         window_s: tuple[float, float] | None = None,
         progress: bool | None = None,
         fast: bool = True,
-    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    ) -> Generator[tuple[IntArray, FloatArray], None, None]:
         """Matched sets in chunks: ``(stamps_ns (n,) int64, fields (n, 4, 3) tesla)``.
 
         ``window_s`` keeps sets whose stamp, in seconds from the first set's stamp, lies in
@@ -317,8 +313,8 @@ class MagneticBag:
         }
         connections = [c for c in self.reader.connections if c.id in index]
         first: list[int] = []
-        bar = _progress(total, progress, 'reading magnetometers')
-        raws: list[list] = [[] for _ in range(4)]
+        bar = progress_bar(total, progress, 'reading magnetometers')
+        raws: list[list[tuple[Any, bytes]]] = [[] for _ in range(4)]
         count = 0
         decode_fast = fast
 
@@ -332,15 +328,7 @@ class MagneticBag:
                         batch = decode_magnetic_field([r for _, r in raws[sensor]])
                     except _UnsupportedEncoding:
                         decode_fast = False
-                if batch is None:
-                    msgs = [self.reader.deserialize(r, c.msgtype) for c, r in raws[sensor]]
-                    batch = (
-                        np.array([cv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64),
-                        np.array([cv.magnetic_field_vector(m) for m in msgs], dtype=float).reshape(
-                            -1, 3
-                        ),
-                    )
-                batches.append(batch)
+                batches.append(self._deserialize(raws[sensor]) if batch is None else batch)
                 raws[sensor] = []
             stamps, fields = batcher.add(batches, final=final, fast=fast)
             if len(stamps) and not first:
@@ -367,8 +355,17 @@ class MagneticBag:
         if matcher.counters.matched == 0:
             raise BagError(
                 f'{self.path}: no sample set could be matched by header stamp within '
-                f'{tolerance_s * 1e3:g} ms ({matcher.counters.dropped_messages} messages unmatched)'
+                f'{tolerance_s * 1e3:g} ms '
+                f'({matcher.counters.dropped_messages} messages unmatched)'
             )
+
+    def _deserialize(self, raws: list[tuple[Any, bytes]]) -> tuple[IntArray, FloatArray]:
+        """Stamps (n,) ns and fields (n, 3) T of MagneticField messages, through rosbags."""
+        msgs: list[Any] = [self.reader.deserialize(r, c.msgtype) for c, r in raws]
+        return (
+            np.array([cv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64),
+            np.array([cv.magnetic_field_vector(m) for m in msgs], dtype=float).reshape(-1, 3),
+        )
 
     def read_sets(self, **options: Any) -> tuple[np.ndarray, np.ndarray]:
         """All matched sets at once (see :meth:`iter_sets` for the options)."""
@@ -390,7 +387,7 @@ class MagneticBag:
             raise BagError(f'{self.path}: {topic} has unsupported type {connections[0].msgtype}')
         stamps, values = [], []
         for connection, _, raw in self.reader.messages(connections=connections):
-            msg = self.reader.deserialize(raw, connection.msgtype)
+            msg: Any = self.reader.deserialize(raw, connection.msgtype)
             stamps.append(cv.stamp_to_ns(msg.header.stamp))
             values.append(extract(msg))
         if not stamps:
@@ -431,12 +428,16 @@ class BagWriter:
         self.store = typestore()
         self.types = cv.rosbags_types(self.store)
         self._connections: dict[str, Any] = {}
-        self._options = {'force': force, 'inputs': tuple(inputs), 'command': command}
+        self._force, self._inputs, self._command = force, tuple(inputs), command
         self._stack = ExitStack()
 
     def __enter__(self) -> BagWriter:
         with ExitStack() as stack:
-            tmp = stack.enter_context(atomic_output(self.path, BAG, **self._options))
+            tmp = stack.enter_context(
+                atomic_output(
+                    self.path, BAG, force=self._force, inputs=self._inputs, command=self._command
+                )
+            )
             # The storage file is named after the folder, which carries its final name already.
             self._writer = Writer(tmp, version=9, storage_plugin=STORAGES[self.storage])
             self._writer.open()
@@ -470,12 +471,14 @@ class BagWriter:
     def write_fields(self, stamps_ns: np.ndarray, fields: np.ndarray) -> None:
         """``/tetra/mag1..4`` from fields (N, 4, 3) tesla (CDR encoded directly)."""
         fields = np.asarray(fields, dtype=float)
-        for stamp, sample in zip(stamps_ns, fields):
+        for stamp, sample in zip(stamps_ns, fields, strict=True):
             self.write_sample(int(stamp), sample)
 
     def write_sample(self, stamp_ns: int, sample: np.ndarray) -> None:
         """One set of ``/tetra/mag1..4`` at header and log stamp ``stamp_ns``, fields (4, 3) T."""
-        for sensor, (topic, frame) in enumerate(zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES)):
+        for sensor, (topic, frame) in enumerate(
+            zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES, strict=True)
+        ):
             self.write_raw(
                 topic,
                 cv.MAGNETIC_FIELD,
@@ -485,20 +488,5 @@ class BagWriter:
 
     def write_tensors(self, topic: str, stamps_ns: np.ndarray, tensors: np.ndarray) -> None:
         """A tensor topic from tensors (N, 3, 3) T/m (JointState CDR encoded directly)."""
-        for stamp, g in zip(stamps_ns, np.asarray(tensors, dtype=float)):
+        for stamp, g in zip(stamps_ns, np.asarray(tensors, dtype=float), strict=True):
             self.write_raw(topic, cv.JOINT_STATE, encode_tensor(int(stamp), g), int(stamp))
-
-
-def _progress(total: int, enabled: bool | None, description: str) -> Any:
-    """A tqdm bar on long input; silent when not a terminal unless asked for."""
-    from tqdm import tqdm
-
-    show = sys.stderr.isatty() if enabled is None else enabled
-    return tqdm(
-        total=total,
-        desc=description,
-        unit='msg',
-        disable=not show or total < 50_000,
-        mininterval=0.5,
-        file=sys.stderr,
-    )

@@ -43,7 +43,9 @@ class CalibrationFile:
     created_utc: str = ''
 
     @classmethod
-    def from_calibration(cls, calibration: Calibration, geometry: TetraGeometry) -> CalibrationFile:
+    def from_calibration(
+        cls, calibration: Calibration, geometry: TetraGeometry
+    ) -> CalibrationFile:
         """The file of a ``k, b`` calibration (:class:`TensorCalibration`); other results
         (Pei & Yeo's per-sensor maps) raise :class:`CalibrationFileError`."""
         if not isinstance(calibration, TensorCalibration):

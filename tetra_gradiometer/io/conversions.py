@@ -128,7 +128,8 @@ def magnetic_field_msg(
 
 
 def magnetic_field_vector(msg: Any) -> np.ndarray:
-    """Field (3,) in tesla from a ``sensor_msgs/MagneticField`` (may be non-finite: callers check)."""
+    """Field (3,) in tesla from a ``sensor_msgs/MagneticField`` (may be non-finite: callers
+    check)."""
     field = msg.magnetic_field
     return np.array([field.x, field.y, field.z], dtype=float)
 

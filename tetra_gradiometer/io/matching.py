@@ -12,18 +12,37 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import InputError
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
 
 N_SENSORS = 4
 
 
 @dataclass
 class MatchCounters:
-    """Running counts: sets emitted, messages dropped unmatched, out-of-order messages."""
+    """Running counts of a :class:`StampMatcher`.
+
+    Attributes
+    ----------
+    matched : int
+        Sets emitted.
+    dropped_messages : int
+        Messages dropped without a set, for any reason (this total includes
+        ``evicted_messages``).
+    evicted_messages : int
+        Of ``dropped_messages``, those pushed out of a sensor's full queue (``max_pending``):
+        another sensor stayed silent for that long.
+    out_of_order : int
+        Messages refused because their stamp did not increase on their sensor.
+    """
 
     matched: int = 0
     dropped_messages: int = 0
+    evicted_messages: int = 0
     out_of_order: int = 0
 
 
@@ -44,10 +63,10 @@ class StampMatcher:
         self.tolerance_ns = int(tolerance_ns)
         self.max_pending = int(max_pending)
         self.counters = MatchCounters()
-        self._queues: list[deque[tuple[int, np.ndarray]]] = [deque() for _ in range(N_SENSORS)]
+        self._queues: list[deque[tuple[int, FloatArray]]] = [deque() for _ in range(N_SENSORS)]
         self._last: list[int | None] = [None] * N_SENSORS
 
-    def add(self, sensor: int, stamp_ns: int, value: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    def add(self, sensor: int, stamp_ns: int, value: FloatArray) -> list[tuple[int, FloatArray]]:
         """Queue one reading (sensor 0..3) and return the sets it completes as
         ``(stamp_ns of sensor 1, fields (4, 3))``."""
         last = self._last[sensor]
@@ -60,9 +79,10 @@ class StampMatcher:
         if len(queue) > self.max_pending:
             queue.popleft()
             self.counters.dropped_messages += 1
+            self.counters.evicted_messages += 1
         return self._drain()
 
-    def _drain(self) -> list[tuple[int, np.ndarray]]:
+    def _drain(self) -> list[tuple[int, FloatArray]]:
         completed = []
         while all(self._queues):
             stamps = [q[0][0] for q in self._queues]
@@ -79,3 +99,28 @@ class StampMatcher:
         """Oldest stamp still waiting, or None."""
         heads = [q[0][0] for q in self._queues if q]
         return min(heads) if heads else None
+
+    @property
+    def last_stamps_ns(self) -> tuple[int | None, ...]:
+        """Per sensor, the newest accepted stamp (ns), or None before the first."""
+        return tuple(self._last)
+
+    def take_run(self, stamps_ns: IntArray) -> bool:
+        """Accept ``k`` sets whose four stamps are all ``stamps_ns`` (k,) without queueing them.
+
+        The fast path of a synchronised driver: feeding the ``4 k`` messages to :meth:`add`
+        would emit exactly these sets. Accepted (counted as matched, each sensor's last stamp
+        moved to ``stamps_ns[-1]``) only when nothing is pending, ``stamps_ns`` strictly
+        increases and its first stamp is newer than every sensor's last; otherwise nothing
+        changes and False is returned (feed the messages to :meth:`add`).
+        """
+        if not len(stamps_ns) or self.pending_oldest_ns() is not None:
+            return False
+        first = int(stamps_ns[0])
+        if not np.all(np.diff(stamps_ns) > 0) or any(
+            last is not None and first <= last for last in self._last
+        ):
+            return False
+        self._last = [int(stamps_ns[-1])] * N_SENSORS
+        self.counters.matched += len(stamps_ns)
+        return True

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..core import GeometryError, TetraGeometry
-from ..errors import ParamsError
+from ..core import TetraGeometry
+from ..errors import InputError, ParamsError
 from ._yaml import read_yaml
 
 
@@ -35,24 +35,23 @@ def load_params(path: str | os.PathLike, node: str = '/**') -> dict[str, Any]:
 
 
 def geometry_from_params(params: dict[str, Any], source: str = 'params') -> TetraGeometry:
-    """The tetrahedron from ``sensor_positions`` (12 floats, metres, sensor 1 first)."""
+    """The tetrahedron from ``sensor_positions`` (12 floats, metres, sensor 1 first).
+
+    :meth:`TetraGeometry.from_flat` checks the values; its error is relabelled with
+    ``source``.
+
+    Raises
+    ------
+    ParamsError
+        ``sensor_positions`` is missing or is not a usable tetrahedron.
+    """
     values = params.get('sensor_positions')
     if values is None:
         raise ParamsError(f'{source}: sensor_positions is missing (12 floats, metres, body frame)')
     try:
-        flat = np.asarray(values, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ParamsError(
-            f'{source}: sensor_positions must be 12 numbers, got {values!r}'
-        ) from None
-    if flat.size != 12 or not np.all(np.isfinite(flat)):
-        raise ParamsError(
-            f'{source}: sensor_positions must be 12 finite floats, got {flat.size} values'
-        )
-    try:
-        return TetraGeometry.from_flat(flat)
-    except GeometryError as error:
-        raise ParamsError(f'{source}: {error}') from None
+        return TetraGeometry.from_flat(values)
+    except InputError as error:
+        raise ParamsError(f'{source}: {error}') from error
 
 
 def earth_field_from_params(params: dict[str, Any], source: str = 'params') -> np.ndarray | None:

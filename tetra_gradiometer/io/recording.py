@@ -19,7 +19,8 @@ from ..core import MissionData
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
 from . import conversions as cv
-from .bag import BagWriter, MagneticBag, _progress
+from .bag import BagWriter, MagneticBag
+from .progress import progress_bar
 
 
 def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
@@ -57,7 +58,7 @@ def write_mission_bag(
     stamps = mission_stamps_ns(mission, start_ns)
     if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
         raise InputError('mission stamps must increase (sample period below 1 ns?)')
-    bar = _progress(len(stamps) * 4, progress, 'writing bag')
+    bar = progress_bar(len(stamps) * 4, progress, 'writing bag')
     with BagWriter(path, storage=storage, force=force, inputs=inputs, command=command) as writer:
         types = writer.types
         for i, stamp in enumerate(stamps):

@@ -7,13 +7,18 @@ import json
 import os
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from ..discrepancy.analysis import Report, criterion_text
-from ..discrepancy.effects import LIBRARY
+from ..core.discrepancy import LIBRARY, Report, criterion_text
 from .outputs import REPORT, atomic_output
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+Array = NDArray[np.float64]
 
 _AXES = 'xyz'
 _MAX_POINTS = 4000
@@ -32,16 +37,14 @@ def report_json(report: Report) -> str:
     return json.dumps(report.to_dict(), indent=2, default=_json_default, allow_nan=False) + '\n'
 
 
-def _pyplot():
-    import matplotlib
+def _figure(figsize: tuple[float, float]) -> Figure:
+    """A figure of matplotlib's object API: no pyplot, no global backend state."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use('Agg', force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
+    return Figure(figsize=figsize)
 
 
-def _save(fig: Any, path: Path) -> None:
+def _save(fig: Figure, path: Path) -> None:
     fig.savefig(path, format='png', dpi=90)
 
 
@@ -50,21 +53,15 @@ def _thin(n: int) -> slice:
 
 
 def _plot_residuals(
-    plt: Any,
     path: Path,
-    t: np.ndarray,
+    t: Array,
     sensors: tuple[int, ...],
-    panels: list[tuple[str, np.ndarray]],
+    panels: list[tuple[str, Array]],
     title: str,
-    spans: list[dict[str, Any]] = (),
+    spans: list[dict[str, Any]],
 ) -> None:
-    fig, axes = plt.subplots(
-        len(sensors),
-        len(panels),
-        figsize=(5.5 * len(panels), 1.9 * len(sensors) + 0.8),
-        sharex=True,
-        squeeze=False,
-    )
+    fig = _figure((5.5 * len(panels), 1.9 * len(sensors) + 0.8))
+    axes = fig.subplots(len(sensors), len(panels), sharex=True, squeeze=False)
     k = _thin(len(t))
     for col, (label, residual) in enumerate(panels):
         for row, s in enumerate(sensors):
@@ -83,14 +80,14 @@ def _plot_residuals(
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
 
 
-def _plot_gap(plt: Any, path: Path, report: Report) -> None:
+def _plot_gap(path: Path, report: Report) -> None:
     gaps = report.series['gaps']
     floors = report.series['floors']
     labels = ['base'] + [f'+ {s.effect}' for s in report.steps]
-    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(gaps), 3.2))
+    fig = _figure((1.6 + 1.3 * len(gaps), 3.2))
+    ax = fig.subplots()
     x = np.arange(len(gaps))
     ax.bar(x, gaps, color='tab:blue', label='held-out gap')
     ax.plot(x, floors, 'k--', marker='o', label='noise floor')
@@ -101,15 +98,11 @@ def _plot_gap(plt: Any, path: Path, report: Report) -> None:
     ax.legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
 
 
-def _plot_effect(
-    plt: Any, path: Path, t: np.ndarray, sensors: tuple[int, ...], name: str, field: np.ndarray
-) -> None:
-    fig, axes = plt.subplots(
-        len(sensors), 1, figsize=(7, 1.7 * len(sensors) + 0.8), sharex=True, squeeze=False
-    )
+def _plot_effect(path: Path, t: Array, sensors: tuple[int, ...], name: str, field: Array) -> None:
+    fig = _figure((7, 1.7 * len(sensors) + 0.8))
+    axes = fig.subplots(len(sensors), 1, sharex=True, squeeze=False)
     k = _thin(len(t))
     for row, s in enumerate(sensors):
         ax = axes[row, 0]
@@ -125,14 +118,13 @@ def _plot_effect(
     fig.suptitle(f'Field attributed to {name} (final fit)', fontsize=9)
     fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
 
 
-def _plot_diagnostics(plt: Any, path: Path, report: Report) -> None:
+def _plot_diagnostics(path: Path, report: Report) -> None:
     series = report.series
     residual = series['residuals'][0]
     sensors = series['sensors']
-    drivers: list[tuple[str, np.ndarray]] = [
+    drivers: list[tuple[str, Array]] = [
         ('|dB^b/dt|, nT/s', np.linalg.norm(series['b_rate'], axis=1))
     ]
     if series['attitude'] is not None:
@@ -146,12 +138,8 @@ def _plot_diagnostics(plt: Any, path: Path, report: Report) -> None:
     if series['current_a'] is not None:
         drivers.append(('current, A', series['current_a']))
     k = _thin(len(series['t']))
-    fig, axes = plt.subplots(
-        len(sensors),
-        len(drivers),
-        figsize=(2.3 * len(drivers) + 0.5, 1.8 * len(sensors) + 0.8),
-        squeeze=False,
-    )
+    fig = _figure((2.3 * len(drivers) + 0.5, 1.8 * len(sensors) + 0.8))
+    axes = fig.subplots(len(sensors), len(drivers), squeeze=False)
     for row, s in enumerate(sensors):
         for col, (label, d) in enumerate(drivers):
             ax = axes[row, col]
@@ -163,12 +151,12 @@ def _plot_diagnostics(plt: Any, path: Path, report: Report) -> None:
             if col == 0:
                 ax.set_ylabel(f'sensor {s + 1}, nT', fontsize=7)
     fig.suptitle(
-        'Base-model residual (measured - simulated) against attitude, field rate, temperature, current',
+        'Base-model residual (measured - simulated) against attitude, field rate, '
+        'temperature, current',
         fontsize=9,
     )
     fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
 
 
 def _fmt_params(parameters: dict[str, Any]) -> str:
@@ -181,7 +169,21 @@ def _fmt_params(parameters: dict[str, Any]) -> str:
 
 def report_markdown(report: Report, figures: dict[str, str]) -> str:
     """The text of ``report.md`` (``figures``: key -> file name)."""
-    d = report.to_dict()
+    lines = (
+        _summary_section(report)
+        + _excluded_section(report)
+        + _method_section(figures)
+        + _steps_section(report, figures)
+        + _untestable_section(report)
+        + _rounds_section(report)
+        + _disagreement_section(report, figures)
+    )
+    return '\n'.join(lines) + '\n'
+
+
+def _summary_section(report: Report) -> list[str]:
+    """Title, the named effects, the gap against the noise floor, the data and the notes."""
+    data = report.data
     lines = ['# Discrepancy report', '']
     if report.named_effects:
         lines.append(f'Named effects, in the order added: **{", ".join(report.named_effects)}**.')
@@ -191,114 +193,149 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
             if report.adequate
             else 'No effect from the library explains the remaining gap.'
         )
+    view = (
+        'every sensor against R^T E'
+        if report.view == 'absolute'
+        else 'pair differences against sensor 1'
+    )
     lines += [
         '',
         f'Held-out gap (RMS of measured - simulated over all sensors and axes): '
-        f'**{report.gap_initial_nT:.4g} nT** with the base model, **{report.gap_final_nT:.4g} nT** at the end; '
+        f'**{report.gap_initial_nT:.4g} nT** with the base model, '
+        f'**{report.gap_final_nT:.4g} nT** at the end; '
         f'noise floor {report.noise_floor_nT:.4g} nT '
         f'(ratio {report.gap_final_nT / report.noise_floor_nT:.3g}). '
         f'Adequate: **{"yes" if report.adequate else "no"}**.',
         '',
         f'- Base model: {report.base_model}',
-        f'- Residual view: {report.view} '
-        f'({"every sensor against R^T E" if report.view == "absolute" else "pair differences against sensor 1"})',
-        f'- Data: {d["data"]["samples"]} samples, {d["data"]["duration_s"]:.1f} s, '
-        f'{d["data"]["sample_rate_hz"]:.3g} Hz; analysed in {report.runtime_s:.2f} s',
+        f'- Residual view: {report.view} ({view})',
+        f'- Data: {data["samples"]} samples, {data["duration_s"]:.1f} s, '
+        f'{data["sample_rate_hz"]:.3g} Hz; analysed in {report.runtime_s:.2f} s',
     ]
-    if d['data'].get('window_s'):
-        w = d['data']['window_s']
+    if data.get('window_s'):
+        w = data['window_s']
         end = 'the end' if w[1] is None else f'{w[1]:g} s'
         lines.append(f'- Window: {w[0]:g} to {end} (seconds from the first sample)')
-    for note in report.notes:
-        lines.append(f'- Note: {note}')
-    if report.excluded_spans:
-        lines += [
-            '',
-            '## Excluded spans (target passages)',
-            '',
-            'Spans where the residual is dominated by a localized field that no candidate represents '
-            '(it differs between the sensors and rises and falls within the span: a target passed close '
-            'to the track). They are left out of every fit and of the held-out gap, with a margin; '
-            '"adequate" refers to the rest of the run.',
-            '',
-            '| start, s | end, s | peak at, s | peak residual, nT | x noise | between sensors, nT | '
-            'common, nT | attitude change, deg |',
-            '|---|---|---|---|---|---|---|---|',
-        ]
-        for e in report.excluded_spans:
-            common = '-' if e['peak_common_rms_nT'] is None else f'{e["peak_common_rms_nT"]:.3g}'
-            turn = '-' if e['attitude_change_deg'] is None else f'{e["attitude_change_deg"]:.1f}'
-            lines.append(
-                f'| {e["start_s"]:.1f} | {e["end_s"]:.1f} | {e["peak_time_s"]:.1f} | '
-                f'{e["peak_residual_rms_nT"]:.3g} | {e["peak_over_noise"]:.0f} | '
-                f'{e["peak_difference_rms_nT"]:.3g} | {common} | {turn} |'
-            )
-        lines += [''] + [
+    lines += [f'- Note: {note}' for note in report.notes]
+    return lines
+
+
+def _excluded_section(report: Report) -> list[str]:
+    """The table of excluded target passages, and why each was left out."""
+    if not report.excluded_spans:
+        return []
+    lines = [
+        '',
+        '## Excluded spans (target passages)',
+        '',
+        'Spans where the residual is dominated by a localized field that no candidate '
+        'represents (it differs between the sensors and rises and falls within the span: a '
+        'target passed close to the track). They are left out of every fit and of the '
+        'held-out gap, with a margin; "adequate" refers to the rest of the run.',
+        '',
+        '| start, s | end, s | peak at, s | peak residual, nT | x noise | between sensors, nT | '
+        'common, nT | attitude change, deg |',
+        '|---|---|---|---|---|---|---|---|',
+    ]
+    for e in report.excluded_spans:
+        common = '-' if e['peak_common_rms_nT'] is None else f'{e["peak_common_rms_nT"]:.3g}'
+        turn = '-' if e['attitude_change_deg'] is None else f'{e["attitude_change_deg"]:.1f}'
+        lines.append(
+            f'| {e["start_s"]:.1f} | {e["end_s"]:.1f} | {e["peak_time_s"]:.1f} | '
+            f'{e["peak_residual_rms_nT"]:.3g} | {e["peak_over_noise"]:.0f} | '
+            f'{e["peak_difference_rms_nT"]:.3g} | {common} | {turn} |'
+        )
+    return (
+        lines
+        + ['']
+        + [
             f'- {e["start_s"]:.1f}-{e["end_s"]:.1f} s: {e["reason"]}'
             for e in report.excluded_spans
         ]
-    lines += [
+    )
+
+
+def _method_section(figures: dict[str, str]) -> list[str]:
+    """How the run was simulated and tested, the criterion and the noise floor."""
+    lines = [
         '',
         '## Method',
         '',
-        "The recorded run is simulated with the base model: each sensor's reading is predicted from the "
-        "background field B^b (from /odom and the Earth field, or B_1' without /odom). The residual "
-        '(measured - simulated) is examined against time, attitude, field rate, temperature and current, '
-        'and each candidate family of the library is added to the model as extra regressors and tested on '
-        'held-out data.',
+        "The recorded run is simulated with the base model: each sensor's reading is "
+        "predicted from the background field B^b (from /odom and the Earth field, or B_1' "
+        'without /odom). The residual (measured - simulated) is examined against time, '
+        'attitude, field rate, temperature and current, and each candidate family of the '
+        'library is added to the model as extra regressors and tested on held-out data.',
         '',
         f'Criterion: {criterion_text()}',
-        'The noise floor is the white-noise RMS estimated from the fourth difference of the residual '
-        '(median absolute deviation, so steps and spikes do not count).',
+        'The noise floor is the white-noise RMS estimated from the fourth difference of the '
+        'residual (median absolute deviation, so steps and spikes do not count).',
         '',
     ]
     if 'gap' in figures:
         lines += [f'![gap per step]({figures["gap"]})', '']
-    if report.steps:
+    return lines
+
+
+def _steps_section(report: Report, figures: dict[str, str]) -> list[str]:
+    """The table of steps, then each named effect: physics, evidence, parameters, plots."""
+    if not report.steps:
+        return []
+    lines = [
+        '## Steps',
+        '',
+        '| # | effect | gap before, nT | gap after, nT | parameters | CV-BIC change | F | p |',
+        '|---|---|---|---|---|---|---|---|',
+    ]
+    for i, s in enumerate(report.steps, 1):
+        lines.append(
+            f'| {i} | {s.effect} | {s.gap_before_nT:.4g} | {s.gap_after_nT:.4g} | '
+            f'{s.n_parameters} | {s.delta_bic:+.4g} | {s.f_statistic:.4g} | {s.p_value:.3g} |'
+        )
+    lines.append('')
+    for i, s in enumerate(report.steps, 1):
         lines += [
-            '## Steps',
+            f'### {i}. {s.effect}',
             '',
-            '| # | effect | gap before, nT | gap after, nT | parameters | CV-BIC change | F | p |',
-            '|---|---|---|---|---|---|---|---|',
+            f'**What it is.** {LIBRARY[s.effect].physics}',
+            '',
+            f'**Evidence.** {s.evidence}.',
+            '',
+            f'**Fitted parameters** ({s.parameters.get("units", "")}; final joint fit):',
+            _fmt_params(s.parameters),
+            '',
         ]
-        for i, s in enumerate(report.steps, 1):
-            lines.append(
-                f'| {i} | {s.effect} | {s.gap_before_nT:.4g} | {s.gap_after_nT:.4g} | {s.n_parameters} | '
-                f'{s.delta_bic:+.4g} | {s.f_statistic:.4g} | {s.p_value:.3g} |'
-            )
-        lines.append('')
-        for i, s in enumerate(report.steps, 1):
-            lines += [
-                f'### {i}. {s.effect}',
-                '',
-                f'**What it is.** {LIBRARY[s.effect].physics}',
-                '',
-                f'**Evidence.** {s.evidence}.',
-                '',
-                f'**Fitted parameters** ({s.parameters.get("units", "")}; final joint fit):',
-                _fmt_params(s.parameters),
-                '',
-            ]
-            if 'note' in s.parameters:
-                lines += [f'({s.parameters["note"]})', '']
-            key = f'step{i}'
-            if key in figures:
-                lines += [f'![residual before and after {s.effect}]({figures[key]})', '']
-            key = f'effect_{s.effect}'
-            if key in figures:
-                lines += [f'![field attributed to {s.effect}]({figures[key]})', '']
-    if report.untestable:
-        lines += ['## Candidates that could not be tested', '']
-        lines += [f'- **{name}**: {reason}' for name, reason in report.untestable.items()]
-        lines.append('')
-    lines += ['## Candidates per round', '']
+        if 'note' in s.parameters:
+            lines += [f'({s.parameters["note"]})', '']
+        key = f'step{i}'
+        if key in figures:
+            lines += [f'![residual before and after {s.effect}]({figures[key]})', '']
+        key = f'effect_{s.effect}'
+        if key in figures:
+            lines += [f'![field attributed to {s.effect}]({figures[key]})', '']
+    return lines
+
+
+def _untestable_section(report: Report) -> list[str]:
+    if not report.untestable:
+        return []
+    lines = ['## Candidates that could not be tested', '']
+    lines += [f'- **{name}**: {reason}' for name, reason in report.untestable.items()]
+    lines.append('')
+    return lines
+
+
+def _rounds_section(report: Report) -> list[str]:
+    """Every round's candidate table."""
+    lines = ['## Candidates per round', '']
     for i, r in enumerate(report.rounds):
         model = ', '.join(r['model']) or 'base model'
         lines += [
             f'Round {i + 1} (model: {model}; held-out gap {r["gap_nT"]:.4g} nT, noise floor '
             f'{r["noise_floor_nT"]:.4g} nT):',
             '',
-            '| candidate | parameters | gap after, nT | explained RMS, nT | CV-BIC change | F | p | passes |',
+            '| candidate | parameters | gap after, nT | explained RMS, nT | CV-BIC change | F | p '
+            '| passes |',
             '|---|---|---|---|---|---|---|---|',
         ]
         for c in r['candidates']:
@@ -308,7 +345,12 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
                 f'{c["p_value"]:.3g} | {"yes" if c["passes"] else "no"} |'
             )
         lines.append('')
-    lines += [
+    return lines
+
+
+def _disagreement_section(report: Report, figures: dict[str, str]) -> list[str]:
+    """The base-model residual's largest correlation with each driver, and its plots."""
+    lines = [
         '## Where the base model disagrees',
         '',
         'Largest correlation of the base-model residual (any sensor and axis) with each driver:',
@@ -321,7 +363,7 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
         lines += [f'![residual against drivers]({figures["diagnostics"]})', '']
     if 'step0' in figures:
         lines += [f'![base-model residual]({figures["step0"]})', '']
-    return '\n'.join(lines) + '\n'
+    return lines
 
 
 def write_report(
@@ -342,45 +384,44 @@ def write_report(
 
 
 def _write_report_files(report: Report, out: Path, *, plots: bool) -> None:
-    figures: dict[str, str] = {}
-    if plots and report.series:
-        plt = _pyplot()
-        s = report.series
-        t, sensors, residuals = s['t'], s['sensors'], s['residuals']
-        figures['gap'] = 'gap.png'
-        _plot_gap(plt, out / figures['gap'], report)
-        figures['diagnostics'] = 'diagnostics.png'
-        _plot_diagnostics(plt, out / figures['diagnostics'], report)
-        if not report.steps:
-            figures['step0'] = 'residual_base.png'
-            _plot_residuals(
-                plt,
-                out / figures['step0'],
-                t,
-                sensors,
-                [('base model', residuals[0])],
-                'Residual (measured - simulated) of the base model'
-                + (' (grey: excluded spans)' if report.excluded_spans else ''),
-                report.excluded_spans,
-            )
-        for i, step in enumerate(report.steps, 1):
-            figures[f'step{i}'] = f'residual_step{i}_{step.effect}.png'
-            _plot_residuals(
-                plt,
-                out / figures[f'step{i}'],
-                t,
-                sensors,
-                [('before', residuals[i - 1]), (f'after + {step.effect}', residuals[i])],
-                f'Step {i}: residual before and after adding {step.effect}'
-                + (' (grey: excluded spans)' if report.excluded_spans else ''),
-                report.excluded_spans,
-            )
-            field = s['effect_fields'][i - 1] if i - 1 < len(s['effect_fields']) else None
-            if field is not None and f'effect_{step.effect}' not in figures:
-                figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
-                shown = tuple(k for k in range(4) if np.any(field[:, k])) or sensors
-                _plot_effect(
-                    plt, out / figures[f'effect_{step.effect}'], t, shown, step.effect, field
-                )
+    figures = _write_plots(report, out) if plots and report.series else {}
     (out / 'report.json').write_text(report_json(report), encoding='utf-8')
     (out / 'report.md').write_text(report_markdown(report, figures), encoding='utf-8')
+
+
+def _write_plots(report: Report, out: Path) -> dict[str, str]:
+    """Every PNG of the report into ``out``; returns figure key -> file name."""
+    figures: dict[str, str] = {}
+    s = report.series
+    t, sensors, residuals = s['t'], s['sensors'], s['residuals']
+    grey = ' (grey: excluded spans)' if report.excluded_spans else ''
+    figures['gap'] = 'gap.png'
+    _plot_gap(out / figures['gap'], report)
+    figures['diagnostics'] = 'diagnostics.png'
+    _plot_diagnostics(out / figures['diagnostics'], report)
+    if not report.steps:
+        figures['step0'] = 'residual_base.png'
+        _plot_residuals(
+            out / figures['step0'],
+            t,
+            sensors,
+            [('base model', residuals[0])],
+            'Residual (measured - simulated) of the base model' + grey,
+            report.excluded_spans,
+        )
+    for i, step in enumerate(report.steps, 1):
+        figures[f'step{i}'] = f'residual_step{i}_{step.effect}.png'
+        _plot_residuals(
+            out / figures[f'step{i}'],
+            t,
+            sensors,
+            [('before', residuals[i - 1]), (f'after + {step.effect}', residuals[i])],
+            f'Step {i}: residual before and after adding {step.effect}' + grey,
+            report.excluded_spans,
+        )
+        field = s['effect_fields'][i - 1] if i - 1 < len(s['effect_fields']) else None
+        if field is not None and f'effect_{step.effect}' not in figures:
+            figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
+            shown = tuple(k for k in range(4) if np.any(field[:, k])) or sensors
+            _plot_effect(out / figures[f'effect_{step.effect}'], t, shown, step.effect, field)
+    return figures

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from ..core import (
     CurrentProfile,
@@ -161,8 +162,8 @@ def _segment(entry: dict, index: int) -> TrimManoeuvre | SurveyLine:
         raise ScenarioError(f'{where}: {error}') from None
 
 
-def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
-    """Build the scenario and return it with its seed."""
+def _check_document(document: dict[str, Any]) -> None:
+    """The top level's keys and the types of its sections."""
     if not isinstance(document, dict):
         raise ScenarioError('a scenario must be a mapping')
     unknown = set(document) - TOP_LEVEL_KEYS
@@ -175,13 +176,9 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
         raise ScenarioError('segments: expected a list of {trim: ...} / {line: ...}')
     if not isinstance(document.get('dipoles') or [], list):
         raise ScenarioError('dipoles: expected a list of {position_m, moment_Am2}')
-    try:
-        seed = int(document.get('seed', 0))
-    except (TypeError, ValueError):
-        raise ScenarioError(f'seed must be an integer, got {document.get("seed")!r}') from None
-    _positive(document, 'sample_rate_hz', 'scenario')
-    _positive(document, 'noise_nT', 'scenario', allow_zero=True)
-    geometry_spec = document.get('geometry') or {'regular_edge_m': 0.5}
+
+
+def _geometry(geometry_spec: dict[str, Any]) -> TetraGeometry:
     try:
         if 'sensor_positions_m' in geometry_spec:
             geometry = TetraGeometry.from_flat(geometry_spec['sensor_positions_m'])
@@ -189,7 +186,10 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
             geometry = TetraGeometry.regular(float(geometry_spec.get('regular_edge_m', 0.5)))
     except (TypeError, ValueError) as error:
         raise ScenarioError(f'geometry: {error}') from None
-    earth = document.get('earth_field') or {'enu_nT': [0.0, 20000.0, -45000.0]}
+    return geometry
+
+
+def _earth_field(earth: dict[str, Any]) -> npt.NDArray[np.float64]:
     if 'igrf' in earth:
         spec = earth['igrf']
         try:
@@ -208,14 +208,10 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
             raise ScenarioError(f'earth_field.igrf: {error}') from None
     else:
         earth_field = _vec(earth, 'enu_nT', (3,), 'earth_field', T_PER_NT)
-    dipoles = [
-        Dipole(
-            _vec(d, 'position_m', (3,), f'dipoles[{i}]'),
-            _vec(d, 'moment_Am2', (3,), f'dipoles[{i}]'),
-        )
-        for i, d in enumerate(document.get('dipoles', []))
-    ]
-    interference_spec = document.get('interference', {})
+    return earth_field
+
+
+def _interference(interference_spec: dict[str, Any], seed: int) -> SensorInterference:
     if 'random' in interference_spec:
         spec = interference_spec['random'] or {}
         _positive(spec, 'k_scale', 'interference.random', allow_zero=True)
@@ -233,12 +229,15 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
         )
     else:
         interference = SensorInterference.zero()
-    effects_spec = document.get('effects') or {}
+    return interference
+
+
+def _effects(effects_spec: dict[str, Any]) -> Effects:
     unknown = set(effects_spec) - set(EFFECT_KEYS)
     if unknown:
         raise ScenarioError(f'effects: unknown {sorted(unknown)}; known: {sorted(EFFECT_KEYS)}')
     shapes = {'eddy_current': (4, 3, 3), 'time_skew_s': (4,)}
-    effects = Effects(
+    return Effects(
         **{
             name: _vec(
                 effects_spec[name], key, shapes.get(name, (4, 3)), f'effects.{name}', factor
@@ -247,14 +246,36 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
             if name in effects_spec
         }
     )
+
+
+def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
+    """Build the scenario and return it with its seed."""
+    _check_document(document)
+    try:
+        seed = int(document.get('seed', 0))
+    except (TypeError, ValueError):
+        raise ScenarioError(f'seed must be an integer, got {document.get("seed")!r}') from None
+    _positive(document, 'sample_rate_hz', 'scenario')
+    _positive(document, 'noise_nT', 'scenario', allow_zero=True)
+    geometry = _geometry(document.get('geometry') or {'regular_edge_m': 0.5})
+    earth_field = _earth_field(document.get('earth_field') or {'enu_nT': [0.0, 20000.0, -45000.0]})
+    dipoles = [
+        Dipole(
+            _vec(d, 'position_m', (3,), f'dipoles[{i}]'),
+            _vec(d, 'moment_Am2', (3,), f'dipoles[{i}]'),
+        )
+        for i, d in enumerate(document.get('dipoles', []))
+    ]
+    interference = _interference(document.get('interference', {}), seed)
+    effects = _effects(document.get('effects') or {})
     segments = [_segment(entry, i) for i, entry in enumerate(document.get('segments') or [])]
     try:
         scenario = Scenario(
             geometry=geometry,
             earth_field_enu=earth_field,
-            segments=segments,
+            segments=tuple(segments),
             sample_rate_hz=float(document.get('sample_rate_hz', 10.0)),
-            dipoles=dipoles,
+            dipoles=tuple(dipoles),
             interference=interference,
             noise_t=float(document.get('noise_nT', 0.1)) * T_PER_NT,
             effects=effects,
@@ -305,5 +326,6 @@ DEFAULT_SCENARIO: dict[str, Any] = {
 
 
 def load_scenario_or_default(path: str | os.PathLike = '') -> tuple[Scenario, int]:
-    """``(Scenario, seed)`` from a scenario file, or :data:`DEFAULT_SCENARIO` when ``path`` is empty."""
+    """``(Scenario, seed)`` from a scenario file, or :data:`DEFAULT_SCENARIO` when ``path``
+    is empty."""
     return load_scenario(path) if path else scenario_from_dict(copy.deepcopy(DEFAULT_SCENARIO))

@@ -1,1 +1,2 @@
-"""ROS 2 nodes: driver, tensor, calibrator, compensator (thin: message -> array -> core -> message)."""
+"""ROS 2 nodes: driver, tensor, calibrator, compensator (thin: message -> array -> core ->
+message), and their shared helpers (``common``)."""

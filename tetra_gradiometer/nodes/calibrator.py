@@ -183,7 +183,7 @@ class CalibratorNode(Node):
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
             self._g, self._b = [], []
-            self._pairer = StampPairer(2)
+            self._pairer.clear()
             self._collecting = True
         self._state = 'collecting'
         response.success, response.message = True, 'collecting (earlier samples discarded)'
@@ -247,7 +247,8 @@ class CalibratorNode(Node):
         return True, (
             f'{s["method"]}: {s["n_samples"]} samples, {s["n_parameters"]} parameters, rank '
             f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
-            f'{s["attitude_coverage_condition"]:.3g}, fit residual {s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}'
+            f'{s["attitude_coverage_condition"]:.3g}, fit residual '
+            f'{s["residual_rms_nT_per_m"]:.3g} nT/m; written to {path}'
         )
 
     def _publish_diagnostics(self) -> None:
@@ -264,6 +265,7 @@ class CalibratorNode(Node):
                     'state': self._state,
                     'samples': self.n_samples,
                     'calibrations': self._calibrations,
+                    'unpaired_evicted': self._pairer.evicted,
                     'method': self.get_parameter('method').value,
                     'calibration_file': str(self._calibration_path),
                 },

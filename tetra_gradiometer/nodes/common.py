@@ -1,11 +1,14 @@
-"""Shared plumbing of the nodes (no Node class here): QoS profiles, declared and validated
-parameters, throttled warnings, diagnostics helpers and stamp pairing.
+"""The one module of shared ROS helpers (no Node class here): QoS profiles, declared and
+validated parameters, throttled warnings, diagnostics helpers, stamp pairing, and the
+start/stop of nodes (``spin_node``) and of in-process graphs (``interrupt_on_signals``,
+``stop_graph``, used by the commands in ``cli/``).
 
 QoS (docs/ros.md has the full table):
 
 * magnetometer subscriptions: sensor-data style (best effort, volatile, keep last
   ``sensor_queue_depth``);
-* derived topics (tensors, reference field, metrics): reliable, volatile, keep last 100;
+* derived topics (tensors, reference field, metrics): reliable, volatile, keep last
+  ``DERIVED_DEPTH`` (1000);
 * ``calibration``: reliable, transient local, keep last 1 (latched).
 """
 
@@ -259,7 +262,8 @@ class Throttle:
 class StampPairer:
     """Joins ``n`` streams on identical header stamps (ns): :meth:`add` returns the tuple of
     values once every stream has delivered that stamp. Bounded: the oldest incomplete
-    stamps are evicted (and counted) beyond ``max_pending``."""
+    stamps are evicted beyond ``max_pending`` and counted in :attr:`evicted` (the nodes
+    report it on ``/diagnostics``)."""
 
     def __init__(self, n: int, max_pending: int = 1000) -> None:
         self.n = int(n)
@@ -279,6 +283,10 @@ class StampPairer:
             del self._pending[stamp_ns]
             return tuple(slot)
         return None
+
+    def clear(self) -> None:
+        """Forget the incomplete stamps (:attr:`evicted` keeps counting)."""
+        self._pending.clear()
 
 
 def key_values(values: dict[str, Any]) -> list:

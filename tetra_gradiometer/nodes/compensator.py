@@ -15,6 +15,8 @@ with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
@@ -55,9 +57,9 @@ PARAMETERS = [
     ParamSpec(
         'calibration_file',
         'calibration.yaml',
-        'Calibration loaded at start (YAML, as the '
-        'calibrator writes it); "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros). '
-        'Missing or corrupt: run uncompensated.',
+        'Calibration loaded at start (YAML, as the calibrator writes it); "~" is expanded, '
+        'a relative path is under $ROS_HOME (default ~/.ros). Missing or corrupt: run '
+        'uncompensated.',
     ),
     ParamSpec(
         'max_pending',
@@ -87,7 +89,8 @@ class CompensatorNode(Node):
         self._inputs = StampPairer(2, p['max_pending'])  # raw, reference
         self._truth = StampPairer(2, p['max_pending'])  # (raw, compensated), truth
         self._warn = Throttle(p['warn_throttle_s'])
-        self._parameters: InterferenceParameters | None = None
+        # Not ``_parameters``: rclpy's Node keeps its declared parameters under that name.
+        self._interference: InterferenceParameters | None = None
         self._source = ''
         self._problem = 'no calibration loaded yet'
         self.published = 0
@@ -113,7 +116,7 @@ class CompensatorNode(Node):
 
     @property
     def compensating(self) -> bool:
-        return self._parameters is not None
+        return self._interference is not None
 
     def _load_file(self, path: str) -> None:
         try:
@@ -134,7 +137,7 @@ class CompensatorNode(Node):
         check_positions(
             calibration, self._geometry, source=source, target='sensor_positions of this node'
         )
-        self._parameters = calibration.parameters
+        self._interference = calibration.parameters
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
         self._problem = ''
         self._reset_metrics()
@@ -169,22 +172,25 @@ class CompensatorNode(Node):
                     f'dropped a non-finite or malformed input at stamp {stamp_ns} ns'
                 )
             return
-        if self._parameters is None:
+        if self._interference is None:
             g = g_raw
         else:
-            g = compensate(g_raw[None], b_reference[None], self._parameters, self._geometry)[0]
+            g = compensate(g_raw[None], b_reference[None], self._interference, self._geometry)[0]
         self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
         self._norm_pub.publish(Float64(data=float(np.linalg.norm(g) * NT_PER_T)))
         self.published += 1
-        triple = self._truth.add(0, stamp_ns, (g_raw, g))
-        if triple is not None:
-            self._score(*triple[0], triple[1])
+        self._pair_truth(0, stamp_ns, (g_raw, g))
 
     def _on_truth(self, msg: JointState) -> None:
         g_true = tensor_or_nan(msg)
-        triple = self._truth.add(1, cv.stamp_to_ns(msg.header.stamp), g_true)
-        if triple is not None:
-            self._score(*triple[0], triple[1])
+        self._pair_truth(1, cv.stamp_to_ns(msg.header.stamp), g_true)
+
+    def _pair_truth(self, stream: int, stamp_ns: int, value: Any) -> None:
+        """Join ``(G_m, G)`` (stream 0) with ``gradient/truth`` (stream 1) and score the pair."""
+        matched = self._truth.add(stream, stamp_ns, value)
+        if matched is not None:
+            (g_before, g_after), g_true = matched
+            self._score(g_before, g_after, g_true)
 
     def _score(self, g_before: np.ndarray, g_after: np.ndarray, g_true: np.ndarray) -> None:
         """Running mean of the eq. 24 terms (a sample where it is undefined is skipped)."""
@@ -228,6 +234,8 @@ class CompensatorNode(Node):
                     'dropped_non_finite': self.dropped_non_finite,
                     'epsilon': float(eps),
                     'scored_samples': self._eps_count,
+                    'unpaired_evicted': self._inputs.evicted,
+                    'unscored_evicted': self._truth.evicted,
                 },
             )
         )

@@ -1,8 +1,8 @@
 """``driver`` node: the magnetometer source, simulated or replayed.
 
 ``mode: sim`` flies the core mission simulator (``scenario``: a scenario YAML for
-io/scenario.py, or the built-in default (``io.scenario.DEFAULT_SCENARIO``): a trim manoeuvre far from the
-target, then a survey line over a dipole). It publishes ``mag1``..``mag4``
+io/scenario.py, or the built-in default ``io.scenario.DEFAULT_SCENARIO``: a trim manoeuvre
+far from the target, then a survey line over a dipole). It publishes ``mag1``..``mag4``
 (sensor_msgs/MagneticField, T, frames tetra_mag1..4, header.stamp = sample time: the start
 time plus the simulated time of the sample), ``gradient/truth`` (the simulator's ``g_true``,
 JointState T/m) and ``/odom`` (nav_msgs/Odometry, body -> world ENU).
@@ -17,7 +17,8 @@ driver moves on and counts a timeout).
 
 ``start_paused`` waits for ``~/resume``; ``hold_between_segments`` (sim) pauses after each
 scenario segment until ``~/resume`` (so a trim can be calibrated before the survey starts).
-State, segment and counts go to ``/diagnostics``.
+State, segment and counts go to ``/diagnostics``. The frames come from io/replay.py
+(``simulate``, ``iter_frames``); this node only paces them and answers the services.
 """
 
 from __future__ import annotations
@@ -25,20 +26,20 @@ from __future__ import annotations
 import os
 import time
 from collections import deque
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Generator
 from typing import Any
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
-from ..core.units import NS_PER_S, S_PER_NS
+from ..core.units import NS_PER_S
 from ..errors import InputError
 from ..io import conversions as cv
+from ..io import replay
+from ..io.replay import MAG, ODOM, TRUTH, Frame
 from .common import (
     NAMESPACE,
     OK,
@@ -123,133 +124,6 @@ PARAMETERS = [
 #: subscribers' side of the discovery has completed too.
 MATCH_SETTLE_S = 0.5
 
-#: Publisher keys of a frame's messages.
-MAG, TRUTH, ODOM = 'mag', 'truth', 'odom'
-
-
-@dataclass
-class Frame:
-    """Messages to publish together: ``pace_ns`` orders and times them (relative ns);
-    ``segment`` is the scenario segment (sim) or 0; ``items`` are (key, sensor, message)."""
-
-    pace_ns: int
-    segment: int
-    mag1_stamp: int | None
-    items: list[tuple[str, int, Any]]
-
-
-def sim_frames(
-    node: Node,
-    scenario_path: str,
-    seed: int,
-    start_ns: int,
-    max_duration_s: float,
-    types: cv.MessageTypes,
-) -> tuple[Iterator[Frame], dict[str, Any]]:
-    """Simulate the mission and yield one frame per sample (4 mags, truth, odom)."""
-    from ..core import simulate
-    from ..io.scenario import load_scenario_or_default
-
-    scenario, scenario_seed = load_scenario_or_default(scenario_path)
-    mission = simulate(scenario, np.random.default_rng(scenario_seed if seed < 0 else seed))
-    n = len(mission)
-    if max_duration_s > 0:
-        n = int(np.searchsorted(mission.t, max_duration_s, side='left'))
-    kinds = [type(s).__name__ for s in scenario.segments]
-    info = {'samples': n, 'segments': ', '.join(kinds), 'sample_rate_hz': scenario.sample_rate_hz}
-    node.get_logger().info(
-        f'sim: {n} samples at {scenario.sample_rate_hz:g} Hz, segments {kinds}, '
-        f'{len(scenario.dipoles)} dipole(s)'
-    )
-
-    def frames() -> Iterator[Frame]:
-        for i in range(n):
-            pace = int(round(mission.t[i] * NS_PER_S))
-            stamp = start_ns + pace
-            items = [
-                (
-                    MAG,
-                    s,
-                    cv.magnetic_field_msg(
-                        types, mission.fields_measured[i, s], stamp, cv.MAG_FRAMES[s]
-                    ),
-                )
-                for s in range(4)
-            ]
-            items.append((TRUTH, 0, cv.tensor_msg(types, mission.g_true[i], stamp)))
-            items.append(
-                (
-                    ODOM,
-                    0,
-                    cv.odometry_msg(
-                        types, mission.position_enu[i], mission.orientation_xyzw[i], stamp
-                    ),
-                )
-            )
-            yield Frame(pace, int(mission.segment[i]), stamp, items)
-
-    return frames(), info
-
-
-def replay_frames(
-    node: Node, path: str, max_duration_s: float, types: cv.MessageTypes
-) -> tuple[Iterator[Frame], dict[str, Any]]:
-    """Yield one frame per recorded message, paced by log time."""
-    from ..io.bag import MagneticBag
-
-    bag = MagneticBag(path).__enter__()
-    try:
-        count = bag.check_contract()
-    except Exception:
-        bag.__exit__(None, None, None)
-        raise
-    topics = {t: (MAG, i) for i, t in enumerate(cv.BAG_MAG_TOPICS)}
-    topics[f'{NAMESPACE}/gradient/truth'] = (TRUTH, 0)
-    topics[cv.ODOM_TOPIC] = (ODOM, 0)
-    reader = bag.reader
-    connections = [c for c in reader.connections if c.topic in topics]
-    info = {'messages': count, 'topics': ', '.join(sorted({c.topic for c in connections}))}
-    node.get_logger().info(
-        f'replay: {path}: {count} magnetometer messages; topics {info["topics"]}'
-    )
-
-    def frames() -> Iterator[Frame]:
-        first = None
-        try:
-            for connection, log_ns, raw in reader.messages(connections=connections):
-                first = log_ns if first is None else first
-                if max_duration_s > 0 and (log_ns - first) * S_PER_NS > max_duration_s:
-                    break
-                msg = reader.deserialize(raw, connection.msgtype)
-                key, sensor = topics[connection.topic]
-                stamp = cv.stamp_to_ns(msg.header.stamp)
-                if key == MAG:
-                    out = cv.magnetic_field_msg(
-                        types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id
-                    )
-                elif key == TRUTH:
-                    out = cv.tensor_msg(types, cv.tensor_from_msg(msg), stamp)
-                else:
-                    p = msg.pose.pose.position
-                    out = cv.odometry_msg(
-                        types,
-                        np.array([p.x, p.y, p.z]),
-                        cv.odometry_orientation(msg),
-                        stamp,
-                        frame_id=msg.header.frame_id,
-                        child_frame_id=msg.child_frame_id,
-                    )
-                yield Frame(
-                    log_ns - first,
-                    0,
-                    stamp if (key == MAG and sensor == 0) else None,
-                    [(key, sensor, out)],
-                )
-        finally:
-            bag.__exit__(None, None, None)
-
-    return frames(), info
-
 
 class DriverNode(Node):
     """Publishes the magnetometers (and truth, odometry) from the simulator or a bag."""
@@ -265,20 +139,7 @@ class DriverNode(Node):
         self._mode = p['mode']
         self._min_subscribers = int(p['min_subscribers'])
         self._matched_since: float | None = None
-        types = cv.rclpy_types()
-        if self._mode == 'sim':
-            start_ns = self.get_clock().now().nanoseconds
-            self._frames, self.info = sim_frames(
-                self, p['scenario'], p['seed'], start_ns, p['max_duration_s'], types
-            )
-            period = 1.0 / (self.info['sample_rate_hz'] * self._rate) if self._rate > 0 else 0.01
-        else:
-            if not p['bag']:
-                raise InputError('mode replay needs the parameter "bag" (a rosbag2 folder)')
-            self._frames, self.info = replay_frames(
-                self, os.path.expanduser(p['bag']), p['max_duration_s'], types
-            )
-            period = 0.005 if self._rate > 0 else 0.01
+        self._frames, self.info, period = self._open_source(p)
         self._next: Frame | None = next(self._frames, None)
         self.state = 'paused' if p['start_paused'] else 'playing'
         self.segment = self._next.segment if self._next is not None else -1
@@ -301,6 +162,36 @@ class DriverNode(Node):
         self.create_service(Trigger, '~/pause', self._on_pause)
         self.create_timer(min(max(period, 0.002), 0.05), self._tick)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+
+    def _open_source(
+        self, p: dict[str, Any]
+    ) -> tuple[Generator[Frame, None, None], dict[str, Any], float]:
+        """The frames to play (io/replay.py), their description and the tick period, s."""
+        types = cv.rclpy_types()
+        if self._mode == 'sim':
+            start_ns = self.get_clock().now().nanoseconds
+            frames, info = replay.simulate(
+                p['scenario'],
+                p['seed'],
+                types,
+                start_ns=start_ns,
+                max_duration_s=p['max_duration_s'],
+            )
+            self.get_logger().info(
+                f'sim: {info["samples"]} samples at {info["sample_rate_hz"]:g} Hz, segments '
+                f'[{info["segments"]}], {info["dipoles"]} dipole(s)'
+            )
+            rate_hz = info['sample_rate_hz'] * self._rate
+            return frames, info, 1.0 / rate_hz if self._rate > 0 else 0.01
+        if not p['bag']:
+            raise InputError('mode replay needs the parameter "bag" (a rosbag2 folder)')
+        path = os.path.expanduser(p['bag'])
+        info = replay.describe_bag(path)
+        self.get_logger().info(
+            f'replay: {path}: {info["messages"]} magnetometer messages; topics {info["topics"]}'
+        )
+        frames = replay.iter_frames(path, types, max_duration_s=p['max_duration_s'])
+        return frames, info, 0.005 if self._rate > 0 else 0.01
 
     # ----------------------------------------------------------------- playing
 
@@ -330,7 +221,10 @@ class DriverNode(Node):
                 self._set_state('holding')
                 return
             if self._rate > 0:
-                if frame.pace_ns > self._origin[1] + (now - self._origin[0]) * self._rate * NS_PER_S:
+                if (
+                    frame.pace_ns
+                    > self._origin[1] + (now - self._origin[0]) * self._rate * NS_PER_S
+                ):
                     return
             elif len(self._in_flight) >= self._window:
                 if now - self._last_progress < self._ack_timeout:

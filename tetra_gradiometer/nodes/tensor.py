@@ -1,7 +1,7 @@
 """``tensor`` node: the four magnetometers -> the measured gradient tensor ``G_m`` (eq. 7).
 
 Subscribes ``mag1``..``mag4`` (sensor_msgs/MagneticField, T, sensor-data QoS), matches them
-by header stamp (:class:`~tetra_gradiometer.matching.StampMatcher`, ``stamp_tolerance_s``),
+by header stamp (:class:`~tetra_gradiometer.io.matching.StampMatcher`, ``stamp_tolerance_s``),
 drops and counts incomplete sets and sets with a non-finite or implausible reading
 (``|B| > max_field_t`` on any sensor), and publishes, for every good set, with sensor 1's stamp:
 
@@ -18,6 +18,8 @@ published until it is back.
 from __future__ import annotations
 
 import time
+from dataclasses import asdict
+from functools import partial
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -86,8 +88,8 @@ PARAMETERS = [
         'jump_back_s',
         1.0,
         "A stamp this much older than its sensor's previous one (s) means the "
-        'source restarted (e.g. a new replay): the matcher is reset instead of dropping everything as '
-        'out of order.',
+        'source restarted (e.g. a new replay): the matcher is reset instead of dropping '
+        'everything as out of order.',
         positive,
         float_range=(1e-6, 1e9),
     ),
@@ -100,6 +102,16 @@ PARAMETERS = [
     ),
     diagnostics_period_spec(),
 ]
+
+
+#: The stamp matcher's counters (io/matching.MatchCounters) -> their /diagnostics keys. A
+#: counter not named here is reported too, as ``matcher_<name>``.
+MATCHER_KEYS = {
+    'matched': 'sets_matched',
+    'dropped_messages': 'messages_dropped_unmatched',
+    'evicted_messages': 'messages_evicted',
+    'out_of_order': 'messages_out_of_order',
+}
 
 
 class TensorNode(Node):
@@ -116,10 +128,7 @@ class TensorNode(Node):
         self._max_pending = int(p['max_pending'])
         self._jump_back_ns = int(round(p['jump_back_s'] * NS_PER_S))
         self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
-        self._earlier = {
-            'dropped_messages': 0,
-            'out_of_order': 0,
-        }  # counts of matchers reset before
+        self._earlier: dict[str, int] = {}  # counts of the matchers reset before
         self._last_stamp: list[int | None] = [None] * 4
         self.resets = 0
         self._types = cv.rclpy_types()
@@ -143,9 +152,7 @@ class TensorNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         qos = sensor_qos(p['sensor_queue_depth'])
         self._subs = [
-            self.create_subscription(
-                MagneticField, topic, lambda msg, s=i: self._on_mag(s, msg), qos
-            )
+            self.create_subscription(MagneticField, topic, partial(self._on_mag, i), qos)
             for i, topic in enumerate(cv.MAG_TOPICS)
         ]
         self._diag_timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
@@ -179,8 +186,7 @@ class TensorNode(Node):
 
     def _reset_matcher(self, sensor: int, jump_ns: int) -> None:
         """The source went back in time (a new replay): start matching afresh."""
-        for key in self._earlier:
-            self._earlier[key] += getattr(self._matcher.counters, key)
+        self._earlier = self._matcher_counts()
         self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
         self._last_stamp = [None] * 4
         self.resets += 1
@@ -188,6 +194,11 @@ class TensorNode(Node):
             f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * S_PER_NS:.3g} s in time: '
             f'stamp matching restarted'
         )
+
+    def _matcher_counts(self) -> dict[str, int]:
+        """The stamp matcher's counters, including those of the matchers reset before."""
+        counters = asdict(self._matcher.counters)
+        return {key: value + self._earlier.get(key, 0) for key, value in counters.items()}
 
     def _emit(self, stamp_ns: int, fields: np.ndarray) -> None:
         """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T)."""
@@ -200,8 +211,9 @@ class TensorNode(Node):
             if self._warn():
                 names = [cv.MAG_TOPICS[s] for s in np.flatnonzero(bad)]
                 self.get_logger().warning(
-                    f'dropped a set at stamp {stamp_ns} ns: non-finite or |B| > {self._max_field:g} T on '
-                    f'{", ".join(names)} ({self.sets_invalid} sets dropped so far)'
+                    f'dropped a set at stamp {stamp_ns} ns: non-finite or '
+                    f'|B| > {self._max_field:g} T on {", ".join(names)} '
+                    f'({self.sets_invalid} sets dropped so far)'
                 )
             return
         if self._stale_sensors():
@@ -226,7 +238,8 @@ class TensorNode(Node):
         now = time.monotonic()
         mark_time, mark_counts = self._rate_mark
         if now - mark_time > 0:
-            self._rate = [(c - m) / (now - mark_time) for c, m in zip(self._received, mark_counts)]
+            pairs = zip(self._received, mark_counts, strict=True)
+            self._rate = [(c - m) / (now - mark_time) for c, m in pairs]
         self._rate_mark = (now, list(self._received))
         stale = self._stale_sensors()
         array = DiagnosticArray()
@@ -260,8 +273,8 @@ class TensorNode(Node):
                     },
                 )
             )
-        counters = self._matcher.counters
-        dropped = counters.dropped_messages + self._earlier['dropped_messages']
+        counts = self._matcher_counts()
+        dropped = counts.get('dropped_messages', 0)
         level = ERROR if stale else (WARN if self.sets_invalid or dropped else OK)
         text = (
             f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}'
@@ -278,9 +291,7 @@ class TensorNode(Node):
                     'sets_published': self.sets_published,
                     'sets_dropped_invalid': self.sets_invalid,
                     'sets_dropped_stale': self.sets_stale,
-                    'messages_dropped_unmatched': counters.dropped_messages
-                    + self._earlier['dropped_messages'],
-                    'messages_out_of_order': counters.out_of_order + self._earlier['out_of_order'],
+                    **{MATCHER_KEYS.get(k, f'matcher_{k}'): v for k, v in counts.items()},
                     'matcher_resets': self.resets,
                 },
             )

@@ -11,6 +11,7 @@ from .._validate import as_tensors, as_vectors, same_length
 from ..design import CONSTRAINT_ROWS, constraint_design, constraint_residual, interference_design
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters, interference_tensor, n_parameters
+from ..types import ArrayLike, FloatArray
 from ..units import NT_PER_T
 from ._linear import AffineReduction, reduce_affine, solve_scaled
 from .result import TensorCalibration
@@ -21,7 +22,7 @@ MIN_SAMPLES = 10
 MAX_COVERAGE_CONDITION = 1.0e4
 
 
-def paper_bounds(*, symmetric: bool = True, wide: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def paper_bounds(*, symmetric: bool = True, wide: bool = False) -> tuple[FloatArray, FloatArray]:
     """Bounds of eq. 23 in SI: ``0 <= k <= 0.01``, ``0 <= b <= 10 nT``.
 
     ``wide=True`` gives ``|k| <= 1``, ``|b| <= 1000 nT`` instead (the printed bounds exclude
@@ -34,7 +35,7 @@ def paper_bounds(*, symmetric: bool = True, wide: bool = False) -> tuple[np.ndar
     return lower, upper
 
 
-def attitude_coverage(b_reference: object) -> float:
+def attitude_coverage(b_reference: ArrayLike) -> float:
     """Condition number of ``[B_1' 1]`` with unit-norm columns: how well the body-frame field
     directions (and the offset) are separated. Near 1-10: rich trim manoeuvre; infinite: one
     direction only (``K`` and ``B^h`` inseparable).
@@ -53,7 +54,7 @@ def attitude_coverage(b_reference: object) -> float:
     return float('inf') if singular[-1] == 0.0 else float(singular[0] / singular[-1])
 
 
-def _noise_whitener(geometry: TetraGeometry) -> np.ndarray:
+def _noise_whitener(geometry: TetraGeometry) -> FloatArray:
     """Right-multiplier making each tensor row's noise white for i.i.d. sensor noise.
 
     A tensor row is ``e a^-1`` with ``e = (n_2 - n_1, n_3 - n_1, n_4 - n_1)`` per axis,
@@ -64,7 +65,7 @@ def _noise_whitener(geometry: TetraGeometry) -> np.ndarray:
 
 def _reduced_design(
     reduction: AffineReduction, geometry: TetraGeometry, *, symmetric: bool
-) -> np.ndarray:
+) -> FloatArray:
     """The interference design (eq. 18) at the 4 pseudo-samples of ``reduction``, (4, 9, P):
     the offset columns weighted by the pseudo-samples' 4th regressor instead of 1."""
     r = reduction.regressors
@@ -82,11 +83,11 @@ def _check_samples(n: int, method: str) -> None:
 
 
 def known_gradient_lstsq(
-    g_measured: object,
-    b_reference: object,
+    g_measured: ArrayLike,
+    b_reference: ArrayLike,
     geometry: TetraGeometry,
     *,
-    g_true: object | None = None,
+    g_true: ArrayLike | None = None,
     symmetric_k: bool = True,
     max_coverage_condition: float = MAX_COVERAGE_CONDITION,
 ) -> TensorCalibration:
@@ -127,7 +128,8 @@ def known_gradient_lstsq(
     if not coverage <= max_coverage_condition:
         raise IdentifiabilityError(
             f'{method}: the body-frame field spans too few directions (attitude coverage '
-            f'condition number {coverage:.3g} > {max_coverage_condition:.3g}); turn, roll and pitch more'
+            f'condition number {coverage:.3g} > {max_coverage_condition:.3g}); '
+            'turn, roll and pitch more'
         )
     whitener = _noise_whitener(geometry)
     target_w = (g_measured - g_true) @ whitener  # (N, 3, 3): rows of G, whitened columns
@@ -163,8 +165,12 @@ def known_gradient_lstsq(
 
 
 def constraint_objective(
-    g_measured: object, b_reference: object, geometry: TetraGeometry, *, symmetric_k: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
+    g_measured: ArrayLike,
+    b_reference: ArrayLike,
+    geometry: TetraGeometry,
+    *,
+    symmetric_k: bool = True,
+) -> tuple[FloatArray, FloatArray]:
     """The linear system behind eqs. 21-22: ``F(theta) = |A theta - y|^2``.
 
     Returns
@@ -182,8 +188,8 @@ def constraint_objective(
 
 
 def constraint_lstsq(
-    g_measured: object,
-    b_reference: object,
+    g_measured: ArrayLike,
+    b_reference: ArrayLike,
     geometry: TetraGeometry,
     *,
     symmetric_k: bool = True,

@@ -16,9 +16,11 @@ probability 0.9, crossover 0.8, mutation 0.8, bounds of eq. 23. Not printed, our
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters
+from ..types import ArrayLike, FloatArray
 from ._linear import solve_scaled
 from .lstsq import _check_samples, constraint_objective, paper_bounds
 from .result import TensorCalibration
@@ -31,7 +33,7 @@ MUTATION_PROBABILITY = 0.8
 GENERATIONS = 1000
 
 
-def _decode(chromosomes: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+def _decode(chromosomes: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> FloatArray:
     """(M, P*bits) bits -> (M, P) values in [lower, upper]."""
     m, n_par = len(chromosomes), len(lower)
     weights = 2 ** np.arange(GENE_BITS - 1, -1, -1)
@@ -39,7 +41,7 @@ def _decode(chromosomes: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np
     return lower + (upper - lower) * integers / (2**GENE_BITS - 1)
 
 
-def _ranking_fitness(objective: np.ndarray) -> np.ndarray:
+def _ranking_fitness(objective: np.ndarray) -> FloatArray:
     """Linear ranking, selective pressure 2: best (lowest objective) 2, worst 0."""
     order = np.argsort(-objective, kind='stable')  # worst first
     fitness = np.empty_like(objective)
@@ -47,7 +49,7 @@ def _ranking_fitness(objective: np.ndarray) -> np.ndarray:
     return fitness
 
 
-def _sus(fitness: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+def _sus(fitness: np.ndarray, count: int, rng: np.random.Generator) -> FloatArray:
     """Stochastic universal sampling: ``count`` indices, shuffled."""
     cumulative = np.cumsum(fitness)
     step = cumulative[-1] / count
@@ -56,9 +58,29 @@ def _sus(fitness: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarra
     return rng.permutation(np.minimum(chosen, len(fitness) - 1))
 
 
+def _offspring(
+    population: npt.NDArray[np.int8],
+    scores: npt.NDArray[np.float64],
+    n_offspring: int,
+    rng: np.random.Generator,
+) -> npt.NDArray[np.int8]:
+    """One generation's offspring: SUS on ranking fitness, one-point crossover, bit flips."""
+    length = population.shape[1]
+    offspring = population[_sus(_ranking_fitness(scores), n_offspring, rng)].copy()
+    for first in range(0, n_offspring - 1, 2):
+        if rng.random() < CROSSOVER_PROBABILITY:
+            cut = rng.integers(1, length)
+            tail = offspring[first, cut:].copy()
+            offspring[first, cut:] = offspring[first + 1, cut:]
+            offspring[first + 1, cut:] = tail
+    mutate = np.flatnonzero(rng.random(n_offspring) < MUTATION_PROBABILITY)
+    offspring[mutate, rng.integers(0, length, size=len(mutate))] ^= 1
+    return offspring
+
+
 def paper_ga(
-    g_measured: object,
-    b_reference: object,
+    g_measured: ArrayLike,
+    b_reference: ArrayLike,
     geometry: TetraGeometry,
     *,
     rng: np.random.Generator,
@@ -99,7 +121,7 @@ def paper_ga(
     gram = design.T @ design
     floor = float(exact.residual @ exact.residual)
 
-    def objective(values: np.ndarray) -> np.ndarray:
+    def objective(values: np.ndarray) -> FloatArray:
         delta = values - exact.theta
         return np.einsum('mp,pq,mq->m', delta, gram, delta) + floor
 
@@ -110,15 +132,7 @@ def paper_ga(
     initial = float(scores.min())
     history = [initial]
     for _ in range(generations):
-        offspring = population[_sus(_ranking_fitness(scores), n_offspring, rng)].copy()
-        for first in range(0, n_offspring - 1, 2):
-            if rng.random() < CROSSOVER_PROBABILITY:
-                cut = rng.integers(1, length)
-                tail = offspring[first, cut:].copy()
-                offspring[first, cut:] = offspring[first + 1, cut:]
-                offspring[first + 1, cut:] = tail
-        mutate = np.flatnonzero(rng.random(n_offspring) < MUTATION_PROBABILITY)
-        offspring[mutate, rng.integers(0, length, size=len(mutate))] ^= 1
+        offspring = _offspring(population, scores, n_offspring, rng)
         offspring_scores = objective(_decode(offspring, lower, upper))
         worst = np.argsort(scores)[POPULATION - n_offspring :]
         population[worst], scores[worst] = offspring, offspring_scores

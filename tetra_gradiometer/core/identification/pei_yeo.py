@@ -14,13 +14,17 @@ import numpy as np
 from ...errors import InputError
 from .._validate import as_fields, as_tensors, same_length
 from ..geometry import TetraGeometry
+from ..types import ArrayLike
 from ._linear import solve_scaled
 from .lstsq import _check_samples
 from .result import ReferenceSensorCalibration
 
 
 def pei_yeo_2009(
-    fields_measured: object, *, geometry: TetraGeometry | None = None, g_true: object | None = None
+    fields_measured: ArrayLike,
+    *,
+    geometry: TetraGeometry | None = None,
+    g_true: ArrayLike | None = None,
 ) -> ReferenceSensorCalibration:
     """Fit ``M_i``, ``o_i`` for sensors 2-4 against sensor 1.
 

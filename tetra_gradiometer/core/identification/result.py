@@ -10,6 +10,7 @@ import numpy as np
 from .._validate import as_fields
 from ..geometry import TetraGeometry, difference_tensor
 from ..model import InterferenceParameters, compensate_fields
+from ..types import ArrayLike, FloatArray
 from ..units import NT_PER_T
 
 
@@ -49,7 +50,7 @@ class Calibration(ABC):
         return self.n_parameters - self.rank
 
     @abstractmethod
-    def compensate_fields(self, fields_measured: object, geometry: TetraGeometry) -> np.ndarray:
+    def compensate_fields(self, fields_measured: ArrayLike, geometry: TetraGeometry) -> FloatArray:
         """Compensated tensor from raw readings, (N, 4, 3) tesla -> (N, 3, 3) T/m."""
 
     def summary(self) -> dict:
@@ -78,7 +79,7 @@ class TensorCalibration(Calibration):
     symmetric: bool = True
     covariance: np.ndarray | None = None
 
-    def compensate_fields(self, fields_measured: object, geometry: TetraGeometry) -> np.ndarray:
+    def compensate_fields(self, fields_measured: ArrayLike, geometry: TetraGeometry) -> FloatArray:
         return compensate_fields(fields_measured, self.parameters, geometry)
 
     @property
@@ -98,7 +99,7 @@ class ReferenceSensorCalibration(Calibration):
     matrices: np.ndarray = field(default_factory=lambda: np.tile(np.eye(3), (3, 1, 1)))
     offsets: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
-    def corrected_fields(self, fields_measured: object) -> np.ndarray:
+    def corrected_fields(self, fields_measured: ArrayLike) -> FloatArray:
         """Sensors 2-4 mapped onto sensor 1, shape (N, 4, 3), tesla."""
         fields = as_fields(fields_measured, 'fields_measured').copy()
         fields[:, 1:] = (
@@ -106,5 +107,5 @@ class ReferenceSensorCalibration(Calibration):
         )
         return fields
 
-    def compensate_fields(self, fields_measured: object, geometry: TetraGeometry) -> np.ndarray:
+    def compensate_fields(self, fields_measured: ArrayLike, geometry: TetraGeometry) -> FloatArray:
         return difference_tensor(self.corrected_fields(fields_measured), geometry)

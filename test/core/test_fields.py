@@ -1,9 +1,9 @@
-"""Fields and the difference algorithm against independent truth."""
+"""core/fields.py: the dipole field and gradient against the textbook and a numerical derivative."""
 import numpy as np
 import pytest
 
-from tetra_gradiometer.core import (GeometryError, TetraGeometry, difference_tensor, dipole_field,
-                                    dipole_gradient)
+from tetra_gradiometer.core import dipole_field, dipole_gradient
+from tetra_gradiometer.core.fields import uniform_field
 
 
 def _random_dipole_points(rng, n=20):
@@ -44,38 +44,25 @@ def test_dipole_gradient_is_symmetric_and_traceless():
     np.testing.assert_allclose(np.trace(g, axis1=1, axis2=2), 0.0, atol=1e-12 * scale)
 
 
-def test_difference_tensor_is_exact_for_a_linear_field():
-    rng = np.random.default_rng(3)
-    geometry = TetraGeometry(rng.normal(0, 0.4, (4, 3)), max_condition=1e4)
-    gradients = rng.normal(0, 1e-7, (5, 3, 3))  # any matrix, even asymmetric
-    b0 = rng.normal(0, 5e-5, (5, 3))
-    fields = b0[:, None, :] + np.einsum('nij,sj->nsi', gradients, geometry.positions)
-    np.testing.assert_allclose(difference_tensor(fields, geometry), gradients, rtol=1e-9, atol=1e-18)
-
-
-def test_regular_tetrahedron_has_equal_edges():
-    positions = TetraGeometry.regular(0.7).positions
-    edges = [np.linalg.norm(positions[i] - positions[j]) for i in range(4) for j in range(i + 1, 4)]
-    np.testing.assert_allclose(edges, 0.7, rtol=1e-12)
-
-
-def test_degenerate_geometry_is_refused_naming_condition_number():
-    flat = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1e-6]]
-    with pytest.raises(GeometryError, match='condition number'):
-        TetraGeometry(flat)
-    with pytest.raises(GeometryError, match='12 floats'):
-        TetraGeometry.from_flat([0.0] * 11)
-
-
-@pytest.mark.parametrize('bad, message', [
-    (np.full((3, 4, 3), np.nan), 'non-finite'),
-    (np.zeros((3, 3, 3)), r'shape \(N, 4, 3\)'),
-])
-def test_bad_fields_raise_clear_errors(bad, message):
-    with pytest.raises(ValueError, match=message):
-        difference_tensor(bad, TetraGeometry.regular())
-
-
 def test_dipole_at_a_sensor_raises():
     with pytest.raises(ValueError, match='coincides'):
         dipole_field([[1.0, 2.0, 3.0]], [1.0, 0.0, 0.0], [1.0, 2.0, 3.0])
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match=r'dipole moment must have shape \(3,\)'):
+        dipole_field([[1.0, 2.0, 3.0]], [1.0, 0.0], [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r'dipole moment must have shape \(3,\)'):
+        dipole_gradient([[1.0, 2.0, 3.0]], [1.0, 0.0], [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r'dipole position must have shape \(3,\)'):
+        dipole_field([[1.0, 2.0, 3.0]], [1.0, 0.0, 0.0], [0.0, 0.0])
+    with pytest.raises(ValueError, match=r'points must have shape \(N, 3\)'):
+        dipole_gradient([1.0, 2.0, 3.0, 4.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+
+
+def test_uniform_field_repeats_the_field():
+    out = uniform_field(3, [1e-5, -2e-5, 4e-5])
+    np.testing.assert_array_equal(out, [[1e-5, -2e-5, 4e-5]] * 3)
+    out[0, 0] = 0.0  # a copy, writable
+    with pytest.raises(ValueError, match=r'uniform field must have shape \(3,\)'):
+        uniform_field(2, [1.0, 2.0])

@@ -2,20 +2,25 @@
 measured sensor readings of a recorded run disagree, name the missing physical effect from
 a library of candidates, add it, and show the held-out gap shrink to the noise floor.
 
-``analyze(recording, geometry, earth_field_enu=None)`` returns a :class:`Report`;
+``analyze(run, geometry, earth_field_enu=None)`` returns a :class:`Report`;
 ``tetra_gradiometer.io.report.write_report(report, out_dir)`` writes ``report.json``,
 ``report.md`` and the plots.
 The command line is ``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR``.
+The core imports numpy and scipy only; the run comes in as a :class:`RecordedRun` (plain
+arrays) or anything with the same attributes.
 """
 
-from .analysis import BASE_MODEL, Report, Settings, Step, analyze, criterion_text
+from .analysis import analyze
 from .effects import CANDIDATES, LIBRARY, Candidate
+from .prepare import RecordedRun
+from .result import BASE_MODEL, Report, Settings, Step, criterion_text
 
 __all__ = [
     'BASE_MODEL',
     'CANDIDATES',
     'Candidate',
     'LIBRARY',
+    'RecordedRun',
     'Report',
     'Settings',
     'Step',

@@ -1,11 +1,12 @@
-"""The bag fast paths (CDR decode/encode with numpy, batch matching) against the generic ones
-(rosbags' serializer/deserializer, the message-by-message StampMatcher)."""
+"""io/bag.py: the fast paths (CDR decode/encode with numpy, batch matching) against the
+generic ones (rosbags' serializer/deserializer, the message-by-message StampMatcher); the
+contract check."""
 import numpy as np
 import pytest
 
 from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io import matching
-from tetra_gradiometer.io.bag import (BagWriter, MagneticBag, _UnsupportedEncoding, decode_magnetic_field,
+from tetra_gradiometer.io.bag import (BagError, BagWriter, MagneticBag, _UnsupportedEncoding, decode_magnetic_field,
                                       encode_magnetic_field, encode_tensor, typestore)
 
 START = 1_767_225_600 * 10**9
@@ -133,3 +134,12 @@ def test_a_synchronised_bag_takes_the_array_path(tmp_path, monkeypatch):
     assert calls == []
     assert np.array_equal(got_stamps, stamps) and np.array_equal(got_fields, fields)
     assert counters.matched == 5000 and counters.dropped_messages == 0
+
+
+def test_bag_without_magnetometers_is_refused(tmp_path):
+    with BagWriter(tmp_path / 'odd') as writer:
+        writer.write_tensors('/tetra/gradient/raw', np.array([1, 2]), np.zeros((2, 3, 3)))
+    with MagneticBag(tmp_path / 'odd') as bag, pytest.raises(BagError, match='missing topic'):
+        bag.check_contract()
+    with pytest.raises(BagError, match='not found'):
+        MagneticBag(tmp_path / 'nothing')

@@ -22,7 +22,7 @@ from tetra_gradiometer.io.outputs import CALIBRATION, MARKER, OutputError, atomi
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 GEOMETRY = TetraGeometry.regular(0.5)
 HEADER = 'stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz'
 

@@ -11,33 +11,35 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from ..core import (
+from ...errors import InputError
+from ..geometry import TetraGeometry
+from ..simulator import (
+    CurrentProfile,
     Dipole,
     Effects,
     MissionData,
     Scenario,
     SensorInterference,
     SurveyLine,
-    TetraGeometry,
+    TemperatureProfile,
     TrimManoeuvre,
     random_interference,
     simulate,
 )
-from ..errors import InputError
+from ..units import NS_PER_S, NT_PER_T, S_PER_NS
+from .effects import CANDIDATES, LIBRARY, Hidden
+from .prepare import RecordedRun
 
-EFFECT_NAMES = (
-    'eddy_current',
-    'sensor_misalignment',
-    'reference_interference',
-    'time_skew',
-    'thermal_drift',
-    'vehicle_current',
-)
+Array = NDArray[np.float64]
+
+#: The effects synthetic missions can hide: every library entry the simulator produces.
+EFFECT_NAMES = tuple(c.name for c in CANDIDATES if c.simulated is not None)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Case:
     """A simulated mission with its truth."""
 
@@ -47,10 +49,9 @@ class Case:
 
     def recording(
         self, *, odom: bool = True, temperature: bool = True, battery: bool = True
-    ) -> Any:
-        """The mission as an io.recording.Recording (what read_recording returns)."""
-        from ..io.recording import Recording, mission_stamps_ns
-
+    ) -> RecordedRun:
+        """The mission as a recorded run (what ``io.recording.read_recording`` would give,
+        on integer-nanosecond stamps), with the optional topics left out on request."""
         m = self.mission
         missing = {}
         if not odom:
@@ -59,8 +60,9 @@ class Case:
             missing['/tetra/temperature'] = 'not recorded'
         if not battery:
             missing['/battery_state'] = 'not recorded'
-        return Recording(
-            mission_stamps_ns(m, 0),
+        stamps_ns = np.round(m.t * NS_PER_S).astype(np.int64)
+        return RecordedRun(
+            (stamps_ns - stamps_ns[0]) * S_PER_NS,
             m.fields_measured,
             m.orientation_xyzw if odom else None,
             m.temperature_c if temperature else None,
@@ -70,7 +72,8 @@ class Case:
 
 
 def random_geometry(rng: np.random.Generator) -> TetraGeometry:
-    """A non-regular tetrahedron: edge 0.2-1 m, vertices moved up to 20 % of the edge, any orientation."""
+    """A non-regular tetrahedron: edge 0.2-1 m, vertices moved up to 20 % of the edge, any
+    orientation."""
     edge = rng.uniform(0.2, 1.0)
     base = TetraGeometry.regular(edge).positions
     base = base + rng.uniform(-0.2, 0.2, (4, 3)) * edge
@@ -88,7 +91,8 @@ def random_earth_field(rng: np.random.Generator) -> np.ndarray:
 
 
 def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
-    """A trim manoeuvre (random rates, amplitudes, periods), sometimes followed by a survey line."""
+    """A trim manoeuvre (random rates, amplitudes, periods), sometimes followed by a survey
+    line."""
     trim_s = duration_s if rng.random() < 0.5 else duration_s * rng.uniform(0.6, 0.8)
     trim = TrimManoeuvre(
         duration_s=trim_s,
@@ -119,65 +123,46 @@ def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
     return segments
 
 
-def _unit_effect(
-    name: str, rng: np.random.Generator, sensors: list[int]
-) -> tuple[Effects, SensorInterference | None]:
+def _unit_effect(name: str, rng: np.random.Generator, sensors: list[int]) -> Hidden:
+    """Random terms of unit size of the library effect ``name`` in ``sensors`` (0-based)."""
+    candidate = LIBRARY.get(name)
+    if candidate is None or candidate.simulated is None:
+        raise InputError(f'unknown effect {name!r}; synthetic cases know {list(EFFECT_NAMES)}')
     mask = np.zeros(4)
     mask[sensors] = 1.0
-    if name == 'eddy_current':
-        return Effects(eddy_current=rng.normal(0, 1.0, (4, 3, 3)) * mask[:, None, None]), None
-    if name == 'sensor_misalignment':
-        return Effects(sensor_misalignment=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
-    if name == 'time_skew':
-        return Effects(
-            time_skew_s=rng.choice([-1.0, 1.0], 4) * rng.uniform(0.5, 1.0, 4) * mask
-        ), None
-    if name == 'thermal_drift':
-        return Effects(thermal_drift=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
-    if name == 'vehicle_current':
-        return Effects(vehicle_current=rng.normal(0, 1.0, (4, 3)) * mask[:, None]), None
-    if name == 'reference_interference':
-        ref = random_interference(rng, reference_clean=False)
-        k = np.zeros((4, 3, 3))
-        b = np.zeros((4, 3))
-        k[0], b[0] = ref.k_soft[0], ref.b_hard[0] * rng.uniform(0.3, 1.0)
-        return Effects(), SensorInterference(k, b)
-    raise InputError(f'unknown effect {name!r}')
+    return candidate.simulated.draw(rng, mask)
 
 
-def _scaled(
-    effects: Effects, interference: SensorInterference | None, factor: float
-) -> tuple[Effects, Any]:
-    kwargs = {
-        n: (getattr(effects, n) * factor if getattr(effects, n) is not None else None)
-        for n in (
-            'eddy_current',
-            'sensor_misalignment',
-            'time_skew_s',
-            'thermal_drift',
-            'vehicle_current',
-        )
-    }
-    inter = (
+def _scaled(hidden: Hidden, factor: float) -> Hidden:
+    inter = hidden.interference
+    return Hidden(
+        {name: value * factor for name, value in hidden.effects.items()},
         None
-        if interference is None
-        else SensorInterference(interference.k_soft * factor, interference.b_hard * factor)
+        if inter is None
+        else SensorInterference(inter.k_soft * factor, inter.b_hard * factor),
     )
-    return Effects(**kwargs), inter
 
 
-def _combine(a: Effects, b: Effects) -> Effects:
-    out = {}
-    for n in (
-        'eddy_current',
-        'sensor_misalignment',
-        'time_skew_s',
-        'thermal_drift',
-        'vehicle_current',
-    ):
-        va, vb = getattr(a, n), getattr(b, n)
-        out[n] = vb if va is None else (va if vb is None else va + vb)
-    return Effects(**out)
+def _combine(a: dict[str, Array], b: dict[str, Array]) -> dict[str, Array]:
+    out = dict(a)
+    for name, value in b.items():
+        out[name] = value if name not in out else out[name] + value
+    return out
+
+
+def _with_interference(
+    interference: SensorInterference, extra: SensorInterference | None
+) -> SensorInterference:
+    if extra is None:
+        return interference
+    return SensorInterference(
+        interference.k_soft + extra.k_soft, interference.b_hard + extra.b_hard
+    )
+
+
+def _fixed_sensors(name: str) -> tuple[int, ...] | None:
+    simulated = LIBRARY[name].simulated if name in LIBRARY else None
+    return simulated.sensors if simulated is not None else None
 
 
 def make_case(
@@ -237,46 +222,60 @@ def make_case(
                 dipoles,
             ),
         )
+    scenario, hidden = _hide(base, seed, rng, effects, factor, noise, sensors)
+    mission = simulate(scenario, np.random.default_rng(seed + 1))
+    for info in hidden.values():
+        info['noise_nT'] = noise * NT_PER_T
+    return Case(scenario, mission, hidden)
+
+
+def _hide(
+    base: Scenario,
+    seed: int,
+    rng: np.random.Generator,
+    effects: tuple[str, ...],
+    factor: tuple[float, float],
+    noise: float,
+    sensors: dict[str, list[int]] | None,
+) -> tuple[Scenario, dict[str, dict[str, Any]]]:
+    """``base`` with ``effects`` hidden, each scaled to ``factor`` x ``noise`` RMS over the
+    sensors it affects, and the truth per effect."""
+    interference = base.interference
     clean = simulate(base, np.random.default_rng(seed + 1)).fields_measured
-    total_effects, total_inter = Effects(), interference
+    total_effects: dict[str, Array] = {}
+    total_inter = interference
     hidden: dict[str, dict[str, Any]] = {}
-    free = [1, 2, 3] if 'reference_interference' in effects else [0, 1, 2, 3]
+    fixed = {name: _fixed_sensors(name) for name in effects}
+    free = [s for s in range(4) if not any(s in (f or ()) for f in fixed.values())]
     for name in effects:
         # Effects in different sensors (eddy_current and time_skew in one sensor are one
         # general eddy term: no data can tell them apart).
-        if name == 'reference_interference':
-            chosen = [0]
+        sensors_fixed = fixed[name]
+        if sensors_fixed is not None:
+            chosen = list(sensors_fixed)
         elif sensors and name in sensors:
             chosen = [s - 1 for s in sensors[name]]
         else:
             size = int(rng.integers(1, 3)) if len(effects) == 1 else 1
             chosen = sorted(rng.choice(free, size=size, replace=False).tolist())
         free = [s for s in free if s not in chosen]
-        unit, inter = _unit_effect(name, rng, chosen)
+        unit = _unit_effect(name, rng, chosen)
         probe = replace(
             base,
-            effects=unit,
-            interference=interference
-            if inter is None
-            else SensorInterference(
-                interference.k_soft + inter.k_soft, interference.b_hard + inter.b_hard
-            ),
+            effects=Effects(**unit.effects),
+            interference=_with_interference(interference, unit.interference),
         )
         delta = simulate(probe, np.random.default_rng(seed + 1)).fields_measured - clean
         unit_rms = float(np.sqrt(np.mean(delta[:, chosen] ** 2)))
         target = rng.uniform(*factor) * noise
-        scaled, inter = _scaled(unit, inter, target / unit_rms)
-        total_effects = _combine(total_effects, scaled)
-        if inter is not None:
-            total_inter = SensorInterference(
-                total_inter.k_soft + inter.k_soft, total_inter.b_hard + inter.b_hard
-            )
-        hidden[name] = {'sensors': [s + 1 for s in chosen], 'rms_nT': target * 1e9}
-    scenario = replace(base, effects=total_effects, interference=total_inter, noise_t=noise)
-    mission = simulate(scenario, np.random.default_rng(seed + 1))
-    for name, info in hidden.items():
-        info['noise_nT'] = noise * 1e9
-    return Case(scenario, mission, hidden)
+        scaled = _scaled(unit, target / unit_rms)
+        total_effects = _combine(total_effects, scaled.effects)
+        total_inter = _with_interference(total_inter, scaled.interference)
+        hidden[name] = {'sensors': [s + 1 for s in chosen], 'rms_nT': target * NT_PER_T}
+    scenario = replace(
+        base, effects=Effects(**total_effects), interference=total_inter, noise_t=noise
+    )
+    return scenario, hidden
 
 
 def _target_pass(
@@ -324,9 +323,7 @@ def _target_pass(
     return {'segments': (trim, line), 'dipoles': tuple(dipoles) + (Dipole(position, moment),)}
 
 
-def _random_temperature(rng: np.random.Generator):
-    from ..core import TemperatureProfile
-
+def _random_temperature(rng: np.random.Generator) -> TemperatureProfile:
     return TemperatureProfile(
         mean_c=rng.uniform(2, 25),
         ramp_c=rng.uniform(-6, 6),
@@ -335,9 +332,7 @@ def _random_temperature(rng: np.random.Generator):
     )
 
 
-def _random_current(rng: np.random.Generator):
-    from ..core import CurrentProfile
-
+def _random_current(rng: np.random.Generator) -> CurrentProfile:
     return CurrentProfile(
         base_a=rng.uniform(-15, -3), step_amplitude_a=rng.uniform(2, 8), step_s=rng.uniform(8, 30)
     )

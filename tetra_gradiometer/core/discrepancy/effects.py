@@ -1,4 +1,9 @@
-"""The library of candidate physical effects the base model may be missing.
+"""The library of candidate physical effects the base model may be missing: the one
+registry of effect names (:data:`CANDIDATES`, :data:`LIBRARY`).
+
+To add an effect, add one :class:`Candidate` to :data:`CANDIDATES` (its builder, and with
+``simulated`` how synthetic missions hide it); the search, the target detector, synthetic
+cases, the command line's ``--candidates`` and the report all loop over the registry.
 
 Each candidate is a named family of terms added to the per-sensor model
 ``B_i' = B_i + K_i B^b + B_i^h``. A builder returns, for the current model state, the
@@ -15,16 +20,23 @@ their current estimate and iterated (Gauss-Newton with the exact remainder as of
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import CubicSpline, make_interp_spline
+from numpy.typing import NDArray
+from scipy.interpolate import BSpline, CubicSpline, make_interp_spline
 from scipy.spatial.transform import Rotation
 
-from ..core.model import SYMMETRIC_ENTRIES
+from ...errors import InputError
+from ..model import SYMMETRIC_ENTRIES, SensorInterference
+from ..simulator import random_interference
+
+Array = NDArray[np.float64]
+#: Linearisation point of a nonlinear family: (sensor, parameter label) -> value.
+Estimate = dict[tuple[int, str], float]
 
 
-@dataclass
+@dataclass(frozen=True)
 class Context:
     """What builders may use. Arrays in nT (fields), s (time), degC, A.
 
@@ -37,31 +49,41 @@ class Context:
     b_rate : (N, 3) ``dB^b/dt``, nT/s
     prediction : (N, 4, 3) the current model's prediction of every sensor (no noise)
     temperature_c, current_a : (N,) or None
+    piece : (N,) index of the continuous piece of the run, or None (one piece)
+    rotation : (N, 3, 3) body -> ENU with /odom, or None
+    knot_s : knot spacing of the ``external_field`` spline, s
     """
 
-    t: np.ndarray
+    t: Array
     sensors: tuple[int, ...]
     absolute: bool
-    b_background: np.ndarray
-    b_rate: np.ndarray
-    prediction: np.ndarray
-    temperature_c: np.ndarray | None
-    current_a: np.ndarray | None
-    piece: np.ndarray | None = None
-    rotation: np.ndarray | None = None  # (N, 3, 3) body -> ENU, with /odom
+    b_background: Array
+    b_rate: Array
+    prediction: Array
+    temperature_c: Array | None
+    current_a: Array | None
+    piece: NDArray[np.int_] | None = None
+    rotation: Array | None = None
     knot_s: float = 30.0
+
+
+def _required(value: Array | None, what: str) -> Array:
+    """``value``, which the candidate's ``requires`` guarantees (the workflow tests it first)."""
+    if value is None:
+        raise InputError(f'this candidate needs {what}, which the run does not have')
+    return value
 
 
 class PiecewiseSpline:
     """Cubic splines through ``values`` (N, ...) on each continuous piece of the run (the
     attitude may jump between recorded segments; no derivative is taken across a jump)."""
 
-    def __init__(self, t: np.ndarray, values: np.ndarray, piece: np.ndarray | None = None) -> None:
+    def __init__(self, t: Array, values: Array, piece: NDArray[np.int_] | None = None) -> None:
         self.t = t
         self.piece = np.zeros(len(t), dtype=int) if piece is None else piece
         self.shape = values.shape[1:]
         flat = values.reshape(len(t), -1)
-        self.parts = []
+        self.parts: list[tuple[NDArray[np.int_], Callable[..., Array] | None]] = []
         for p in np.unique(self.piece):
             idx = np.flatnonzero(self.piece == p)
             if len(idx) >= 8:
@@ -73,7 +95,7 @@ class PiecewiseSpline:
             else:
                 self.parts.append((idx, None))
 
-    def __call__(self, shift: float = 0.0, nu: int = 0) -> np.ndarray:
+    def __call__(self, shift: float = 0.0, nu: int = 0) -> Array:
         """Values (or the ``nu``-th derivative) at ``t - shift`` on every sample."""
         out = np.zeros((len(self.t), int(np.prod(self.shape, dtype=int))))
         for idx, spline in self.parts:
@@ -83,31 +105,76 @@ class PiecewiseSpline:
         return out.reshape(len(self.t), *self.shape)
 
 
-Built = tuple[np.ndarray, np.ndarray | None, list[tuple[int, str]]]
+#: What a builder returns: columns (N, 4, 3, p) nT per unit, an offset (N, 4, 3) nT or None,
+#: and a ``(sensor, name)`` label per column (sensor -1: common to all sensors).
+Built = tuple[Array, Array | None, list[tuple[int, str]]]
+
+
+@dataclass(frozen=True)
+class Hidden:
+    """A unit-size instance of an effect for the simulator (synthetic missions).
+
+    Attributes
+    ----------
+    effects : ``core.simulator.Effects`` field -> value (SI), the effect's own terms
+    interference : added to the scenario's ``SensorInterference`` (sensor-1 iron), or None
+    """
+
+    effects: dict[str, Array] = field(default_factory=dict)
+    interference: SensorInterference | None = None
+
+
+@dataclass(frozen=True)
+class Simulated:
+    """How synthetic missions hide a candidate in the simulator.
+
+    Attributes
+    ----------
+    draw : ``draw(rng, mask)`` -> :class:`Hidden`, random terms of unit size in the sensors
+        where ``mask`` (4,) is 1
+    sensors : the sensors the effect always sits in (0-based), or None: drawn per case
+    """
+
+    draw: Callable[[np.random.Generator, Array], Hidden]
+    sensors: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """A named, physically explained family of terms.
+    """A named, physically explained family of terms: one entry of the library.
 
-    ``requires`` names the recorded inputs the family needs ('odom', 'temperature',
-    'current'); ``nonlinear`` families get their offset re-evaluated at the estimate.
+    Attributes
+    ----------
+    name : the effect's one name (report, ``--candidates``, synthetic cases)
+    physics : what it is, for the report
+    parameters : its parameters with their units
+    requires : the recorded inputs the family needs ('odom', 'temperature', 'current')
+    build : ``build(ctx, estimate)`` -> :data:`Built`, the regressors at ``estimate``
+    nonlinear : the offset is re-evaluated at the estimate (Gauss-Newton)
+    in_detector : the target detector fits it (a family global in time whose columns are
+        not a special case of another's)
+    simulated : how synthetic missions hide it, or None (not simulated that way)
+    no_odom_reason : why it is untestable without /odom, when more than ``requires`` says
     """
 
     name: str
     physics: str
     parameters: str
     requires: tuple[str, ...]
-    build: Callable[[Context, dict[tuple[int, str], float] | None], Built]
+    build: Callable[[Context, Estimate | None], Built]
     nonlinear: bool = False
+    in_detector: bool = True
+    simulated: Simulated | None = None
+    no_odom_reason: str | None = None
 
 
-def _empty(n: int, p: int) -> np.ndarray:
+def _empty(n: int, p: int) -> Array:
     return np.zeros((n, 4, 3, p))
 
 
-def _eddy(ctx: Context, estimate: dict | None) -> Built:
-    n, labels = len(ctx.t), []
+def _eddy(ctx: Context, estimate: Estimate | None) -> Built:
+    n = len(ctx.t)
+    labels: list[tuple[int, str]] = []
     cols = _empty(n, 9 * len(ctx.sensors))
     k = 0
     for s in ctx.sensors:
@@ -119,13 +186,13 @@ def _eddy(ctx: Context, estimate: dict | None) -> Built:
     return cols, None, labels
 
 
-def _time_skew(ctx: Context, estimate: dict | None) -> Built:
+def _time_skew(ctx: Context, estimate: Estimate | None) -> Built:
     n = len(ctx.t)
     spline = PiecewiseSpline(ctx.t, ctx.prediction, ctx.piece)
     rate = spline(0.0, 1)
     cols = _empty(n, len(ctx.sensors))
     offset = np.zeros((n, 4, 3))
-    labels = []
+    labels: list[tuple[int, str]] = []
     for k, s in enumerate(ctx.sensors):
         cols[:, s, :, k] = -rate[:, s]
         labels.append((s, 'tau_s'))
@@ -136,11 +203,11 @@ def _time_skew(ctx: Context, estimate: dict | None) -> Built:
     return cols, offset, labels
 
 
-def _misalignment(ctx: Context, estimate: dict | None) -> Built:
+def _misalignment(ctx: Context, estimate: Estimate | None) -> Built:
     n = len(ctx.t)
     cols = _empty(n, 3 * len(ctx.sensors))
     offset = np.zeros((n, 4, 3))
-    labels = []
+    labels: list[tuple[int, str]] = []
     k = 0
     for s in ctx.sensors:
         p = ctx.prediction[:, s]
@@ -157,10 +224,10 @@ def _misalignment(ctx: Context, estimate: dict | None) -> Built:
     return cols, offset, labels
 
 
-def _reference(ctx: Context, estimate: dict | None) -> Built:
+def _reference(ctx: Context, estimate: Estimate | None) -> Built:
     n = len(ctx.t)
     cols = _empty(n, 9)
-    labels = []
+    labels: list[tuple[int, str]] = []
     for k, (r, c) in enumerate(SYMMETRIC_ENTRIES):
         cols[:, 0, r, k] = ctx.b_background[:, c]
         if r != c:
@@ -172,13 +239,11 @@ def _reference(ctx: Context, estimate: dict | None) -> Built:
     return cols, None, labels
 
 
-def _per_sensor_scalar(
-    ctx: Context, series: np.ndarray, unit: str, reference_offset: bool
-) -> Built:
+def _per_sensor_scalar(ctx: Context, series: Array, unit: str, reference_offset: bool) -> Built:
     n = len(ctx.t)
     extra = 3 if (reference_offset and 0 in ctx.sensors) else 0
     cols = _empty(n, 3 * len(ctx.sensors) + extra)
-    labels = []
+    labels: list[tuple[int, str]] = []
     k = 0
     for s in ctx.sensors:
         for a in range(3):
@@ -193,22 +258,22 @@ def _per_sensor_scalar(
     return cols, None, labels
 
 
-def _thermal(ctx: Context, estimate: dict | None) -> Built:
-    temperature = ctx.temperature_c - np.mean(ctx.temperature_c)
+def _thermal(ctx: Context, estimate: Estimate | None) -> Built:
+    recorded = _required(ctx.temperature_c, 'the temperature (/tetra/temperature)')
+    temperature = recorded - np.mean(recorded)
     # The drift is c (T - T_ref) with T_ref unknown: sensors 2-4 absorb the constant in
     # their hard iron, the clean reference sensor needs its own offset.
     return _per_sensor_scalar(ctx, temperature, 'nT_per_degC', reference_offset=True)
 
 
-def _current(ctx: Context, estimate: dict | None) -> Built:
+def _current(ctx: Context, estimate: Estimate | None) -> Built:
     # No current, no field: the family has no offset of its own.
-    return _per_sensor_scalar(ctx, ctx.current_a, 'nT_per_A', reference_offset=False)
+    current = _required(ctx.current_a, 'the battery current (/battery_state)')
+    return _per_sensor_scalar(ctx, current, 'nT_per_A', reference_offset=False)
 
 
-def spline_basis(t: np.ndarray, knot_s: float) -> np.ndarray:
+def spline_basis(t: Array, knot_s: float) -> Array:
     """Cubic B-spline basis (N, nk) on [t0, t1] with about ``knot_s`` between knots."""
-    from scipy.interpolate import BSpline
-
     span = max(t[-1] - t[0], 1e-9)
     intervals = max(1, int(round(span / knot_s)))
     inner = np.linspace(t[0], t[-1], intervals + 1)
@@ -216,16 +281,49 @@ def spline_basis(t: np.ndarray, knot_s: float) -> np.ndarray:
     return BSpline.design_matrix(np.clip(t, t[0], t[-1]), knots, 3).toarray()
 
 
-def _external(ctx: Context, estimate: dict | None) -> Built:
+def _external(ctx: Context, estimate: Estimate | None) -> Built:
+    rotation = _required(ctx.rotation, 'the attitude (/odom)')
     phi = spline_basis(ctx.t, ctx.knot_s)
     n, nk = phi.shape
     cols = _empty(n, 3 * nk)
-    labels = []
+    labels: list[tuple[int, str]] = []
     for a in range(3):
         # R^T e_a (world axis a seen in the body frame) is row a of R; the same at every sensor.
-        cols[..., a * nk : (a + 1) * nk] = (ctx.rotation[:, a, :, None] * phi[:, None, :])[:, None]
+        cols[..., a * nk : (a + 1) * nk] = (rotation[:, a, :, None] * phi[:, None, :])[:, None]
         labels += [(-1, f'{"enu"[a]}_{k}_nT') for k in range(nk)]
     return cols, None, labels
+
+
+# ---------------------------------------------------------------------------------------
+# Unit-size instances for the simulator (synthetic missions)
+
+
+def _draw_eddy(rng: np.random.Generator, mask: Array) -> Hidden:
+    return Hidden({'eddy_current': rng.normal(0, 1.0, (4, 3, 3)) * mask[:, None, None]})
+
+
+def _draw_misalignment(rng: np.random.Generator, mask: Array) -> Hidden:
+    return Hidden({'sensor_misalignment': rng.normal(0, 1.0, (4, 3)) * mask[:, None]})
+
+
+def _draw_reference(rng: np.random.Generator, mask: Array) -> Hidden:
+    ref = random_interference(rng, reference_clean=False)
+    k = np.zeros((4, 3, 3))
+    b = np.zeros((4, 3))
+    k[0], b[0] = ref.k_soft[0], ref.b_hard[0] * rng.uniform(0.3, 1.0)
+    return Hidden(interference=SensorInterference(k, b))
+
+
+def _draw_time_skew(rng: np.random.Generator, mask: Array) -> Hidden:
+    return Hidden({'time_skew_s': rng.choice([-1.0, 1.0], 4) * rng.uniform(0.5, 1.0, 4) * mask})
+
+
+def _draw_thermal(rng: np.random.Generator, mask: Array) -> Hidden:
+    return Hidden({'thermal_drift': rng.normal(0, 1.0, (4, 3)) * mask[:, None]})
+
+
+def _draw_current(rng: np.random.Generator, mask: Array) -> Hidden:
+    return Hidden({'vehicle_current': rng.normal(0, 1.0, (4, 3)) * mask[:, None]})
 
 
 CANDIDATES: tuple[Candidate, ...] = (
@@ -239,6 +337,7 @@ CANDIDATES: tuple[Candidate, ...] = (
         'E_i, 3x3 per sensor, seconds (nT per nT/s)',
         (),
         _eddy,
+        simulated=Simulated(_draw_eddy),
     ),
     Candidate(
         'sensor_misalignment',
@@ -250,6 +349,7 @@ CANDIDATES: tuple[Candidate, ...] = (
         (),
         _misalignment,
         nonlinear=True,
+        simulated=Simulated(_draw_misalignment),
     ),
     Candidate(
         'reference_interference',
@@ -260,6 +360,7 @@ CANDIDATES: tuple[Candidate, ...] = (
         'symmetric K_1 (6) and B_1^h (3, nT)',
         ('odom',),
         _reference,
+        simulated=Simulated(_draw_reference, sensors=(0,)),
     ),
     Candidate(
         'time_skew',
@@ -271,6 +372,9 @@ CANDIDATES: tuple[Candidate, ...] = (
         (),
         _time_skew,
         nonlinear=True,
+        # The isotropic part of eddy_current to first order: the detector fits that one.
+        in_detector=False,
+        simulated=Simulated(_draw_time_skew),
     ),
     Candidate(
         'thermal_drift',
@@ -280,6 +384,7 @@ CANDIDATES: tuple[Candidate, ...] = (
         'c_i per sensor and axis, nT/degC (plus the reference offset)',
         ('temperature',),
         _thermal,
+        simulated=Simulated(_draw_thermal),
     ),
     Candidate(
         'vehicle_current',
@@ -289,18 +394,26 @@ CANDIDATES: tuple[Candidate, ...] = (
         'v_i per sensor and axis, nT/A',
         ('current',),
         _current,
+        simulated=Simulated(_draw_current),
     ),
     Candidate(
         'external_field',
         'A field from outside the vehicle that the Earth-field model lacks: a distant target or '
-        'geology along the track, or the diurnal variation. It is fixed in the world frame (it does '
-        'not turn with the vehicle), the same at all four sensors, and varies slowly: x(t) in ENU '
+        'geology along the track, or the diurnal variation. It is fixed in the world frame '
+        '(it does not turn with the vehicle), the same at all four sensors, and varies slowly: '
+        'x(t) in ENU '
         '(a cubic B-spline in time, knots every 30 s), seen in the body frame as R^T x(t).',
         'spline weights per ENU axis, nT (all sensors)',
         ('odom',),
         _external,
+        # Left out of the detector, so that a target's common part stays in its residual.
+        in_detector=False,
+        no_odom_reason=(
+            'no /odom in the bag: the world frame is unknown, and the pair differences '
+            "B_i' - B_1' cancel a field that is the same at all sensors"
+        ),
     ),
 )
 
-#: name -> candidate.
+#: name -> candidate: the one registry of effect names.
 LIBRARY: dict[str, Candidate] = {c.name: c for c in CANDIDATES}

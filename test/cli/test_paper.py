@@ -10,13 +10,9 @@ import json
 import math
 
 import numpy as np
-from scipy.linalg import block_diag
 import pytest
 
-from tetra_gradiometer.core.model import SYMMETRIC_EXPANSION
 from tetra_gradiometer.__main__ import main
-from tetra_gradiometer.core import TetraGeometry
-from tetra_gradiometer.core.identification import known_gradient_lstsq
 from tetra_gradiometer.cli import paper
 
 METHODS = {'paper_ga', 'constraint_lstsq', 'known_gradient_lstsq', 'known_gradient_lstsq_general',
@@ -58,14 +54,16 @@ def _noise_floor_monte_carlo(sigma, positions, n=40_000, seed=0):
 def _check_reading(reading):
     assert set(reading) >= {'scenario', 'identifiability', 'methods'}
     assert set(reading['methods']) == METHODS
+    rms_before = reading['scenario']['uncompensated']['rms_interference_nT_per_m']
     for name, metrics in reading['methods'].items():
         assert set(metrics) == METRICS, name
-        for key, value in metrics.items():
-            assert isinstance(value, float) and math.isfinite(value), (name, key, value)
-        assert metrics['compensated_percent'] == pytest.approx(100 * (1 - metrics['epsilon']))
-        assert metrics['solve_seconds'] > 0
-    ident = reading['identifiability']
-    assert isinstance(ident['constraint_rank'], int) and ident['n_parameters'] == 27
+        # The metrics' definitions (eq. 24 and the RMS ratio), by hand from the reported numbers.
+        assert metrics['compensated_percent'] == pytest.approx(100 * (1 - metrics['epsilon']), rel=1e-12)
+        assert metrics['improvement_ratio'] == pytest.approx(rms_before / metrics['rms_residual_nT_per_m'],
+                                                             rel=1e-9), name
+        assert metrics['epsilon'] > 0 and metrics['rms_residual_nT_per_m'] > 0
+        assert 0 < metrics['solve_seconds'] < 60
+    assert reading['identifiability']['n_parameters'] == 27  # 3 symmetric K_i1 (6 each) + 3 b_i1
 
 
 def test_results_schema_and_the_stated_scenario(run):
@@ -177,9 +175,7 @@ def test_constraint_rank_is_the_derived_15(run):
       3-tensors = harmonic cubics, dimension 2*3 + 1 = 7; rank 18 - 7 = 11.
     Total 4 + 11 = 15 of 27; null space 12."""
     _, results, _ = run
-    harmonic_cubics = 2 * 3 + 1
-    expected = 4 + (3 * 6 - harmonic_cubics)
-    assert expected == 15
+    expected = 15
     positions = _regular_positions(EDGE_M)
     a_inv = np.linalg.inv((positions[1:] - positions[0]).T)  # eq. 6, from the positions
     rng = np.random.default_rng(3)
@@ -205,41 +201,3 @@ def test_the_figures_exist_and_show_something(run):
         assert image.shape[0] > 400 and image.shape[1] > 800, (name, image.shape)
         assert image[..., :3].std() > 0.05, name  # not blank
         assert (image[..., :3].reshape(-1, 3).std(axis=1) > 0.2).mean() > 0.002, name  # has colour lines
-
-
-@pytest.mark.parametrize('symmetric', [True, False])
-def test_fast_known_gradient_solve_equals_a_dense_least_squares(symmetric):
-    """The QR-reduced solver against a plain numpy lstsq on the full 9N x P design (eq. 18
-    written out here), on data generated with the symmetric model itself, for the 27- and
-    36-parameter reductions. (The whitening does not move the point estimate: every pair has
-    the same regressors, so GLS equals OLS; the covariance it yields is checked by the
-    chi-square test in test_core_model_identification.py.)"""
-    rng = np.random.default_rng(11)
-    geometry = TetraGeometry.regular(EDGE_M)
-    n = 300
-    b_ref = rng.normal(size=(n, 3)) * 5e-5
-    k = rng.uniform(-0.01, 0.01, (3, 3, 3))
-    k = 0.5 * (k + np.swapaxes(k, 1, 2))
-    h = rng.uniform(-50e-9, 50e-9, (3, 3))
-    g = np.einsum('irc,nc->nri', k, b_ref) + h.T[None]
-    g = g @ geometry.a_inv + rng.normal(size=(n, 3, 3)) * 1e-10
-    fast = known_gradient_lstsq(g, b_ref, geometry, symmetric_k=symmetric)
-    # Dense: unknowns K_i[r, c] (27) and h_i[r] (9); rows (n, r, j); whiten as the solver does.
-    w = geometry.a @ (np.eye(3) - np.ones((3, 3)) / 6.0)
-    design = np.zeros((n, 3, 3, 36))
-    for i in range(3):
-        for r in range(3):
-            for c in range(3):
-                design[:, r, :, 9 * i + 3 * r + c] = b_ref[:, c, None] * geometry.a_inv[i][None, :]
-            design[:, r, :, 27 + 3 * i + r] = geometry.a_inv[i][None, :]
-    if symmetric:  # K_i[r, c] = K_i[c, r]: 6 unknowns per pair
-        design = design @ block_diag(SYMMETRIC_EXPANSION, SYMMETRIC_EXPANSION, SYMMETRIC_EXPANSION, np.eye(9))
-    n_par = design.shape[-1]
-    design_w = np.einsum('nrjp,jk->nrkp', design, w).reshape(-1, n_par)
-    scale = np.linalg.norm(design_w, axis=0)
-    theta, *_ = np.linalg.lstsq(design_w / scale, (g @ w).reshape(-1), rcond=None)
-    theta /= scale
-    got = fast.parameters.to_vector(symmetric=symmetric)
-    assert np.abs(got - theta).max() <= 1e-9 * np.abs(theta).max()
-    assert fast.rank == n_par
-    np.testing.assert_allclose(fast.parameters.k_soft, k, atol=1e-4)

@@ -1,5 +1,7 @@
-"""Offline commands end to end, through the CLI in a subprocess:
-simulate -> bag -> calibrate -> compensate, checked against independent truth."""
+"""cli/compensate.py (with cli/simulate.py and cli/calibrate.py before it) end to end, through
+the CLI in a subprocess: simulate -> bag -> calibrate -> compensate, checked against
+independent truth (the simulator's ground truth, closed-form fields); the failures of both
+commands with the one error line that names the problem."""
 import os
 import subprocess
 import sys
@@ -14,7 +16,7 @@ from tetra_gradiometer.core import TetraGeometry, dipole_field, dipole_gradient,
 from tetra_gradiometer.io.bag import BagWriter
 from tetra_gradiometer.io.params import params_document
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 START_NS = 1_767_225_600 * 10**9 + 123_456_789
 NOISE_NT = 0.05
 EDGE_M = 0.5

@@ -1,4 +1,5 @@
-"""Helpers of the ROS integration tests (imported explicitly by test/test_nodes*.py).
+"""Helpers of the ROS integration tests (imported by name from test/ros/test_*.py; on the
+path through pytest.ini's pythonpath).
 
 Nodes run as child processes (``python -m tetra_gradiometer node ...``) on a ROS domain
 unique to the test, discovery limited to localhost; the test process observes and drives
@@ -20,7 +21,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PARAMS = REPO / 'config' / 'tetra_gradiometer.yaml'
 _counter = itertools.count()
 
@@ -203,3 +204,28 @@ def uniform_gradient_fields(positions: np.ndarray, b0: np.ndarray, g: np.ndarray
     """Fields (4, 3) T of a linear field ``B(r) = b0 + G r`` at the sensor positions (4, 3) m:
     exact for eq. 7, an independent truth for the tensor node."""
     return b0[None, :] + positions @ g.T
+
+
+def interference_set(n: int, rng: np.random.Generator, directions: str, geometry: Any = None) -> tuple[
+        np.ndarray, np.ndarray, Any]:
+    """Raw tensors (N, 3, 3) and ``B_1'`` (N, 3) of a clean-reference vehicle in a uniform field
+    (``directions``: 'one' field direction or 'rich'), with its exact compensation parameters.
+
+    Eq. 10 is written out here (``B_i' = B + K_i B + B_i^h``, sensor 1 clean), so the exact
+    parameters are ``K_i1 = K_i``, ``b_i1 = B_i^h`` without the model's own code."""
+    from tetra_gradiometer import core
+
+    geometry = geometry or core.TetraGeometry.regular(0.5)
+    k = rng.uniform(-3e-3, 3e-3, (4, 3, 3))
+    k = 0.5 * (k + np.swapaxes(k, 1, 2))  # soft iron is symmetric (the 27-parameter model holds)
+    k[0] = 0.0
+    h = rng.uniform(-100e-9, 100e-9, (4, 3))
+    h[0] = 0.0
+    if directions == 'one':
+        b = np.tile([0.0, 2e-5, -4.5e-5], (n, 1))
+    else:
+        b = rng.normal(size=(n, 3))
+        b *= 5e-5 / np.linalg.norm(b, axis=1, keepdims=True)
+    fields = b[:, None, :] + np.einsum('sij,nj->nsi', k, b) + h[None]
+    exact = core.InterferenceParameters(k[1:], h[1:])
+    return core.difference_tensor(fields, geometry), fields[:, 0], exact

@@ -27,7 +27,7 @@ from tetra_gradiometer.core.identification import (
 from tetra_gradiometer.errors import CalibrationFileError, IdentifiabilityError, InputError
 from tetra_gradiometer.io.calibration import CalibrationFile
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 GEOMETRY = TetraGeometry.regular(0.5)
 
 

@@ -1,0 +1,83 @@
+"""io/calibration.py: calibration files round trip (from parameters and from a fit), refuse
+corruption, and are never left truncated by a writer killed mid-write."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tetra_gradiometer.core import (InterferenceParameters, Scenario, TetraGeometry, TrimManoeuvre,
+                                    difference_tensor, known_gradient_lstsq, random_interference, simulate)
+from tetra_gradiometer.io.calibration import (CalibrationFile, CalibrationFileError, load_calibration,
+                                              save_calibration)
+
+REPO = Path(__file__).resolve().parents[2]
+GEOMETRY = TetraGeometry.regular(0.5)
+
+
+def test_calibration_file_round_trip_and_corruption(tmp_path):
+    rng = np.random.default_rng(0)
+    parameters = InterferenceParameters(rng.normal(0, 1e-2, (3, 3, 3)), rng.normal(0, 1e-7, (3, 3)))
+    original = CalibrationFile(parameters, 'known_gradient_lstsq_general', False, GEOMETRY.to_flat(),
+                               {'rank': 36, 'condition_number': 12.5})
+    path = save_calibration(tmp_path / 'c.yaml', original)
+    loaded = load_calibration(path)
+    np.testing.assert_array_equal(loaded.parameters.k_soft, parameters.k_soft)
+    np.testing.assert_array_equal(loaded.parameters.b_hard, parameters.b_hard)
+    assert loaded.method == original.method and loaded.diagnostics['rank'] == 36
+    path.write_text(path.read_text()[:200])  # truncated
+    with pytest.raises(CalibrationFileError):
+        load_calibration(path)
+    with pytest.raises(CalibrationFileError, match='cannot read'):
+        load_calibration(tmp_path / 'absent.yaml')
+
+
+def test_calibration_file_from_a_fit(tmp_path):
+    rng = np.random.default_rng(1)
+    mission = simulate(Scenario(geometry=GEOMETRY, earth_field_enu=[0, 2e-5, -4.5e-5],
+                                segments=[TrimManoeuvre(60.0)], interference=random_interference(rng)), rng)
+    fit = known_gradient_lstsq(difference_tensor(mission.fields_measured, GEOMETRY),
+                               mission.fields_measured[:, 0], GEOMETRY, symmetric_k=False)
+    loaded = load_calibration(save_calibration(tmp_path / 'c.yaml', CalibrationFile.from_calibration(fit, GEOMETRY)))
+    assert loaded.symmetric_k is False and loaded.diagnostics['rank'] == 36
+    np.testing.assert_array_equal(loaded.parameters.k_soft, fit.parameters.k_soft)
+
+
+KILL_WRITER = '''
+import sys
+import numpy as np
+from tetra_gradiometer.core import InterferenceParameters, TetraGeometry
+from tetra_gradiometer.io.calibration import CalibrationFile, save_calibration
+geometry = TetraGeometry.regular(0.5)
+big = {f"entry_{i}": float(i) for i in range(20000)}  # a large file: each write takes a while
+i = 0
+while True:
+    i += 1
+    params = InterferenceParameters(np.full((3, 3, 3), 1e-3 * i), np.full((3, 3), 1e-9 * i))
+    save_calibration(sys.argv[1], CalibrationFile(params, "test", False, geometry.to_flat(), big), force=True)
+    print(i, flush=True)
+'''
+
+
+def test_a_writer_killed_mid_write_never_leaves_a_truncated_calibration_file(tmp_path):
+    target = tmp_path / 'calibration.yaml'
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        process = subprocess.Popen([sys.executable, '-c', KILL_WRITER, str(target)], cwd=REPO,
+                                   env=dict(os.environ, PYTHONPATH=str(REPO)), stdout=subprocess.PIPE, text=True)
+        try:
+            process.stdout.readline()                  # at least one complete write
+            time.sleep(rng.uniform(0.0, 0.3))
+            process.send_signal(signal.SIGKILL)        # mid-write, most likely
+            process.wait(timeout=10)
+        finally:
+            if process.poll() is None:
+                process.kill()
+        loaded = load_calibration(target)                # complete, parseable ...
+        i = round(loaded.parameters.k_soft[0, 0, 0] / 1e-3)
+        np.testing.assert_allclose(loaded.parameters.b_hard, 1e-9 * i)  # ... and self-consistent
+        assert len(loaded.diagnostics) == 20000

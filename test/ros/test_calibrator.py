@@ -1,0 +1,102 @@
+"""nodes/calibrator.py as a process over real DDS: refusals with the reason, the exact
+parameters of a known vehicle, the paper's objective satisfied (eqs. 21-22), and files it
+must never write."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from ros_helpers import interference_set, ros_graph, wait_for, wait_matched
+
+from tetra_gradiometer import core
+from tetra_gradiometer.io.calibration import load_calibration
+
+T0 = 1_800_000_000 * 10**9
+GEOMETRY = core.TetraGeometry.regular(0.5)
+
+
+def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_condition_number(tmp_path):
+    calibration_file = tmp_path / 'calibration.yaml'
+    rng = np.random.default_rng(3)
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('calibrator', calibration_file=str(calibration_file))
+        reply = probe.call('calibrator/calibrate')
+        assert not reply.success and 'too few' in reply.message
+
+        wait_matched(feeder.raw, 1)
+        wait_matched(feeder.reference, 1)
+        assert probe.call('calibrator/start').success
+        g, b, _ = interference_set(300, rng, 'one')
+        for i in range(len(g)):
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+            time.sleep(0.002)
+        wait_for(lambda: '300 samples' in probe.call('calibrator/stop').message, 10, '300 samples', graph)
+        reply = probe.call('calibrator/calibrate')
+        assert not reply.success
+        assert 'too few directions' in reply.message and 'condition number' in reply.message
+        assert not calibration_file.exists()
+
+        # Rich directions: the calibration is exact (no noise), written and latched.
+        assert probe.call('calibrator/start').success
+        g, b, exact = interference_set(300, rng, 'rich')
+        for i in range(len(g)):
+            feeder.publish_raw(T0 + (1000 + i) * 10**8, g[i], b[i])
+            time.sleep(0.002)
+        wait_for(lambda: '300 samples' in probe.call('calibrator/stop').message, 10, '300 samples', graph)
+        reply = probe.call('calibrator/calibrate')
+        assert reply.success, reply.message
+        saved = load_calibration(calibration_file)
+        np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(saved.parameters.b_hard, exact.b_hard, rtol=0, atol=1e-15)
+
+        # The paper's objective on the same samples (method changed at run time): the
+        # compensated training tensors become symmetric and traceless, as eqs. 21-22 ask.
+        _set_string(probe, graph, 'calibrator', 'method', 'constraint_lstsq')
+        reply = probe.call('calibrator/calibrate')
+        assert reply.success and reply.message.startswith('constraint_lstsq'), reply.message
+        paper = load_calibration(calibration_file)
+        compensated = core.compensate(g, b, paper.parameters, GEOMETRY)
+        assert np.abs(compensated - np.swapaxes(compensated, 1, 2)).max() < 1e-6 * np.abs(g).max()
+        assert np.abs(np.trace(compensated, axis1=1, axis2=2)).max() < 1e-6 * np.abs(g).max()
+
+
+def _set_string(probe, graph, node: str, name: str, value: str) -> None:
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    client = probe.create_client(SetParameters, f'{node}/set_parameters')
+    assert client.wait_for_service(timeout_sec=30)
+    parameter = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value))
+    future = client.call_async(SetParameters.Request(parameters=[parameter]))
+    wait_for(future.done, 10, 'set_parameters', graph)
+    assert future.result().results[0].successful, future.result().results[0].reason
+
+
+def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_path_is_read_only(tmp_path):
+    """Fault table rows: nobody on the ROS domain can turn ~/calibrate into a file writer."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    precious = tmp_path / 'vehicle.conf'
+    precious.write_bytes(b'rudder_gain: 3\n')
+    rng = np.random.default_rng(4)
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('calibrator', calibration_file=str(precious))
+        client = probe.create_client(SetParameters, 'calibrator/set_parameters')
+        assert client.wait_for_service(timeout_sec=30)
+        value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=str(tmp_path / 'elsewhere.yaml'))
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(name='calibration_file', value=value)]))
+        wait_for(future.done, 10, 'set_parameters', graph)
+        result = future.result().results[0]
+        assert not result.successful and 'read-only' in result.reason.lower(), result.reason
+
+        wait_matched(feeder.raw, 1)
+        wait_matched(feeder.reference, 1)
+        assert probe.call('calibrator/start').success
+        g, b, _ = interference_set(200, rng, 'rich')
+        for i in range(len(g)):
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+            time.sleep(0.002)
+        wait_for(lambda: '200 samples' in probe.call('calibrator/stop').message, 10, '200 samples', graph)
+        reply = probe.call('calibrator/calibrate')
+        assert not reply.success and 'not a calibration file' in reply.message, reply.message
+    assert precious.read_bytes() == b'rudder_gain: 3\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['vehicle.conf']

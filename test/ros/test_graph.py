@@ -1,0 +1,134 @@
+"""The four nodes together (nodes/driver, tensor, calibrator, compensator) as separate
+processes over real DDS.
+
+Truth is independent of the code under test: the simulator's ground truth (re-simulated
+here from the same scenario and seed), the scenario's exact compensation parameters, and
+the offline core path on the same bag.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from ros_helpers import REPO, ros_graph, wait_for
+
+from tetra_gradiometer import core
+from tetra_gradiometer.io.bag import MagneticBag
+from tetra_gradiometer.io.calibration import load_calibration
+from tetra_gradiometer.io.scenario import load_scenario, load_scenario_or_default
+
+NT = 1e-9
+GEOMETRY = core.TetraGeometry.regular(0.5)
+
+
+def _diag(probe, name: str) -> dict:
+    return probe.status(name)
+
+
+def _wait_discovered(probe, graph) -> None:
+    """The derived topics have all their subscribers (calibrator, compensator, probe), so
+    nothing published from now on is lost to discovery."""
+    wait_for(lambda: probe.count_subscribers('/tetra/gradient/raw') >= 3
+             and probe.count_subscribers('/tetra/reference_field') >= 2
+             and probe.count_publishers('/tetra/gradient/raw') >= 1, 30, 'discovery', graph)
+    time.sleep(0.5)
+
+
+def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulator_truth(tmp_path):
+    calibration_file = tmp_path / 'calibration.yaml'
+    scenario, seed = load_scenario_or_default()
+    mission = core.simulate(scenario, np.random.default_rng(seed))
+    survey = mission.select(mission.segment == 1)
+    exact = scenario.interference.effective_parameters()
+    with ros_graph() as (graph, probe, _):
+        graph.start('tensor')
+        graph.start('calibrator', calibration_file=str(calibration_file))
+        graph.start('compensator', calibration_file=str(calibration_file))
+        graph.start('driver', rate=20.0, start_paused=True, hold_between_segments=True, min_subscribers=1)
+        _wait_discovered(probe, graph)
+        # A missing calibration file: the compensator runs, uncompensated, and says so.
+        wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'False',
+                 30, 'compensator diagnostics', graph)
+        assert 'UNCOMPENSATED' in _diag(probe, 'tetra/compensator: compensation')['message']
+
+        assert probe.call('calibrator/start').success
+        assert probe.call('driver/resume').success
+        wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'holding', 60, 'end of trim', graph)
+        assert probe.call('calibrator/stop').success
+        reply = probe.call('calibrator/calibrate', timeout_s=60)
+        assert reply.success, reply.message
+        saved = load_calibration(calibration_file)
+        assert saved.diagnostics['n_samples'] >= 1100  # 1200 trim sets, a few may be lost in transit
+        assert np.abs(saved.parameters.k_soft - exact.k_soft).max() < 2e-5      # |k| up to ~7e-3
+        assert np.abs(saved.parameters.b_hard - exact.b_hard).max() < 1.0 * NT  # |b| up to ~200 nT
+        wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'True',
+                 10, 'the compensator to follow the latched calibration', graph)
+
+        with probe.lock:
+            probe.collecting = True
+        assert probe.call('driver/resume').success
+        wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'survey', graph)
+        wait_for(lambda: len(probe.tensors['gradient/truth']) == len(survey), 10, 'all truth tensors', graph)
+        time.sleep(1.0)
+        stamps, g_raw, g_comp, g_true = probe.paired()
+        percent = probe.percent
+        tensor_status = _diag(probe, 'tetra/tensor: matching')
+
+    # The driver's truth is the simulator's, sample for sample (stamps 0.1 s apart).
+    truth_stamps = np.array(sorted(probe.tensors['gradient/truth']))
+    np.testing.assert_allclose(np.diff(truth_stamps), 1e8, atol=2)
+    np.testing.assert_allclose(np.array([probe.tensors['gradient/truth'][s] for s in truth_stamps]),
+                               survey.g_true, rtol=0, atol=1e-18)
+    assert len(stamps) >= 0.95 * len(survey), (len(stamps), tensor_status)
+    assert core.rms_residual(g_raw, g_true) > 100 * NT               # the interference is large ...
+    assert core.rms_residual(g_comp, g_true) < 0.5 * NT              # ... and removed to the noise floor
+    assert core.compensated_percent(core.epsilon(g_raw, g_comp, g_true)) > 99.0
+    assert percent > 99.0                                            # the node's running eq. 24
+
+
+def test_replayed_bags_give_the_offline_core_tensors(tmp_path):
+    calibration_file = tmp_path / 'calibration.yaml'
+    trim_scenario, _ = load_scenario(REPO / 'bags' / 'trim.yaml')
+    exact = trim_scenario.interference.effective_parameters()
+    with ros_graph() as (graph, probe, _):
+        graph.start('tensor')
+        graph.start('calibrator', calibration_file=str(calibration_file))
+        graph.start('compensator', calibration_file=str(calibration_file))
+        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'trim'), rate=0.0, start_paused=True,
+                    min_subscribers=1)
+        _wait_discovered(probe, graph)
+        assert probe.call('calibrator/start').success
+        assert probe.call('driver/resume').success
+        wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'trim replay', graph)
+        time.sleep(0.5)
+        assert probe.call('calibrator/stop').success
+        reply = probe.call('calibrator/calibrate', timeout_s=60)
+        assert reply.success, reply.message
+        assert '1200 samples' in reply.message                   # rate 0: nothing dropped
+        saved = load_calibration(calibration_file)
+        assert np.abs(saved.parameters.k_soft - exact.k_soft).max() < 2e-5
+        assert np.abs(saved.parameters.b_hard - exact.b_hard).max() < 1.0 * NT
+        wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'True',
+                 10, 'compensator', graph)
+
+        graph.stop('driver')
+        with probe.lock:
+            probe.collecting = True
+        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'survey'), rate=0.0, min_subscribers=1,
+                    start_paused=True)
+        # The new driver's truth publisher must be known to the compensator and the probe first.
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/truth') >= 1, 30, 'the new driver', graph)
+        time.sleep(1.0)
+        assert probe.call('driver/resume').success
+        wait_for(lambda: len(probe.paired()[0]) == 1500, 60, 'all 1500 survey sets', graph)
+        stamps, g_raw, g_comp, g_true = probe.paired()
+
+    with MagneticBag(REPO / 'bags' / 'survey') as bag:
+        bag_stamps, fields = bag.read_sets()
+    np.testing.assert_array_equal(stamps, bag_stamps)
+    offline_raw = core.difference_tensor(fields, GEOMETRY)
+    offline_comp = core.compensate(offline_raw, fields[:, 0], saved.parameters, GEOMETRY)
+    scale = np.abs(offline_raw).max()
+    assert np.abs(g_raw - offline_raw).max() <= 1e-9 * scale
+    assert np.abs(g_comp - offline_comp).max() <= 1e-9 * np.abs(offline_comp).max()
+    assert core.rms_residual(g_comp, g_true) < 0.5 * NT  # against the recorded simulator truth

@@ -1,0 +1,108 @@
+"""nodes/tensor.py as a process over real DDS: exact linear fields whose eq. 7 tensor is known,
+bad readings dropped and counted, a silent sensor reported, run-time parameter validation."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from ros_helpers import ros_graph, uniform_gradient_fields, wait_for, wait_matched
+
+from tetra_gradiometer import core
+
+NT = 1e-9
+T0 = 1_800_000_000 * 10**9
+GEOMETRY = core.TetraGeometry.regular(0.5)
+B0 = np.array([12e-6, -20e-6, 43e-6])
+G_KNOWN = np.array([[120.0, 35.0, -12.0], [35.0, -80.0, 22.0], [-12.0, 22.0, -40.0]]) * NT  # symmetric, traceless
+
+
+def _diag(probe, name: str) -> dict:
+    return probe.status(name)
+
+
+def _tensor_graph_feed(feeder, probe, graph, n: int, start: int, bad: dict[int, tuple[int, float]] | None = None,
+                       skip: tuple[int, ...] = (), period_s: float = 0.004) -> None:
+    """Publish ``n`` sets of the exact linear field from stamp index ``start``; ``bad`` maps a
+    set index to (sensor, value) written into that sensor's x component."""
+    fields = uniform_gradient_fields(GEOMETRY.positions, B0, G_KNOWN)
+    for i in range(start, start + n):
+        values = fields.copy()
+        if bad and i in bad:
+            sensor, value = bad[i]
+            values[sensor, 0] = value
+        feeder.publish_set(T0 + i * 10**8, values, skip=skip)
+        time.sleep(period_s)
+
+
+def test_non_finite_and_implausible_readings_drop_the_set_and_nothing_non_finite_is_published():
+    with ros_graph() as (graph, probe, feeder):
+        tensor = graph.start('tensor', warn_throttle_s=30.0, diagnostics_period_s=0.2)
+        for publisher in feeder.mags:
+            wait_matched(publisher, 1)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 1, 20, 'tensor node', graph)
+        time.sleep(0.5)
+        with probe.lock:
+            probe.collecting = True
+        bad = {10: (1, float('nan')), 11: (2, float('inf')), 12: (3, 2e-3), 13: (0, -float('inf')),
+               **{i: (1, float('nan')) for i in range(20, 30)}}
+        _tensor_graph_feed(feeder, probe, graph, 60, 0, bad)
+        good = 60 - len(bad)
+        wait_for(lambda: probe.counts['gradient/raw'] >= good, 10, f'the good tensors ({probe.counts})', graph)
+        time.sleep(0.5)
+        raw = probe.tensors['gradient/raw']
+        matching = _diag(probe, 'tetra/tensor: matching')
+        wait_for(lambda: _diag(probe, 'tetra/tensor: matching').get('sets_dropped_invalid') == str(len(bad)),
+                 5, 'drop counters', graph)
+        per_sensor = [int(_diag(probe, f'tetra/tensor: mag{s}')['dropped_invalid']) for s in range(1, 5)]
+        log = tensor.output()
+    assert probe.counts['gradient/raw'] == good
+    assert sorted(raw) == [T0 + i * 10**8 for i in range(60) if i not in bad]
+    tensors = np.array(list(raw.values()))
+    assert np.all(np.isfinite(tensors))
+    np.testing.assert_allclose(tensors, np.broadcast_to(G_KNOWN, tensors.shape), rtol=0, atol=1e-12 * 1e-6)
+    assert matching['messages_dropped_unmatched'] == '0'
+    assert per_sensor == [1, 11, 1, 1]
+    assert 1 <= log.count('dropped a set') <= 2  # warned, and throttled
+
+
+def test_a_silent_sensor_is_an_error_on_diagnostics_and_no_tensor_is_published_until_it_returns():
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('tensor', stale_timeout_s=0.3, diagnostics_period_s=0.1)
+        for publisher in feeder.mags:
+            wait_matched(publisher, 1)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 1, 20, 'tensor node', graph)
+        time.sleep(0.5)
+        _tensor_graph_feed(feeder, probe, graph, 50, 0, period_s=0.01)
+        wait_for(lambda: probe.counts['gradient/raw'] == 50, 5, '50 tensors', graph)
+        wait_for(lambda: _diag(probe, 'tetra/tensor: mag3').get('level') == 0, 5, 'mag3 OK', graph)
+
+        _tensor_graph_feed(feeder, probe, graph, 100, 50, skip=(2,), period_s=0.01)  # mag3 silent ~1 s
+        mag3 = _diag(probe, 'tetra/tensor: mag3')
+        matching = _diag(probe, 'tetra/tensor: matching')
+        assert mag3['level'] == 2 and 'stale' in mag3['message'], mag3
+        assert float(mag3['staleness_s']) > 0.3
+        assert matching['level'] == 2 and 'mag3' in matching['message']
+        assert _diag(probe, 'tetra/tensor: mag1')['level'] == 0
+        assert probe.counts['gradient/raw'] == 50
+
+        _tensor_graph_feed(feeder, probe, graph, 50, 150, period_s=0.01)  # back
+        wait_for(lambda: probe.counts['gradient/raw'] >= 95, 5, 'tensors again', graph)
+        wait_for(lambda: _diag(probe, 'tetra/tensor: mag3').get('level') == 0, 5, 'mag3 OK again', graph)
+
+
+def test_a_bad_value_set_at_run_time_is_refused():
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    with ros_graph() as (graph, probe, _):
+        graph.start('tensor')
+        client = probe.create_client(SetParameters, 'tensor/set_parameters')
+        assert client.wait_for_service(timeout_sec=30)
+        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=-0.5)
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(name='stale_timeout_s', value=value)]))
+        wait_for(future.done, 10, 'set_parameters', graph)
+        result = future.result().results[0]
+        assert not result.successful and 'stale_timeout_s' in result.reason
+        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=2.0)
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(name='stale_timeout_s', value=value)]))
+        wait_for(future.done, 10, 'set_parameters', graph)
+        assert future.result().results[0].successful

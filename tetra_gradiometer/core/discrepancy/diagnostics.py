@@ -1,0 +1,82 @@
+"""Diagnostics: where measurement and simulation disagree, as the residual's RMS per sensor,
+its largest correlation with each driver (time, attitude, field rate, temperature, current)
+and its RMS on the gradient tensor."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry import TetraGeometry, difference_tensor
+from ..units import NT_PER_T
+from .prepare import Prepared
+
+Array = NDArray[np.float64]
+
+
+def drivers(prep: Prepared) -> dict[str, Array]:
+    """The series a residual is compared with, by name (unit in the name)."""
+    out: dict[str, Array] = {
+        'time_s': prep.t,
+        'field_rate_nT_s': np.linalg.norm(prep.b_rate, axis=1),
+    }
+    if prep.attitude is not None:
+        out.update(
+            {
+                'heading_deg': prep.attitude[:, 0],
+                'pitch_deg': prep.attitude[:, 1],
+                'roll_deg': prep.attitude[:, 2],
+            }
+        )
+    if prep.temperature_c is not None:
+        out['temperature_c'] = prep.temperature_c
+    if prep.current_a is not None:
+        out['current_a'] = prep.current_a
+    return out
+
+
+def _strongest_correlation(d: Array, residual: Array, sensors: tuple[int, ...]) -> dict[str, Any]:
+    """The sensor and axis whose residual correlates most with ``d``, and the coefficient."""
+    dc = d - d.mean()
+    best = (0.0, '')
+    for s in sensors:
+        for a in range(3):
+            r = residual[:, s, a] - residual[:, s, a].mean()
+            den = np.sqrt((dc @ dc) * (r @ r))
+            corr = float(dc @ r / den) if den > 0 else 0.0
+            if abs(corr) > abs(best[0]):
+                best = (corr, f'sensor {s + 1} {"xyz"[a]}')
+    return {'r': best[0], 'where': best[1]}
+
+
+def diagnostics(prep: Prepared, residual: Array) -> dict[str, Any]:
+    """RMS per sensor and axis of ``residual`` (N, 4, 3) nT, and its largest correlation
+    with each driver."""
+    series = drivers(prep)
+    out: dict[str, Any] = {'rms_nT': {}, 'correlation': {}}
+    for s in prep.sensors:
+        out['rms_nT'][f'sensor_{s + 1}'] = [
+            float(v) for v in np.sqrt(np.mean(residual[:, s] ** 2, axis=0))
+        ]
+    for name, d in series.items():
+        if np.ptp(d) == 0:
+            continue
+        if name == 'heading_deg':
+            d = np.cos(np.radians(d))
+        out['correlation'][name] = _strongest_correlation(d, residual, prep.sensors)
+    out['drivers'] = list(series)
+    return out
+
+
+def tensor_rms(prep: Prepared, residual: Array, geometry: TetraGeometry) -> float:
+    """RMS of ``residual`` (N, 4, 3) nT on the gradient tensor, nT/m (pair view: sensor 1's
+    residual is zero by construction)."""
+    if prep.absolute:
+        g = difference_tensor(residual / NT_PER_T, geometry) * NT_PER_T
+    else:
+        n = len(residual)
+        fields = np.concatenate([np.zeros((n, 1, 3)), residual[:, 1:]], axis=1)
+        g = difference_tensor(fields / NT_PER_T, geometry) * NT_PER_T
+    return float(np.sqrt(np.mean(g**2)))

@@ -1,0 +1,523 @@
+"""The candidate search and its criterion: round by round, re-check the named units, then
+add the unit (and its family in other sensors) that passes CV-BIC, the held-out F-test and
+the relevance threshold, until none does.
+
+Each round's state is rebuilt from the previous one; the result is a frozen
+:class:`SearchResult`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from .cv import ALL_SENSORS, Fit, Gram, block_length, flat, noise_floor
+from .effects import Candidate
+from .fit import (
+    CurrentFit,
+    Family,
+    build,
+    current_design,
+    fit_current,
+    reference_in_pairs,
+    restrict,
+)
+from .prepare import Prepared
+from .result import Settings, Step, sensor_name
+
+Array = NDArray[np.float64]
+Index = NDArray[np.int_]
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """What the search found.
+
+    Attributes
+    ----------
+    prep : the prepared data with ``B^b`` as the last fit left it
+    active : the named units; ``step_units[i]`` are the indices of step ``i``'s units
+    steps : one per named family (parameters still empty: the report fills them)
+    fit : the last fit of the current model (the final joint fit)
+    rounds : each round's gap, floor, model and candidate table
+    residuals, gaps, floors : per round (base model first), nT
+    notes : the revisions made on the way
+    block_s : cross-validation block length, s
+    """
+
+    prep: Prepared
+    active: tuple[Family, ...]
+    steps: tuple[Step, ...]
+    step_units: tuple[tuple[int, ...], ...]
+    fit: CurrentFit
+    rounds: list[dict[str, Any]]
+    residuals: list[Array]
+    gaps: list[float]
+    floors: list[float]
+    notes: list[str]
+    block_s: float
+
+
+@dataclass(frozen=True)
+class _Candidates:
+    """A round's candidate units (``plain``: in the pair view, sensor 1's units as they
+    replace a named one, by their index in ``units``)."""
+
+    units: list[Family]
+    plain: dict[int, Family] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _Round:
+    """A round's Gram matrices and where each unit's columns and offsets sit in them, with
+    the selection criterion."""
+
+    gram: Gram
+    ty: int
+    base_idx: Index
+    sel_idx: Index
+    unit_cols: list[Index]
+    unit_off: list[list[int]]
+    swap_index: dict[int, int]
+    active_cols: list[Index]
+    active_off: list[list[int]]
+    absolute: bool
+    channels: int
+    floor: float
+    settings: Settings
+
+    def bic(self, res: Fit) -> float:
+        """Cross-validated BIC, ``n ln(SS_cv/n) + p ln n``."""
+        n_obs = self.gram.n
+        return float(n_obs * np.log(res.cv / n_obs) + res.rank * np.log(n_obs))
+
+    def compare(self, res: Fit, ref: Fit, sensor: int) -> dict[str, Any]:
+        """``res`` (the model with a unit of ``sensor`` added) against ``ref``: the
+        selection criterion. The explained RMS is over the unit's own sensor (3 channels;
+        a common term, or sensor 1 in the pair view, over all channels)."""
+        n_obs = self.gram.n
+        dp = res.rank - ref.rank
+        gain = ref.cv - res.cv
+        dof = max(n_obs - res.rank, 1.0)
+        if dp > 0 and gain > 0:
+            fstat = (gain / dp) / (res.cv / dof)
+            pval = float(stats.f.sf(fstat, dp, dof))
+        else:
+            fstat, pval = 0.0, 1.0
+        own = 3 if (sensor >= 1 or (sensor == 0 and self.absolute)) else self.channels
+        explained = float(np.sqrt(max(gain, 0.0) / (n_obs / self.channels * own)))
+        dbic = self.bic(res) - self.bic(ref)
+        s = self.settings
+        return {
+            'n_parameters': int(dp),
+            'gap_after_nT': float(np.sqrt(res.cv / n_obs)),
+            'delta_bic': float(dbic),
+            'f_statistic': float(fstat),
+            'p_value': pval,
+            'explained_rms_nT': explained,
+            'result': res,
+            'passes': bool(dbic < 0 and pval < s.alpha and explained >= s.relevance * self.floor),
+        }
+
+
+def search_effects(
+    prep: Prepared, testable: tuple[Candidate, ...], settings: Settings
+) -> SearchResult:
+    """Add the missing effects one family at a time (see the package docstring)."""
+    block_s = block_length(prep.t, settings.block_s)
+    y = prep.fields - prep.base_offset
+    active: tuple[Family, ...] = ()
+    steps: list[Step] = []
+    step_units: list[list[int]] = []
+    rounds: list[dict[str, Any]] = []
+    residuals: list[Array] = []
+    gaps: list[float] = []
+    floors: list[float] = []
+    notes: list[str] = []
+    while True:
+        fit = fit_current(prep, active, y, settings.knot_s)
+        prep, active = fit.prep, fit.active
+        residual = prep.fields - fit.prediction
+        if not prep.absolute:
+            residual = residual - residual[:, :1]  # pair view: B_i' - B_1' against the model
+        floor, _ = noise_floor(flat(residual, prep.sensors))
+        more = len(steps) < settings.max_effects
+        cands = _candidates(prep, fit, testable, y) if more else _Candidates([])
+        rnd = _round(prep, fit, cands, y, floor, block_s, settings)
+        cur = rnd.gram.evaluate(rnd.sel_idx, rnd.ty)
+        gap_cur = float(np.sqrt(cur.cv / rnd.gram.n))
+        revised = _backward_check(rnd, cur, active, cands)
+        if revised is not None and len(notes) < 4 * settings.max_effects:
+            notes.append(revised[2])
+            steps, step_units, active = _revise(steps, step_units, active, *revised)
+            continue
+        gaps.append(gap_cur)
+        floors.append(floor)
+        residuals.append(residual)
+        chosen, after, table = _forward_step(rnd, cur, cands.units)
+        rounds.append(_round_record(gap_cur, floor, active, table))
+        if not chosen:
+            break
+        units = [cands.units[k] for k in chosen]
+        steps.append(_step(units, chosen, rnd, gap_cur, after, floor, table))
+        step_units.append(list(range(len(active), len(active) + len(chosen))))
+        active = active + tuple(units)
+        steps, step_units = _merge_steps(steps, step_units)
+    return SearchResult(
+        prep,
+        active,
+        tuple(steps),
+        tuple(tuple(m) for m in step_units),
+        fit,
+        rounds,
+        residuals,
+        gaps,
+        floors,
+        notes,
+        block_s,
+    )
+
+
+def _candidates(
+    prep: Prepared, fit: CurrentFit, testable: tuple[Candidate, ...], y: Array
+) -> _Candidates:
+    """Every unit (family x sensor) not yet in the model, built on the current fit."""
+    taken = {(f.candidate.name, f.sensor) for f in fit.active}
+    cur_sensor = np.concatenate(
+        [np.full(prep.base_cols.shape[-1], -2)]
+        + [np.full(f.cols.shape[-1], f.sensor) for f in fit.active]
+    )
+    units: list[Family] = []
+    plain: dict[int, Family] = {}
+    design = current_design(prep.sensors, fit.cols, cur_sensor, y - fit.offset)
+    for c in testable:
+        if all((c.name, s) in taken for s in ALL_SENSORS + (-1,)):
+            continue
+        family = build(c, fit.ctx, prep.sensors, design)
+        for s in sorted({lab[0] for lab in family.labels}):
+            if (c.name, s) not in taken:
+                unit = restrict(family, s)
+                if s == 0 and not prep.absolute:
+                    plain[len(units)] = unit
+                    unit = reference_in_pairs(unit, fit.k_hat)
+                units.append(unit)
+    return _Candidates(units, plain)
+
+
+def _offsets(
+    families: list[Family] | tuple[Family, ...],
+    sensors: tuple[int, ...],
+    extra: list[Array],
+    ty: int,
+) -> list[list[int]]:
+    """Where each family's offset sits in Z (appended to ``extra``; [] when it has none)."""
+    out: list[list[int]] = []
+    for f in families:
+        if f.offset is not None and np.any(f.offset):
+            out.append([ty + len(extra)])
+            extra.append(flat(f.offset, sensors)[..., None])
+        else:
+            out.append([])
+    return out
+
+
+def _column_ranges(usable: NDArray[np.bool_], start: int, widths: list[int]) -> list[Index]:
+    """The usable column indices of consecutive blocks of ``widths`` columns from ``start``."""
+    out = []
+    for p in widths:
+        out.append(start + np.flatnonzero(usable[start : start + p]))
+        start += p
+    return out
+
+
+def _round(
+    prep: Prepared,
+    fit: CurrentFit,
+    cands: _Candidates,
+    y: Array,
+    floor: float,
+    block_s: float,
+    settings: Settings,
+) -> _Round:
+    """Z = [current columns | unit columns | plain units | target | unit offsets | active
+    offsets], its per-fold Gram matrices and the index of each part."""
+    units = cands.units + list(cands.plain.values())
+    allcols = np.concatenate([fit.cols] + [u.cols for u in units], axis=-1)
+    a = flat(allcols, prep.sensors)
+    norm = np.sqrt(np.einsum('nmp,nmp->p', a, a))
+    usable = norm > 0
+    norm[~usable] = 1.0
+    extra = [flat(y - fit.offset, prep.sensors)[..., None]]
+    ty = a.shape[-1]
+    n_cur = fit.cols.shape[-1]
+    unit_cols = _column_ranges(usable, n_cur, [u.cols.shape[-1] for u in units])
+    unit_off = _offsets(units, prep.sensors, extra, ty)
+    # Offsets of the units already in the model, to add back when one is taken out.
+    active_off = _offsets(fit.active, prep.sensors, extra, ty)
+    base_p = prep.base_cols.shape[-1]
+    active_cols = _column_ranges(usable, base_p, [f.cols.shape[-1] for f in fit.active])
+    gram = Gram(np.concatenate([a / norm] + extra, axis=-1), prep.t, block_s, settings.n_folds)
+    return _Round(
+        gram=gram,
+        ty=ty,
+        base_idx=np.flatnonzero(usable[:base_p]),
+        sel_idx=np.flatnonzero(usable[:n_cur]),
+        unit_cols=unit_cols,
+        unit_off=unit_off,
+        # Where the swap test finds each unit's columns (the plain version when there is one).
+        swap_index={k: len(cands.units) + i for i, k in enumerate(cands.plain)},
+        active_cols=active_cols,
+        active_off=active_off,
+        absolute=prep.absolute,
+        channels=3 * len(prep.sensors),
+        floor=floor,
+        settings=settings,
+    )
+
+
+def _backward_check(
+    rnd: _Round, cur: Fit, active: tuple[Family, ...], cands: _Candidates
+) -> tuple[int, Family | None, str] | None:
+    """Is every unit in the model still needed, and does a unit with fewer parameters in the
+    same sensor explain as much now that the others are in? The first unit that fails:
+    (its index, its replacement or None to remove it, why)."""
+    for k, f in enumerate(active):
+        rest = np.concatenate(
+            [rnd.base_idx] + [c for j, c in enumerate(rnd.active_cols) if j != k]
+        )
+        without = rnd.gram.evaluate(rest, rnd.ty, add_back=rnd.active_off[k])
+        if not rnd.compare(cur, without, f.sensor)['passes']:
+            return (
+                k,
+                None,
+                f'{f.candidate.name} at sensor {f.sensor + 1} is no longer needed '
+                f'once the other effects are in (removed)',
+            )
+        best_alt = _best_replacement(rnd, cur, k, f, rest, cands.units)
+        if best_alt is not None:
+            u = cands.plain.get(best_alt[0], cands.units[best_alt[0]])
+            return (
+                k,
+                u,
+                f'{f.candidate.name} at sensor {f.sensor + 1} replaced by the more '
+                f'parsimonious {u.candidate.name} (CV-BIC {best_alt[1] - rnd.bic(cur):+.4g}) '
+                'once the other effects are in',
+            )
+    return None
+
+
+def _best_replacement(
+    rnd: _Round, cur: Fit, k: int, f: Family, rest: Index, units: list[Family]
+) -> tuple[int, float] | None:
+    """The unit of another family in ``f``'s sensor, with no more parameters, whose CV-BIC
+    in place of ``f`` is lowest and below the current model's: (its index, its CV-BIC)."""
+    best_alt = None
+    for j, u in enumerate(units):
+        if (
+            u.sensor != f.sensor
+            or u.candidate.name == f.candidate.name
+            or len(rnd.unit_cols[j]) > len(rnd.active_cols[k])
+        ):
+            continue  # only a unit with no more parameters may replace one
+        jj = rnd.swap_index.get(j, j)
+        res = rnd.gram.evaluate(
+            np.concatenate([rest, rnd.unit_cols[jj]]),
+            rnd.ty,
+            rnd.unit_off[jj],
+            add_back=rnd.active_off[k],
+        )
+        if rnd.bic(res) < rnd.bic(cur) and (best_alt is None or rnd.bic(res) < best_alt[1]):
+            best_alt = (j, rnd.bic(res))
+    return best_alt
+
+
+def _forward_step(
+    rnd: _Round, cur: Fit, units: list[Family]
+) -> tuple[list[int], Fit, list[dict[str, Any]]]:
+    """The unit that passes with the lowest CV-BIC, then its family in the other sensors
+    that pass: the chosen unit indices, the fit with them, and the first candidate table."""
+    chosen: list[int] = []
+    first_table: list[dict[str, Any]] | None = None
+    sel_idx = rnd.sel_idx
+    sel_off: list[int] = []
+    while True:
+        table = []
+        for k, u in enumerate(units):
+            if k in chosen or (chosen and u.candidate.name != units[chosen[0]].candidate.name):
+                continue  # after the first unit, the step extends its family to other sensors
+            res = rnd.gram.evaluate(
+                np.concatenate([sel_idx, rnd.unit_cols[k]]), rnd.ty, sel_off + rnd.unit_off[k]
+            )
+            row = rnd.compare(res, cur, u.sensor)
+            row.update(
+                {
+                    'effect': u.candidate.name,
+                    'unit': k,
+                    'sensor': 'all' if u.sensor < 0 else u.sensor + 1,
+                }
+            )
+            table.append(row)
+        table.sort(key=lambda row: row['delta_bic'])
+        if first_table is None:
+            first_table = table
+        winners = [row for row in table if row['passes']]
+        if not winners:
+            return chosen, cur, first_table
+        best = winners[0]
+        chosen.append(best['unit'])
+        sel_idx = np.concatenate([sel_idx, rnd.unit_cols[best['unit']]])
+        sel_off = sel_off + rnd.unit_off[best['unit']]
+        cur = best['result']
+
+
+def _round_record(
+    gap: float, floor: float, active: tuple[Family, ...], table: list[dict[str, Any]]
+) -> dict[str, Any]:
+    return {
+        'gap_nT': gap,
+        'noise_floor_nT': floor,
+        'model': [f'{f.candidate.name}@{sensor_name(f.sensor)}' for f in active],
+        'candidates': [
+            {k: v for k, v in row.items() if k not in ('unit', 'result')} for row in table
+        ],
+    }
+
+
+def _step(
+    units: list[Family],
+    chosen: list[int],
+    rnd: _Round,
+    gap_cur: float,
+    after: Fit,
+    floor: float,
+    table: list[dict[str, Any]],
+) -> Step:
+    """The step that adds ``units`` (one family), with the evidence that named it."""
+    name = units[0].candidate.name
+    gap_after = float(np.sqrt(after.cv / rnd.gram.n))
+    sensors_added = ['all' if u.sensor < 0 else u.sensor + 1 for u in units]
+    first = [row for row in table if row['unit'] == chosen[0]][0]
+    rivals = [row for row in table if row['effect'] != name]
+    evidence = (
+        f'added for sensor(s) {", ".join(map(str, sensors_added))}: held-out gap '
+        f'{gap_cur:.3g} -> {gap_after:.3g} nT (noise floor {floor:.3g} nT); first unit '
+        f'(sensor {first["sensor"]}): {first["n_parameters"]} parameters explain '
+        f'{first["explained_rms_nT"]:.3g} nT RMS of the held-out residual, CV-BIC '
+        f'{first["delta_bic"]:+.4g}, held-out F = {first["f_statistic"]:.4g} '
+        f'(p = {first["p_value"]:.3g})'
+    )
+    if rivals:
+        r = rivals[0]
+        evidence += (
+            f'; best other family: {r["effect"]} at sensor {r["sensor"]} with '
+            f'{r["n_parameters"]} parameters, gap {r["gap_after_nT"]:.3g} nT, CV-BIC '
+            f'{r["delta_bic"]:+.4g}'
+        )
+    n_params = sum(len(rnd.unit_cols[k]) for k in chosen)
+    return Step(
+        name,
+        gap_cur,
+        gap_after,
+        {},
+        evidence,
+        n_params,
+        first['delta_bic'],
+        first['f_statistic'],
+        first['p_value'],
+    )
+
+
+def _revise(
+    steps: list[Step],
+    step_units: list[list[int]],
+    active: tuple[Family, ...],
+    k: int,
+    replacement: Family | None,
+    message: str,
+) -> tuple[list[Step], list[list[int]], tuple[Family, ...]]:
+    """Take unit ``k`` out of the model (and its step), or replace it; keep the steps
+    consistent (a step whose units all changed family is renamed, an empty one dropped).
+    Returns new steps, step units and units."""
+    steps = list(steps)
+    step_units = [list(members) for members in step_units]
+    units = list(active)
+    owner = next(i for i, members in enumerate(step_units) if k in members)
+    if replacement is None:
+        del units[k]
+        step_units[owner].remove(k)
+        step_units = [[m - 1 if m > k else m for m in members] for members in step_units]
+    else:
+        units[k] = replacement
+    steps[owner] = replace(
+        steps[owner], evidence=steps[owner].evidence + f'; revised later: {message}'
+    )
+    for i in reversed(range(len(steps))):
+        names = {units[m].candidate.name for m in step_units[i]}
+        if not names:
+            del steps[i], step_units[i]
+        elif steps[i].effect not in names:
+            steps[i] = replace(steps[i], effect=sorted(names)[0])
+        if i < len(steps) and len(names) > 1:
+            _move_foreign_units(steps, step_units, units, i, message)
+    steps, step_units = _merge_steps(steps, step_units)
+    return steps, step_units, tuple(units)
+
+
+def _move_foreign_units(
+    steps: list[Step], step_units: list[list[int]], units: list[Family], i: int, message: str
+) -> None:
+    """The replaced unit now belongs to another family: move it from step ``i`` to that
+    family's step (or a new one at the end). Edits the caller's working lists."""
+    moved = [m for m in step_units[i] if units[m].candidate.name != steps[i].effect]
+    step_units[i] = [m for m in step_units[i] if m not in moved]
+    for m in moved:
+        target = next(
+            (j for j, st in enumerate(steps) if st.effect == units[m].candidate.name), None
+        )
+        if target is None:
+            steps.append(
+                Step(
+                    units[m].candidate.name,
+                    steps[i].gap_before_nT,
+                    steps[i].gap_after_nT,
+                    {},
+                    f'named when revising: {message}',
+                    units[m].cols.shape[-1],
+                    0.0,
+                    0.0,
+                    1.0,
+                )
+            )
+            step_units.append([m])
+        else:
+            step_units[target].append(m)
+
+
+def _merge_steps(
+    steps: list[Step], step_units: list[list[int]]
+) -> tuple[list[Step], list[list[int]]]:
+    """One step per family: a later step of a family already named is merged into the earlier
+    one (its units and parameters; the gaps of the earlier step stay those it was named with,
+    unless the two steps were consecutive). Returns new lists."""
+    steps = list(steps)
+    step_units = [list(members) for members in step_units]
+    i = 0
+    while i < len(steps):
+        j = next((j for j in range(i + 1, len(steps)) if steps[j].effect == steps[i].effect), None)
+        if j is None:
+            i += 1
+            continue
+        step_units[i] += step_units[j]
+        steps[i] = replace(
+            steps[i],
+            gap_after_nT=steps[j].gap_after_nT if j == i + 1 else steps[i].gap_after_nT,
+            n_parameters=steps[i].n_parameters + steps[j].n_parameters,
+            evidence=steps[i].evidence
+            + f'; merged with a later step of the same family: {steps[j].evidence}',
+        )
+        del steps[j], step_units[j]
+    return steps, step_units

@@ -1,0 +1,197 @@
+"""Report assembly: the final joint fit's parameters per step, the data summary, the notes
+and the plot series, gathered into a :class:`~.result.Report`."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry import TetraGeometry
+from .cv import ALL_SENSORS
+from .diagnostics import diagnostics, tensor_rms
+from .effects import LIBRARY
+from .fit import effect_field
+from .prepare import Prepared
+from .result import BASE_MODEL, Report, Settings, Step, format_parameters
+from .search import SearchResult
+from .targets import TargetSpans
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """What the report says about the run beyond the search.
+
+    Attributes
+    ----------
+    settings : the workflow's settings
+    window_s : the analysed window (s from the first sample), or None: the whole run
+    earth_from_params : the Earth field came from the parameters (not estimated)
+    missing : topic -> why it is unavailable
+    untestable : candidate -> why the run cannot test it
+    targets : the excluded target passages
+    notes : what preparing the data and the detector decided
+    """
+
+    settings: Settings
+    window_s: tuple[float, float] | None
+    earth_from_params: bool
+    missing: Mapping[str, str]
+    untestable: dict[str, str]
+    targets: TargetSpans
+    notes: list[str]
+
+
+def _final_steps(search: SearchResult) -> tuple[list[Step], list[Array]]:
+    """Every step with the parameters of its units from the final joint fit, and the field
+    (N, 4, 3) nT each step's effect contributes."""
+    prep, active, coef = search.prep, search.active, search.fit.coef
+    bounds = [prep.base_cols.shape[-1]]
+    for f in active:
+        bounds.append(bounds[-1] + f.cols.shape[-1])
+    steps: list[Step] = []
+    fields: list[Array] = []
+    for step, members in zip(search.steps, search.step_units, strict=True):
+        labels: list[tuple[int, str]] = []
+        values: list[Array] = []
+        fld = np.zeros_like(prep.fields)
+        for k in members:
+            c = coef[bounds[k] : bounds[k + 1]]
+            labels += active[k].labels
+            values.append(c)
+            fld += effect_field(active[k], c)
+        parameters = format_parameters(labels, np.concatenate(values), prep.absolute)
+        parameters['units'] = LIBRARY[step.effect].parameters
+        parameters['rms_contribution_nT'] = {
+            f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2)))
+            for s in ALL_SENSORS
+            if np.any(fld[:, s])
+        }
+        n_parameters = int(sum(active[k].cols.shape[-1] for k in members))
+        steps.append(replace(step, n_parameters=n_parameters, parameters=parameters))
+        fields.append(fld)
+    return steps, fields
+
+
+def _base_parameters(search: SearchResult) -> dict[str, Any]:
+    prep = search.prep
+    base_p = prep.base_cols.shape[-1]
+    params = format_parameters(prep.base_labels, search.fit.coef[:base_p], prep.absolute)
+    if 'all_sensors' in params['per_sensor']:
+        params['earth_field_correction_enu_nT'] = params['per_sensor'].pop('all_sensors')
+    return params
+
+
+def _data(search: SearchResult, info: RunInfo) -> dict[str, Any]:
+    """The ``data`` section: samples, rates, inputs, window, exclusions, Earth field."""
+    prep, coef, window_s = search.prep, search.fit.coef, info.window_s
+    n = len(prep.t)
+    duration = float(prep.t[-1] - prep.t[0])
+    data: dict[str, Any] = {
+        'samples': n,
+        'duration_s': duration,
+        'sample_rate_hz': float((n - 1) / duration) if duration else 0.0,
+        'cv_block_s': search.block_s,
+        'folds': info.settings.n_folds,
+        'has_odom': prep.absolute,
+        'has_temperature': prep.temperature_c is not None,
+        'has_current': prep.current_a is not None,
+        'missing_topics': dict(info.missing or {}),
+        'window_s': None
+        if window_s is None
+        else [window_s[0], window_s[1] if np.isfinite(window_s[1]) else None],
+        'excluded_s': float(sum(e['duration_s'] for e in info.targets.spans)),
+        'target_detector': info.targets.detector,
+    }
+    if prep.earth_field_nT is not None:
+        data['earth_field_enu_nT'] = [float(v) for v in prep.earth_field_nT + coef[:3]]
+        data['earth_field_drift_enu_nT'] = [float(v) for v in coef[3:6]]
+        data['earth_field_source'] = (
+            'params, corrected by the fit'
+            if info.earth_from_params
+            else 'estimated from sensor 1 and /odom, refined by the fit'
+        )
+        if info.earth_from_params:
+            data['earth_field_params_enu_nT'] = [float(v) for v in prep.earth_field_nT]
+    return data
+
+
+def _closing_notes(search: SearchResult, info: RunInfo, adequate: bool) -> list[str]:
+    """The run's notes, the revisions, and what an inadequate model means."""
+    notes = list(info.notes) + list(search.notes)
+    if not adequate:
+        ratio = info.settings.adequate_ratio
+        notes.append(
+            f'the final gap {search.gaps[-1]:.3g} nT exceeds {ratio} x the noise floor '
+            f'({search.floors[-1]:.3g} nT) but no candidate in the library explains the rest: '
+            'an effect outside the library (or a target close to the track) remains'
+        )
+        if info.targets.spans:
+            notes.append(
+                'target passage(s) were excluded, but the rest of the run is not at the noise '
+                "floor either: the target's field may reach the manoeuvre (a trim flown near "
+                'the target); analyse a run, or a --window, flown away from targets'
+            )
+    return notes
+
+
+def _series(prep: Prepared, search: SearchResult, fields: list[Array]) -> dict[str, Any]:
+    """The arrays of the plots."""
+    return {
+        't': prep.t,
+        'sensors': prep.sensors,
+        'residuals': search.residuals,
+        'gaps': search.gaps,
+        'floors': search.floors,
+        'effect_fields': fields,
+        'b_rate': prep.b_rate,
+        'attitude': prep.attitude,
+        'temperature_c': prep.temperature_c,
+        'current_a': prep.current_a,
+    }
+
+
+def build_report(
+    search: SearchResult,
+    info: RunInfo,
+    geometry: TetraGeometry | None,
+    *,
+    keep_series: bool,
+    runtime_s: float,
+) -> Report:
+    """The :class:`Report` of a finished search."""
+    prep = search.prep
+    steps, fields = _final_steps(search)
+    gap_final, floor_final = search.gaps[-1], search.floors[-1]
+    adequate = gap_final <= info.settings.adequate_ratio * floor_final
+    diag: dict[str, Any] = {
+        'base': diagnostics(prep, search.residuals[0]),
+        'final': diagnostics(prep, search.residuals[-1]),
+    }
+    if geometry is not None:
+        diag['final_tensor_rms_nT_per_m'] = tensor_rms(prep, search.residuals[-1], geometry)
+    view = '; B^b = R^T earth_field_enu from /odom' if prep.absolute else "; B^b = B_1' (no /odom)"
+    return Report(
+        named_effects=[s.effect for s in steps],
+        steps=steps,
+        gap_initial_nT=search.gaps[0],
+        gap_final_nT=gap_final,
+        noise_floor_nT=floor_final,
+        base_model=BASE_MODEL + view,
+        adequate=bool(adequate),
+        untestable=info.untestable,
+        view='absolute' if prep.absolute else 'pair',
+        notes=_closing_notes(search, info, adequate),
+        rounds=search.rounds,
+        diagnostics=diag,
+        base_parameters=_base_parameters(search),
+        data=_data(search, info),
+        runtime_s=runtime_s,
+        excluded_spans=info.targets.spans,
+        series=_series(prep, search, fields) if keep_series else {},
+    )

@@ -1,0 +1,276 @@
+"""Calibrating from a bag: read a window of matched sets and identify ``k``, ``b`` (eq. 18).
+
+The window, in seconds from the bag's first matched set, is where the **true gradient is
+taken as zero**: a trim manoeuvre in a uniform field, away from targets
+(``constraint_lstsq`` and ``paper_ga`` do not use that assumption). It is read streaming;
+only its sets are kept. A window of more than ``max_sets`` sets is thinned uniformly (every
+k-th set) to bound the solver's memory (the design holds 9 x 36 floats per set).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ..core import TetraGeometry, difference_tensor
+from ..core.identification import (
+    DEFAULT_METHOD,
+    MAX_COVERAGE_CONDITION,
+    Calibration,
+    IdentifiabilityError,
+    Options,
+    identify,
+)
+from ..core.identification.paper_ga import GENERATIONS
+from ..core.units import S_PER_NS
+from ..errors import BagError, InputError
+from .bag import MagneticBag
+from .calibration import CalibrationFile
+from .matching import MatchCounters
+
+__all__ = [
+    'DEFAULT_MAX_SETS',
+    'MIN_SETS',
+    'BagCalibration',
+    'WindowSets',
+    'calibrate_bag',
+    'read_window',
+    'window_text',
+]
+
+DEFAULT_MAX_SETS = 50_000
+#: ``max_sets`` may not be smaller (a thinned window must still identify 36 parameters).
+MIN_SETS = 10
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class WindowSets:
+    """The matched sets of a window.
+
+    Attributes
+    ----------
+    stamps_ns : ndarray, shape (n,), int64
+        Header stamps of sensor 1, ns.
+    fields : ndarray, shape (n, 4, 3)
+        Sensor fields, tesla, body frame.
+    span_s : float
+        Seconds of the bag read (from its first matched set to the last one read).
+    counters : MatchCounters
+        The stamp matcher's counts over what was read.
+    """
+
+    stamps_ns: IntArray
+    fields: FloatArray
+    span_s: float
+    counters: MatchCounters
+
+
+@dataclass(frozen=True)
+class BagCalibration:
+    """A calibration from a bag, with what the summary and the file's diagnostics report.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        The solver's result.
+    record : CalibrationFile
+        The calibration file to save, its diagnostics including the ones below.
+    window : str
+        The window as text (``'whole bag'`` or ``'T0:T1 s'``).
+    sets_in_window : int
+        Sets with finite readings in the window, before thinning.
+    thinned_every : int
+        Every how many sets one was used (1: all).
+    span_s : float
+        Seconds of the bag read.
+    non_finite_sets : int
+        Sets of the window skipped for a non-finite reading.
+    counters : MatchCounters
+        The stamp matcher's counts over what was read.
+    """
+
+    calibration: Calibration
+    record: CalibrationFile
+    window: str
+    sets_in_window: int
+    thinned_every: int
+    span_s: float
+    non_finite_sets: int
+    counters: MatchCounters
+
+    @property
+    def coverage_condition(self) -> float:
+        """Attitude coverage condition number of the window's reference field."""
+        return float(self.calibration.details['attitude_coverage_condition'])
+
+
+def window_text(window: tuple[float, float] | None) -> str:
+    """``'whole bag'`` or ``'T0:T1 s'``."""
+    return 'whole bag' if window is None else f'{window[0]:g}:{window[1]:g} s'
+
+
+def read_window(
+    bag_path: str | os.PathLike[str],
+    window: tuple[float, float] | None,
+    *,
+    tolerance_s: float,
+    progress: bool | None = None,
+) -> WindowSets:
+    """The matched sets of ``window`` (seconds from the first set; None: the whole bag).
+
+    Reading stops at the first set beyond the window (sets come in stamp order).
+
+    Raises
+    ------
+    BagError
+        The bag breaks the data contract, or the window holds no set.
+    """
+    stamps: list[IntArray] = []
+    fields: list[FloatArray] = []
+    first: int | None = None
+    last = 0
+    with MagneticBag(bag_path) as bag:
+        sets = bag.iter_sets(tolerance_s=tolerance_s, progress=progress)
+        for chunk_stamps, chunk_fields in sets:
+            first = int(chunk_stamps[0]) if first is None else first
+            last = int(chunk_stamps[-1])
+            beyond = False
+            if window is not None:
+                t = (chunk_stamps - first) * S_PER_NS
+                keep = (t >= window[0]) & (t <= window[1])
+                chunk_stamps, chunk_fields = chunk_stamps[keep], chunk_fields[keep]
+                beyond = t[-1] > window[1]
+            if len(chunk_stamps):
+                stamps.append(chunk_stamps)
+                fields.append(chunk_fields)
+            if beyond:  # sets come in stamp order: the rest of the bag lies beyond the window
+                sets.close()
+                break
+        counters = bag.counters
+    span = 0.0 if first is None else (last - first) * S_PER_NS
+    if not stamps:
+        raise BagError(
+            f'{bag_path}: the window {window_text(window)} holds no sample set '
+            f'(the bag spans 0:{span:.3f} s from its first stamp)'
+        )
+    return WindowSets(np.concatenate(stamps), np.concatenate(fields), span, counters)
+
+
+def _finite(sets: WindowSets, bag_path: str | os.PathLike[str]) -> tuple[WindowSets, int]:
+    """The sets without a non-finite reading, and how many were dropped."""
+    finite = np.isfinite(sets.fields).all(axis=(1, 2))
+    non_finite = int((~finite).sum())
+    if not finite.any():
+        raise BagError(
+            f'{bag_path}: every set in the window has a non-finite reading ({non_finite} sets)'
+        )
+    kept = dataclasses.replace(sets, stamps_ns=sets.stamps_ns[finite], fields=sets.fields[finite])
+    return kept, non_finite
+
+
+def calibrate_bag(
+    bag_path: str | os.PathLike[str],
+    geometry: TetraGeometry,
+    *,
+    window: tuple[float, float] | None = None,
+    method: str = DEFAULT_METHOD,
+    seed: int = 0,
+    generations: int | None = None,
+    wide_bounds: bool = False,
+    max_coverage_condition: float = MAX_COVERAGE_CONDITION,
+    tolerance_s: float = 2e-3,
+    max_sets: int = DEFAULT_MAX_SETS,
+    progress: bool | None = None,
+) -> BagCalibration:
+    """Identify the interference of the array ``geometry`` on a window of the bag.
+
+    Parameters
+    ----------
+    bag_path : path of the rosbag2 folder
+    geometry : TetraGeometry
+        The array that recorded the bag.
+    window : (t0, t1) in seconds from the first matched set, or None for the whole bag
+    method : str
+        A method of ``core.identification.CALIBRATION_METHODS``.
+    seed, generations, wide_bounds : ``paper_ga`` only: the generator's seed, the number of
+        generations (default ``GENERATIONS``) and the wide bounds
+    max_coverage_condition : float
+        Refuse a window whose attitude coverage condition number is larger.
+    tolerance_s : float
+        Largest spread of the four header stamps in one set, seconds.
+    max_sets : int
+        Thin the window to at most this many sets (at least :data:`MIN_SETS`).
+    progress : tqdm bar on stderr (None: only on a terminal and for long bags)
+
+    Raises
+    ------
+    InputError
+        ``max_sets`` or ``generations`` out of range, or an unknown method.
+    BagError
+        The bag breaks the data contract, or the window holds no usable set.
+    IdentifiabilityError
+        The window cannot identify the parameters; the message names the window.
+    CalibrationFileError
+        The method gives no ``k, b`` calibration.
+    """
+    if max_sets < MIN_SETS:
+        raise InputError(f'--max-sets must be at least {MIN_SETS}, got {max_sets}')
+    if generations is not None and generations < 1:
+        raise InputError(f'--generations must be >= 1, got {generations}')
+    sets, non_finite = _finite(
+        read_window(bag_path, window, tolerance_s=tolerance_s, progress=progress), bag_path
+    )
+    n_window = len(sets.stamps_ns)
+    thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
+    fields = sets.fields[::thinned]
+    text = window_text(window)
+    options = Options(
+        rng=np.random.default_rng(seed),
+        generations=generations or GENERATIONS,
+        wide_bounds=wide_bounds,
+        max_coverage_condition=max_coverage_condition,
+    )
+    try:
+        g_measured = difference_tensor(fields, geometry)
+        calibration = identify(method, g_measured, fields[:, 0, :], geometry, options)
+    except IdentifiabilityError as error:
+        raise IdentifiabilityError(f'the window ({text}, {len(fields)} sets): {error}') from None
+    result = BagCalibration(
+        calibration=calibration,
+        record=CalibrationFile.from_calibration(calibration, geometry),
+        window=text,
+        sets_in_window=n_window,
+        thinned_every=thinned,
+        span_s=sets.span_s,
+        non_finite_sets=non_finite,
+        counters=sets.counters,
+    )
+    extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
+    record = dataclasses.replace(result.record, diagnostics={**result.record.diagnostics, **extra})
+    return dataclasses.replace(result, record=record)
+
+
+def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> dict[str, Any]:
+    """What the calibration file's diagnostics add about the bag, the window and matching."""
+    counters = result.counters
+    return {
+        'bag': str(bag_path),
+        'window_s': result.window,
+        'sets_in_window': result.sets_in_window,
+        'thinned_every': result.thinned_every,
+        'attitude_coverage_condition': result.calibration.details['attitude_coverage_condition'],
+        'read_span_s': result.span_s,
+        'non_finite_sets_skipped': result.non_finite_sets,
+        'sets_matched': counters.matched,
+        'messages_unmatched': counters.dropped_messages,
+        'messages_evicted': counters.evicted_messages,
+        'messages_out_of_order': counters.out_of_order,
+    }

@@ -1,0 +1,190 @@
+"""The driver's frame sources: a recorded rosbag2 folder or a simulated mission, as timed
+frames of messages ready to publish (built with a :class:`~.conversions.MessageTypes`).
+
+* :func:`iter_frames` replays a bag: one frame per recorded message (the magnetometers, and
+  ``/tetra/gradient/truth`` and ``/odom`` when recorded), with its recorded header stamp,
+  paced by log time. It opens the bag in a ``with`` block, so closing the generator (or
+  exhausting it) closes the bag.
+* :func:`simulate` runs the core mission simulator on a scenario and returns the frames of
+  its samples (four magnetometers, the true gradient, odometry), paced by sample time.
+
+Nothing here imports rclpy: the caller passes the message classes.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Generator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..core import MissionData
+from ..core.units import NS_PER_S, S_PER_NS
+from . import conversions as cv
+from .bag import MagneticBag
+
+#: Publisher keys of a frame's messages: magnetometer ``sensor`` 0..3, truth, odometry.
+MAG, TRUTH, ODOM = 'mag', 'truth', 'odom'
+
+#: Replayed topics -> (key, sensor).
+REPLAY_TOPICS: dict[str, tuple[str, int]] = {
+    **{topic: (MAG, i) for i, topic in enumerate(cv.BAG_MAG_TOPICS)},
+    f'{cv.NAMESPACE}/gradient/truth': (TRUTH, 0),
+    cv.ODOM_TOPIC: (ODOM, 0),
+}
+
+
+@dataclass
+class Frame:
+    """Messages to publish together.
+
+    Attributes
+    ----------
+    pace_ns : int
+        Time of the frame relative to the first one, ns (sample time or log time).
+    segment : int
+        Scenario segment (sim) or 0 (replay).
+    mag1_stamp : int or None
+        Header stamp (ns) of magnetometer 1 when the frame holds its reading: one set.
+    items : list of (key, sensor, message)
+        ``key`` is :data:`MAG`, :data:`TRUTH` or :data:`ODOM`.
+    """
+
+    pace_ns: int
+    segment: int
+    mag1_stamp: int | None
+    items: list[tuple[str, int, Any]]
+
+
+# --------------------------------------------------------------------------- replay
+
+
+def describe_bag(path: str | os.PathLike) -> dict[str, Any]:
+    """Check a bag's contract and describe it: ``messages`` (magnetometer messages) and
+    ``topics`` (the replayed topics present, comma separated).
+
+    Raises
+    ------
+    BagError
+        The bag cannot be opened, lacks a magnetometer topic or holds no messages.
+    """
+    with MagneticBag(path) as bag:
+        count = bag.check_contract()
+        topics = sorted({c.topic for c in bag.reader.connections if c.topic in REPLAY_TOPICS})
+    return {'messages': count, 'topics': ', '.join(topics)}
+
+
+def iter_frames(
+    path: str | os.PathLike, types: cv.MessageTypes, *, max_duration_s: float = 0.0
+) -> Generator[Frame, None, None]:
+    """Yield one frame per recorded message of :data:`REPLAY_TOPICS`, in log-time order.
+
+    Parameters
+    ----------
+    path : rosbag2 folder (sqlite3 or mcap)
+    types : the message classes to build (``conversions.rclpy_types()`` for a node)
+    max_duration_s : stop after this much log time, s (0: the whole bag)
+
+    Raises
+    ------
+    BagError
+        As :func:`describe_bag`, on the first ``next()``.
+    """
+    with MagneticBag(path) as bag:
+        bag.check_contract()
+        reader = bag.reader
+        connections = [c for c in reader.connections if c.topic in REPLAY_TOPICS]
+        first = None
+        for connection, log_ns, raw in reader.messages(connections=connections):
+            first = log_ns if first is None else first
+            if max_duration_s > 0 and (log_ns - first) * S_PER_NS > max_duration_s:
+                return
+            msg: Any = reader.deserialize(raw, connection.msgtype)
+            key, sensor = REPLAY_TOPICS[connection.topic]
+            stamp = cv.stamp_to_ns(msg.header.stamp)
+            mag1 = stamp if (key == MAG and sensor == 0) else None
+            yield Frame(log_ns - first, 0, mag1, [(key, sensor, _rebuild(types, key, msg, stamp))])
+
+
+def _rebuild(types: cv.MessageTypes, key: str, msg: Any, stamp: int) -> Any:
+    """A recorded (rosbags) message as one of ``types``."""
+    if key == MAG:
+        return cv.magnetic_field_msg(
+            types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id
+        )
+    if key == TRUTH:
+        return cv.tensor_msg(types, cv.tensor_from_msg(msg), stamp)
+    p = msg.pose.pose.position
+    return cv.odometry_msg(
+        types,
+        np.array([p.x, p.y, p.z]),
+        cv.odometry_orientation(msg),
+        stamp,
+        frame_id=msg.header.frame_id,
+        child_frame_id=msg.child_frame_id,
+    )
+
+
+# --------------------------------------------------------------------------- simulator
+
+
+def simulate(
+    scenario_path: str,
+    seed: int,
+    types: cv.MessageTypes,
+    *,
+    start_ns: int,
+    max_duration_s: float = 0.0,
+) -> tuple[Generator[Frame, None, None], dict[str, Any]]:
+    """Simulate a mission and return its frames and a description.
+
+    Parameters
+    ----------
+    scenario_path : scenario YAML (io/scenario.py); '' = the built-in default
+    seed : noise seed; -1 = the scenario's own
+    types : the message classes to build
+    start_ns : header stamp of the first sample, ns (stamps are ``start_ns`` + sample time)
+    max_duration_s : keep the samples before this sample time, s (0: all)
+
+    Returns
+    -------
+    frames : one frame per sample: the four magnetometers (T), the true gradient (T/m)
+        and odometry, paced by sample time
+    info : ``samples``, ``segments`` (segment kinds), ``sample_rate_hz``, ``dipoles``
+    """
+    from ..core import simulate as simulate_mission
+    from .scenario import load_scenario_or_default
+
+    scenario, scenario_seed = load_scenario_or_default(scenario_path)
+    mission = simulate_mission(
+        scenario, np.random.default_rng(scenario_seed if seed < 0 else seed)
+    )
+    n = len(mission)
+    if max_duration_s > 0:
+        n = int(np.searchsorted(mission.t, max_duration_s, side='left'))
+    info = {
+        'samples': n,
+        'segments': ', '.join(type(s).__name__ for s in scenario.segments),
+        'sample_rate_hz': scenario.sample_rate_hz,
+        'dipoles': len(scenario.dipoles),
+    }
+    return _mission_frames(mission, n, types, start_ns), info
+
+
+def _mission_frames(
+    mission: MissionData, n: int, types: cv.MessageTypes, start_ns: int
+) -> Generator[Frame, None, None]:
+    for i in range(n):
+        pace = int(round(mission.t[i] * NS_PER_S))
+        stamp = start_ns + pace
+        fields = mission.fields_measured[i]
+        items: list[tuple[str, int, Any]] = [
+            (MAG, s, cv.magnetic_field_msg(types, fields[s], stamp, cv.MAG_FRAMES[s]))
+            for s in range(4)
+        ]
+        items.append((TRUTH, 0, cv.tensor_msg(types, mission.g_true[i], stamp)))
+        odom = cv.odometry_msg(types, mission.position_enu[i], mission.orientation_xyzw[i], stamp)
+        items.append((ODOM, 0, odom))
+        yield Frame(pace, int(mission.segment[i]), stamp, items)
