@@ -139,7 +139,7 @@ def test_parsimony_time_skew_is_not_called_eddy_current():
     assert report.named_effects == ['time_skew']
     taus = [v['tau_s'] for v in report.steps[0].parameters['per_sensor'].values()]
     sensors = case.hidden['time_skew']['sensors']
-    truth = case.scenario.effects.time_skew_s
+    truth = case.scenario.effects.time_skew
     assert truth is not None
     for s in sensors:
         est = report.steps[0].parameters['per_sensor'][f'sensor_{s}']['tau_s']
@@ -210,7 +210,7 @@ def test_without_odom_an_effect_of_sensor_1_is_named_and_taken_out_of_the_backgr
     assert report.named_effects == [effect]
     assert report.gap_final_nT <= 1.1 * report.noise_floor_nT
     if effect == 'time_skew':
-        delays = case.scenario.effects.time_skew_s
+        delays = case.scenario.effects.time_skew
         assert delays is not None
         tau = delays[0]
         values = {s: v['tau_s'] for s, v in report.steps[0].parameters['per_sensor'].items()}

@@ -90,7 +90,7 @@ def test_each_effect_matches_its_definition():
     base = simulate(_scenario(), np.random.default_rng(6))
     # The delayed sensor reads now what it read 0.25 s ago without delay (40 Hz: 10 samples).
     fast = simulate(_scenario(sample_rate_hz=40.0), np.random.default_rng(6))
-    skew = simulate(_scenario(sample_rate_hz=40.0, effects=Effects(time_skew_s=[0, 0, 0.25, 0])),
+    skew = simulate(_scenario(sample_rate_hz=40.0, effects=Effects(time_skew=[0, 0, 0.25, 0])),
                     np.random.default_rng(6))
     np.testing.assert_allclose(skew.fields_measured[10:2000, 2], fast.fields_measured[:1990, 2], rtol=1e-12)
     np.testing.assert_array_equal(skew.fields_measured[:, 1], fast.fields_measured[:, 1])
@@ -126,8 +126,8 @@ def test_each_effect_matches_its_definition():
 def test_scenario_validation():
     with pytest.raises(ValueError, match='at least one segment'):
         _scenario(segments=[])
-    with pytest.raises(ValueError, match=r'time_skew_s must have shape \(4,\)'):
-        Effects(time_skew_s=[0.1, 0.2])
+    with pytest.raises(ValueError, match=r'time_skew must have shape \(4,\)'):
+        Effects(time_skew=[0.1, 0.2])
     with pytest.raises(ValueError, match='TrimManoeuvre.duration_s must be positive'):
         TrimManoeuvre(0.0)
     with pytest.raises(ValueError, match='SurveyLine.length_m must be positive'):
@@ -177,7 +177,7 @@ def test_time_skew_reads_the_same_trajectory_also_at_segment_joins():
         'segments': [{'trim': {'duration_s': 30, 'center_m': [3000.0, 3000.0, -50.0]}},
                      {'line': {'start_m': [-50.0, 0.0, -50.0], 'end_m': [50.0, 0.0, -50.0]}},
                      {'trim': {'duration_s': 20, 'center_m': [0.0, 3000.0, -50.0], 'initial_heading_deg': 90}}],
-        'effects': {'time_skew_s': {'delay_s': [0.0, 0.0, 0.0, skew_s]}}})[0]
+        'effects': {'time_skew': {'delay_s': [0.0, 0.0, 0.0, skew_s]}}})[0]
     skewed = simulate(document_skew, np.random.default_rng(0))
     plain = simulate(scenario, np.random.default_rng(0))
     change = skewed.fields_measured - plain.fields_measured
@@ -186,3 +186,20 @@ def test_time_skew_reads_the_same_trajectory_also_at_segment_joins():
     w_max = np.radians(6.0 + 25.0 * 2 * np.pi / 11.0 + 20.0 * 2 * np.pi / 17.0)
     assert np.abs(change[:, 3]).max() <= skew_s * 50_000e-9 * w_max
     assert np.abs(change[:, 3]).max() > 0.0
+
+
+def test_effect_names_are_spelled_once_for_simulator_scenarios_and_the_discrepancy_library():
+    import dataclasses
+
+    from tetra_gradiometer.core.discrepancy import CANDIDATES
+    from tetra_gradiometer.core.simulator import EFFECT_SPECS
+    from tetra_gradiometer.io.scenario import EFFECT_KEYS
+
+    assert [f.name for f in dataclasses.fields(Effects)] == list(EFFECT_SPECS)
+    assert set(EFFECT_KEYS) == set(EFFECT_SPECS)
+    rng = np.random.default_rng(0)
+    for candidate in CANDIDATES:
+        if candidate.simulated is not None:
+            hidden = candidate.simulated.draw(rng, np.ones(4))
+            assert set(hidden.effects) <= set(EFFECT_SPECS), candidate.name
+            assert set(hidden.effects) <= {candidate.name}, candidate.name

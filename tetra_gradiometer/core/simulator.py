@@ -28,6 +28,8 @@ from ._validate import frozen_array
 from .fields import dipole_field, dipole_gradient, uniform_field
 from .geometry import TetraGeometry, difference_tensor
 from .model import SensorInterference
+from .types import FloatArray
+from .units import T_PER_NT
 
 _DERIVATIVE_STEP_S = 1.0e-3
 
@@ -159,8 +161,31 @@ class CurrentProfile:
 
 
 @dataclass(frozen=True)
+class EffectSpec:
+    """One simulated physical effect: its parameter shape and SI unit, and how a scenario
+    file gives it (key and the factor from the file's unit to SI)."""
+
+    shape: tuple[int, ...]
+    unit: str
+    scenario_key: str
+    scenario_factor: float = 1.0
+
+
+#: The simulator's effects, each spelled once: :class:`Effects`, its validation and
+#: ``active()``, and the scenario format (``io/scenario.py``) all read this table.
+EFFECT_SPECS: dict[str, EffectSpec] = {
+    'eddy_current': EffectSpec((4, 3, 3), 's', 'coefficients_s'),
+    'sensor_misalignment': EffectSpec((4, 3), 'rad', 'rotation_deg', float(np.pi / 180.0)),
+    'time_skew': EffectSpec((4,), 's', 'delay_s'),
+    'thermal_drift': EffectSpec((4, 3), 'T/degC', 'nT_per_degC', T_PER_NT),
+    'vehicle_current': EffectSpec((4, 3), 'T/A', 'nT_per_A', T_PER_NT),
+}
+
+
+@dataclass(frozen=True)
 class Effects:
-    """Physical effects beyond the paper's model, each off (None) or with its magnitude.
+    """Physical effects beyond the paper's model, each off (None) or with its magnitude
+    (shapes and units in :data:`EFFECT_SPECS`).
 
     Attributes
     ----------
@@ -168,7 +193,7 @@ class Effects:
         ``B_i += E_i dB^b/dt`` (body-frame rate of the background field).
     sensor_misalignment : (4, 3) rad
         Rotation vector of each sensor's axes against the array frame.
-    time_skew_s : (4,) s
+    time_skew : (4,) s
         Each sensor's constant delay: its reading stamped ``t`` is the field at ``t - skew``.
     thermal_drift : (4, 3) T/degC
         Offset per degree away from the profile's mean temperature.
@@ -176,38 +201,21 @@ class Effects:
         Field per ampere of battery current.
     """
 
-    eddy_current: np.ndarray | None = None
-    sensor_misalignment: np.ndarray | None = None
-    time_skew_s: np.ndarray | None = None
-    thermal_drift: np.ndarray | None = None
-    vehicle_current: np.ndarray | None = None
+    eddy_current: FloatArray | None = None
+    sensor_misalignment: FloatArray | None = None
+    time_skew: FloatArray | None = None
+    thermal_drift: FloatArray | None = None
+    vehicle_current: FloatArray | None = None
 
     def __post_init__(self) -> None:
-        shapes = {
-            'eddy_current': (4, 3, 3),
-            'sensor_misalignment': (4, 3),
-            'time_skew_s': (4,),
-            'thermal_drift': (4, 3),
-            'vehicle_current': (4, 3),
-        }
-        for name, shape in shapes.items():
+        for name, spec in EFFECT_SPECS.items():
             value = getattr(self, name)
             if value is not None:
-                object.__setattr__(self, name, frozen_array(value, name, shape))
+                object.__setattr__(self, name, frozen_array(value, name, spec.shape))
 
     def active(self) -> list[str]:
         """Names of the effects that are switched on."""
-        return [
-            name
-            for name in (
-                'eddy_current',
-                'sensor_misalignment',
-                'time_skew_s',
-                'thermal_drift',
-                'vehicle_current',
-            )
-            if getattr(self, name) is not None
-        ]
+        return [name for name in EFFECT_SPECS if getattr(self, name) is not None]
 
 
 @dataclass(frozen=True)
@@ -409,7 +417,7 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     current = _current_function(scenario, rng)
     fields_true, position, attitude, index = _clean_fields(scenario, t)
     measured = _readings(scenario, t, current)
-    skew = scenario.effects.time_skew_s
+    skew = scenario.effects.time_skew
     if skew is not None:
         for sensor in np.flatnonzero(skew):
             # The skewed sensor reads the same segment's trajectory, earlier (not the pose

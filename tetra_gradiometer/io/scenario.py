@@ -43,17 +43,16 @@ from ..core import (
     TrimManoeuvre,
     random_interference,
 )
+from ..core.simulator import EFFECT_SPECS
 from ..core.units import T_PER_NT
 from ..errors import InputError, ScenarioError
 from ._yaml import read_yaml
 
 #: effect name -> (key in the file, factor to SI)
+#: Scenario file keys of the effects: ``{effect: (key, factor to SI)}``, from the simulator's
+#: one table (:data:`~tetra_gradiometer.core.simulator.EFFECT_SPECS`).
 EFFECT_KEYS = {
-    'eddy_current': ('coefficients_s', 1.0),
-    'sensor_misalignment': ('rotation_deg', np.pi / 180.0),
-    'time_skew_s': ('delay_s', 1.0),
-    'thermal_drift': ('nT_per_degC', T_PER_NT),
-    'vehicle_current': ('nT_per_A', T_PER_NT),
+    name: (spec.scenario_key, spec.scenario_factor) for name, spec in EFFECT_SPECS.items()
 }
 
 
@@ -236,13 +235,16 @@ def _effects(effects_spec: dict[str, Any]) -> Effects:
     unknown = set(effects_spec) - set(EFFECT_KEYS)
     if unknown:
         raise ScenarioError(f'effects: unknown {sorted(unknown)}; known: {sorted(EFFECT_KEYS)}')
-    shapes = {'eddy_current': (4, 3, 3), 'time_skew_s': (4,)}
     return Effects(
         **{
             name: _vec(
-                effects_spec[name], key, shapes.get(name, (4, 3)), f'effects.{name}', factor
+                effects_spec[name],
+                spec.scenario_key,
+                spec.shape,
+                f'effects.{name}',
+                spec.scenario_factor,
             )
-            for name, (key, factor) in EFFECT_KEYS.items()
+            for name, spec in EFFECT_SPECS.items()
             if name in effects_spec
         }
     )

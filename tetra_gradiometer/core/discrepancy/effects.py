@@ -315,7 +315,7 @@ def _draw_reference(rng: np.random.Generator, mask: Array) -> Hidden:
 
 
 def _draw_time_skew(rng: np.random.Generator, mask: Array) -> Hidden:
-    return Hidden({'time_skew_s': rng.choice([-1.0, 1.0], 4) * rng.uniform(0.5, 1.0, 4) * mask})
+    return Hidden({'time_skew': rng.choice([-1.0, 1.0], 4) * rng.uniform(0.5, 1.0, 4) * mask})
 
 
 def _draw_thermal(rng: np.random.Generator, mask: Array) -> Hidden:
