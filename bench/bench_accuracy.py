@@ -65,14 +65,14 @@ def evaluate(label: str, scenario: str, out: Path) -> list[dict]:
     slug = label.split()[0] + ('_dirty' if 'soft' in label else '')
     bag = out / f'mission_{slug}'
     t0 = time.perf_counter()
-    cli('simulate', '--scenario', scenario, '--out', bag)
+    cli('simulate', '--scenario', scenario, '--out', bag, '--force')
     print(f'[{label}] simulated in {time.perf_counter() - t0:.1f} s', flush=True)
     params = Path(f'{bag}.params.yaml')
     truth = np.load(f'{bag}.truth.npz')
     geometry = geometry_from_params(load_params(params))
     survey = truth['segment'] > 0
     g_true = truth['g_true'][survey]
-    cli('compensate', bag, '--params', params, '--raw', '--csv', out / f'{slug}_raw.csv')
+    cli('compensate', bag, '--params', params, '--raw', '--csv', out / f'{slug}_raw.csv', '--force')
     g_raw = read_csv(out / f'{slug}_raw.csv')[survey]
     floor = noise_floor(float(truth['noise_t']), geometry)
     rows = []
@@ -80,9 +80,9 @@ def evaluate(label: str, scenario: str, out: Path) -> list[dict]:
         name = method.replace(' ', '_').replace('(', '').replace(')', '')
         calib = out / f'{slug}_{name}.yaml'
         t0 = time.perf_counter()
-        cli('calibrate', bag, '--params', params, '--window', WINDOW, '--out', calib, *options)
+        cli('calibrate', bag, '--params', params, '--window', WINDOW, '--out', calib, '--force', *options)
         t_cal = time.perf_counter() - t0
-        cli('compensate', bag, '--params', params, '--calibration', calib, '--csv', out / f'{slug}_{name}.csv')
+        cli('compensate', bag, '--params', params, '--calibration', calib, '--csv', out / f'{slug}_{name}.csv', '--force')
         g_after = read_csv(out / f'{slug}_{name}.csv')[survey]
         import yaml
         diagnostics = yaml.safe_load(calib.read_text())['diagnostics']

@@ -73,7 +73,7 @@ def main() -> int:
         size_mb = sum(f.stat().st_size for f in bag.iterdir()) / 1e6
         work = bag.parent
         elapsed, peak, _ = run('calibrate', bag, '--params', params, '--window', '0:299.99',
-                               '--out', work / 'calib.yaml', '--no-progress')
+                               '--out', work / 'calib.yaml', '--no-progress', '--force')
         rows.append({'storage': storage, 'command': 'calibrate (window 0:300 s, 30 000 sets)', 'wall_s': elapsed,
                      'peak_mb': peak, 'bag_mb': size_mb})
         commands = [('compensate --csv', ['--csv', work / 'out.csv'])]
@@ -83,7 +83,7 @@ def main() -> int:
             commands.append(('compensate --csv --generic-reader', ['--csv', work / 'out.csv', '--generic-reader']))
         for label, extra in commands:
             elapsed, peak, stdout = run('compensate', bag, '--params', params, '--calibration', work / 'calib.yaml',
-                                        '--no-progress', *extra)
+                                        '--no-progress', '--force', *extra)
             n_sets = int(stdout.split()[1])
             rows.append({'storage': storage, 'command': label, 'wall_s': elapsed, 'peak_mb': peak,
                          'sets': n_sets, 'sets_per_s': n_sets / elapsed, 'bag_mb': size_mb})
