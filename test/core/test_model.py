@@ -3,42 +3,16 @@ model-generated truth."""
 import numpy as np
 import pytest
 
-from tetra_gradiometer.core import InterferenceParameters, SensorInterference, TetraGeometry, difference_tensor
+from tetra_gradiometer.core import InterferenceParameters, TetraGeometry, difference_tensor
 from tetra_gradiometer.core.model import compensate_fields
+from interference_helpers import make_interference, random_symmetric, uniform_field_attitudes
 
 GEOMETRY = TetraGeometry.regular(0.5)
 
 
-def _symmetric(rng, scale, n):
-    k = rng.uniform(-scale, scale, (n, 3, 3))
-    return 0.5 * (k + np.swapaxes(k, 1, 2))
-
-
-def _interference(rng, *, clean_reference=True):
-    k = _symmetric(rng, 5e-3, 4)
-    b = rng.uniform(-150e-9, 150e-9, (4, 3))
-    if clean_reference:
-        k[0], b[0] = 0.0, 0.0
-    return SensorInterference(k, b)
-
-
-def _uniform_field_attitudes(rng, n, magnitude=5e-5):
-    """Body-frame readings of a uniform field under random attitudes (a trim manoeuvre)."""
-    directions = rng.normal(size=(n, 3))
-    return magnitude * directions / np.linalg.norm(directions, axis=1)[:, None]
-
-
-def _trim_data(rng, interference, n=400, noise=0.0):
-    background = _uniform_field_attitudes(rng, n)
-    fields_true = np.repeat(background[:, None, :], 4, axis=1)
-    measured = interference.apply(fields_true, background) + rng.normal(0, noise, (n, 4, 3)) if noise else \
-        interference.apply(fields_true, background)
-    return measured
-
-
 def test_parameter_vector_round_trip():
     rng = np.random.default_rng(0)
-    pairs = _interference(rng).pair_parameters()
+    pairs = make_interference(rng).pair_parameters()
     for symmetric in (True, False):
         theta = pairs.to_vector(symmetric=symmetric)
         assert theta.shape == ((27,) if symmetric else (36,))
@@ -58,13 +32,13 @@ def test_compensation_with_the_exact_parameters_recovers_the_true_gradient():
     rng = np.random.default_rng(2)
     n = 50
     # A non-uniform true field: uniform background plus a linear gradient across the array.
-    gradient = _symmetric(rng, 1e-7, n)
+    gradient = random_symmetric(rng, 1e-7, n)
     gradient -= np.trace(gradient, axis1=1, axis2=2)[:, None, None] * np.eye(3) / 3
-    background = _uniform_field_attitudes(rng, n)
+    background = uniform_field_attitudes(rng, n)
     fields_true = background[:, None, :] + np.einsum('nij,sj->nsi', gradient, GEOMETRY.positions)
     g_true = gradient  # exact for a linear field (eq. 7 has no truncation error then)
     for clean in (True, False):
-        interference = _interference(rng, clean_reference=clean)
+        interference = make_interference(rng, clean_reference=clean)
         k, h = np.array(interference.k_soft), np.array(interference.b_hard)
         # Eq. 10 written out: B_i' = B_i + K_i B^b + B_i^h, B^b the clean field at sensor 1.
         measured = fields_true + np.einsum('sij,nj->nsi', k, fields_true[:, 0, :]) + h[None]

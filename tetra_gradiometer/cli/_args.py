@@ -1,4 +1,5 @@
-"""Argument helpers shared by the commands: ``--window``, ``--progress``, ``--force``."""
+"""Argument helpers shared by the commands: the input bag and its matching, ``--window``,
+``--progress``, ``--force``."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 
 from ..errors import InputError
 
-__all__ = ['add_force_argument', 'add_progress_arguments', 'parse_window']
+__all__ = ['add_bag_arguments', 'add_force_argument', 'add_progress_arguments', 'parse_window']
 
 _WINDOW_FORMAT = '--window must be T0:T1 in seconds from the first stamp'
 
@@ -56,4 +57,16 @@ def add_force_argument(parser: argparse.ArgumentParser, what: str) -> None:
         '--force',
         action='store_true',
         help=f'replace {what} (anything else there is refused)',
+    )
+
+
+def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
+    """The input of the offline commands: ``BAG``, ``--params``, ``--tolerance-ms``."""
+    parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) following the data contract')
+    parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
+    parser.add_argument(
+        '--tolerance-ms',
+        type=float,
+        default=2.0,
+        help='largest spread of the four header stamps in one set (default 2 ms)',
     )

@@ -32,12 +32,11 @@ from ..io.bag_calibration import DEFAULT_MAX_SETS, BagCalibration, calibrate_bag
 from ..io.calibration import save_calibration
 from ..io.outputs import CALIBRATION, check_output
 from ..io.params import geometry_from_params, load_params
-from ._args import add_force_argument, add_progress_arguments, parse_window
+from ._args import add_bag_arguments, add_force_argument, add_progress_arguments, parse_window
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) following the data contract')
-    parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
+    add_bag_arguments(parser)
     parser.add_argument(
         '--window',
         default=None,
@@ -61,12 +60,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         '--wide-bounds',
         action='store_true',
         help='paper_ga: |k| <= 1, |b| <= 1000 nT instead of the printed bounds',
-    )
-    parser.add_argument(
-        '--tolerance-ms',
-        type=float,
-        default=2.0,
-        help='largest spread of the four header stamps in one set (default 2 ms)',
     )
     parser.add_argument(
         '--max-sets',

@@ -35,12 +35,11 @@ from ..io.bag_compensation import (
     compensate_bag,
 )
 from ..io.params import geometry_from_params, load_params
-from ._args import add_force_argument, add_progress_arguments
+from ._args import add_bag_arguments, add_force_argument, add_progress_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) following the data contract')
-    parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
+    add_bag_arguments(parser)
     parser.add_argument(
         '--calibration',
         default=None,
@@ -59,12 +58,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=sorted(STORAGES),
         default=None,
         help="storage of --out-bag (default: the input's)",
-    )
-    parser.add_argument(
-        '--tolerance-ms',
-        type=float,
-        default=2.0,
-        help='largest spread of the four header stamps in one set (default 2 ms)',
     )
     parser.add_argument(
         '--generic-reader',

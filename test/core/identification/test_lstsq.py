@@ -6,48 +6,21 @@ import pytest
 from scipy import stats
 from scipy.linalg import block_diag
 
-from tetra_gradiometer.core import (IdentifiabilityError, InterferenceParameters, SensorInterference,
-                                    TetraGeometry, constraint_lstsq, difference_tensor,
+from tetra_gradiometer.core import (IdentifiabilityError, InterferenceParameters, TetraGeometry, constraint_lstsq, difference_tensor,
                                     interference_tensor, known_gradient_lstsq, paper_bounds)
 from tetra_gradiometer.core.identification import constraint_objective
 from tetra_gradiometer.core.model import SYMMETRIC_EXPANSION
+from interference_helpers import make_interference, trim_data
 
 GEOMETRY = TetraGeometry.regular(0.5)
 EDGE_M = 0.5
 
 
-def _symmetric(rng, scale, n):
-    k = rng.uniform(-scale, scale, (n, 3, 3))
-    return 0.5 * (k + np.swapaxes(k, 1, 2))
-
-
-def _interference(rng, *, clean_reference=True):
-    k = _symmetric(rng, 5e-3, 4)
-    b = rng.uniform(-150e-9, 150e-9, (4, 3))
-    if clean_reference:
-        k[0], b[0] = 0.0, 0.0
-    return SensorInterference(k, b)
-
-
-def _uniform_field_attitudes(rng, n, magnitude=5e-5):
-    """Body-frame readings of a uniform field under random attitudes (a trim manoeuvre)."""
-    directions = rng.normal(size=(n, 3))
-    return magnitude * directions / np.linalg.norm(directions, axis=1)[:, None]
-
-
-def _trim_data(rng, interference, n=400, noise=0.0):
-    background = _uniform_field_attitudes(rng, n)
-    fields_true = np.repeat(background[:, None, :], 4, axis=1)
-    measured = interference.apply(fields_true, background) + rng.normal(0, noise, (n, 4, 3)) if noise else \
-        interference.apply(fields_true, background)
-    return measured
-
-
 def test_known_gradient_lstsq_recovers_parameters_within_stated_covariance():
     rng = np.random.default_rng(3)
     noise = 0.1e-9
-    interference = _interference(rng)
-    measured = _trim_data(rng, interference, n=600, noise=noise)
+    interference = make_interference(rng)
+    measured = trim_data(rng, interference, n=600, noise=noise)
     g_m = difference_tensor(measured, GEOMETRY)
     calibration = known_gradient_lstsq(g_m, measured[:, 0], GEOMETRY, symmetric_k=True)
     truth = interference.pair_parameters().to_vector(symmetric=True)
@@ -62,8 +35,8 @@ def test_known_gradient_lstsq_recovers_parameters_within_stated_covariance():
 
 def test_general_model_is_exact_when_sensor_one_is_not_clean():
     rng = np.random.default_rng(4)
-    interference = _interference(rng, clean_reference=False)
-    measured = _trim_data(rng, interference, n=300)
+    interference = make_interference(rng, clean_reference=False)
+    measured = trim_data(rng, interference, n=300)
     g_m = difference_tensor(measured, GEOMETRY)
     general = known_gradient_lstsq(g_m, measured[:, 0], GEOMETRY, symmetric_k=False)
     effective = interference.effective_parameters()
@@ -85,8 +58,8 @@ def test_known_gradient_refuses_a_single_field_direction():
 
 def test_constraint_objective_cannot_see_the_symmetric_traceless_part():
     rng = np.random.default_rng(6)
-    interference = _interference(rng)
-    measured = _trim_data(rng, interference, n=200)
+    interference = make_interference(rng)
+    measured = trim_data(rng, interference, n=200)
     g_m = difference_tensor(measured, GEOMETRY)
     calibration = constraint_lstsq(g_m, measured[:, 0], GEOMETRY)
     assert calibration.rank <= 15 and calibration.null_space_dim >= 12
@@ -105,7 +78,7 @@ def test_constraint_objective_cannot_see_the_symmetric_traceless_part():
 
 def test_constraint_lstsq_respects_bounds():
     rng = np.random.default_rng(7)
-    measured = _trim_data(rng, _interference(rng), n=100)
+    measured = trim_data(rng, make_interference(rng), n=100)
     lower, upper = paper_bounds()
     calibration = constraint_lstsq(difference_tensor(measured, GEOMETRY), measured[:, 0], GEOMETRY,
                                    bounds=(lower, upper))

@@ -3,42 +3,16 @@ out (eq. 21) and against random search within the bounds of eq. 23."""
 import numpy as np
 import pytest
 
-from tetra_gradiometer.core import (InterferenceParameters, SensorInterference, TetraGeometry,
+from tetra_gradiometer.core import (InterferenceParameters, TetraGeometry,
                                     difference_tensor, paper_bounds, paper_ga)
+from interference_helpers import make_interference, trim_data
 
 GEOMETRY = TetraGeometry.regular(0.5)
 
 
-def _symmetric(rng, scale, n):
-    k = rng.uniform(-scale, scale, (n, 3, 3))
-    return 0.5 * (k + np.swapaxes(k, 1, 2))
-
-
-def _interference(rng, *, clean_reference=True):
-    k = _symmetric(rng, 5e-3, 4)
-    b = rng.uniform(-150e-9, 150e-9, (4, 3))
-    if clean_reference:
-        k[0], b[0] = 0.0, 0.0
-    return SensorInterference(k, b)
-
-
-def _uniform_field_attitudes(rng, n, magnitude=5e-5):
-    """Body-frame readings of a uniform field under random attitudes (a trim manoeuvre)."""
-    directions = rng.normal(size=(n, 3))
-    return magnitude * directions / np.linalg.norm(directions, axis=1)[:, None]
-
-
-def _trim_data(rng, interference, n=400, noise=0.0):
-    background = _uniform_field_attitudes(rng, n)
-    fields_true = np.repeat(background[:, None, :], 4, axis=1)
-    measured = interference.apply(fields_true, background) + rng.normal(0, noise, (n, 4, 3)) if noise else \
-        interference.apply(fields_true, background)
-    return measured
-
-
 def test_paper_ga_lowers_the_objective_below_random_search():
     rng = np.random.default_rng(8)
-    measured = _trim_data(rng, _interference(rng), n=30, noise=0.1e-9)
+    measured = trim_data(rng, make_interference(rng), n=30, noise=0.1e-9)
     g_m = difference_tensor(measured, GEOMETRY)
     result = paper_ga(g_m, measured[:, 0], GEOMETRY, rng=np.random.default_rng(1), generations=300)
     positions = np.array(GEOMETRY.positions)
