@@ -7,6 +7,7 @@ import pytest
 
 from tetra_gradiometer.__main__ import main
 from tetra_gradiometer.core.discrepancy.synthetic import make_case
+from tetra_gradiometer.core.geometry import TetraGeometry
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
 
@@ -72,8 +73,17 @@ def test_cli_with_topics_missing_says_which_candidates_were_untestable(tmp_path,
     assert 'untestable:' in capsys.readouterr().err
 
 
-def test_cli_errors_are_one_line(tmp_path, capsys):
-    (tmp_path / 'params.yaml').write_text(params_document({'sensor_positions': [0.0] * 12}))
+@pytest.mark.parametrize(
+    'positions, expected',
+    [
+        # Four sensors at one point are coplanar: the geometry is refused before the bag is read.
+        ([0.0] * 12, 'sensor positions are degenerate'),
+        # A regular tetrahedron (edge 0.5 m) is fine; the bag folder does not exist.
+        (TetraGeometry.regular(0.5).to_flat(), 'bag not found'),
+    ],
+)
+def test_cli_errors_are_one_line(tmp_path, capsys, positions, expected):
+    (tmp_path / 'params.yaml').write_text(params_document({'sensor_positions': positions}))
     code = main(
         [
             'discrepancy',
@@ -85,4 +95,8 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
         ]
     )
     assert code == 1
-    assert capsys.readouterr().err.startswith('error:')
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith('error: ') and expected in lines[0], lines
+    assert captured.out == ''
+    assert not (tmp_path / 'out').exists()
