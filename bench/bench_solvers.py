@@ -35,7 +35,7 @@ from tetra_gradiometer.core.identification import (constraint_lstsq, known_gradi
                                                    paper_ga, pei_yeo_2009)
 from tetra_gradiometer.core.identification._linear import solve_scaled  # noqa: E402
 from tetra_gradiometer.core.identification.lstsq import _noise_whitener  # noqa: E402
-from tetra_gradiometer.cli.paper import PAPER_B_HARD_NT, PAPER_K  # noqa: E402
+from tetra_gradiometer.core.paper import PAPER_B_HARD_NT, PAPER_K  # noqa: E402
 
 TARGET_SECONDS = 0.050  # 27 parameters from 10 000 samples
 
