@@ -15,6 +15,16 @@ T0 = 1_800_000_000 * 10**9
 GEOMETRY = core.TetraGeometry.regular(0.5)
 
 
+def _feed_and_stop(probe, feeder, graph, g, b, first=0) -> None:
+    """Publish the sets ``(g, b)`` (stamps 0.1 s apart from set ``first``), then ``~/stop``
+    once the calibrator holds all of them."""
+    for i in range(len(g)):
+        feeder.publish_raw(T0 + (first + i) * 10**8, g[i], b[i])
+        time.sleep(0.002)
+    wait_for(lambda: f'{len(g)} samples' in probe.call('calibrator/stop').message, 10,
+             f'{len(g)} samples', graph)
+
+
 def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_condition_number(tmp_path):
     calibration_file = tmp_path / 'calibration.yaml'
     rng = np.random.default_rng(3)
@@ -27,10 +37,7 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         wait_matched(feeder.reference, 1)
         assert probe.call('calibrator/start').success
         g, b, _ = interference_set(300, rng, 'one')
-        for i in range(len(g)):
-            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-            time.sleep(0.002)
-        wait_for(lambda: '300 samples' in probe.call('calibrator/stop').message, 10, '300 samples', graph)
+        _feed_and_stop(probe, feeder, graph, g, b)
         reply = probe.call('calibrator/calibrate')
         assert not reply.success
         assert 'too few directions' in reply.message and 'condition number' in reply.message
@@ -39,10 +46,7 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         # Rich directions: the calibration is exact (no noise), written and latched.
         assert probe.call('calibrator/start').success
         g, b, exact = interference_set(300, rng, 'rich')
-        for i in range(len(g)):
-            feeder.publish_raw(T0 + (1000 + i) * 10**8, g[i], b[i])
-            time.sleep(0.002)
-        wait_for(lambda: '300 samples' in probe.call('calibrator/stop').message, 10, '300 samples', graph)
+        _feed_and_stop(probe, feeder, graph, g, b, first=1000)
         reply = probe.call('calibrator/calibrate')
         assert reply.success, reply.message
         saved = load_calibration(calibration_file)
@@ -92,10 +96,7 @@ def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_pa
         wait_matched(feeder.reference, 1)
         assert probe.call('calibrator/start').success
         g, b, _ = interference_set(200, rng, 'rich')
-        for i in range(len(g)):
-            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-            time.sleep(0.002)
-        wait_for(lambda: '200 samples' in probe.call('calibrator/stop').message, 10, '200 samples', graph)
+        _feed_and_stop(probe, feeder, graph, g, b)
         reply = probe.call('calibrator/calibrate')
         assert not reply.success and 'not a calibration file' in reply.message, reply.message
     assert precious.read_bytes() == b'rudder_gain: 3\n'

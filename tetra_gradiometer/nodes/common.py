@@ -192,15 +192,14 @@ def one_of(*choices: str) -> Validator:
 
 
 def valid_positions(value: Any) -> str | None:
-    """``sensor_positions``: 12 finite floats forming a non-degenerate tetrahedron."""
-    from ..core import GeometryError, TetraGeometry
+    """``sensor_positions``: the reason :meth:`TetraGeometry.from_flat` (the one check of
+    sensor positions) refuses them, or None."""
+    from ..core import TetraGeometry
+    from ..errors import InputError
 
-    flat = np.asarray(list(value), dtype=float)
-    if flat.size != 12 or not np.all(np.isfinite(flat)):
-        return f'must be 12 finite floats (x1 y1 z1 ... z4, metres), got {flat.size} values'
     try:
-        TetraGeometry.from_flat(flat)
-    except GeometryError as error:
+        TetraGeometry.from_flat(value)
+    except InputError as error:
         return str(error)
     return None
 
@@ -228,6 +227,15 @@ POSITIONS_SPEC = ParamSpec(
     'as x1 y1 z1 x2 ... z4; sensor 1 is the reference. Must not be coplanar.',
     valid_positions,
     read_only=True,
+)
+
+
+#: Shared by the nodes that warn on every dropped message (0: no throttling).
+WARN_THROTTLE_SPEC = ParamSpec(
+    'warn_throttle_s',
+    5.0,
+    'Least interval between repeated warnings, s.',
+    float_range=(0.0, 3600.0),
 )
 
 

@@ -39,6 +39,7 @@ from .common import (
     OK,
     POSITIONS_SPEC,
     WARN,
+    WARN_THROTTLE_SPEC,
     ParamSpec,
     StampPairer,
     Throttle,
@@ -67,12 +68,7 @@ PARAMETERS = [
         'Bound of the stamp-pairing buffers, messages.',
         int_range=(1, 1_000_000),
     ),
-    ParamSpec(
-        'warn_throttle_s',
-        5.0,
-        'Least interval between repeated warnings, s.',
-        float_range=(0.0, 3600.0),
-    ),
+    WARN_THROTTLE_SPEC,
     diagnostics_period_spec(),
 ]
 

@@ -37,6 +37,7 @@ from .common import (
     OK,
     POSITIONS_SPEC,
     WARN,
+    WARN_THROTTLE_SPEC,
     ParamSpec,
     Throttle,
     declare_parameters,
@@ -93,13 +94,7 @@ PARAMETERS = [
         positive,
         float_range=(1e-6, 1e9),
     ),
-    ParamSpec(
-        'warn_throttle_s',
-        5.0,
-        'Least interval between repeated warnings, s.',
-        positive,
-        float_range=(0.0, 3600.0),
-    ),
+    WARN_THROTTLE_SPEC,
     diagnostics_period_spec(),
 ]
 

@@ -10,8 +10,6 @@ which effect is hidden.
 import itertools
 import json
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -61,20 +59,6 @@ def _run(case, *, earth=True, **recording):
         case.scenario.earth_field_enu if earth else None,
         keep_series=False,
     )
-
-
-def test_discrepancy_core_loads_nothing_beyond_numpy_scipy_and_the_core():
-    code = (
-        'import sys, tetra_gradiometer.core.discrepancy\n'
-        'import tetra_gradiometer.core.discrepancy.synthetic\n'
-        'bad = sorted({m.split(".")[0] for m in sys.modules} & '
-        '{"rclpy", "rosbags", "yaml", "matplotlib", "ppigrf", "pandas", "tqdm"})\n'
-        'bad += sorted(m for m in sys.modules if m.startswith("tetra_gradiometer.") and '
-        'not m.startswith(("tetra_gradiometer.core", "tetra_gradiometer.errors")))\n'
-        'print(",".join(bad))\n'
-    )
-    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == ''
 
 
 def test_every_consumer_reads_the_one_registry():

@@ -90,12 +90,15 @@ def random_earth_field(rng: np.random.Generator) -> np.ndarray:
     )
 
 
-def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
-    """A trim manoeuvre (random rates, amplitudes, periods), sometimes followed by a survey
-    line."""
-    trim_s = duration_s if rng.random() < 0.5 else duration_s * rng.uniform(0.6, 0.8)
-    trim = TrimManoeuvre(
-        duration_s=trim_s,
+def random_trim(
+    rng: np.random.Generator,
+    duration_s: float,
+    center: tuple[float, float, float] = TrimManoeuvre.center,
+) -> TrimManoeuvre:
+    """A trim manoeuvre of ``duration_s`` with random rates, amplitudes, periods and heading."""
+    return TrimManoeuvre(
+        duration_s=duration_s,
+        center=center,
         heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
         roll_amplitude_deg=rng.uniform(8, 30),
         roll_period_s=rng.uniform(7, 16),
@@ -104,6 +107,13 @@ def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
         initial_heading_deg=rng.uniform(0, 360),
         speed_m_s=rng.uniform(0.5, 2.0),
     )
+
+
+def random_segments(rng: np.random.Generator, duration_s: float) -> tuple:
+    """A trim manoeuvre (random rates, amplitudes, periods), sometimes followed by a survey
+    line."""
+    trim_s = duration_s if rng.random() < 0.5 else duration_s * rng.uniform(0.6, 0.8)
+    trim = random_trim(rng, trim_s)
     segments: tuple = (trim,)
     rest = duration_s - trim_s
     if rest > 1.0:
@@ -287,17 +297,7 @@ def _target_pass(
 ) -> dict[str, Any]:
     """Segments (trim, then a survey line over a target) and the dipoles with the target added."""
     trim_s = duration_s * rng.uniform(0.55, 0.7)
-    trim = TrimManoeuvre(
-        duration_s=trim_s,
-        center=(2000.0, 2000.0, -40.0),
-        heading_rate_deg_s=rng.choice([-1, 1]) * rng.uniform(2.0, 10.0),
-        roll_amplitude_deg=rng.uniform(8, 30),
-        roll_period_s=rng.uniform(7, 16),
-        pitch_amplitude_deg=rng.uniform(6, 25),
-        pitch_period_s=rng.uniform(10, 25),
-        initial_heading_deg=rng.uniform(0, 360),
-        speed_m_s=rng.uniform(0.5, 2.0),
-    )
+    trim = random_trim(rng, trim_s, center=(2000.0, 2000.0, -40.0))
     rest = duration_s - trim_s
     speed = rng.uniform(1.0, 2.5)
     heading = rng.uniform(0, 2 * np.pi)
