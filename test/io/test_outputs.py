@@ -15,38 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tetra_gradiometer.__main__ import main
 from tetra_gradiometer.core import InterferenceParameters, Scenario, TetraGeometry, TrimManoeuvre, random_interference, simulate
 from tetra_gradiometer.io.calibration import CalibrationFile, save_calibration
 from tetra_gradiometer.io.outputs import CALIBRATION, MARKER, OutputError, atomic_write_text
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
+from cli_helpers import assert_refused, run_cli, snapshot
 
 REPO = Path(__file__).resolve().parents[2]
 GEOMETRY = TetraGeometry.regular(0.5)
 HEADER = 'stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz'
-
-
-def snapshot(root: Path) -> dict[str, bytes]:
-    """Every file under ``root`` (or ``root`` itself) with its bytes."""
-    if root.is_file():
-        return {'.': root.read_bytes()}
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob('*')) if p.is_file()}
-
-
-def run_cli(capsys, *args) -> tuple[int, str, str]:
-    code = main([str(a) for a in args])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
-def assert_refused(result, *fragments) -> None:
-    code, out, err = result
-    assert code == 1, (code, out, err)
-    assert err.startswith('error: ') and err.count('\n') == 1, err
-    assert 'Traceback' not in err
-    for fragment in fragments:
-        assert fragment in err, (fragment, err)
 
 
 @pytest.fixture(scope='module')

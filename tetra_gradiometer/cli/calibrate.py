@@ -116,7 +116,7 @@ def _print_summary(args: argparse.Namespace, result: BagCalibration) -> None:
         f'{counters.dropped_messages} messages unmatched '
         f'({counters.evicted_messages} evicted from a full queue), '
         f'{counters.out_of_order} out of order, '
-        f'{result.non_finite_sets} sets with a non-finite reading skipped)'
+        f'implausible sets dropped: {result.dropped.text()})'
     )
     summary = calibration.summary()
     print(

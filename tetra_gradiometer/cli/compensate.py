@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         f'{counters.dropped_messages} messages unmatched '
         f'({counters.evicted_messages} evicted from a full queue), '
         f'{counters.out_of_order} out of order, '
-        f'{counts.non_finite_sets} sets with a non-finite reading skipped) '
+        f'implausible sets dropped: {counts.dropped.text()}) '
         f'in {elapsed:.1f} s ({counts.n_sets / max(elapsed, 1e-9):.0f} sets/s)'
     )
     if args.csv is not None:

@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 from ..errors import GeometryError
 from ._validate import as_fields, frozen_array
+from .plausibility import check_geometry
 from .types import ArrayLike, FloatArray
 
 #: Largest condition number of ``a`` accepted by default. A regular tetrahedron has 2;
@@ -34,7 +35,8 @@ class TetraGeometry:
     Raises
     ------
     GeometryError
-        If the positions are (nearly) coplanar; the message names cond(a).
+        If the positions are (nearly) coplanar (the message names cond(a)), or an edge or a
+        coordinate lies outside the physical bounds of :mod:`.plausibility`.
     """
 
     positions: np.ndarray
@@ -44,6 +46,7 @@ class TetraGeometry:
 
     def __post_init__(self) -> None:
         positions = frozen_array(self.positions, 'sensor positions', (4, 3))
+        check_geometry(positions)
         a = (positions[1:] - positions[0]).T  # eq. 6: columns r_21, r_31, r_41
         condition = np.linalg.cond(a)
         if not np.isfinite(condition) or condition > self.max_condition:

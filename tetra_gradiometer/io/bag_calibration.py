@@ -27,6 +27,7 @@ from ..core.identification import (
     identify,
 )
 from ..core.identification.paper_ga import GENERATIONS
+from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
 from .bag import MagneticBag
@@ -86,13 +87,13 @@ class BagCalibration:
     window : str
         The window as text (``'whole bag'`` or ``'T0:T1 s'``).
     sets_in_window : int
-        Sets with finite readings in the window, before thinning.
+        Sets with plausible readings in the window, before thinning.
     thinned_every : int
         Every how many sets one was used (1: all).
     span_s : float
         Seconds of the bag read.
-    non_finite_sets : int
-        Sets of the window skipped for a non-finite reading.
+    dropped : DroppedSets
+        Sets of the window dropped as implausible (non-finite, ``|B|`` too large), by reason.
     counters : MatchCounters
         The stamp matcher's counts over what was read.
     """
@@ -103,7 +104,7 @@ class BagCalibration:
     sets_in_window: int
     thinned_every: int
     span_s: float
-    non_finite_sets: int
+    dropped: DroppedSets
     counters: MatchCounters
 
     @property
@@ -164,16 +165,19 @@ def read_window(
     return WindowSets(np.concatenate(stamps), np.concatenate(fields), span, counters)
 
 
-def _finite(sets: WindowSets, bag_path: str | os.PathLike[str]) -> tuple[WindowSets, int]:
-    """The sets without a non-finite reading, and how many were dropped."""
-    finite = np.isfinite(sets.fields).all(axis=(1, 2))
-    non_finite = int((~finite).sum())
-    if not finite.any():
+def _plausible(
+    sets: WindowSets, bag_path: str | os.PathLike[str]
+) -> tuple[WindowSets, DroppedSets]:
+    """The sets whose four readings are plausible (:func:`~tetra_gradiometer.core.
+    plausibility.plausible_sets`: finite, ``|B|`` within bounds), and the others' count."""
+    keep, dropped = plausible_sets(sets.fields)
+    if not keep.any():
         raise BagError(
-            f'{bag_path}: every set in the window has a non-finite reading ({non_finite} sets)'
+            f'{bag_path}: every set in the window has an implausible reading '
+            f'({dropped.text()})'
         )
-    kept = dataclasses.replace(sets, stamps_ns=sets.stamps_ns[finite], fields=sets.fields[finite])
-    return kept, non_finite
+    kept = dataclasses.replace(sets, stamps_ns=sets.stamps_ns[keep], fields=sets.fields[keep])
+    return kept, dropped
 
 
 def calibrate_bag(
@@ -225,7 +229,7 @@ def calibrate_bag(
         raise InputError(f'--max-sets must be at least {MIN_SETS}, got {max_sets}')
     if generations is not None and generations < 1:
         raise InputError(f'--generations must be >= 1, got {generations}')
-    sets, non_finite = _finite(
+    sets, dropped = _plausible(
         read_window(bag_path, window, tolerance_s=tolerance_s, progress=progress), bag_path
     )
     n_window = len(sets.stamps_ns)
@@ -250,7 +254,7 @@ def calibrate_bag(
         sets_in_window=n_window,
         thinned_every=thinned,
         span_s=sets.span_s,
-        non_finite_sets=non_finite,
+        dropped=dropped,
         counters=sets.counters,
     )
     extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
@@ -268,7 +272,7 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
         'thinned_every': result.thinned_every,
         'attitude_coverage_condition': result.calibration.details['attitude_coverage_condition'],
         'read_span_s': result.span_s,
-        'non_finite_sets_skipped': result.non_finite_sets,
+        **result.dropped.as_dict(),
         'sets_matched': counters.matched,
         'messages_unmatched': counters.dropped_messages,
         'messages_evicted': counters.evicted_messages,

@@ -7,7 +7,8 @@ CSV (written to a temporary file, renamed into place at the end)::
 
     stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz
 
-one row per matched set (sets with a non-finite reading are skipped and counted);
+one row per matched set (sets with an implausible reading, non-finite or ``|B| > 1e-3 T``,
+are dropped and counted);
 ``stamp_s`` is the **absolute** header stamp of sensor 1 in seconds since the Unix epoch,
 printed exactly from the integer nanoseconds (9 decimals); ``gij = G_ij = dB_i/dx_j`` in
 **nT/m** (6 decimals), body frame.
@@ -30,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import InterferenceParameters, TetraGeometry, compensate, difference_tensor
+from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS
 from ..errors import BagError, OutputError
 from . import conversions as cv
@@ -67,8 +69,8 @@ class CompensationCounts:
     ----------
     n_sets : int
         Sets written (rows of the CSV, messages of the output bag).
-    non_finite_sets : int
-        Matched sets skipped for a non-finite reading.
+    dropped : DroppedSets
+        Matched sets dropped as implausible (non-finite, ``|B|`` too large), by reason.
     span_s : float
         Seconds from the first set written to the last.
     topic : str
@@ -78,7 +80,7 @@ class CompensationCounts:
     """
 
     n_sets: int
-    non_finite_sets: int
+    dropped: DroppedSets
     span_s: float
     topic: str
     counters: MatchCounters
@@ -86,12 +88,17 @@ class CompensationCounts:
 
 def format_rows(stamps_ns: IntArray, tensors_t_per_m: FloatArray) -> str:
     """CSV rows (with trailing newline) for stamps (n,) ns and tensors (n, 3, 3) T/m."""
-    seconds, nanoseconds = np.divmod(np.asarray(stamps_ns, dtype=np.int64), NS_PER_S)
-    values = tensors_t_per_m.reshape(len(stamps_ns), 9) * NT_PER_T
-    row = '%d.%09d,' + ','.join(['%.6f'] * 9)
-    table = np.column_stack([seconds, nanoseconds]).astype(object)
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    # Sign and magnitude apart: divmod floors, so -1.5 s would print as -2.500000000.
+    seconds, nanoseconds = np.divmod(np.abs(stamps), NS_PER_S)
+    signs = np.where(stamps < 0, '-', '')
+    values = tensors_t_per_m.reshape(len(stamps), 9) * NT_PER_T
+    row = '%s%d.%09d,' + ','.join(['%.6f'] * 9)
     return ''.join(
-        row % (s, ns, *v) + '\n' for (s, ns), v in zip(table, values.tolist(), strict=True)
+        row % (sign, s, ns, *v) + '\n'
+        for sign, s, ns, v in zip(
+            signs.tolist(), seconds.tolist(), nanoseconds.tolist(), values.tolist(), strict=True
+        )
     )
 
 
@@ -171,7 +178,8 @@ def compensate_bag(
     """
     inputs = tuple(inputs)
     topic = RAW_TOPIC if parameters is None else COMPENSATED_TOPIC
-    n_sets = non_finite = 0
+    n_sets = 0
+    dropped = DroppedSets()
     first = last = 0
     with ExitStack() as stack:
         bag = stack.enter_context(MagneticBag(bag_path))
@@ -190,10 +198,10 @@ def compensate_bag(
             )
         sets = bag.iter_sets(tolerance_s=tolerance_s, progress=progress, fast=fast)
         for stamps, fields in sets:
-            finite = np.isfinite(fields).all(axis=(1, 2))
-            if not finite.all():  # a NaN/inf reading: drop the set, count it
-                non_finite += int((~finite).sum())
-                stamps, fields = stamps[finite], fields[finite]
+            keep, chunk_dropped = plausible_sets(fields)
+            if chunk_dropped.total:  # an implausible reading: drop the set, count it
+                dropped.add(chunk_dropped)
+                stamps, fields = stamps[keep], fields[keep]
                 if not len(stamps):
                     continue
             tensors = _tensors(fields, geometry, parameters)
@@ -203,9 +211,10 @@ def compensate_bag(
             n_sets += len(stamps)
         if n_sets == 0:
             raise BagError(
-                f'{Path(bag_path)}: every matched set has a non-finite reading ({non_finite} sets)'
+                f'{Path(bag_path)}: every matched set has an implausible reading '
+                f'({dropped.text()})'
             )
-    return CompensationCounts(n_sets, non_finite, (last - first) * S_PER_NS, topic, bag.counters)
+    return CompensationCounts(n_sets, dropped, (last - first) * S_PER_NS, topic, bag.counters)
 
 
 def _tensors(

@@ -25,7 +25,8 @@ import numpy as np
 import yaml
 
 from ..core import Calibration, InterferenceParameters, TensorCalibration, TetraGeometry
-from ..errors import CalibrationFileError
+from ..core.plausibility import check_parameters, check_positions_match
+from ..errors import CalibrationFileError, InputError
 from .outputs import CALIBRATION, atomic_write_text
 
 FORMAT_VERSION = 1
@@ -47,11 +48,19 @@ class CalibrationFile:
         cls, calibration: Calibration, geometry: TetraGeometry
     ) -> CalibrationFile:
         """The file of a ``k, b`` calibration (:class:`TensorCalibration`); other results
-        (Pei & Yeo's per-sensor maps) raise :class:`CalibrationFileError`."""
+        (Pei & Yeo's per-sensor maps) and implausible ``k``, ``b`` (outside the bounds of
+        :mod:`~tetra_gradiometer.core.plausibility`) raise :class:`CalibrationFileError`."""
         if not isinstance(calibration, TensorCalibration):
             raise CalibrationFileError(
                 f'{calibration.method} gives no k, b: it cannot be written as a calibration file'
             )
+        parameters = calibration.parameters
+        try:
+            check_parameters(parameters.k_soft, parameters.b_hard, f'the {calibration.method} fit')
+        except InputError as error:
+            raise CalibrationFileError(
+                f'{error}; not written (were the samples a trim manoeuvre in a uniform field?)'
+            ) from None
         summary = calibration.summary()
         return cls(
             parameters=calibration.parameters,
@@ -80,6 +89,9 @@ class CalibrationFile:
 
     @classmethod
     def from_yaml(cls, text: str, source: str = 'calibration') -> CalibrationFile:
+        """Parse and check a calibration: ``k``, ``b`` finite and within the physical
+        bounds of :mod:`~tetra_gradiometer.core.plausibility` (else
+        :class:`CalibrationFileError` naming the element)."""
         try:
             document = yaml.safe_load(text)
         except yaml.YAMLError as error:
@@ -92,6 +104,7 @@ class CalibrationFile:
                 f'{source} is not a tetra_gradiometer calibration (version {FORMAT_VERSION})'
             )
         try:
+            check_parameters(document['k_soft'], document['b_hard_T'], source)
             parameters = InterferenceParameters(document['k_soft'], document['b_hard_T'])
             return cls(
                 parameters=parameters,
@@ -101,12 +114,10 @@ class CalibrationFile:
                 diagnostics=dict(document.get('diagnostics') or {}),
                 created_utc=str(document.get('created_utc', '')),
             )
+        except InputError as error:  # named by check_parameters / the shape checks
+            raise CalibrationFileError(str(error)) from None
         except (KeyError, TypeError, ValueError) as error:
             raise CalibrationFileError(f'{source} is malformed: {error}') from None
-
-
-#: A calibration applies to an array whose sensor positions agree with its own to this, metres.
-POSITION_TOLERANCE_M = 1e-6
 
 
 def check_positions(
@@ -117,18 +128,14 @@ def check_positions(
     target: str = 'this array',
 ) -> None:
     """Raise :class:`CalibrationFileError` when ``calibration`` was made for other sensor
-    positions than ``geometry`` (beyond :data:`POSITION_TOLERANCE_M`)."""
-    positions = np.asarray(calibration.sensor_positions, dtype=float)
-    if positions.shape != (12,):
-        raise CalibrationFileError(
-            f'{source}: sensor_positions must hold 12 floats, got {positions.size}'
+    positions than ``geometry`` (beyond :data:`~tetra_gradiometer.core.plausibility.
+    POSITION_MATCH_M`), or its positions are not finite."""
+    try:
+        check_positions_match(
+            calibration.sensor_positions, geometry.positions, source=source, target=target
         )
-    offset = float(np.abs(positions - geometry.positions.ravel()).max())
-    if offset > POSITION_TOLERANCE_M:
-        raise CalibrationFileError(
-            f'{source} was made for other sensor positions than {target} '
-            f'(they differ by up to {offset:.3g} m)'
-        )
+    except InputError as error:
+        raise CalibrationFileError(str(error)) from None
 
 
 def save_calibration(

@@ -16,8 +16,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..core import MissionData
+from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.units import NS_PER_S, S_PER_NS
-from ..errors import InputError
+from ..errors import BagError, InputError
 from . import conversions as cv
 from .bag import BagWriter, MagneticBag
 from .progress import progress_bar
@@ -100,6 +101,7 @@ class Recording:
     temperature_c : (N,) degC, or None without ``/tetra/temperature``
     current_a : (N,) A, or None without ``/battery_state``
     missing : topic -> why it is unavailable
+    dropped : sets dropped as implausible (:mod:`~tetra_gradiometer.core.plausibility`)
     """
 
     stamps_ns: np.ndarray
@@ -108,6 +110,7 @@ class Recording:
     temperature_c: np.ndarray | None = None
     current_a: np.ndarray | None = None
     missing: dict[str, str] = field(default_factory=dict)
+    dropped: DroppedSets = field(default_factory=DroppedSets)
 
     @property
     def t_s(self) -> np.ndarray:
@@ -139,12 +142,17 @@ def read_recording(
     """Read a bag per the data contract into a :class:`Recording` (whole, in memory).
 
     Optional topics are interpolated onto the set stamps (slerp for orientation, linear for
-    scalars, held at the ends); an absent topic is named in ``missing``.
+    scalars, held at the ends); an absent topic is named in ``missing``. Sets with an
+    implausible reading are dropped and counted in ``dropped``.
     """
     with MagneticBag(path) as bag:
         stamps, fields = bag.read_sets(
             tolerance_s=tolerance_s, window_s=window_s, progress=progress
         )
+        keep, dropped = plausible_sets(fields)
+        if not keep.any():
+            raise BagError(f'{path}: every set has an implausible reading ({dropped.text()})')
+        stamps, fields = stamps[keep], fields[keep]
         extras: dict[str, np.ndarray | None] = {}
         missing: dict[str, str] = {}
         for name, topic in (
@@ -160,4 +168,4 @@ def read_recording(
                 extras[name] = _interp_orientation(series.stamps_ns, series.values, stamps)
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
-    return Recording(stamps, fields, missing=missing, **extras)
+    return Recording(stamps, fields, missing=missing, dropped=dropped, **extras)
