@@ -65,4 +65,24 @@ def test_corrupt_calibration_file_runs_uncompensated_then_follows_the_latched_to
         wait_for(lambda: 'other sensor positions' in _diag(probe, 'tetra/compensator: compensation')['message'],
                  10, 'the refusal', graph)
         assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
+        # Implausible calibrations (k = 1e308 would put inf on gradient/norm; a NaN position
+        # compares false and used to pass the array check) are refused; the current one is kept.
+        huge = CalibrationFile(parameters=core.InterferenceParameters(np.full((3, 3, 3), 1e308), np.zeros((3, 3))),
+                               method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat())
+        nan_positions = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
+                                        sensor_positions=[float('nan')] + GEOMETRY.to_flat()[1:])
+        for document, reason in ((huge, 'k_soft[0, 0, 0] = 1e+308 is implausible'),
+                                 (nan_positions, 'sensor_positions[0] = nan is not finite')):
+            feeder.calibration.publish(String(data=document.to_yaml()))
+            wait_for(lambda reason=reason: reason in _diag(probe, 'tetra/compensator: compensation')['message'],
+                     10, 'the refusal', graph)
+            assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
+        # A reference reading of 1 T is dropped and counted, never compensated.
+        feeder.publish_raw(T0 + 20 * 10**8, g[0], np.array([1.0, 0.0, 0.0]))
+        feeder.publish_raw(T0 + 21 * 10**8, g[1], b[1])
+        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 21, 10, 'the next tensor', graph)
+        assert T0 + 20 * 10**8 not in probe.tensors['gradient/compensated']
+        wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('dropped_non_finite') == '1',
+                 10, 'the drop counted', graph)
+        assert all(np.isfinite(norms)) and len(norms) == 21
         assert compensator.alive()

@@ -26,6 +26,7 @@ from std_srvs.srv import Trigger
 
 from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.metrics import epsilon_terms
+from ..core.plausibility import plausible_readings
 from ..core.units import NT_PER_T
 from ..io import conversions as cv
 from ..io.calibration import (
@@ -161,21 +162,26 @@ class CompensatorNode(Node):
 
     def _compensate(self, stamp_ns: int, g_raw: np.ndarray, b_reference: np.ndarray) -> None:
         """Eq. 19 on one sample: ``G_m`` (3, 3) T/m, ``B_1'`` (3,) T."""
-        if not (np.all(np.isfinite(g_raw)) and np.all(np.isfinite(b_reference))):
-            self.dropped_non_finite += 1
-            if self._warn():
-                self.get_logger().warning(
-                    f'dropped a non-finite or malformed input at stamp {stamp_ns} ns'
-                )
+        if not (np.all(np.isfinite(g_raw)) and plausible_readings(b_reference)):
+            self._drop(stamp_ns, 'a non-finite, implausible or malformed input')
             return
         if self._interference is None:
             g = g_raw
         else:
             g = compensate(g_raw[None], b_reference[None], self._interference, self._geometry)[0]
+        norm_nt = float(np.linalg.norm(g) * NT_PER_T)
+        if not (np.all(np.isfinite(g)) and np.isfinite(norm_nt)):  # never publish inf or NaN
+            self._drop(stamp_ns, 'a non-finite compensated tensor')
+            return
         self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
-        self._norm_pub.publish(Float64(data=float(np.linalg.norm(g) * NT_PER_T)))
+        self._norm_pub.publish(Float64(data=norm_nt))
         self.published += 1
         self._pair_truth(0, stamp_ns, (g_raw, g))
+
+    def _drop(self, stamp_ns: int, what: str) -> None:
+        self.dropped_non_finite += 1
+        if self._warn():
+            self.get_logger().warning(f'dropped {what} at stamp {stamp_ns} ns')
 
     def _on_truth(self, msg: JointState) -> None:
         g_true = tensor_or_nan(msg)

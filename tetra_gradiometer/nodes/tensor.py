@@ -27,12 +27,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
 from ..core import TetraGeometry, difference_tensor
+from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..core.units import NS_PER_S, S_PER_NS
 from ..io import conversions as cv
 from ..io.matching import StampMatcher
 from .common import (
     ERROR,
-    MAX_FIELD_T,
     NAMESPACE,
     OK,
     POSITIONS_SPEC,
@@ -197,8 +197,7 @@ class TensorNode(Node):
 
     def _emit(self, stamp_ns: int, fields: np.ndarray) -> None:
         """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T)."""
-        bad = ~np.all(np.isfinite(fields), axis=1)
-        bad[~bad] = np.linalg.norm(fields[~bad], axis=1) > self._max_field
+        bad = ~plausible_readings(fields, self._max_field)  # the offline tools' rule
         if bad.any():
             self.sets_invalid += 1
             for sensor in np.flatnonzero(bad):
