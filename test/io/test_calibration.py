@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tetra_gradiometer.core import (InterferenceParameters, Scenario, TetraGeometry, TrimManoeuvre,
-                                    difference_tensor, known_gradient_lstsq, random_interference, simulate)
+from tetra_gradiometer.core import (InterferenceParameters, Scenario, SensorInterference, TetraGeometry,
+                                    TrimManoeuvre, difference_tensor, known_gradient_lstsq, random_interference, simulate)
 from tetra_gradiometer.io.calibration import (CalibrationFile, CalibrationFileError, load_calibration,
                                               save_calibration)
 
@@ -47,6 +47,22 @@ def test_calibration_file_from_a_fit(tmp_path):
     np.testing.assert_array_equal(loaded.parameters.k_soft, fit.parameters.k_soft)
 
 
+def test_a_fit_outside_the_physical_bounds_is_never_written(tmp_path):
+    # Sensor 3 with a soft iron of 1.5 (its induced field 1.5x the Earth's): the fit finds it
+    # exactly, and the file refuses it (a window that was not a trim gives such numbers).
+    rng = np.random.default_rng(2)
+    interference = random_interference(rng)
+    k_soft = np.array(interference.k_soft)
+    k_soft[2] += 1.5 * np.eye(3)
+    mission = simulate(Scenario(geometry=GEOMETRY, earth_field_enu=[0, 2e-5, -4.5e-5], segments=[TrimManoeuvre(60.0)],
+                                interference=SensorInterference(k_soft, interference.b_hard)), rng)
+    fit = known_gradient_lstsq(difference_tensor(mission.fields_measured, GEOMETRY),
+                               mission.fields_measured[:, 0], GEOMETRY, symmetric_k=False)
+    assert abs(fit.parameters.k_soft[1, 0, 0] - 1.5) < 1e-2  # the fit itself is right
+    with pytest.raises(CalibrationFileError, match=r'k_soft\[1, 0, 0\] = 1\.\d+ is implausible.*not written'):
+        CalibrationFile.from_calibration(fit, GEOMETRY)
+
+
 KILL_WRITER = '''
 import sys
 import numpy as np
@@ -57,7 +73,7 @@ big = {f"entry_{i}": float(i) for i in range(20000)}  # a large file: each write
 i = 0
 while True:
     i += 1
-    params = InterferenceParameters(np.full((3, 3, 3), 1e-3 * i), np.full((3, 3), 1e-9 * i))
+    params = InterferenceParameters(np.full((3, 3, 3), 1e-6 * i), np.full((3, 3), 1e-12 * i))
     save_calibration(sys.argv[1], CalibrationFile(params, "test", False, geometry.to_flat(), big), force=True)
     print(i, flush=True)
 '''
@@ -78,6 +94,6 @@ def test_a_writer_killed_mid_write_never_leaves_a_truncated_calibration_file(tmp
             if process.poll() is None:
                 process.kill()
         loaded = load_calibration(target)                # complete, parseable ...
-        i = round(loaded.parameters.k_soft[0, 0, 0] / 1e-3)
-        np.testing.assert_allclose(loaded.parameters.b_hard, 1e-9 * i)  # ... and self-consistent
+        i = round(loaded.parameters.k_soft[0, 0, 0] / 1e-6)
+        np.testing.assert_allclose(loaded.parameters.b_hard, 1e-12 * i)  # ... and self-consistent
         assert len(loaded.diagnostics) == 20000
