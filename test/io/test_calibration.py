@@ -1,6 +1,7 @@
 """io/calibration.py: calibration files round trip (from parameters and from a fit), refuse
 corruption, and are never left truncated by a writer killed mid-write."""
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from tetra_gradiometer.core import (InterferenceParameters, Scenario, SensorInterference, TetraGeometry,
                                     TrimManoeuvre, difference_tensor, known_gradient_lstsq, random_interference, simulate)
@@ -45,6 +47,16 @@ def test_calibration_file_from_a_fit(tmp_path):
     loaded = load_calibration(save_calibration(tmp_path / 'c.yaml', CalibrationFile.from_calibration(fit, GEOMETRY)))
     assert loaded.symmetric_k is False and loaded.diagnostics['rank'] == 36
     np.testing.assert_array_equal(loaded.parameters.k_soft, fit.parameters.k_soft)
+    # The uncertainty travels with the file: the covariance exactly, the noise estimate near
+    # the simulated 0.1 nT.
+    np.testing.assert_array_equal(loaded.covariance, fit.covariance)
+    assert loaded.covariance.shape == (36, 36)
+    assert abs(loaded.sensor_noise_t - 0.1e-9) < 0.01e-9
+    document = yaml.safe_load((tmp_path / 'c.yaml').read_text())
+    for key, value, fragment in (('covariance', [[1.0, 2.0]], 'covariance must be 36 x 36'),
+                                 ('sensor_noise_T', -1.0, 'outside [0, 1e-6] T')):
+        with pytest.raises(CalibrationFileError, match=re.escape(fragment)):
+            CalibrationFile.from_yaml(yaml.safe_dump({**document, key: value}))
 
 
 def test_a_fit_outside_the_physical_bounds_is_never_written(tmp_path):

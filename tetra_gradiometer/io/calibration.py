@@ -10,6 +10,14 @@ Format (version 1)::
     k_soft: [[[...]]]     # K_21, K_31, K_41 (3 x 3 x 3), dimensionless
     b_hard_T: [[...]]     # B_21^h, B_31^h, B_41^h (3 x 3), tesla
     diagnostics: {...}    # rank, condition number, residual (nT/m), ...
+    sensor_noise_T: 5.0e-11           # optional: per-axis sensor noise estimated by the fit
+    covariance: [[...]]               # optional: (P, P) covariance of the parameter vector
+                                      # (P = 27 with symmetric_k, else 36; SI units of
+                                      # InterferenceParameters.to_vector)
+
+The two optional keys give the compensated tensor its uncertainty
+(:mod:`~tetra_gradiometer.core.uncertainty`); files without them (older ones, or methods that
+give no covariance) still load.
 """
 
 from __future__ import annotations
@@ -25,7 +33,9 @@ import numpy as np
 import yaml
 
 from ..core import Calibration, InterferenceParameters, TensorCalibration, TetraGeometry
+from ..core.model import n_parameters
 from ..core.plausibility import check_parameters, check_positions_match
+from ..core.units import T_PER_NT
 from ..errors import CalibrationFileError, InputError
 from .outputs import CALIBRATION, atomic_write_text
 
@@ -42,6 +52,8 @@ class CalibrationFile:
     sensor_positions: list[float]
     diagnostics: dict[str, Any] = field(default_factory=dict)
     created_utc: str = ''
+    sensor_noise_t: float | None = None
+    covariance: np.ndarray | None = None
 
     @classmethod
     def from_calibration(
@@ -62,6 +74,7 @@ class CalibrationFile:
                 f'{error}; not written (were the samples a trim manoeuvre in a uniform field?)'
             ) from None
         summary = calibration.summary()
+        noise_nt = summary.get('sensor_noise_nT')
         return cls(
             parameters=calibration.parameters,
             method=calibration.method,
@@ -69,6 +82,8 @@ class CalibrationFile:
             sensor_positions=geometry.to_flat(),
             diagnostics={k: v for k, v in summary.items() if np.isscalar(v)},
             created_utc=_dt.datetime.now(_dt.UTC).strftime('%Y-%m-%dT%H:%M:%SZ'),
+            sensor_noise_t=None if noise_nt is None else float(noise_nt) * T_PER_NT,
+            covariance=calibration.covariance,
         )
 
     def to_yaml(self) -> str:
@@ -85,6 +100,10 @@ class CalibrationFile:
                 for k, v in self.diagnostics.items()
             },
         }
+        if self.sensor_noise_t is not None:
+            document['sensor_noise_T'] = float(self.sensor_noise_t)
+        if self.covariance is not None:
+            document['covariance'] = np.asarray(self.covariance, dtype=float).tolist()
         return yaml.safe_dump(document, sort_keys=False)
 
     @classmethod
@@ -106,18 +125,47 @@ class CalibrationFile:
         try:
             check_parameters(document['k_soft'], document['b_hard_T'], source)
             parameters = InterferenceParameters(document['k_soft'], document['b_hard_T'])
+            symmetric_k = bool(document['symmetric_k'])
             return cls(
                 parameters=parameters,
                 method=str(document['method']),
-                symmetric_k=bool(document['symmetric_k']),
+                symmetric_k=symmetric_k,
                 sensor_positions=[float(v) for v in document['sensor_positions']],
                 diagnostics=dict(document.get('diagnostics') or {}),
                 created_utc=str(document.get('created_utc', '')),
+                sensor_noise_t=_noise(document.get('sensor_noise_T'), source),
+                covariance=_covariance(document.get('covariance'), symmetric_k, source),
             )
         except InputError as error:  # named by check_parameters / the shape checks
             raise CalibrationFileError(str(error)) from None
         except (KeyError, TypeError, ValueError) as error:
             raise CalibrationFileError(f'{source} is malformed: {error}') from None
+
+
+def _noise(value: Any, source: str) -> float | None:
+    """The optional ``sensor_noise_T``: finite, >= 0 and at most 1e-6 T."""
+    if value is None:
+        return None
+    noise = float(value)
+    if not 0.0 <= noise <= 1e-6:  # also refuses NaN
+        raise InputError(f'{source}: sensor_noise_T = {noise:g} T is outside [0, 1e-6] T')
+    return noise
+
+
+def _covariance(value: Any, symmetric_k: bool, source: str) -> np.ndarray | None:
+    """The optional ``covariance``: finite, (P, P) for this layout, non-negative diagonal."""
+    if value is None:
+        return None
+    covariance = np.asarray(value, dtype=float)
+    size = n_parameters(symmetric=symmetric_k)
+    if covariance.shape != (size, size):
+        raise InputError(
+            f'{source}: covariance must be {size} x {size} (symmetric_k: {symmetric_k}), '
+            f'got shape {covariance.shape}'
+        )
+    if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) < 0):
+        raise InputError(f'{source}: covariance must be finite with a non-negative diagonal')
+    return covariance
 
 
 def check_positions(
