@@ -8,10 +8,10 @@ into place on success, and never replaces anything but a previous bag of ours
 Fast paths (the generic ones stay, and a test checks both agree):
 
 * ``sensor_msgs/MagneticField`` is decoded straight from its CDR bytes with numpy
-  (:func:`decode_magnetic_field`): encapsulation header, ``int32 sec``, ``uint32 nanosec``,
+  (:func:`~.bag_decode.decode_checked`): encapsulation header, ``int32 sec``, ``uint32 nanosec``,
   ``frame_id`` (uint32 length incl. NUL, bytes), padding to 8 (counted from the end of the
   4-byte encapsulation header), 3 float64, 9 float64 covariance. Little- and big-endian
-  plain CDR (XCDR1) are handled; any other encapsulation falls back to rosbags.
+  plain CDR (XCDR1) are handled, as by rosbags' deserializer.
 * Sets are matched a batch at a time: when the next stamps of the four sensors are
   identical and increasing (a synchronised driver), the batch is emitted with array
   operations; otherwise it goes message by message through
@@ -19,13 +19,18 @@ Fast paths (the generic ones stay, and a test checks both agree):
 * :meth:`BagWriter.write_fields` and :meth:`BagWriter.write_tensors` encode MagneticField
   and the tensor JointState directly (:func:`encode_magnetic_field`,
   :func:`encode_tensor`), byte-identical to rosbags' serializer.
+
+Damage (issue 13): a message that does not decode (cut short, absurd frame_id length,
+unknown encapsulation, header nanosec >= 1e9) and an unreadable storage chunk
+(:mod:`.bag_skips`) are skipped and recorded in :attr:`MagneticBag.skipped`; a read fails
+only when more than ``max_skipped_fraction`` (default 1 %) of a topic's messages are lost.
 """
 
 from __future__ import annotations
 
 import os
 import struct
-from collections.abc import Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +45,15 @@ from rosbags.typesys import Stores, get_typestore
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
+from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEncoding: re-exported)
+    _CDR_LE,
+    _UnsupportedEncoding,
+    checked_stamp_ns,
+    decode_checked,
+    decode_magnetic_field,
+    skip_reason,
+)
+from .bag_skips import MAX_SKIPPED_FRACTION, SkippedMessage, guarded_messages, summary
 from .matching import MatchCounters, StampMatcher
 from .outputs import BAG, atomic_output, check_output
 from .progress import progress_bar
@@ -48,14 +62,6 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
-
-
-#: CDR encapsulation identifiers (first two bytes) of plain CDR (XCDR1).
-_CDR_BE, _CDR_LE = b'\x00\x00', b'\x00\x01'
-
-
-class _UnsupportedEncoding(Exception):
-    """A serialized message is not plain CDR with the expected layout (use the generic path)."""
 
 
 def encode_magnetic_field(stamp_ns: int, field_t: np.ndarray, frame_id: str) -> bytes:
@@ -91,59 +97,6 @@ def encode_tensor(stamp_ns: int, g: np.ndarray, frame_id: str = cv.ARRAY_FRAME) 
         '<II', 0, 0
     )  # velocity[], effort[]: empty (offset is 4-aligned after doubles)
     return _CDR_LE + b'\x00\x00' + body
-
-
-def _decode_one(raw: bytes) -> tuple[int, float, float, float]:
-    """One MagneticField CDR -> (stamp_ns, x, y, z); raises _UnsupportedEncoding."""
-    kind = raw[:2]
-    if kind == _CDR_LE:
-        order = '<'
-    elif kind == _CDR_BE:
-        order = '>'
-    else:
-        raise _UnsupportedEncoding(f'encapsulation {kind.hex()}')
-    sec, nanosec, length = struct.unpack_from(order + 'iII', raw, 4)
-    offset = 16 + length
-    offset += -(offset - 4) % 8
-    if offset + 96 > len(raw):
-        raise _UnsupportedEncoding('message shorter than its layout')
-    x, y, z = struct.unpack_from(order + '3d', raw, offset)
-    return sec * NS_PER_S + nanosec, x, y, z
-
-
-def decode_magnetic_field(raws: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
-    """Header stamps (n,) int64 ns and fields (n, 3) tesla of serialized MagneticField messages.
-
-    Vectorised when all messages share one length, byte order and frame_id length (the
-    usual case: one topic, one frame); message by message otherwise.
-
-    Raises
-    ------
-    _UnsupportedEncoding
-        A message is not plain CDR (the caller falls back to the rosbags deserializer).
-    """
-    n = len(raws)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-    size = len(raws[0])
-    kind = raws[0][:2]
-    if size >= 16 and kind in (_CDR_LE, _CDR_BE) and all(len(r) == size for r in raws):
-        order = '<' if kind == _CDR_LE else '>'
-        block = np.frombuffer(b''.join(raws), dtype=np.uint8).reshape(n, size)
-        length = block[:, 12:16].copy().view(order + 'u4')[:, 0]
-        if np.all(block[:, :2] == block[0, :2]) and np.all(length == length[0]):
-            offset = 16 + int(length[0])
-            offset += -(offset - 4) % 8
-            if offset + 96 <= size:
-                sec = block[:, 4:8].copy().view(order + 'i4')[:, 0].astype(np.int64)
-                nanosec = block[:, 8:12].copy().view(order + 'u4')[:, 0].astype(np.int64)
-                values = block[:, offset : offset + 24].copy().view(order + 'f8').astype(float)
-                return sec * NS_PER_S + nanosec, values
-    decoded = [_decode_one(r) for r in raws]
-    return (
-        np.array([d[0] for d in decoded], dtype=np.int64),
-        np.array([d[1:] for d in decoded], dtype=float).reshape(n, 3),
-    )
 
 
 class _BatchMatcher:
@@ -227,14 +180,33 @@ class MagneticBag:
     Parameters
     ----------
     path : path of the rosbag2 folder
+    max_skipped_fraction : largest fraction of a topic's messages (the magnetometers
+        together in :meth:`iter_sets`) that may be skipped as undecodable or unreadable
+        before a read raises :class:`BagError`; default 0.01 (1 %)
+
+    Attributes
+    ----------
+    skipped : list of SkippedMessage
+        What the reads so far skipped (each message or chunk once), in reading order.
+    counters : MatchCounters
+        The matcher's counts of the last :meth:`iter_sets`.
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(
+        self, path: str | os.PathLike, *, max_skipped_fraction: float = MAX_SKIPPED_FRACTION
+    ) -> None:
         self.path = Path(path)
         if not self.path.exists():
             raise BagError(f'bag not found: {self.path}')
+        if not 0.0 <= max_skipped_fraction <= 1.0:
+            raise InputError(
+                f'max_skipped_fraction must lie in [0, 1], got {max_skipped_fraction}'
+            )
+        self.max_skipped_fraction = max_skipped_fraction
         self._reader: AnyReader | None = None
         self.counters = MatchCounters()
+        self.skipped: list[SkippedMessage] = []
+        self._seen: set[SkippedMessage] = set()
 
     def __enter__(self) -> MagneticBag:
         try:
@@ -254,6 +226,28 @@ class MagneticBag:
         if self._reader is None:
             raise RuntimeError('MagneticBag must be used inside "with"')
         return self._reader
+
+    def skipped_summary(self) -> str:
+        """One line for the CLI ('' when nothing was skipped): 'skipped 3 undecodable
+        messages (/tetra/mag2 at log time 12.3 s: payload cut short; ...)', log times from
+        the bag's start, at most three shown."""
+        start = self._reader.start_time if self._reader is not None else 0
+        return summary(self.skipped, start)
+
+    def record_skip(self, record: SkippedMessage) -> int:
+        """Record ``record`` (once); return the messages it loses."""
+        if record not in self._seen:
+            self._seen.add(record)
+            self.skipped.append(record)
+        return record.count
+
+    def _check_skipped(self, lost: int, total: int, what: str) -> None:
+        if total and lost > self.max_skipped_fraction * total:
+            raise BagError(
+                f'{self.path}: {lost} of {total} {what} messages skipped as undecodable or '
+                f'unreadable ({lost / total:.2%}, more than max_skipped_fraction '
+                f'{self.max_skipped_fraction:.2%}): {self.skipped_summary()}'
+            )
 
     def _connections(self, topic: str) -> list:
         return [c for c in self.reader.connections if c.topic == topic]
@@ -293,12 +287,14 @@ class MagneticBag:
         ``window_s`` keeps sets whose stamp, in seconds from the first set's stamp, lies in
         ``[t0, t1]``. After the loop, ``self.counters`` holds the matcher's counts.
         ``fast=False`` forces the generic path (rosbags deserializer, one message at a time
-        through the matcher); both give the same sets.
+        through the matcher); both give the same sets. An undecodable message or unreadable
+        chunk is skipped and recorded in :attr:`skipped`.
 
         Raises
         ------
         BagError
-            Contract violations (see :meth:`check_contract`), or no set could be matched.
+            Contract violations (see :meth:`check_contract`), no set could be matched, or
+            more than ``max_skipped_fraction`` of the magnetometer messages were skipped.
         """
         total = self.check_contract()
         if chunk_size < 1:
@@ -314,22 +310,18 @@ class MagneticBag:
         connections = [c for c in self.reader.connections if c.id in index]
         first: list[int] = []
         bar = progress_bar(total, progress, 'reading magnetometers')
-        raws: list[list[tuple[Any, bytes]]] = [[] for _ in range(4)]
+        raws: list[list[tuple[Any, int, bytes]]] = [[] for _ in range(4)]
         count = 0
-        decode_fast = fast
+        lost = [0]  # magnetometer messages skipped in this read
+
+        def on_skip(record: SkippedMessage) -> None:
+            n = self.record_skip(record)  # recorded whatever the topic ('': a storage range)
+            lost[0] += n if record.topic in cv.BAG_MAG_TOPICS else 0
 
         def flush(final: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-            nonlocal decode_fast
-            batches = []
-            for sensor in range(4):
-                batch = None
-                if decode_fast:
-                    try:
-                        batch = decode_magnetic_field([r for _, r in raws[sensor]])
-                    except _UnsupportedEncoding:
-                        decode_fast = False
-                batches.append(self._deserialize(raws[sensor]) if batch is None else batch)
-                raws[sensor] = []
+            batches = [self._decode(raws[sensor], fast, on_skip) for sensor in range(4)]
+            raws[:] = [[] for _ in range(4)]
+            self._check_skipped(lost[0], total, 'magnetometer')
             stamps, fields = batcher.add(batches, final=final, fast=fast)
             if len(stamps) and not first:
                 first.append(int(stamps[0]))
@@ -341,8 +333,8 @@ class MagneticBag:
                 yield stamps[start : start + chunk_size], fields[start : start + chunk_size]
 
         try:
-            for connection, _, raw in self.reader.messages(connections=connections):
-                raws[index[connection.id]].append((connection, raw))
+            for item in guarded_messages(self.reader, connections, on_skip):
+                raws[index[item[0].id]].append(item)
                 count += 1
                 if count >= 4 * chunk_size:
                     bar.update(count)
@@ -359,12 +351,41 @@ class MagneticBag:
                 f'({matcher.counters.dropped_messages} messages unmatched)'
             )
 
-    def _deserialize(self, raws: list[tuple[Any, bytes]]) -> tuple[IntArray, FloatArray]:
-        """Stamps (n,) ns and fields (n, 3) T of MagneticField messages, through rosbags."""
-        msgs: list[Any] = [self.reader.deserialize(r, c.msgtype) for c, r in raws]
+    def _decode(
+        self,
+        items: list[tuple[Any, int, bytes]],
+        fast: bool,
+        on_skip: Callable[[SkippedMessage], None],
+    ) -> tuple[IntArray, FloatArray]:
+        """One sensor's ``(connection, log_ns, raw)`` items -> stamps, fields; the malformed
+        ones go to ``on_skip``."""
+        if fast:
+            stamps, values, bad = decode_checked([r for _, _, r in items])
+        else:
+            stamps, values, bad = self._deserialize(items)
+        for i, reason in bad:
+            on_skip(SkippedMessage(items[i][0].topic, items[i][1], reason))
+        return stamps, values
+
+    def _deserialize(
+        self, items: list[tuple[Any, int, bytes]]
+    ) -> tuple[IntArray, FloatArray, list[tuple[int, str]]]:
+        """As :func:`decode_checked` for ``(connection, log_ns, raw)`` items, through rosbags."""
+        stamps, values, bad = [], [], []
+        for i, (connection, _, raw) in enumerate(items):
+            try:
+                msg: Any = self.reader.deserialize(raw, connection.msgtype)
+                stamp = checked_stamp_ns(msg.header.stamp)
+                value = cv.magnetic_field_vector(msg)
+            except Exception as error:  # rosbags' SerdeError, or whatever garbage raises
+                bad.append((i, skip_reason(error)))
+                continue
+            stamps.append(stamp)
+            values.append(value)
         return (
-            np.array([cv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64),
-            np.array([cv.magnetic_field_vector(m) for m in msgs], dtype=float).reshape(-1, 3),
+            np.array(stamps, dtype=np.int64),
+            np.array(values, dtype=float).reshape(-1, 3),
+            bad,
         )
 
     def read_sets(self, **options: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -386,10 +407,23 @@ class MagneticBag:
         if extract is None:
             raise BagError(f'{self.path}: {topic} has unsupported type {connections[0].msgtype}')
         stamps, values = [], []
-        for connection, _, raw in self.reader.messages(connections=connections):
-            msg: Any = self.reader.deserialize(raw, connection.msgtype)
-            stamps.append(cv.stamp_to_ns(msg.header.stamp))
-            values.append(extract(msg))
+        lost = [0]
+
+        def on_skip(record: SkippedMessage) -> None:
+            n = self.record_skip(record)
+            lost[0] += n if record.topic == topic else 0
+
+        for connection, log_ns, raw in guarded_messages(self.reader, connections, on_skip):
+            try:
+                msg: Any = self.reader.deserialize(raw, connection.msgtype)
+                stamp = checked_stamp_ns(msg.header.stamp)
+                value = extract(msg)
+            except Exception as error:  # as in _deserialize
+                on_skip(SkippedMessage(topic, log_ns, skip_reason(error)))
+                continue
+            stamps.append(stamp)
+            values.append(value)
+        self._check_skipped(lost[0], sum(c.msgcount for c in connections), topic)
         if not stamps:
             return None
         order = np.argsort(stamps, kind='stable')

@@ -66,12 +66,18 @@ class WindowSets:
         Seconds of the bag read (from its first matched set to the last one read).
     counters : MatchCounters
         The stamp matcher's counts over what was read.
+    skipped_messages : int
+        Messages skipped as undecodable or unreadable (``MagneticBag.skipped``).
+    skipped_summary : str
+        The reader's line about them ('' when none).
     """
 
     stamps_ns: IntArray
     fields: FloatArray
     span_s: float
     counters: MatchCounters
+    skipped_messages: int = 0
+    skipped_summary: str = ''
 
 
 @dataclass(frozen=True)
@@ -96,6 +102,7 @@ class BagCalibration:
         Sets of the window dropped as implausible (non-finite, ``|B|`` too large), by reason.
     counters : MatchCounters
         The stamp matcher's counts over what was read.
+    skipped_messages, skipped_summary : as in :class:`WindowSets`
     """
 
     calibration: Calibration
@@ -106,6 +113,8 @@ class BagCalibration:
     span_s: float
     dropped: DroppedSets
     counters: MatchCounters
+    skipped_messages: int = 0
+    skipped_summary: str = ''
 
     @property
     def coverage_condition(self) -> float:
@@ -156,13 +165,14 @@ def read_window(
                 sets.close()
                 break
         counters = bag.counters
+        skipped = sum(record.count for record in bag.skipped), bag.skipped_summary()
     span = 0.0 if first is None else (last - first) * S_PER_NS
     if not stamps:
         raise BagError(
             f'{bag_path}: the window {window_text(window)} holds no sample set '
             f'(the bag spans 0:{span:.3f} s from its first stamp)'
         )
-    return WindowSets(np.concatenate(stamps), np.concatenate(fields), span, counters)
+    return WindowSets(np.concatenate(stamps), np.concatenate(fields), span, counters, *skipped)
 
 
 def _plausible(
@@ -256,6 +266,8 @@ def calibrate_bag(
         span_s=sets.span_s,
         dropped=dropped,
         counters=sets.counters,
+        skipped_messages=sets.skipped_messages,
+        skipped_summary=sets.skipped_summary,
     )
     extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
     record = dataclasses.replace(result.record, diagnostics={**result.record.diagnostics, **extra})
@@ -277,4 +289,5 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
         'messages_unmatched': counters.dropped_messages,
         'messages_evicted': counters.evicted_messages,
         'messages_out_of_order': counters.out_of_order,
+        'messages_skipped_undecodable': result.skipped_messages,
     }

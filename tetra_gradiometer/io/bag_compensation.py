@@ -77,6 +77,10 @@ class CompensationCounts:
         The tensor topic of the output bag.
     counters : MatchCounters
         The stamp matcher's counts.
+    skipped_messages : int
+        Messages skipped as undecodable or unreadable (``MagneticBag.skipped``).
+    skipped_summary : str
+        The reader's line about them ('' when none).
     """
 
     n_sets: int
@@ -84,6 +88,8 @@ class CompensationCounts:
     span_s: float
     topic: str
     counters: MatchCounters
+    skipped_messages: int = 0
+    skipped_summary: str = ''
 
 
 def format_rows(stamps_ns: IntArray, tensors_t_per_m: FloatArray) -> str:
@@ -214,7 +220,15 @@ def compensate_bag(
                 f'{Path(bag_path)}: every matched set has an implausible reading '
                 f'({dropped.text()})'
             )
-    return CompensationCounts(n_sets, dropped, (last - first) * S_PER_NS, topic, bag.counters)
+    return CompensationCounts(
+        n_sets,
+        dropped,
+        (last - first) * S_PER_NS,
+        topic,
+        bag.counters,
+        sum(record.count for record in bag.skipped),
+        bag.skipped_summary(),
+    )
 
 
 def _tensors(

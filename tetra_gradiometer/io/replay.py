@@ -4,7 +4,8 @@ frames of messages ready to publish (built with a :class:`~.conversions.MessageT
 * :func:`iter_frames` replays a bag: one frame per recorded message (the magnetometers, and
   ``/tetra/gradient/truth`` and ``/odom`` when recorded), with its recorded header stamp,
   paced by log time. It opens the bag in a ``with`` block, so closing the generator (or
-  exhausting it) closes the bag.
+  exhausting it) closes the bag. A message that does not decode and an unreadable storage
+  chunk are skipped (as :meth:`~.bag.MagneticBag.iter_sets` does), counted and logged.
 * :func:`simulate` runs the core mission simulator on a scenario and returns the frames of
   its samples (four magnetometers, the true gradient, odometry), paced by sample time.
 
@@ -13,6 +14,7 @@ Nothing here imports rclpy: the caller passes the message classes.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Generator
 from dataclasses import dataclass
@@ -24,6 +26,11 @@ from ..core import MissionData
 from ..core.units import NS_PER_S, S_PER_NS
 from . import conversions as cv
 from .bag import MagneticBag
+from .bag_decode import checked_stamp_ns, skip_reason
+from .bag_skips import SkippedMessage, guarded_messages
+from .bag_skips import summary as bag_summary
+
+LOG = logging.getLogger(__name__)
 
 #: Publisher keys of a frame's messages: magnetometer ``sensor`` 0..3, truth, odometry.
 MAG, TRUTH, ODOM = 'mag', 'truth', 'odom'
@@ -77,7 +84,11 @@ def describe_bag(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def iter_frames(
-    path: str | os.PathLike, types: cv.MessageTypes, *, max_duration_s: float = 0.0
+    path: str | os.PathLike,
+    types: cv.MessageTypes,
+    *,
+    max_duration_s: float = 0.0,
+    skipped: list[SkippedMessage] | None = None,
 ) -> Generator[Frame, None, None]:
     """Yield one frame per recorded message of :data:`REPLAY_TOPICS`, in log-time order.
 
@@ -86,6 +97,8 @@ def iter_frames(
     path : rosbag2 folder (sqlite3 or mcap)
     types : the message classes to build (``conversions.rclpy_types()`` for a node)
     max_duration_s : stop after this much log time, s (0: the whole bag)
+    skipped : if given, receives the skipped messages and chunks as they happen (they are
+        also logged: the first few one by one, the count when the replay ends)
 
     Raises
     ------
@@ -96,16 +109,37 @@ def iter_frames(
         bag.check_contract()
         reader = bag.reader
         connections = [c for c in reader.connections if c.topic in REPLAY_TOPICS]
+
+        def on_skip(record: SkippedMessage) -> None:
+            bag.record_skip(record)
+            if skipped is not None:
+                skipped.append(record)
+            if len(bag.skipped) <= 3:
+                LOG.warning('replay of %s skips %s', path, summary_of([record]))
+
+        def summary_of(records: list[SkippedMessage]) -> str:
+            return bag_summary(records, reader.start_time)
+
         first = None
-        for connection, log_ns, raw in reader.messages(connections=connections):
-            first = log_ns if first is None else first
-            if max_duration_s > 0 and (log_ns - first) * S_PER_NS > max_duration_s:
-                return
-            msg: Any = reader.deserialize(raw, connection.msgtype)
-            key, sensor = REPLAY_TOPICS[connection.topic]
-            stamp = cv.stamp_to_ns(msg.header.stamp)
-            mag1 = stamp if (key == MAG and sensor == 0) else None
-            yield Frame(log_ns - first, 0, mag1, [(key, sensor, _rebuild(types, key, msg, stamp))])
+        try:
+            for connection, log_ns, raw in guarded_messages(reader, connections, on_skip):
+                try:
+                    msg: Any = reader.deserialize(raw, connection.msgtype)
+                    key, sensor = REPLAY_TOPICS[connection.topic]
+                    stamp = checked_stamp_ns(msg.header.stamp)
+                    frame_msg = _rebuild(types, key, msg, stamp)
+                    log_ns = int(log_ns)
+                except Exception as error:  # a malformed message costs itself
+                    on_skip(SkippedMessage(connection.topic, log_ns, skip_reason(error)))
+                    continue
+                first = log_ns if first is None else first
+                if max_duration_s > 0 and (log_ns - first) * S_PER_NS > max_duration_s:
+                    return
+                mag1 = stamp if (key == MAG and sensor == 0) else None
+                yield Frame(log_ns - first, 0, mag1, [(key, sensor, frame_msg)])
+        finally:
+            if bag.skipped:
+                LOG.warning('replay of %s: %s', path, bag.skipped_summary())
 
 
 def _rebuild(types: cv.MessageTypes, key: str, msg: Any, stamp: int) -> Any:
