@@ -3,11 +3,14 @@ sqlite3 and mcap, and a bag with the optional topics missing."""
 
 import json
 
+import numpy as np
 import pytest
+import yaml
 
 from tetra_gradiometer.__main__ import main
 from tetra_gradiometer.core.discrepancy.synthetic import make_case
 from tetra_gradiometer.core.geometry import TetraGeometry
+from tetra_gradiometer.io.bag import BagWriter
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
 
@@ -76,8 +79,8 @@ def test_cli_with_topics_missing_says_which_candidates_were_untestable(tmp_path,
 @pytest.mark.parametrize(
     'positions, expected',
     [
-        # Four sensors at one point are coplanar: the geometry is refused before the bag is read.
-        ([0.0] * 12, 'sensor positions are degenerate'),
+        # Four sensors at one point: the geometry is refused (edges of 0 m) before the bag is read.
+        ([0.0] * 12, 'sensors 1 and 2 are 0 m apart'),
         # A regular tetrahedron (edge 0.5 m) is fine; the bag folder does not exist.
         (TetraGeometry.regular(0.5).to_flat(), 'bag not found'),
     ],
@@ -100,3 +103,62 @@ def test_cli_errors_are_one_line(tmp_path, capsys, positions, expected):
     assert len(lines) == 1 and lines[0].startswith('error: ') and expected in lines[0], lines
     assert captured.out == ''
     assert not (tmp_path / 'out').exists()
+
+
+def _bag_topics(bag):
+    metadata = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    return sorted(t['topic_metadata']['name'] for t in metadata['topics_with_message_count'])
+
+
+MAG_ONLY_NOTES = [
+    "no /odom (attitude): reference_interference, external_field not tested; residuals are pair "
+    "differences against sensor 1 (B_i' - B_1')",
+    'no /tetra/temperature (sensor temperature): thermal_drift not tested',
+    'no /battery_state (vehicle current): vehicle_current not tested',
+]
+
+
+def _check_mag_only_report(out, stdout):
+    """The report folder is complete and says, per missing channel, what was not tested."""
+    report = json.loads((out / 'report.json').read_text())
+    channels = report['channels']
+    assert [channels[t]['note'] for t in ('/odom', '/tetra/temperature', '/battery_state')] == MAG_ONLY_NOTES
+    assert not any(c['recorded'] for c in channels.values())
+    assert channels['/odom']['untested'] == ['reference_interference', 'external_field']
+    for note in MAG_ONLY_NOTES:
+        assert f'not tested: {note}\n' in stdout
+        assert f'- {note}\n' in (out / 'report.md').read_text()
+    assert 'named effects:' in stdout.splitlines()[-1]
+    assert {'report.json', 'report.md', 'gap.png', 'diagnostics.png'} <= {p.name for p in out.iterdir()}
+    return report
+
+
+def test_magnetometers_only_bag_with_plots_says_which_channels_are_missing(tmp_path, capsys):
+    """A bag with only /tetra/mag1..4 (no /odom, temperature, battery): the analysis runs on
+    what there is (pair view), writes the whole report with its plots and names, per missing
+    channel, the effects it could not test."""
+    case, bag, params = _bag(tmp_path, 24, ('eddy_current',), earth=False, odom=False,
+                             temperature=False, battery=False)
+    assert _bag_topics(bag) == ['/tetra/mag1', '/tetra/mag2', '/tetra/mag3', '/tetra/mag4']
+    out = tmp_path / 'out'
+    assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(out)]) == 0
+    report = _check_mag_only_report(out, capsys.readouterr().out)
+    assert report['named_effects'] == ['eddy_current'] and report['view'] == 'pair'
+
+
+def test_noise_free_magnetometers_only_bag_still_gets_its_report(tmp_path, capsys):
+    """Four identical, noise-free readings (noise floor 0): the report (text and plots) is
+    written; the markdown says the gap/floor ratio is undefined instead of dividing by 0."""
+    geometry = TetraGeometry.regular(0.5)
+    stamps = 1_767_225_600 * 10**9 + np.arange(600, dtype=np.int64) * 100_000_000
+    fields = np.broadcast_to(np.array([2e-5, 0.0, -4e-5]), (len(stamps), 4, 3))
+    with BagWriter(tmp_path / 'bag') as writer:
+        writer.write_fields(stamps, fields)
+    (tmp_path / 'params.yaml').write_text(params_document({'sensor_positions': geometry.to_flat()}))
+    out = tmp_path / 'out'
+    code = main(['discrepancy', str(tmp_path / 'bag'), '--params', str(tmp_path / 'params.yaml'),
+                 '--out', str(out)])
+    assert code == 0
+    report = _check_mag_only_report(out, capsys.readouterr().out)
+    assert report['noise_floor_nT'] == 0.0
+    assert 'ratio undefined: zero noise floor' in (out / 'report.md').read_text()

@@ -49,10 +49,11 @@ def ros_value(value: Any) -> str:
 class NodeProcess:
     """One ``python -m tetra_gradiometer node NAME`` child; stderr kept in a file."""
 
-    def __init__(self, name: str, domain: int, params: dict[str, Any] | None = None) -> None:
+    def __init__(self, name: str, domain: int, params: dict[str, Any] | None = None,
+                 params_file: Path = PARAMS) -> None:
         self.name = name
         self.log = tempfile.NamedTemporaryFile('w+', prefix=f'tg_{name}_', suffix='.log', delete=False)
-        command = [sys.executable, '-m', 'tetra_gradiometer', 'node', name, '--params', str(PARAMS)]
+        command = [sys.executable, '-m', 'tetra_gradiometer', 'node', name, '--params', str(params_file)]
         if params:
             command.append('--ros-args')
             for key, value in params.items():
@@ -62,6 +63,17 @@ class NodeProcess:
 
     def output(self) -> str:
         return Path(self.log.name).read_text()
+
+    def refusal(self, timeout_s: float = 30.0) -> tuple[int, str]:
+        """Exit status and output of a node expected to refuse its start (stopped anyway)."""
+        try:
+            code = self.process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            code = None
+        finally:
+            output = self.output()
+            self.stop()
+        return code, output
 
     def alive(self) -> bool:
         return self.process.poll() is None

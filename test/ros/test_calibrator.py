@@ -3,6 +3,7 @@ parameters of a known vehicle, the paper's objective satisfied (eqs. 21-22), and
 must never write."""
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -13,16 +14,21 @@ from tetra_gradiometer.io.calibration import load_calibration
 
 T0 = 1_800_000_000 * 10**9
 GEOMETRY = core.TetraGeometry.regular(0.5)
+CALIBRATION = 'tetra/calibrator: calibration'
 
 
-def _feed_and_stop(probe, feeder, graph, g, b, first=0) -> None:
+def _feed_and_stop(probe, feeder, graph, g, b, first=0, kept=None) -> None:
     """Publish the sets ``(g, b)`` (stamps 0.1 s apart from set ``first``), then ``~/stop``
-    once the calibrator holds all of them."""
+    once the calibrator holds ``kept`` (default all) of them (its /diagnostics ``samples``: a
+    ``~/stop`` served before the last queued messages would end the collection without them)."""
+    kept = len(g) if kept is None else kept
+    wait_for(lambda: probe.status(CALIBRATION).get('samples') == '0', 10, 'samples 0 after ~/start', graph)
     for i in range(len(g)):
         feeder.publish_raw(T0 + (first + i) * 10**8, g[i], b[i])
         time.sleep(0.002)
-    wait_for(lambda: f'{len(g)} samples' in probe.call('calibrator/stop').message, 10,
-             f'{len(g)} samples', graph)
+    wait_for(lambda: probe.status(CALIBRATION).get('samples') == str(kept), 15, f'{kept} samples', graph)
+    reply = probe.call('calibrator/stop')
+    assert f'{kept} samples' in reply.message, reply.message
 
 
 def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_condition_number(tmp_path):
@@ -43,10 +49,14 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         assert 'too few directions' in reply.message and 'condition number' in reply.message
         assert not calibration_file.exists()
 
-        # Rich directions: the calibration is exact (no noise), written and latched.
+        # Rich directions: the calibration is exact (no noise), written and latched. One
+        # reference reading of 1 T among them is dropped and counted, never fitted.
         assert probe.call('calibrator/start').success
         g, b, exact = interference_set(300, rng, 'rich')
-        _feed_and_stop(probe, feeder, graph, g, b, first=1000)
+        b_faulty = b.copy()
+        b_faulty[10] = [1.0, 0.0, 0.0]
+        _feed_and_stop(probe, feeder, graph, g, b_faulty, first=1000, kept=299)
+        assert probe.status(CALIBRATION).get('dropped_implausible') == '1'
         reply = probe.call('calibrator/calibrate')
         assert reply.success, reply.message
         saved = load_calibration(calibration_file)
@@ -101,3 +111,67 @@ def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_pa
         assert not reply.success and 'not a calibration file' in reply.message, reply.message
     assert precious.read_bytes() == b'rudder_gain: 3\n'
     assert sorted(p.name for p in tmp_path.iterdir()) == ['vehicle.conf']
+
+
+def _set_double(probe, graph, node: str, name: str, value: float) -> None:
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    client = probe.create_client(SetParameters, f'{node}/set_parameters')
+    assert client.wait_for_service(timeout_sec=30)
+    parameter = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))
+    future = client.call_async(SetParameters.Request(parameters=[parameter]))
+    wait_for(future.done, 10, 'set_parameters', graph)
+    assert future.result().results[0].successful, future.result().results[0].reason
+
+
+def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max_solve_s(tmp_path):
+    """Fault table rows: a 20 000-generation paper_ga solve (about 4 s) does not stop
+    /diagnostics, a second ~/calibrate is answered at once, ~/cancel ends it within ~1 s
+    (nothing written), and max_solve_s ends it with the best individual so far."""
+    from std_srvs.srv import Trigger
+    calibration_file = tmp_path / 'calibration.yaml'
+    rng = np.random.default_rng(5)
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('calibrator', calibration_file=str(calibration_file), method='paper_ga',
+                    ga_generations=20000, diagnostics_period_s=0.1)
+        wait_matched(feeder.raw, 1)
+        wait_matched(feeder.reference, 1)
+        assert probe.call('calibrator/start').success
+        g, b, _ = interference_set(300, rng, 'rich')
+        _feed_and_stop(probe, feeder, graph, g, b)
+        assert not probe.call('calibrator/cancel').success  # nothing to cancel yet
+
+        client = probe.create_client(Trigger, 'calibrator/calibrate')
+        assert client.wait_for_service(timeout_sec=30)
+        future = client.call_async(Trigger.Request())
+        elapsed: set[str] = set()
+
+        def solving() -> bool:
+            s = probe.status(CALIBRATION)
+            if s.get('state') == 'solving':
+                elapsed.add(s['solve_elapsed_s'])
+            return len(elapsed) >= 3
+        wait_for(solving, 10, 'three /diagnostics reports while solving', graph)
+        assert not future.done()
+        second = probe.call('calibrator/calibrate', timeout_s=2.0)
+        assert not second.success and second.message == 'a solve is already running'
+
+        cancelled_at = time.monotonic()
+        assert probe.call('calibrator/cancel', timeout_s=2.0).success
+        wait_for(future.done, 5, 'the cancelled ~/calibrate reply', graph)
+        assert time.monotonic() - cancelled_at < 1.5
+        reply = future.result()
+        assert not reply.success and reply.message.startswith('cancelled'), reply.message
+        assert 'of 20000 generations' in reply.message and not calibration_file.exists()
+        wait_for(lambda: probe.status(CALIBRATION).get('state') == 'stopped', 5, 'state back to stopped', graph)
+
+        _set_double(probe, graph, 'calibrator', 'max_solve_s', 0.5)
+        started = time.monotonic()
+        reply = probe.call('calibrator/calibrate')
+        took = time.monotonic() - started
+        assert reply.success, reply.message
+        match = re.search(r'stopped at max_solve_s 0.5 s after (\d+) of 20000 generations', reply.message)
+        assert match and 0 < int(match.group(1)) < 20000, reply.message
+        assert took < 2.0, took
+        saved = load_calibration(calibration_file)
+        assert np.all(np.isfinite(saved.parameters.to_vector(symmetric=True)))

@@ -5,6 +5,9 @@ start with the reason (nodes as processes)."""
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
+import time
 
 import pytest
 import yaml
@@ -77,18 +80,78 @@ def test_the_docs_table_names_every_declared_parameter_and_no_other():
         f'docs/ros.md lacks these declared parameters: {sorted(every - documented)}')
 
 
+def _assert_one_line_refusal(code, output, *expected):
+    """Exit 1, no traceback, exactly one 'cannot start:' line holding every ``expected`` text."""
+    assert code == 1, output
+    assert 'Traceback' not in output, output
+    lines = [line for line in output.splitlines() if 'cannot start:' in line]
+    assert len(lines) == 1, output
+    for text in expected:
+        assert text in lines[0], lines[0]
+
+
 @pytest.mark.parametrize('name, params, expected', [
-    ('tensor', {'sensor_positions': [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0]}, 'coplanar'),
-    ('tensor', {'stamp_tolerance_s': -1.0}, 'stamp_tolerance_s'),
-    ('calibrator', {'method': 'simplex'}, 'must be one of'),
-    ('driver', {'mode': 'replay', 'bag': '/nonexistent/bag'}, 'bag not found'),
+    ('tensor', {'sensor_positions': [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0]}, ['coplanar']),
+    ('tensor', {'stamp_tolerance_s': -1.0}, ["'stamp_tolerance_s' = -1.0", '[1e-06, 1]']),
+    ('calibrator', {'method': 'simplex'}, ["'method' = 'simplex'", 'must be one of']),
+    ('driver', {'mode': 'replay', 'bag': '/nonexistent/bag'}, ['bag not found']),
+    # Out of the physical range (was accepted up to 1e6 generations: minutes of a blocked node).
+    ('calibrator', {'ga_generations': 0}, ["'ga_generations' = 0", '[1, 20000]']),
+    ('calibrator', {'ga_generations': 1_000_000}, ["'ga_generations' = 1000000", '[1, 20000]']),
+    ('tensor', {'max_field_t': 0.01}, ["'max_field_t' = 0.01", '[0.0001, 0.001]']),
+    ('compensator', {'max_pending': 0}, ["'max_pending' = 0", '[1, 100000]']),
+    ('driver', {'rate': 5000.0}, ["'rate' = 5000.0", '[0, 1000]']),
+    ('calibrator', {'max_solve_s': 0.0}, ["'max_solve_s' = 0.0", '[0.1, 600]']),
+    ('calibrator', {'min_samples': 1000, 'max_samples': 500}, ["'min_samples' = 1000", 'max_samples (500)']),
+    # Wrong type: a string, a double for an integer (over the params file's integer, which rcl
+    # would otherwise keep silently), an integer for a double (ROS refuses it too).
+    ('calibrator', {'ga_generations': 'abc'}, ["'ga_generations' = 'abc'", 'a string', 'an integer', '[1, 20000]']),
+    ('calibrator', {'ga_generations': '5.0'}, ["'ga_generations' = 5.0", 'a double', 'an integer']),
+    ('driver', {'rate': 10}, ["'rate' = 10", 'an integer', 'a double', 'decimal point']),
+    # A name the node does not declare (a typo), also one another node declares.
+    ('driver', {'rat': 10.0}, ["unknown parameter 'rat'", 'declared:', 'rate']),
+    ('driver', {'max_pending': 10}, ["unknown parameter 'max_pending'", 'declared:']),
 ])
-def test_bad_parameters_are_refused_at_start_with_the_reason(name, params, expected):
-    process = NodeProcess(name, unique_domain(), params)
+def test_bad_parameters_are_refused_at_start_with_one_line(name, params, expected):
+    code, output = NodeProcess(name, unique_domain(), params).refusal()
+    _assert_one_line_refusal(code, output, *expected)
+
+
+@pytest.mark.parametrize('name, document, expected', [
+    ('calibrator', {'/**': {'ros__parameters': {'ga_generations': 1_000_000}}}, ["'ga_generations' = 1000000", '[1, 20000]']),
+    ('tensor', {'/**': {'ros__parameters': {'max_pending': 'many'}}}, ["'max_pending' = 'many'", 'a string']),
+    ('driver', {'/**': {'ros__parameters': {'rat': 10.0, 'earth_field_enu': [0.0, 2e-5, -4.5e-5]}}},
+     ["unknown parameter 'rat'"]),
+    ('compensator', {'/tetra/compensator': {'ros__parameters': {'max_pendng': 10}}}, ["unknown parameter 'max_pendng'"]),
+])
+def test_bad_parameters_in_a_params_file_are_refused_at_start_with_one_line(tmp_path, name, document, expected):
+    params_file = tmp_path / 'params.yaml'
+    params_file.write_text(yaml.safe_dump(document))
+    code, output = NodeProcess(name, unique_domain(), params_file=params_file).refusal()
+    _assert_one_line_refusal(code, output, *expected)
+
+
+def test_entries_for_other_nodes_and_rclpy_builtins_are_not_refused(tmp_path):
+    """A section addressed to another node (a typo and a bad value there are that node's
+    business), another node's names in /** and rclpy's use_sim_time start the node."""
+    params_file = tmp_path / 'params.yaml'
+    params_file.write_text(yaml.safe_dump({
+        '/**': {'ros__parameters': {'stamp_tolerance_s': 0.002, 'earth_field_enu': [0.0, 2e-5, -4.5e-5]}},
+        '/tetra/tensor': {'ros__parameters': {'rat': 1.0, 'max_pending': 0}},
+    }))
+    process = NodeProcess('compensator', unique_domain(), {'use_sim_time': False}, params_file=params_file)
     try:
-        code = process.process.wait(timeout=30)
+        time.sleep(4.0)
         output = process.output()
+        assert process.alive(), output
     finally:
         process.stop()
-    assert code == 1, output
-    assert expected in output
+    assert 'cannot start' not in output and 'Traceback' not in output, output
+
+
+def test_a_missing_params_file_is_one_error_line(tmp_path):
+    result = subprocess.run([sys.executable, '-m', 'tetra_gradiometer', 'node', 'tensor', '--params',
+                             str(tmp_path / 'missing.yaml')], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert 'Traceback' not in result.stderr
+    assert result.stderr.strip().splitlines() == [f'error: --params {tmp_path / "missing.yaml"}: no such file']

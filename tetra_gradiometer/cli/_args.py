@@ -1,16 +1,112 @@
 """Argument helpers shared by the commands: the input bag and its matching, ``--window``,
-``--progress``, ``--force``."""
+``--progress``, ``--force``, and the ``type=`` factories that check every numeric option at
+parse time.
+
+A value out of its range is a usage error: argparse prints the usage and one line
+``... error: argument --NAME: must be ... in RANGE, got 'VALUE'`` and exits 2 (no
+traceback, nothing read or written).
+"""
 
 from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
 
 from ..errors import InputError
 
-__all__ = ['add_bag_arguments', 'add_force_argument', 'add_progress_arguments', 'parse_window']
+__all__ = [
+    'MAX_RATE',
+    'MAX_SEED',
+    'MAX_TOLERANCE_MS',
+    'add_bag_arguments',
+    'add_force_argument',
+    'add_progress_arguments',
+    'finite_float',
+    'int_range',
+    'parse_window',
+    'positive_float',
+    'seed_arg',
+    'window_arg',
+]
+
+#: Largest seed any command takes: the driver node's ``seed`` parameter range (int32), so a
+#: seed means the same on the command line, in a scenario file and on the node.
+MAX_SEED = 2**31 - 1
+
+#: ``--rate`` (bringup, record, demo): the driver node's ``rate`` parameter range, x real time.
+MAX_RATE = 1_000.0
+
+#: ``--tolerance-ms`` range: above 0; at most 1 s (a set spread over more is not a set).
+MAX_TOLERANCE_MS = 1000.0
 
 _WINDOW_FORMAT = '--window must be T0:T1 in seconds from the first stamp'
+
+
+def _number(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() and abs(value) < 1e15 else f'{value:g}'
+
+
+def finite_float(
+    lo: float,
+    hi: float,
+    unit: str = '',
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+) -> Callable[[str], float]:
+    """A ``type=`` for a finite float in ``[lo, hi]`` (``lo_open``/``hi_open``: that end
+    excluded); anything else (text, NaN, inf, out of range) is an
+    :class:`argparse.ArgumentTypeError` naming the range and the unit."""
+    unit_text = f' {unit}' if unit else ''
+    allowed = (
+        f'{_number(lo)} {"<" if lo_open else "<="} x {"<" if hi_open else "<="} '
+        f'{_number(hi)}{unit_text}'
+    )
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        above = value > lo if lo_open else value >= lo
+        below = value < hi if hi_open else value <= hi
+        if not (math.isfinite(value) and above and below):
+            raise argparse.ArgumentTypeError(
+                f'must be a finite number with {allowed}, got {text!r}'
+            )
+        return value
+
+    parse.__name__ = 'number'
+    return parse
+
+
+def positive_float(hi: float, unit: str = '') -> Callable[[str], float]:
+    """A ``type=`` for a finite float with ``0 < x <= hi``."""
+    return finite_float(0.0, hi, unit, lo_open=True)
+
+
+def int_range(lo: int, hi: int, unit: str = '') -> Callable[[str], int]:
+    """A ``type=`` for an integer (decimal digits, optional sign) in ``[lo, hi]``."""
+    unit_text = f' {unit}' if unit else ''
+
+    def parse(text: str) -> int:
+        try:
+            value: int | None = int(text.strip(), 10)
+        except ValueError:  # not an integer, or too many digits to convert
+            value = None
+        if value is None or not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(
+                f'must be an integer with {lo} <= n <= {hi}{unit_text}, got {text!r}'
+            )
+        return value
+
+    parse.__name__ = 'integer'
+    return parse
+
+
+#: ``--seed``: a non-negative int32 (numpy's generators refuse negative seeds).
+seed_arg = int_range(0, MAX_SEED)
 
 
 def parse_window(text: str | None) -> tuple[float, float] | None:
@@ -34,6 +130,16 @@ def parse_window(text: str | None) -> tuple[float, float] | None:
     if not (math.isfinite(t0) and t0 >= 0 and t1 > t0):
         raise InputError(f'--window needs 0 <= T0 < T1, got {text!r}')
     return t0, t1
+
+
+def window_arg(text: str) -> tuple[float, float]:
+    """``type=`` of ``--window``: :func:`parse_window` as a usage error."""
+    try:
+        parsed = parse_window(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix('--window ')) from None
+    assert parsed is not None
+    return parsed
 
 
 def add_progress_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,7 +172,8 @@ def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
     parser.add_argument(
         '--tolerance-ms',
-        type=float,
+        type=positive_float(MAX_TOLERANCE_MS, 'ms'),
         default=2.0,
-        help='largest spread of the four header stamps in one set (default 2 ms)',
+        help='largest spread of the four header stamps in one set, 0 < ms <= '
+        f'{MAX_TOLERANCE_MS:g} (default 2 ms)',
     )

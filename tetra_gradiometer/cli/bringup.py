@@ -8,6 +8,7 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
+from ._args import MAX_RATE, finite_float
 from .node import PARAMS_HELP, ros_arguments
 
 
@@ -18,7 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument('--bag', help='replay: rosbag2 folder')
     parser.add_argument(
-        '--rate', type=float, help='driver speed, multiple of real time (0: as fast as the graph)'
+        '--rate',
+        type=finite_float(0.0, MAX_RATE),
+        help=f'driver speed, multiple of real time, 0 to {MAX_RATE:g} (0: as fast as the graph)',
     )
     parser.add_argument('--scenario', help='sim: scenario YAML (default: built-in)')
     parser.add_argument(

@@ -28,17 +28,35 @@ from ..core.identification import (
     METHODS,
 )
 from ..core.units import NT_PER_T, S_PER_MS
-from ..io.bag_calibration import DEFAULT_MAX_SETS, BagCalibration, calibrate_bag
+from ..io.bag_calibration import DEFAULT_MAX_SETS, MIN_SETS, BagCalibration, calibrate_bag
 from ..io.calibration import save_calibration
 from ..io.outputs import CALIBRATION, check_output
 from ..io.params import geometry_from_params, load_params
-from ._args import add_bag_arguments, add_force_argument, add_progress_arguments, parse_window
+from ._args import (
+    add_bag_arguments,
+    add_force_argument,
+    add_progress_arguments,
+    finite_float,
+    int_range,
+    seed_arg,
+    window_arg,
+)
+
+#: ``--generations``: at least one, at most 100x the paper's 1000 (~0.2 s per 1000).
+MAX_GENERATIONS = 100_000
+#: ``--max-sets``: the window held in memory is 96 B a set (1e6 sets: ~100 MB), and the
+#: solver's design grows with it; 20x the default.
+MAX_SETS = 1_000_000
+#: ``--max-coverage-condition``: a condition number is >= 1; past 1e16 (1 / machine
+#: epsilon) the coverage matrix is numerically singular and the bound means nothing.
+MAX_CONDITION = 1e16
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bag_arguments(parser)
     parser.add_argument(
         '--window',
+        type=window_arg,
         default=None,
         metavar='T0:T1',
         help='seconds from the first set where the true gradient is zero (default: whole bag)',
@@ -52,9 +70,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument('--out', required=True, help='calibration YAML to write')
     add_force_argument(parser, 'a previous calibration file at --out')
-    parser.add_argument('--seed', type=int, default=0, help='paper_ga: random seed (default 0)')
     parser.add_argument(
-        '--generations', type=int, default=None, help='paper_ga: generations (default 1000)'
+        '--seed', type=seed_arg, default=0, help='paper_ga: random seed, 0 <= n < 2^31 (default 0)'
+    )
+    parser.add_argument(
+        '--generations',
+        type=int_range(1, MAX_GENERATIONS),
+        default=None,
+        help=f'paper_ga: generations, 1 to {MAX_GENERATIONS} (default 1000)',
     )
     parser.add_argument(
         '--wide-bounds',
@@ -63,16 +86,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         '--max-sets',
-        type=int,
+        type=int_range(MIN_SETS, MAX_SETS),
         default=DEFAULT_MAX_SETS,
-        help=f'thin the window to at most this many sets (default {DEFAULT_MAX_SETS})',
+        help=f'thin the window to at most this many sets, {MIN_SETS} to {MAX_SETS} '
+        f'(default {DEFAULT_MAX_SETS})',
     )
     parser.add_argument(
         '--max-coverage-condition',
-        type=float,
+        type=finite_float(1.0, MAX_CONDITION),
         default=MAX_COVERAGE_CONDITION,
-        help=f'refuse windows whose attitude coverage condition number exceeds this '
-        f'(default {MAX_COVERAGE_CONDITION:g})',
+        help=f'refuse windows whose attitude coverage condition number exceeds this, '
+        f'1 to {MAX_CONDITION:g} (default {MAX_COVERAGE_CONDITION:g})',
     )
     add_progress_arguments(parser)
 
@@ -83,7 +107,7 @@ def _format_matrix(rows: np.ndarray, fmt: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    window = parse_window(args.window)
+    window = args.window  # (t0, t1) or None, checked by argparse (_args.window_arg)
     inputs = (args.bag, args.params)
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     geometry = geometry_from_params(load_params(args.params), source=args.params)
@@ -118,6 +142,8 @@ def _print_summary(args: argparse.Namespace, result: BagCalibration) -> None:
         f'{counters.out_of_order} out of order, '
         f'implausible sets dropped: {result.dropped.text()})'
     )
+    if result.skipped_summary:
+        print(f'  {result.skipped_summary}')
     summary = calibration.summary()
     print(
         f'  parameters {summary["n_parameters"]}, rank {summary["rank"]} '

@@ -106,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
         f'implausible sets dropped: {counts.dropped.text()}) '
         f'in {elapsed:.1f} s ({counts.n_sets / max(elapsed, 1e-9):.0f} sets/s)'
     )
+    if counts.skipped_summary:
+        print(counts.skipped_summary)
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m)')
     if args.out_bag is not None:

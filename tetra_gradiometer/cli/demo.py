@@ -25,6 +25,7 @@ import numpy as np
 from ..core.identification import CALIBRATION_METHODS, DEFAULT_METHOD
 from ..core.units import NT_PER_T, S_PER_NS
 from ..io.outputs import DEMO, atomic_output, check_output
+from ._args import MAX_RATE, positive_float
 from .node import PARAMS_HELP
 
 if TYPE_CHECKING:
@@ -45,9 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         '--rate',
-        type=float,
+        type=positive_float(MAX_RATE),
         default=20.0,
-        help='driver speed, multiple of real time (default %(default)s)',
+        help=f'driver speed, multiple of real time, 0 < x <= {MAX_RATE:g} (default %(default)s)',
     )
     parser.add_argument(
         '--method',

@@ -6,13 +6,31 @@ import argparse
 import sys
 import time
 
-from ..core.discrepancy import CANDIDATES, RecordedRun, Settings, analyze
-from ..errors import InputError
+from ..core.discrepancy import CANDIDATES, LIBRARY, RecordedRun, Settings, analyze
 from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..io.recording import read_recording
-from ..io.report import write_report
-from ._args import parse_window
+from ..io.report import channel_warnings, write_report
+from ._args import finite_float, int_range, window_arg
+
+#: ``--folds``: at least 2 (one to fit, one to test); the run is cut into ~40 blocks, so more
+#: than 20 folds leave each fewer than 2 blocks.
+MAX_FOLDS = 20
+#: ``--relevance``, in noise floors: 0 (the F-test alone decides) to 100.
+MAX_RELEVANCE = 100.0
+
+
+def candidate_names(text: str) -> tuple[str, ...]:
+    """``type=`` of ``--candidates``: comma-separated names of the library, at least one."""
+    names = tuple(n.strip() for n in text.split(',') if n.strip())
+    unknown = [n for n in names if n not in LIBRARY]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(
+            f'unknown candidate(s) {unknown}; the library has {", ".join(LIBRARY)}'
+            if unknown
+            else f'give at least one of {", ".join(LIBRARY)}, got {text!r}'
+        )
+    return names
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,26 +43,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         '--candidates',
+        type=candidate_names,
         default=None,
         help='comma-separated subset of the library: ' + ','.join(c.name for c in CANDIDATES),
     )
     parser.add_argument(
-        '--folds', type=int, default=Settings.n_folds, help='cross-validation folds (default 5)'
+        '--folds',
+        type=int_range(2, MAX_FOLDS),
+        default=Settings.n_folds,
+        help=f'cross-validation folds, 2 to {MAX_FOLDS} (default {Settings.n_folds})',
     )
     parser.add_argument(
         '--max-effects',
-        type=int,
+        type=int_range(1, len(CANDIDATES)),
         default=Settings.max_effects,
-        help='stop after this many effects',
+        help=f"stop after this many effects, 1 to {len(CANDIDATES)} (the library's size; "
+        f'default {Settings.max_effects})',
     )
     parser.add_argument(
         '--relevance',
-        type=float,
+        type=finite_float(0.0, MAX_RELEVANCE),
         default=Settings.relevance,
-        help='minimum held-out RMS an effect must explain, in noise floors (default 1)',
+        help='minimum held-out RMS an effect must explain, in noise floors, 0 to '
+        f'{MAX_RELEVANCE:g} (default {Settings.relevance:g})',
     )
     parser.add_argument(
         '--window',
+        type=window_arg,
         default=None,
         metavar='T0:T1',
         help='analyse only this part of the run, seconds from the first sample (either end may be '
@@ -68,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    window = parse_window(args.window)
+    window = args.window  # (t0, t1) or None, checked by argparse (_args.window_arg)
     inputs = (args.bag, args.params)
     check_output(args.out, REPORT, force=args.force, inputs=inputs)  # refuse before the analysis
     params = load_params(args.params)
@@ -83,18 +108,11 @@ def run(args: argparse.Namespace) -> int:
         recording.current_a,
         recording.missing,
     )
-    candidates = (
-        tuple(n.strip() for n in args.candidates.split(',') if n.strip())
-        if args.candidates
-        else None
-    )
-    if args.folds < 2:
-        raise InputError(f'--folds must be at least 2, got {args.folds}')
     settings = Settings(
         n_folds=args.folds,
         max_effects=args.max_effects,
         relevance=args.relevance,
-        candidates=candidates,
+        candidates=args.candidates,
         exclude_targets=not args.keep_targets,
     )
     report = analyze(run_data, geometry, earth, settings=settings, window_s=window)
@@ -108,6 +126,8 @@ def run(args: argparse.Namespace) -> int:
             f'excluded {span["start_s"]:.1f}-{span["end_s"]:.1f} s: {span["reason"]}',
             file=sys.stderr,
         )
+    for warning in channel_warnings(report):
+        print(f'not tested: {warning}')
     named = ', '.join(report.named_effects) or 'none'
     print(
         f'named effects: {named}; held-out gap {report.gap_initial_nT:.4g} -> '

@@ -2,13 +2,18 @@
 [--ros-args ...]``: one node in this process, as ``ros2 run tetra_gradiometer <name>`` would.
 
 Parameters come from the nodes' declared defaults, ``--params FILE``
-and any further ``--ros-args`` (e.g. ``-p rate:=10.0``, ``-r __ns:=/other``).
+and any further ``--ros-args`` (e.g. ``-p rate:=10.0``, ``-r __ns:=/other``). A missing
+params file is one ``error:`` line (exit 1); a refused parameter, an undeclared one or
+unparsable ROS arguments are one ``cannot start:`` log line, exit 1 (nodes/common.spin_node).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+from pathlib import Path
+
+from ..errors import ParamsError
 
 NODES = ('driver', 'tensor', 'calibrator', 'compensator')
 PARAMS_HELP = (
@@ -39,5 +44,7 @@ def ros_arguments(params: str, extra: list[str]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.params and not Path(args.params).is_file():
+        raise ParamsError(f'--params {args.params}: no such file')
     module = importlib.import_module(f'tetra_gradiometer.nodes.{args.name}')
     return int(module.main(ros_arguments(args.params, args.ros_args)) or 0)

@@ -15,7 +15,10 @@ from ..core.identification.paper_ga import GENERATIONS
 from ..core.paper import METHODS, Choices
 from ..errors import InputError
 from ..io.paper_report import FIGURES, format_table, reproduce
-from ._args import add_force_argument
+from ._args import add_force_argument, int_range, seed_arg
+
+#: ``--generations``: at least one, at most 100x the paper's 1000.
+MAX_GENERATIONS = 100_000
 
 __all__ = ['FIGURES', 'METHODS', 'add_arguments', 'run']
 
@@ -26,11 +29,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         '--generations',
-        type=int,
+        type=int_range(1, MAX_GENERATIONS),
         default=GENERATIONS,
-        help=f'GA generations for paper_ga (default {GENERATIONS})',
+        help=f'GA generations for paper_ga, 1 to {MAX_GENERATIONS} (default {GENERATIONS})',
     )
-    parser.add_argument('--seed', type=int, default=Choices.seed, help='seed of every random draw')
+    parser.add_argument(
+        '--seed',
+        type=seed_arg,
+        default=Choices.seed,
+        help=f'seed of every random draw, 0 <= n < 2^31 (default {Choices.seed})',
+    )
     parser.add_argument('--no-plots', action='store_true', help='skip the PNG figures')
     add_force_argument(parser, 'a previous paper folder at --out')
 

@@ -27,7 +27,11 @@ from sensor_msgs.msg import JointState, MagneticField
 from ..errors import InputError
 from ..io import conversions as cv
 from ..nodes.common import NAMESPACE, derived_qos, sensor_qos
+from ._args import MAX_RATE, MAX_SEED, int_range, positive_float
 from .node import PARAMS_HELP
+
+#: ``--duration``: one day of sample time at most (the bag is written as it comes).
+MAX_DURATION_S = 86_400.0
 
 if TYPE_CHECKING:
     from ..nodes.driver import DriverNode
@@ -101,14 +105,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help='replace a previous bag of ours at --out (anything else there is refused)',
     )
     parser.add_argument(
-        '--duration', type=float, required=True, help='seconds of sample time to record'
+        '--duration',
+        type=positive_float(MAX_DURATION_S, 's'),
+        required=True,
+        help=f'seconds of sample time to record, 0 < s <= {MAX_DURATION_S:g}',
     )
     parser.add_argument('--scenario', default='', help='scenario YAML (default: the built-in one)')
     parser.add_argument(
-        '--seed', type=int, default=-1, help="noise seed (default: the scenario's)"
+        '--seed',
+        type=int_range(-1, MAX_SEED),
+        default=-1,
+        help="noise seed, 0 <= n < 2^31; -1 (default): the scenario's",
     )
     parser.add_argument(
-        '--rate', type=float, default=10.0, help='driver speed, x real time (default %(default)s)'
+        '--rate',
+        type=positive_float(MAX_RATE),
+        default=10.0,
+        help=f'driver speed, x real time, 0 < x <= {MAX_RATE:g} (default %(default)s)',
     )
     parser.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
     parser.add_argument('--params', default='', help=PARAMS_HELP)

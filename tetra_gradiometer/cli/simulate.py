@@ -17,13 +17,25 @@ from ..core.units import NS_PER_S, NT_PER_T
 from ..errors import InputError
 from ..io.bag import STORAGES
 from ..io.simulation import SimulatedBag, simulate_to_bag
-from ._args import add_force_argument, add_progress_arguments
+from ._args import add_force_argument, add_progress_arguments, seed_arg
 
 DEFAULT_START = '2026-01-01T00:00:00Z'
 
 
+#: ``--start-utc`` range: from the epoch (stamps are unsigned seconds in ROS 2) to 2200, well
+#: inside int64 nanoseconds (which end in 2262) for any mission length.
+START_RANGE = ('1970-01-01T00:00:00Z', '2200-01-01T00:00:00Z')
+
+
 def parse_start(text: str) -> int:
-    """An ISO 8601 UTC time -> integer nanoseconds since the epoch."""
+    """An ISO 8601 time (UTC unless it names its offset) -> integer nanoseconds since the
+    epoch, within :data:`START_RANGE`.
+
+    Raises
+    ------
+    InputError
+        Not an ISO 8601 time, or outside :data:`START_RANGE`.
+    """
     try:
         when = _dt.datetime.fromisoformat(text.replace('Z', '+00:00'))
     except ValueError:
@@ -31,9 +43,24 @@ def parse_start(text: str) -> int:
     if when.tzinfo is None:
         when = when.replace(tzinfo=_dt.UTC)
     seconds = when.timestamp()
-    if seconds < 0:
-        raise InputError(f'--start-utc must not be before 1970: {text!r}')
+    lo, hi = (
+        _dt.datetime.fromisoformat(t.replace('Z', '+00:00')).timestamp() for t in START_RANGE
+    )
+    if not lo <= seconds <= hi:
+        raise InputError(
+            f'--start-utc must be from {START_RANGE[0]} to {START_RANGE[1]}, got {text!r}'
+        )
     return int(round(seconds)) * NS_PER_S
+
+
+def start_utc(text: str) -> int:
+    """``type=`` of ``--start-utc``: :func:`parse_start` as a usage error."""
+    try:
+        return parse_start(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(
+            str(error).removeprefix('--start-utc').lstrip(': ')
+        ) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,11 +74,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         '--storage', choices=sorted(STORAGES), default='sqlite3', help='default: sqlite3'
     )
-    parser.add_argument('--seed', type=int, default=None, help="override the scenario's seed")
+    parser.add_argument(
+        '--seed', type=seed_arg, default=None, help="override the scenario's seed, 0 <= n < 2^31"
+    )
     parser.add_argument(
         '--start-utc',
+        type=start_utc,
         default=DEFAULT_START,
-        help=f'header stamp of the first sample (default {DEFAULT_START})',
+        help=f'header stamp of the first sample, ISO 8601, {START_RANGE[0][:4]} to '
+        f'{START_RANGE[1][:4]} (default {DEFAULT_START})',
     )
     parser.add_argument(
         '--mag-only',
@@ -63,7 +94,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    start_ns = parse_start(args.start_utc)
+    start_ns = args.start_utc  # ns since the epoch, parsed by argparse (start_utc)
     result = simulate_to_bag(
         args.scenario,
         args.out,

@@ -9,13 +9,47 @@ from typing import Any
 import yaml
 
 
+def _yaml_problem(problem: yaml.YAMLError) -> str:
+    """One line: the parser's problem and where (PyYAML's own text spans several lines)."""
+    what = getattr(problem, 'problem', None) or getattr(problem, 'context', None)
+    mark = getattr(problem, 'problem_mark', None) or getattr(problem, 'context_mark', None)
+    text = str(what) if what else ' '.join(str(problem).split())
+    if mark is not None:
+        text += f' (line {mark.line + 1}, column {mark.column + 1})'
+    return text
+
+
 def read_yaml(path: str | os.PathLike, what: str, error: type[ValueError]) -> Any:
-    """The parsed document at ``path``; ``error`` (e.g. ParamsError) says
-    "<what> file not found: PATH" or "<what> file PATH is not valid YAML: ..."."""
+    """The parsed document at ``path``.
+
+    Every failure is one ``error`` (e.g. ParamsError) whose one-line message names
+    ``what`` (e.g. "params"), the file and the problem: not found, a directory, not
+    readable (permission, I/O), not UTF-8 text, not valid YAML (with line and column),
+    or empty (nothing but whitespace and comments).
+    """
     path = Path(path)
+    label = f'{what} file {path}'
     try:
-        return yaml.safe_load(path.read_text(encoding='utf-8'))
+        text = path.read_text(encoding='utf-8')
     except FileNotFoundError:
         raise error(f'{what} file not found: {path}') from None
+    except IsADirectoryError:
+        raise error(f'{label} is a directory, not a file') from None
+    except PermissionError:
+        raise error(f'{label} cannot be read: permission denied') from None
+    except UnicodeDecodeError as problem:
+        raise error(
+            f'{label} is not UTF-8 text: byte 0x{problem.object[problem.start]:02x} at '
+            f'offset {problem.start} ({problem.reason})'
+        ) from None
+    except OSError as problem:
+        raise error(f'{label} cannot be read: {problem.strerror or problem}') from None
+    try:
+        document = yaml.safe_load(text)
     except yaml.YAMLError as problem:
-        raise error(f'{what} file {path} is not valid YAML: {problem}') from None
+        raise error(f'{label} is not valid YAML: {_yaml_problem(problem)}') from None
+    except RecursionError:
+        raise error(f'{label} is not valid YAML: nested too deeply') from None
+    if document is None:
+        raise error(f'{label} is empty (no YAML document)')
+    return document

@@ -227,6 +227,11 @@ class MagneticBag:
             raise RuntimeError('MagneticBag must be used inside "with"')
         return self._reader
 
+    @property
+    def skipped_messages(self) -> int:
+        """Messages the reads so far skipped as undecodable or unreadable."""
+        return sum(record.count for record in self.skipped)
+
     def skipped_summary(self) -> str:
         """One line for the CLI ('' when nothing was skipped): 'skipped 3 undecodable
         messages (/tetra/mag2 at log time 12.3 s: payload cut short; ...)', log times from

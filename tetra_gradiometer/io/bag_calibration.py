@@ -165,7 +165,7 @@ def read_window(
                 sets.close()
                 break
         counters = bag.counters
-        skipped = sum(record.count for record in bag.skipped), bag.skipped_summary()
+        skipped = bag.skipped_messages, bag.skipped_summary()
     span = 0.0 if first is None else (last - first) * S_PER_NS
     if not stamps:
         raise BagError(
@@ -183,8 +183,7 @@ def _plausible(
     keep, dropped = plausible_sets(sets.fields)
     if not keep.any():
         raise BagError(
-            f'{bag_path}: every set in the window has an implausible reading '
-            f'({dropped.text()})'
+            f'{bag_path}: every set in the window has an implausible reading ({dropped.text()})'
         )
     kept = dataclasses.replace(sets, stamps_ns=sets.stamps_ns[keep], fields=sets.fields[keep])
     return kept, dropped
@@ -252,11 +251,7 @@ def calibrate_bag(
         wide_bounds=wide_bounds,
         max_coverage_condition=max_coverage_condition,
     )
-    try:
-        g_measured = difference_tensor(fields, geometry)
-        calibration = identify(method, g_measured, fields[:, 0, :], geometry, options)
-    except IdentifiabilityError as error:
-        raise IdentifiabilityError(f'the window ({text}, {len(fields)} sets): {error}') from None
+    calibration = _identify(method, fields, geometry, options, text)
     result = BagCalibration(
         calibration=calibration,
         record=CalibrationFile.from_calibration(calibration, geometry),
@@ -272,6 +267,17 @@ def calibrate_bag(
     extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
     record = dataclasses.replace(result.record, diagnostics={**result.record.diagnostics, **extra})
     return dataclasses.replace(result, record=record)
+
+
+def _identify(
+    method: str, fields: FloatArray, geometry: TetraGeometry, options: Options, window: str
+) -> Calibration:
+    """``identify`` on the window's sets, its identifiability errors naming the window."""
+    try:
+        g_measured = difference_tensor(fields, geometry)
+        return identify(method, g_measured, fields[:, 0, :], geometry, options)
+    except IdentifiabilityError as error:
+        raise IdentifiabilityError(f'the window ({window}, {len(fields)} sets): {error}') from None
 
 
 def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> dict[str, Any]:

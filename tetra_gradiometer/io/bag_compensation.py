@@ -220,15 +220,9 @@ def compensate_bag(
                 f'{Path(bag_path)}: every matched set has an implausible reading '
                 f'({dropped.text()})'
             )
-    return CompensationCounts(
-        n_sets,
-        dropped,
-        (last - first) * S_PER_NS,
-        topic,
-        bag.counters,
-        sum(record.count for record in bag.skipped),
-        bag.skipped_summary(),
-    )
+    span_s = (last - first) * S_PER_NS
+    skipped = bag.skipped_messages, bag.skipped_summary()
+    return CompensationCounts(n_sets, dropped, span_s, topic, bag.counters, *skipped)
 
 
 def _tensors(

@@ -10,6 +10,7 @@ import numpy as np
 import yaml
 
 from ..core import TetraGeometry
+from ..core.plausibility import MAX_FIELD_T
 from ..errors import InputError, ParamsError
 from ._yaml import read_yaml
 
@@ -55,14 +56,23 @@ def geometry_from_params(params: dict[str, Any], source: str = 'params') -> Tetr
 
 
 def earth_field_from_params(params: dict[str, Any], source: str = 'params') -> np.ndarray | None:
-    """``earth_field_enu`` (3 floats, tesla) or None when absent."""
+    """``earth_field_enu`` (3 finite floats, tesla, ``|B| <= MAX_FIELD_T``) or None when
+    absent."""
     values = params.get('earth_field_enu')
     if values is None:
         return None
-    field = np.asarray(values, dtype=float).ravel()
+    try:
+        field = np.asarray(values, dtype=float).ravel()
+    except (TypeError, ValueError):  # text, nested lists of unequal length, mappings
+        field = np.full(1, np.nan)
     if field.size != 3 or not np.all(np.isfinite(field)):
         raise ParamsError(
             f'{source}: earth_field_enu must be 3 finite floats (tesla), got {values!r}'
+        )
+    if np.linalg.norm(field) > MAX_FIELD_T:
+        raise ParamsError(
+            f'{source}: earth_field_enu must be tesla with |B| <= {MAX_FIELD_T:g} T '
+            f'(the Earth field is ~5e-5 T), got {values!r}'
         )
     return field
 

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.discrepancy import LIBRARY, Report, criterion_text
+from ..core.discrepancy import CANDIDATES, LIBRARY, Report, criterion_text
+from . import conversions as cv
 from .outputs import REPORT, atomic_output
 
 if TYPE_CHECKING:
@@ -32,9 +33,79 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f'not JSON serialisable: {type(value).__name__}')
 
 
+#: The optional recorded channels: ``Candidate.requires`` entry -> (topic, what it gives,
+#: the ``Report.data`` flag that says it was recorded).
+CHANNELS: dict[str, tuple[str, str, str]] = {
+    'odom': (cv.ODOM_TOPIC, 'attitude', 'has_odom'),
+    'temperature': (cv.TEMPERATURE_TOPIC, 'sensor temperature', 'has_temperature'),
+    'current': (cv.BATTERY_TOPIC, 'vehicle current', 'has_current'),
+}
+
+
+def _blamed_channel(requires: tuple[str, ...], recorded: dict[str, bool]) -> str | None:
+    """The channel that makes a candidate untestable, in the order the workflow checks
+    (``core.discrepancy.prepare.testable``): a missing /odom first, then temperature, then
+    current (missing, or recorded without variation)."""
+    if 'odom' in requires and not recorded['odom']:
+        return 'odom'
+    for key in ('temperature', 'current'):
+        if key in requires:
+            return key
+    return None
+
+
+def channel_notes(report: Report) -> dict[str, dict[str, Any]]:
+    """Per optional channel (topic): whether the run recorded it, the library's candidates
+    that need it, those the run could therefore not test, and one line saying so.
+
+    The four magnetometer topics are needed by everything; ``/odom`` (attitude) gives the
+    absolute view (every sensor against the Earth field) and the attitude-dependent
+    candidates; ``/tetra/temperature`` and ``/battery_state`` are the regressors of
+    ``thermal_drift`` and ``vehicle_current``.
+    """
+    recorded = {key: bool(report.data.get(flag)) for key, (_, _, flag) in CHANNELS.items()}
+    blamed = {
+        name: _blamed_channel(LIBRARY[name].requires, recorded)
+        for name in report.untestable
+        if name in LIBRARY
+    }
+    out: dict[str, dict[str, Any]] = {}
+    for key, (topic, what, _) in CHANNELS.items():
+        needed_by = [c.name for c in CANDIDATES if key in c.requires]
+        untested = [name for name, channel in blamed.items() if channel == key]
+        effects = ', '.join(untested)
+        if not recorded[key] and not untested:
+            note = f'no {topic} ({what}): needed by {", ".join(needed_by)}, not asked for'
+        elif not recorded[key]:
+            note = f'no {topic} ({what}): {effects} not tested'
+        elif untested:
+            note = f'{topic} recorded but without variation: {effects} not tested'
+        else:
+            note = f'{topic} recorded: {", ".join(needed_by)} testable'
+        if key == 'odom' and not recorded[key]:
+            note += "; residuals are pair differences against sensor 1 (B_i' - B_1')"
+        out[topic] = {
+            'recorded': recorded[key],
+            'needed_by': needed_by,
+            'untested': untested,
+            'note': note,
+        }
+    return out
+
+
+def channel_warnings(report: Report) -> list[str]:
+    """The notes of the channels that were missing or left an effect untested."""
+    return [
+        c['note'] for c in channel_notes(report).values() if not c['recorded'] or c['untested']
+    ]
+
+
 def report_json(report: Report) -> str:
-    """The text of ``report.json``."""
-    return json.dumps(report.to_dict(), indent=2, default=_json_default, allow_nan=False) + '\n'
+    """The text of ``report.json``: :meth:`Report.to_dict` and ``channels``
+    (:func:`channel_notes`)."""
+    document = report.to_dict()
+    document['channels'] = channel_notes(report)
+    return json.dumps(document, indent=2, default=_json_default, allow_nan=False) + '\n'
 
 
 def _figure(figsize: tuple[float, float]) -> Figure:
@@ -181,6 +252,11 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
     return '\n'.join(lines) + '\n'
 
 
+def _ratio(value: float, floor: float) -> str:
+    """``value / floor`` for the text; a zero floor (noise-free data) has no ratio."""
+    return f'{value / floor:.3g}' if floor > 0 else 'undefined: zero noise floor'
+
+
 def _summary_section(report: Report) -> list[str]:
     """Title, the named effects, the gap against the noise floor, the data and the notes."""
     data = report.data
@@ -204,7 +280,7 @@ def _summary_section(report: Report) -> list[str]:
         f'**{report.gap_initial_nT:.4g} nT** with the base model, '
         f'**{report.gap_final_nT:.4g} nT** at the end; '
         f'noise floor {report.noise_floor_nT:.4g} nT '
-        f'(ratio {report.gap_final_nT / report.noise_floor_nT:.3g}). '
+        f'(ratio {_ratio(report.gap_final_nT, report.noise_floor_nT)}). '
         f'Adequate: **{"yes" if report.adequate else "no"}**.',
         '',
         f'- Base model: {report.base_model}',
@@ -217,6 +293,8 @@ def _summary_section(report: Report) -> list[str]:
         end = 'the end' if w[1] is None else f'{w[1]:g} s'
         lines.append(f'- Window: {w[0]:g} to {end} (seconds from the first sample)')
     lines += [f'- Note: {note}' for note in report.notes]
+    lines += ['', '## Recorded channels', '']
+    lines += [f'- {c["note"]}' for c in channel_notes(report).values()]
     return lines
 
 

@@ -85,6 +85,9 @@ def _vec(
     return value * factor
 
 
+#: Largest ``seed``: the driver node's seed range (int32), as on the command line.
+MAX_SEED = 2**31 - 1
+
 #: Top-level keys a scenario file may hold.
 TOP_LEVEL_KEYS = {
     'seed',
@@ -253,10 +256,9 @@ def _effects(effects_spec: dict[str, Any]) -> Effects:
 def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
     """Build the scenario and return it with its seed."""
     _check_document(document)
-    try:
-        seed = int(document.get('seed', 0))
-    except (TypeError, ValueError):
-        raise ScenarioError(f'seed must be an integer, got {document.get("seed")!r}') from None
+    seed = document.get('seed', 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise ScenarioError(f'seed must be an integer from 0 to {MAX_SEED}, got {seed!r}')
     _positive(document, 'sample_rate_hz', 'scenario')
     _positive(document, 'noise_nT', 'scenario', allow_zero=True)
     geometry = _geometry(document.get('geometry') or {'regular_edge_m': 0.5})

@@ -10,25 +10,31 @@ QoS (docs/ros.md has the full table):
 * derived topics (tensors, reference field, metrics): reliable, volatile, keep last
   ``DERIVED_DEPTH`` (1000);
 * ``calibration``: reliable, transient local, keep last 1 (latched).
+
+Start-up refusals (``spin_node``): a parameter value outside its declared range, of the
+wrong type (also an integer for a double parameter, as ROS refuses it: write ``10.0``) or
+refused by its validator, an override naming a parameter the node does not declare (see
+:func:`unknown_overrides`), unparsable ROS arguments, and any ``TetraError`` of the node's
+constructor end the process with exit status 1 and one log line, never a traceback.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-NAMESPACE = '/tetra'
+from ..errors import ParamsError, TetraError
 
-#: Largest plausible magnetometer reading, tesla (the Earth's field is < 7e-5 T).
-MAX_FIELD_T = 1.0e-3
+NAMESPACE = '/tetra'
 
 DERIVED_DEPTH = 1000
 
@@ -151,10 +157,16 @@ def declare_parameters(
     when it uses them); the others are read-only after start-up.
 
     The validators also guard later ``set_parameters`` calls (bad values are refused with
-    the validator's reason). Raises rclpy's ``InvalidParameterValueException`` (a
-    ValueError) when a start-up value (params file, override) is refused.
+    the validator's reason).
+
+    Raises
+    ------
+    ParamsError
+        A start-up value (params file, ``-p`` override) is refused: one line naming the
+        parameter, the value and the allowed range, type or the validator's reason.
     """
     from rcl_interfaces.msg import SetParametersResult
+    from rclpy.exceptions import ParameterException
 
     by_name = {spec.name: spec for spec in specs}
 
@@ -172,8 +184,149 @@ def declare_parameters(
     for spec in specs:
         default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
         read_only = spec.read_only or spec.name not in dynamic
-        node.declare_parameter(spec.name, default, _descriptor(spec, read_only))
+        try:
+            node.declare_parameter(spec.name, default, _descriptor(spec, read_only))
+        except ParameterException as error:
+            raise ParamsError(_refusal(node, spec, error)) from None
     return {spec.name: node.get_parameter(spec.name).value for spec in specs}
+
+
+_TYPE_NAMES = ((bool, 'a boolean'), (int, 'an integer'), (float, 'a double'), (str, 'a string'))
+
+
+def _type_name(value: Any) -> str:
+    for kind, name in _TYPE_NAMES:
+        if isinstance(value, kind):
+            return name
+    return 'an array'
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, str):
+        return repr(value)
+    if not isinstance(value, (bool, int, float)):
+        try:
+            return str([v for v in value])
+        except TypeError:
+            pass
+    return str(value)
+
+
+def range_text(spec: ParamSpec) -> str:
+    """``spec``'s declared range as ``[low, high]`` ('' when it has none)."""
+    bounds = spec.int_range or spec.float_range
+    return f'[{bounds[0]:g}, {bounds[1]:g}]' if bounds else ''
+
+
+def _refusal(node: Any, spec: ParamSpec, error: Exception) -> str:
+    """One line for a refused start-up value: the parameter, the value and why."""
+    from rclpy.exceptions import InvalidParameterTypeException
+
+    override = node._parameter_overrides.get(spec.name)  # rclpy keeps no public accessor
+    if override is None:  # not an override: should not happen, the defaults are valid
+        return f'parameter {spec.name!r} refused: {error}'
+    value = override.value
+    head = f'parameter {spec.name!r} = {_shown(value)} refused'
+    within = f' within {range_text(spec)}' if range_text(spec) else ''
+    if isinstance(error, InvalidParameterTypeException):
+        hint = ' (write it with a decimal point)' if _type_name(value) == 'an integer' else ''
+        return f'{head}: {_type_name(value)}, it must be {_type_name(spec.default)}{within}{hint}'
+    bounds = spec.int_range or spec.float_range
+    if bounds and not bounds[0] <= value <= bounds[1]:
+        return f'{head}: must be{within} ({spec.description.rstrip(".")})'
+    reason = spec.validate(value) if spec.validate else None
+    return f'{head}: {reason or error}'
+
+
+#: Keys of the shared params file that no node declares (read by the offline tools).
+OFFLINE_PARAMETERS = frozenset({'earth_field_enu'})
+
+
+def suite_parameter_names() -> frozenset[str]:
+    """Every name a node of this package declares, and :data:`OFFLINE_PARAMETERS`."""
+    from . import calibrator, compensator, driver, tensor
+
+    modules = (driver, tensor, calibrator, compensator)
+    return frozenset(s.name for m in modules for s in m.PARAMETERS) | OFFLINE_PARAMETERS
+
+
+def command_line_parameters(args: list[str] | None, node_name: str) -> dict[str, str]:
+    """``{name: value text}`` of the ``-p``/``--param [NODE:]NAME:=VALUE`` rules in the ROS
+    arguments of ``args`` (``sys.argv`` when None) that address ``node_name`` (no prefix, or
+    a prefix ending in it)."""
+    rules: dict[str, str] = {}
+    ros, expect = False, False
+    for token in sys.argv if args is None else args:
+        if expect:
+            target, _, text = token.partition(':=')
+            prefix, _, name = target.rpartition(':')
+            if not prefix or prefix.rsplit('/', 1)[-1] == node_name:
+                rules[name] = text
+            expect = False
+        elif token == '--ros-args':
+            ros = True
+        elif token == '--':
+            ros = False
+        else:
+            expect = ros and token in ('-p', '--param')
+    return rules
+
+
+def _parsed(text: str) -> Any:
+    """A ``-p`` value as rcl types it (YAML; ``1e-3`` is a double too)."""
+    import yaml
+
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+    if isinstance(value, str) and any(c.isdigit() for c in value):
+        try:
+            return float(value)
+        except ValueError:
+            pass
+    return value
+
+
+def _descriptor_range(node: Any, name: str) -> str:
+    descriptor = node.describe_parameter(name)
+    ranges = list(descriptor.integer_range) or list(descriptor.floating_point_range)
+    return f' within [{ranges[0].from_value:g}, {ranges[0].to_value:g}]' if ranges else ''
+
+
+def dropped_command_line_value(node: Any, rules: dict[str, str]) -> str | None:
+    """The refusal of a ``-p`` value rcl dropped, or None.
+
+    When a params file gives the same name another type, rcl keeps both values and may hand
+    the node the file's (measured: ``-p ga_generations:=abc`` and ``-p ga_generations:=5.0``
+    over the file's integer 1000 both gave 1000): refused here, with the type the parameter
+    has, instead of being silently ignored."""
+    for name, text in rules.items():
+        given = _parsed(text)
+        if given is None or not node.has_parameter(name):
+            continue
+        value = node.get_parameter(name).value
+        if _type_name(given) != _type_name(value):
+            return (
+                f'parameter {name!r} = {_shown(given)} refused: {_type_name(given)}, it must '
+                f'be {_type_name(value)}{_descriptor_range(node, name)}'
+            )
+    return None
+
+
+def unknown_overrides(node: Any, command_line: Collection[str]) -> list[str]:
+    """Overrides ``node`` received but does not declare: a ``-p`` name (one node per
+    process, so it was meant for this one) or a params-file name no node of the package
+    declares (a typo). Not: names another node declares, from a shared ``/**`` file (each
+    node takes its own entries); rclpy's built-ins (``use_sim_time``: declared too); entries
+    under another node's name (rcl never hands them to this node)."""
+    overrides = node._parameter_overrides  # rclpy keeps no public accessor
+    suite = suite_parameter_names()
+    return sorted(
+        name
+        for name in overrides
+        if not node.has_parameter(name) and (name in command_line or name not in suite)
+    )
 
 
 def positive(value: Any) -> str | None:
@@ -234,7 +387,7 @@ POSITIONS_SPEC = ParamSpec(
 WARN_THROTTLE_SPEC = ParamSpec(
     'warn_throttle_s',
     5.0,
-    'Least interval between repeated warnings, s.',
+    'Least interval between repeated warnings, s (0: every one; at most an hour).',
     float_range=(0.0, 3600.0),
 )
 
@@ -243,9 +396,10 @@ def diagnostics_period_spec() -> ParamSpec:
     return ParamSpec(
         'diagnostics_period_s',
         1.0,
-        'Period of /diagnostics publication, seconds.',
+        'Period of /diagnostics publication, seconds (0.05-60: faster floods the '
+        'aggregators, slower and a monitor takes the node for dead).',
         positive,
-        float_range=(0.01, 60.0),
+        float_range=(0.05, 60.0),
     )
 
 
@@ -348,27 +502,79 @@ def tensor_or_nan(msg: Any) -> np.ndarray:
         return np.full((3, 3), np.nan)
 
 
-def spin_node(factory: Callable[[], Any], name: str, args: list[str] | None) -> int:
-    """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
-    Ctrl-C or an external shutdown, then destroy it and ``rclpy.try_shutdown()``.
+def _start_refusal(node: Any, args: list[str] | None) -> str | None:
+    """Why the overrides of a constructed node are refused (an undeclared name, a ``-p``
+    value rcl dropped), or None."""
+    rules = command_line_parameters(args, node.get_name())
+    unknown = unknown_overrides(node, rules)
+    if unknown:
+        declared = ', '.join(node.list_parameters([], 0).names)
+        word = 'parameter' if len(unknown) == 1 else 'parameters'
+        return f'unknown {word} {", ".join(map(repr, unknown))} (declared: {declared})'
+    return dropped_command_line_value(node, rules)
 
-    Returns 1 when the node refuses its parameters (a ``ValueError`` naming the reason), else 0.
+
+def _rcl_reason(error: Exception) -> str:
+    """rcl's message without its source locations (``, at /project/src/...``)."""
+    return str(error).split(', at /')[0]
+
+
+def spin_node(
+    factory: Callable[[], Any], name: str, args: list[str] | None, threads: int = 1
+) -> int:
+    """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
+    Ctrl-C or an external shutdown, then stop its long work (``stop_work()``, when it has
+    one), the executor, the node and ``rclpy.try_shutdown()``.
+
+    ``threads`` > 1 spins a MultiThreadedExecutor of that many threads (the calibrator: its
+    callback groups let diagnostics and ``~/cancel`` run while a solve runs); else the
+    single-threaded one.
+
+    Returns 1, after one ``cannot start:`` log line and no traceback, when the ROS arguments
+    cannot be parsed, a parameter is refused (range, type, validator: ``ParamsError``; rclpy's
+    ``ParameterException``), an override names an undeclared parameter
+    (:func:`unknown_overrides`) or the node's constructor raises a ``TetraError``; else 0.
     """
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import (
+        Executor,
+        ExternalShutdownException,
+        MultiThreadedExecutor,
+        SingleThreadedExecutor,
+    )
 
-    rclpy.init(args=args)
+    logger = rclpy.logging.get_logger(name)
     try:
-        node = factory()
-    except ValueError as error:
-        rclpy.logging.get_logger(name).error(f'cannot start: {error}')
-        rclpy.try_shutdown()
+        rclpy.init(args=args)
+    except RuntimeError as error:  # rclpy's RCLError: unparsable arguments or params file
+        logger.error(f'cannot start: {_rcl_reason(error)}')
         return 1
     try:
-        rclpy.spin(node)
+        node = factory()
+    except (TetraError, ParameterException) as error:
+        logger.error(f'cannot start: {error}')
+        rclpy.try_shutdown()
+        return 1
+    refusal = _start_refusal(node, args)
+    if refusal:
+        logger.error(f'cannot start: {refusal}')
+        node.destroy_node()
+        rclpy.try_shutdown()
+        return 1
+    executor: Executor = (
+        MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+    )
+    executor.add_node(node)
+    try:
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        stop_work = getattr(node, 'stop_work', None)
+        if callable(stop_work):
+            stop_work()
+        executor.shutdown(timeout_sec=5)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

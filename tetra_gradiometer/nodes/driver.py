@@ -76,17 +76,19 @@ PARAMETERS = [
     ParamSpec(
         'rate',
         1.0,
-        'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by gradient/raw).',
+        'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by gradient/raw). '
+        'At most 1000: the chain sustains about 400 sets/s (docs/ros.md), faster only queues.',
         non_negative,
-        float_range=(0.0, 10000.0),
+        float_range=(0.0, 1000.0),
     ),
     ParamSpec('start_paused', False, 'Wait for ~/resume before publishing.'),
     ParamSpec(
         'min_subscribers',
         0,
         'Do not publish until every magnetometer topic has at least this many '
-        'subscriptions (e.g. 1: wait for the tensor node instead of losing the first sets).',
-        int_range=(0, 1000),
+        'subscriptions (e.g. 1: wait for the tensor node instead of losing the first sets); '
+        'at most 64 (the graph has one subscriber per topic, plus recorders and monitors).',
+        int_range=(0, 64),
     ),
     ParamSpec(
         'hold_between_segments', False, 'sim: pause after each scenario segment until ~/resume.'
@@ -94,27 +96,30 @@ PARAMETERS = [
     ParamSpec(
         'max_duration_s',
         0.0,
-        'Play only this much sample time, s (0: all).',
+        'Play only this much sample time, s (0: all; at most 1e6 s, 11.6 days of mission).',
         non_negative,
-        float_range=(0.0, 1e9),
+        float_range=(0.0, 1e6),
     ),
     ParamSpec(
         'max_in_flight',
         4,
-        'rate 0: sets published ahead of the last gradient/raw received.',
-        int_range=(1, 10000),
+        'rate 0: sets published ahead of the last gradient/raw received (at most 1000, the '
+        "tensor node's pending queue; beyond, sets are lost, not faster).",
+        int_range=(1, 1000),
     ),
     ParamSpec(
         'ack_timeout_s',
         0.5,
-        'rate 0: move on after this long without gradient/raw, s.',
+        'rate 0: move on after this long without gradient/raw, s (0.01-60: shorter than a '
+        'tensor round trip counts every set as a timeout).',
         positive,
-        float_range=(1e-3, 60.0),
+        float_range=(0.01, 60.0),
     ),
     ParamSpec(
         'publisher_depth',
         100,
-        'Queue depth of the magnetometer publishers (best effort).',
+        'Queue depth of the magnetometer publishers (best effort), messages (at most 10000, '
+        '50 s at 200 sets/s).',
         int_range=(1, 10000),
     ),
     diagnostics_period_spec(),

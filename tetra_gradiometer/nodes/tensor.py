@@ -54,45 +54,50 @@ PARAMETERS = [
     ParamSpec(
         'stamp_tolerance_s',
         2e-3,
-        'Largest spread of the four header stamps within one set, s.',
+        'Largest spread of the four header stamps within one set, s (1e-6-1: it must stay '
+        'below half the sample period, else neighbouring sets merge).',
         positive,
-        float_range=(1e-9, 10.0),
+        float_range=(1e-6, 1.0),
     ),
     ParamSpec(
         'max_field_t',
         MAX_FIELD_T,
-        'A reading with |B| above this (tesla) is implausible: its set is dropped.',
+        'A reading with |B| above this (tesla) is implausible: its set is dropped. From 1e-4 '
+        "(the Earth's field reaches 6.7e-5 T) to core/plausibility's 1e-3 T (the offline tools' "
+        'bound).',
         positive,
-        float_range=(1e-9, 1.0),
+        float_range=(1e-4, MAX_FIELD_T),
     ),
     ParamSpec(
         'stale_timeout_s',
         1.0,
         'A sensor silent this long (s, wall clock) is ERROR on '
-        '/diagnostics and no tensor is published until it returns.',
+        '/diagnostics and no tensor is published until it returns (0.01-600).',
         positive,
-        float_range=(1e-3, 3600.0),
+        float_range=(0.01, 600.0),
     ),
     ParamSpec(
         'sensor_queue_depth',
         50,
-        'Depth of the magnetometer subscriptions (best effort), messages.',
+        'Depth of the magnetometer subscriptions (best effort), messages (at most 10000, '
+        '50 s at 200 sets/s).',
         int_range=(1, 10000),
     ),
     ParamSpec(
         'max_pending',
         1000,
-        'Per-sensor bound of the stamp matcher queue, messages.',
-        int_range=(1, 1000000),
+        'Per-sensor bound of the stamp matcher queue, messages (at most 100000, 8 min at '
+        '200 sets/s: a longer silence is a stale sensor, not a delay).',
+        int_range=(1, 100_000),
     ),
     ParamSpec(
         'jump_back_s',
         1.0,
         "A stamp this much older than its sensor's previous one (s) means the "
         'source restarted (e.g. a new replay): the matcher is reset instead of dropping '
-        'everything as out of order.',
+        'everything as out of order (0.01-86400: shorter resets on ordinary jitter).',
         positive,
-        float_range=(1e-6, 1e9),
+        float_range=(0.01, 86400.0),
     ),
     WARN_THROTTLE_SPEC,
     diagnostics_period_spec(),

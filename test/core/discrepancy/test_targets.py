@@ -196,22 +196,13 @@ def test_report_and_cli_say_what_was_excluded(tmp_path, capsys):
     assert data['excluded_spans'] == [] and data['named_effects'] == ['vehicle_current']
     assert data['data']['window_s'] == [0.0, pytest.approx(trim - 1.0, abs=0.05)]
     capsys.readouterr()
-    assert (
-        main(
-            [
-                'discrepancy',
-                str(bag),
-                '--params',
-                str(params),
-                '--out',
-                str(tmp_path / 'o3'),
-                '--window',
-                'nonsense',
-            ]
-        )
-        == 1
-    )
-    assert capsys.readouterr().err.startswith('error:')
+    # A malformed window is a usage error (exit 2, one line naming the option).
+    with pytest.raises(SystemExit) as stop:
+        main(['discrepancy', str(bag), '--params', str(params), '--out', str(tmp_path / 'o3'),
+              '--window', 'nonsense'])
+    assert stop.value.code == 2
+    assert 'argument --window: must be T0:T1' in capsys.readouterr().err
+    assert not (tmp_path / 'o3').exists()
 
 
 def test_plots_mark_the_excluded_spans(tmp_path):

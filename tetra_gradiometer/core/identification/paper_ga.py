@@ -11,9 +11,19 @@ probability 0.9, crossover 0.8, mutation 0.8, bounds of eq. 23. Not printed, our
   per *bit* would make the search random);
 * reinsertion by fitness: offspring replace the 27 worst parents, so the 3 best survive;
 * 1000 generations (not printed), standard binary decoding over the closed bound interval.
+
+A budget (not in the paper): ``deadline`` (a ``time.monotonic()`` instant) and ``should_stop``
+(a callable, e.g. a service's cancel flag) are checked once per generation, before its
+draws; when either ends the run, the best individual so far is returned and ``details``
+say so (``stopped``: ``'deadline'`` or ``'should_stop'``, ``generations`` run of
+``generations_requested``). Without a budget, or when it is not reached, the random draws
+and the result are exactly those of the unbudgeted run.
 """
 
 from __future__ import annotations
+
+import time
+from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -78,6 +88,42 @@ def _offspring(
     return offspring
 
 
+def _stop_reason(deadline: float | None, should_stop: Callable[[], bool] | None) -> str | None:
+    """Why the next generation must not start (``'should_stop'``, ``'deadline'``), or None."""
+    if should_stop is not None and should_stop():
+        return 'should_stop'
+    if deadline is not None and time.monotonic() >= deadline:
+        return 'deadline'
+    return None
+
+
+def _evolve(
+    population: npt.NDArray[np.int8],
+    scores: npt.NDArray[np.float64],
+    objective: Callable[[npt.NDArray[np.int8]], FloatArray],
+    generations: int,
+    rng: np.random.Generator,
+    deadline: float | None,
+    should_stop: Callable[[], bool] | None,
+) -> tuple[list[float], int, str | None]:
+    """Run the generations in place on ``population``/``scores``: the best objective after
+    each (the initial one first), the generations run and why it stopped early (or None)."""
+    n_offspring = int(round(GENERATION_GAP * POPULATION))
+    history = [float(scores.min())]
+    ran, stopped = 0, None
+    while ran < generations:
+        stopped = _stop_reason(deadline, should_stop)
+        if stopped is not None:
+            break
+        offspring = _offspring(population, scores, n_offspring, rng)
+        offspring_scores = objective(offspring)
+        worst = np.argsort(scores)[POPULATION - n_offspring :]
+        population[worst], scores[worst] = offspring, offspring_scores
+        history.append(float(scores.min()))
+        ran += 1
+    return history, ran, stopped
+
+
 def paper_ga(
     g_measured: ArrayLike,
     b_reference: ArrayLike,
@@ -87,6 +133,8 @@ def paper_ga(
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
     wide_bounds: bool = False,
     generations: int = GENERATIONS,
+    deadline: float | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> TensorCalibration:
     """Minimise ``F(k, b)`` (eqs. 21-23) with the paper's GA.
 
@@ -104,11 +152,16 @@ def paper_ga(
     wide_bounds : bool
         Use ``paper_bounds(wide=True)`` when ``bounds`` is not given.
     generations : int
+    deadline : float, optional
+        ``time.monotonic()`` instant after which no further generation starts.
+    should_stop : callable, optional
+        Asked once per generation; True ends the run (cancellation).
 
     Returns
     -------
     TensorCalibration
-        ``details`` holds the initial and final objective (T/m)^2 and the bounds used.
+        ``details`` holds the initial and final objective (T/m)^2, the generations run and,
+        when the budget ended the run early, ``stopped`` and ``generations_requested``.
     """
     design, target = constraint_objective(g_measured, b_reference, geometry, symmetric_k=True)
     _check_samples(len(target) // 4, 'paper_ga')
@@ -121,24 +174,18 @@ def paper_ga(
     gram = design.T @ design
     floor = float(exact.residual @ exact.residual)
 
-    def objective(values: np.ndarray) -> FloatArray:
-        delta = values - exact.theta
+    def objective(chromosomes: npt.NDArray[np.int8]) -> FloatArray:
+        delta = _decode(chromosomes, lower, upper) - exact.theta
         return np.einsum('mp,pq,mq->m', delta, gram, delta) + floor
 
-    n_offspring = int(round(GENERATION_GAP * POPULATION))
-    length = n_par * GENE_BITS
-    population = rng.integers(0, 2, size=(POPULATION, length), dtype=np.int8)
-    scores = objective(_decode(population, lower, upper))
-    initial = float(scores.min())
-    history = [initial]
-    for _ in range(generations):
-        offspring = _offspring(population, scores, n_offspring, rng)
-        offspring_scores = objective(_decode(offspring, lower, upper))
-        worst = np.argsort(scores)[POPULATION - n_offspring :]
-        population[worst], scores[worst] = offspring, offspring_scores
-        history.append(float(scores.min()))
+    population = rng.integers(0, 2, size=(POPULATION, n_par * GENE_BITS), dtype=np.int8)
+    scores = objective(population)
+    history, ran, stopped = _evolve(
+        population, scores, objective, generations, rng, deadline, should_stop
+    )
     best = int(np.argmin(scores))
     theta = _decode(population[best : best + 1], lower, upper)[0]
+    budget = {'stopped': stopped, 'generations_requested': generations} if stopped else {}
     return TensorCalibration(
         method='paper_ga',
         n_samples=len(target) // 4,
@@ -147,11 +194,12 @@ def paper_ga(
         condition_number=exact.condition_number,
         residual_rms=float(np.sqrt(scores[best] / len(target))),
         details={
-            'objective_initial': initial,
+            'objective_initial': history[0],
             'objective_final': float(scores[best]),
-            'generations': generations,
+            'generations': ran,
             'wide_bounds': bool(wide_bounds and bounds is None),
             'objective_history': history[:: max(1, generations // 100)],
+            **budget,
         },
         parameters=InterferenceParameters.from_vector(theta, symmetric=True),
         symmetric=True,

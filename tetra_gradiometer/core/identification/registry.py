@@ -50,6 +50,14 @@ class Options:
         Known true tensor, T/m (known-gradient methods, Pei & Yeo); zero when None.
     fields_measured : ndarray, shape (N, 4, 3), or None
         The four raw readings, tesla (Pei & Yeo's per-sensor maps need them).
+    deadline_s : float or None
+        A ``time.monotonic()`` instant: an iterative solver (``paper_ga``) starts no step
+        after it and returns its best result so far, its ``details`` saying so (``stopped``,
+        ``generations`` run). The closed-form solvers run to the end (they take about a
+        second per 10^6 samples).
+    should_stop : callable or None
+        Asked once per step of an iterative solver; True ends it like ``deadline_s``
+        (cancellation: the caller, which knows why, discards or keeps the result).
     """
 
     rng: np.random.Generator | None = None
@@ -58,6 +66,8 @@ class Options:
     max_coverage_condition: float = MAX_COVERAGE_CONDITION
     g_true: FloatArray | None = None
     fields_measured: FloatArray | None = field(default=None, repr=False)
+    deadline_s: float | None = None
+    should_stop: Callable[[], bool] | None = field(default=None, repr=False)
 
 
 Solver = Callable[[FloatArray, FloatArray, TetraGeometry, Options], Calibration]
@@ -113,7 +123,16 @@ def _paper_ga(g: FloatArray, b: FloatArray, geometry: TetraGeometry, o: Options)
     if o.generations < 1:
         raise InputError(f'paper_ga needs at least 1 generation, got {o.generations}')
     bounds = paper_bounds(symmetric=True, wide=o.wide_bounds)
-    return paper_ga(g, b, geometry, rng=o.rng, generations=o.generations, bounds=bounds)
+    return paper_ga(
+        g,
+        b,
+        geometry,
+        rng=o.rng,
+        generations=o.generations,
+        bounds=bounds,
+        deadline=o.deadline_s,
+        should_stop=o.should_stop,
+    )
 
 
 def _pei_yeo(g: FloatArray, b: FloatArray, geometry: TetraGeometry, o: Options) -> Calibration:
@@ -191,6 +210,8 @@ def identify(
     -------
     Calibration
         Its ``method`` is the registry name; ``details['attitude_coverage_condition']`` is set.
+        With ``options.deadline_s`` or ``options.should_stop``, an iterative solver may have
+        stopped early: ``details['stopped']`` (``'deadline'``, ``'should_stop'``) says so.
 
     Raises
     ------
