@@ -151,7 +151,9 @@ def test_noise_free_magnetometers_only_bag_still_gets_its_report(tmp_path, capsy
     written; the markdown says the gap/floor ratio is undefined instead of dividing by 0."""
     geometry = TetraGeometry.regular(0.5)
     stamps = 1_767_225_600 * 10**9 + np.arange(600, dtype=np.int64) * 100_000_000
-    fields = np.broadcast_to(np.array([2e-5, 0.0, -4e-5]), (len(stamps), 4, 3))
+    fields = np.tile(np.array([2e-5, 0.0, -4e-5]), (len(stamps), 4, 1))
+    fields[100, 2] = [1.0, 0.0, 0.0]  # implausible: dropped and counted, never analysed
+    fields[200, 1, 0] = np.nan
     with BagWriter(tmp_path / 'bag') as writer:
         writer.write_fields(stamps, fields)
     (tmp_path / 'params.yaml').write_text(params_document({'sensor_positions': geometry.to_flat()}))
@@ -159,6 +161,10 @@ def test_noise_free_magnetometers_only_bag_still_gets_its_report(tmp_path, capsy
     code = main(['discrepancy', str(tmp_path / 'bag'), '--params', str(tmp_path / 'params.yaml'),
                  '--out', str(out)])
     assert code == 0
-    report = _check_mag_only_report(out, capsys.readouterr().out)
+    stdout = capsys.readouterr().out
+    report = _check_mag_only_report(out, stdout)
+    assert 'input: implausible sets dropped: 1 non-finite, 1 with |B| > 0.001 T' in stdout
+    assert report['data']['sets_dropped_field_magnitude'] == 1
+    assert report['data']['sets_dropped_non_finite'] == 1
     assert report['noise_floor_nT'] == 0.0
     assert 'ratio undefined: zero noise floor' in (out / 'report.md').read_text()

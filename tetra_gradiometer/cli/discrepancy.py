@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 
@@ -116,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
         exclude_targets=not args.keep_targets,
     )
     report = analyze(run_data, geometry, earth, settings=settings, window_s=window)
+    # What never reached the analysis (implausible sets, undecodable messages) is reported too.
+    report = dataclasses.replace(report, data={**report.data, **recording.input_counts()})
     out = write_report(report, args.out, plots=not args.no_plots, force=args.force, inputs=inputs)
     for note in report.notes:
         print(f'note: {note}', file=sys.stderr)
@@ -125,6 +128,11 @@ def run(args: argparse.Namespace) -> int:
         print(
             f'excluded {span["start_s"]:.1f}-{span["end_s"]:.1f} s: {span["reason"]}',
             file=sys.stderr,
+        )
+    if recording.dropped.total or recording.skipped_messages:
+        print(
+            f'input: implausible sets dropped: {recording.dropped.text()}; '
+            f'{recording.skipped_messages} undecodable messages skipped'
         )
     for warning in channel_warnings(report):
         print(f'not tested: {warning}')

@@ -102,6 +102,7 @@ class Recording:
     current_a : (N,) A, or None without ``/battery_state``
     missing : topic -> why it is unavailable
     dropped : sets dropped as implausible (:mod:`~tetra_gradiometer.core.plausibility`)
+    skipped_messages : messages skipped as undecodable or unreadable (``MagneticBag.skipped``)
     """
 
     stamps_ns: np.ndarray
@@ -111,6 +112,11 @@ class Recording:
     current_a: np.ndarray | None = None
     missing: dict[str, str] = field(default_factory=dict)
     dropped: DroppedSets = field(default_factory=DroppedSets)
+    skipped_messages: int = 0
+
+    def input_counts(self) -> dict[str, int]:
+        """What was not analysed, for reports: sets dropped by reason, messages skipped."""
+        return {**self.dropped.as_dict(), 'messages_skipped_undecodable': self.skipped_messages}
 
     @property
     def t_s(self) -> np.ndarray:
@@ -168,4 +174,7 @@ def read_recording(
                 extras[name] = _interp_orientation(series.stamps_ns, series.values, stamps)
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
-    return Recording(stamps, fields, missing=missing, dropped=dropped, **extras)
+        skipped = bag.skipped_messages
+    return Recording(
+        stamps, fields, missing=missing, dropped=dropped, skipped_messages=skipped, **extras
+    )
