@@ -7,7 +7,7 @@ import re
 import time
 
 import numpy as np
-from ros_helpers import interference_set, ros_graph, wait_for, wait_matched
+from ros_helpers import interference_set, ros_graph, set_parameter, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import load_calibration
@@ -65,7 +65,8 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
 
         # The paper's objective on the same samples (method changed at run time): the
         # compensated training tensors become symmetric and traceless, as eqs. 21-22 ask.
-        _set_string(probe, graph, 'calibrator', 'method', 'constraint_lstsq')
+        result = set_parameter(probe, graph, 'calibrator', 'method', 'constraint_lstsq')
+        assert result.successful, result.reason
         reply = probe.call('calibrator/calibrate')
         assert reply.success and reply.message.startswith('constraint_lstsq'), reply.message
         paper = load_calibration(calibration_file)
@@ -74,32 +75,14 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         assert np.abs(np.trace(compensated, axis1=1, axis2=2)).max() < 1e-6 * np.abs(g).max()
 
 
-def _set_string(probe, graph, node: str, name: str, value: str) -> None:
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
-    client = probe.create_client(SetParameters, f'{node}/set_parameters')
-    assert client.wait_for_service(timeout_sec=30)
-    parameter = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value))
-    future = client.call_async(SetParameters.Request(parameters=[parameter]))
-    wait_for(future.done, 10, 'set_parameters', graph)
-    assert future.result().results[0].successful, future.result().results[0].reason
-
-
 def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_path_is_read_only(tmp_path):
     """Fault table rows: nobody on the ROS domain can turn ~/calibrate into a file writer."""
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
     precious = tmp_path / 'vehicle.conf'
     precious.write_bytes(b'rudder_gain: 3\n')
     rng = np.random.default_rng(4)
     with ros_graph() as (graph, probe, feeder):
         graph.start('calibrator', calibration_file=str(precious))
-        client = probe.create_client(SetParameters, 'calibrator/set_parameters')
-        assert client.wait_for_service(timeout_sec=30)
-        value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=str(tmp_path / 'elsewhere.yaml'))
-        future = client.call_async(SetParameters.Request(parameters=[Parameter(name='calibration_file', value=value)]))
-        wait_for(future.done, 10, 'set_parameters', graph)
-        result = future.result().results[0]
+        result = set_parameter(probe, graph, 'calibrator', 'calibration_file', str(tmp_path / 'elsewhere.yaml'))
         assert not result.successful and 'read-only' in result.reason.lower(), result.reason
 
         wait_matched(feeder.raw, 1)
@@ -111,17 +94,6 @@ def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_pa
         assert not reply.success and 'not a calibration file' in reply.message, reply.message
     assert precious.read_bytes() == b'rudder_gain: 3\n'
     assert sorted(p.name for p in tmp_path.iterdir()) == ['vehicle.conf']
-
-
-def _set_double(probe, graph, node: str, name: str, value: float) -> None:
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
-    client = probe.create_client(SetParameters, f'{node}/set_parameters')
-    assert client.wait_for_service(timeout_sec=30)
-    parameter = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))
-    future = client.call_async(SetParameters.Request(parameters=[parameter]))
-    wait_for(future.done, 10, 'set_parameters', graph)
-    assert future.result().results[0].successful, future.result().results[0].reason
 
 
 def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max_solve_s(tmp_path):
@@ -165,7 +137,8 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
         assert 'of 20000 generations' in reply.message and not calibration_file.exists()
         wait_for(lambda: probe.status(CALIBRATION).get('state') == 'stopped', 5, 'state back to stopped', graph)
 
-        _set_double(probe, graph, 'calibrator', 'max_solve_s', 0.5)
+        result = set_parameter(probe, graph, 'calibrator', 'max_solve_s', 0.5)
+        assert result.successful, result.reason
         started = time.monotonic()
         reply = probe.call('calibrator/calibrate')
         took = time.monotonic() - started

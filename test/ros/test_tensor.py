@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from ros_helpers import ros_graph, uniform_gradient_fields, wait_for, wait_matched
+from ros_helpers import ros_graph, set_parameter, uniform_gradient_fields, wait_for, wait_matched
 
 from tetra_gradiometer import core
 
@@ -91,18 +91,8 @@ def test_a_silent_sensor_is_an_error_on_diagnostics_and_no_tensor_is_published_u
 
 
 def test_a_bad_value_set_at_run_time_is_refused():
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
     with ros_graph() as (graph, probe, _):
         graph.start('tensor')
-        client = probe.create_client(SetParameters, 'tensor/set_parameters')
-        assert client.wait_for_service(timeout_sec=30)
-        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=-0.5)
-        future = client.call_async(SetParameters.Request(parameters=[Parameter(name='stale_timeout_s', value=value)]))
-        wait_for(future.done, 10, 'set_parameters', graph)
-        result = future.result().results[0]
+        result = set_parameter(probe, graph, 'tensor', 'stale_timeout_s', -0.5)
         assert not result.successful and 'stale_timeout_s' in result.reason
-        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=2.0)
-        future = client.call_async(SetParameters.Request(parameters=[Parameter(name='stale_timeout_s', value=value)]))
-        wait_for(future.done, 10, 'set_parameters', graph)
-        assert future.result().results[0].successful
+        assert set_parameter(probe, graph, 'tensor', 'stale_timeout_s', 2.0).successful

@@ -103,6 +103,16 @@ class DroppedSets:
         return ', '.join(parts) or 'none'
 
 
+def _reading_checks(array: np.ndarray, max_field_t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per reading (shape ``array.shape[:-1]``): all components finite; and finite with
+    ``|B| <= min(max_field_t, MAX_FIELD_T)``."""
+    finite_components = np.isfinite(array)
+    finite = finite_components.all(axis=-1)
+    # Non-finite components become 0 so the magnitude test sees only the finite readings.
+    magnitude = np.linalg.norm(np.where(finite_components, array, 0.0), axis=-1)
+    return finite, finite & (magnitude <= min(max_field_t, MAX_FIELD_T))
+
+
 def plausible_readings(fields: ArrayLike, max_field_t: float = MAX_FIELD_T) -> np.ndarray:
     """Per reading: every component finite and ``|B| <= max_field_t``.
 
@@ -117,11 +127,7 @@ def plausible_readings(fields: ArrayLike, max_field_t: float = MAX_FIELD_T) -> n
     -------
     ndarray of bool, shape (...)
     """
-    array = np.asarray(fields, dtype=float)
-    finite = np.isfinite(array).all(axis=-1)
-    # Non-finite components become 0 so the magnitude test sees only the finite readings.
-    magnitude = np.linalg.norm(np.where(np.isfinite(array), array, 0.0), axis=-1)
-    return finite & (magnitude <= min(max_field_t, MAX_FIELD_T))
+    return _reading_checks(np.asarray(fields, dtype=float), max_field_t)[1]
 
 
 def plausible_sets(fields: ArrayLike) -> tuple[np.ndarray, DroppedSets]:
@@ -137,14 +143,13 @@ def plausible_sets(fields: ArrayLike) -> tuple[np.ndarray, DroppedSets]:
     keep : ndarray of bool, shape (N,)
     dropped : DroppedSets
     """
-    array = np.asarray(fields, dtype=float)
-    keep = np.asarray(plausible_readings(array).all(axis=-1))
-    finite_set = np.isfinite(array).all(axis=(-2, -1))
+    finite, plausible = _reading_checks(np.asarray(fields, dtype=float), MAX_FIELD_T)
+    keep, finite_set = plausible.all(axis=-1), finite.all(axis=-1)
     dropped = DroppedSets(
         non_finite=int(np.sum(~finite_set)),
         field_magnitude=int(np.sum(finite_set & ~keep)),
     )
-    return keep, dropped
+    return np.asarray(keep), dropped
 
 
 def check_geometry(positions: FloatArray) -> None:

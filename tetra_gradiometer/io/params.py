@@ -10,7 +10,7 @@ import numpy as np
 import yaml
 
 from ..core import TetraGeometry
-from ..core.plausibility import MAX_FIELD_T
+from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..errors import InputError, ParamsError
 from ._yaml import read_yaml
 
@@ -69,7 +69,7 @@ def earth_field_from_params(params: dict[str, Any], source: str = 'params') -> n
         raise ParamsError(
             f'{source}: earth_field_enu must be 3 finite floats (tesla), got {values!r}'
         )
-    if np.linalg.norm(field) > MAX_FIELD_T:
+    if not plausible_readings(field):  # the readings' bound (core/plausibility)
         raise ParamsError(
             f'{source}: earth_field_enu must be tesla with |B| <= {MAX_FIELD_T:g} T '
             f'(the Earth field is ~5e-5 T), got {values!r}'
