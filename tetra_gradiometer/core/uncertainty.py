@@ -29,7 +29,30 @@ from .geometry import TetraGeometry
 from .model import InterferenceParameters
 from .types import ArrayLike, FloatArray
 
-__all__ = ['compensated_sigma', 'noise_sigma']
+__all__ = ['compensated_sigma', 'noise_jacobian', 'noise_sigma']
+
+
+def noise_jacobian(
+    geometry: TetraGeometry, parameters: InterferenceParameters | None = None
+) -> FloatArray:
+    """Jacobian of the (compensated) tensor's row-major ``vec`` against the twelve readings,
+    shape (9, 12), 1/m: ``dG[i, j] / dB[s, m]`` at column ``3 s + m`` (sensor ``s`` 0-based).
+
+    Parameters
+    ----------
+    geometry : TetraGeometry
+    parameters : InterferenceParameters, optional
+        ``k``, ``b`` of the compensation (eq. 19); None for the raw tensor (eq. 7).
+    """
+    a_inv = geometry.a_inv
+    k_soft = np.zeros((3, 3, 3)) if parameters is None else parameters.k_soft
+    eye = np.eye(3)
+    jacobian = np.zeros((3, 3, 4, 3))  # (i, j, sensor, m)
+    # Sensors 2-4: dG[i, j]/dB_(k+2)[m] = delta(i, m) a_inv[k, j].
+    jacobian[:, :, 1:, :] = np.einsum('im,kj->ijkm', eye, a_inv)
+    # Sensor 1: dG[i, j]/dB_1[m] = -sum_k a_inv[k, j] (delta(i, m) + K_k[i, m]).
+    jacobian[:, :, 0, :] = -np.einsum('kj,kim->ijm', a_inv, eye[None] + k_soft)
+    return jacobian.reshape(9, 12)
 
 
 def noise_sigma(
@@ -47,15 +70,8 @@ def noise_sigma(
     parameters : InterferenceParameters, optional
         ``k``, ``b`` of the compensation (eq. 19); None for the raw tensor (eq. 7).
     """
-    a_inv = geometry.a_inv
-    k_soft = np.zeros((3, 3, 3)) if parameters is None else parameters.k_soft
-    eye = np.eye(3)
-    # Sensors 2-4: dG[i, j]/dB_(k+2)[m] = delta(i, m) a_inv[k, j] -> sum over k, m of squares.
-    others = np.einsum('kj->j', a_inv**2)[None, :] * np.ones((3, 1))
-    # Sensor 1: dG[i, j]/dB_1[m] = -sum_k a_inv[k, j] (delta(i, m) + K_k[i, m]).
-    reference = np.einsum('kj,kim->ijm', a_inv, eye[None] + k_soft)
-    variance = others + np.einsum('ijm->ij', reference**2)
-    return float(sensor_noise_t) * np.sqrt(variance)
+    jacobian = noise_jacobian(geometry, parameters)
+    return float(sensor_noise_t) * np.sqrt(np.sum(jacobian**2, axis=1)).reshape(3, 3)
 
 
 def compensated_sigma(
