@@ -112,6 +112,7 @@ PARAMS = OutputKind(
 TRUTH = OutputKind('simulation truth file', recognize=_truth_npz)
 BAG = OutputKind('rosbag2 folder', folder=True)
 REPORT = OutputKind('discrepancy report folder', folder=True)
+HEALTH_REPORT = OutputKind('health report folder', folder=True)
 PAPER = OutputKind('paper reproduction folder', folder=True)
 DEMO = OutputKind('demo folder', folder=True)
 
