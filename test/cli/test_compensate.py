@@ -81,7 +81,9 @@ def test_round_trip_reaches_the_noise_floor(tmp_path, storage, reference_clean):
     cli('compensate', bag, '--params', tmp_path / 'mission.params.yaml', '--raw', '--csv', tmp_path / 'raw.csv')
     header, stamps, compensated = read_csv(tmp_path / 'comp.csv')
     _, raw_stamps, raw = read_csv(tmp_path / 'raw.csv')
-    assert header == 'stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz'
+    assert header == ('stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz,'
+                      'sigma_gxx,sigma_gxy,sigma_gxz,sigma_gyx,sigma_gyy,sigma_gyz,sigma_gzx,sigma_gzy,sigma_gzz')
+    assert Path(tmp_path / 'raw.csv').read_text().startswith('stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz\n')
     assert np.array_equal(stamps, truth['stamps_ns']) and np.array_equal(raw_stamps, stamps)
     assert stamps[0] == 1_767_225_600 * 10**9  # absolute seconds, from --start-utc
     survey = truth['segment'] == 1

@@ -40,6 +40,8 @@ BAD = [
         for command in ('compensate', 'calibrate')
         for value in ('inf', 'nan', '-1', '1e9', '0', 'abc', '1000.001')
     ],
+    # compensate
+    *[('compensate', '--sensor-noise-nt', value, ('0 < x <= 1000 nT',)) for value in ('0', '-1', 'nan', 'inf', '1001', 'x')],
     # calibrate
     ('calibrate', '--window', '10:5', ('0 <= T0 < T1',)),
     ('calibrate', '--window', 'a:b', ('T0:T1',)),

@@ -100,6 +100,8 @@ def _assert_one_line_refusal(code, output, *expected):
     ('calibrator', {'ga_generations': 1_000_000}, ["'ga_generations' = 1000000", '[1, 20000]']),
     ('tensor', {'max_field_t': 0.01}, ["'max_field_t' = 0.01", '[0.0001, 0.001]']),
     ('compensator', {'max_pending': 0}, ["'max_pending' = 0", '[1, 100000]']),
+    ('compensator', {'sensor_noise_t': 1e-3}, ["'sensor_noise_t' = 0.001", '[0, 1e-06]']),
+    ('driver', {'sensor_noise_t': -1e-10}, ["'sensor_noise_t' = -1e-10", '[0, 1e-06]']),
     ('driver', {'rate': 5000.0}, ["'rate' = 5000.0", '[0, 1000]']),
     ('calibrator', {'max_solve_s': 0.0}, ["'max_solve_s' = 0.0", '[0.1, 600]']),
     ('calibrator', {'min_samples': 1000, 'max_samples': 500}, ["'min_samples' = 1000", 'max_samples (500)']),

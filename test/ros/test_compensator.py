@@ -86,3 +86,112 @@ def test_corrupt_calibration_file_runs_uncompensated_then_follows_the_latched_to
                  10, 'the drop counted', graph)
         assert all(np.isfinite(norms)) and len(norms) == 21
         assert compensator.alive()
+
+
+def _sigma_subscription(probe) -> dict[int, np.ndarray]:
+    """``{stamp: sigma (3, 3) T/m}`` of ``gradient/sigma``, filled by the probe's thread."""
+    from sensor_msgs.msg import JointState
+
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.nodes.common import derived_qos
+
+    sigmas: dict[int, np.ndarray] = {}
+    probe.create_subscription(
+        JointState, 'gradient/sigma',
+        lambda msg: sigmas.__setitem__(cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg)), derived_qos())
+    return sigmas
+
+
+def _covariance(rng, n_parameters=36):
+    """A full parameter covariance (K entries ~1e-5, offsets ~0.1 nT): its term is not small."""
+    root = rng.normal(size=(n_parameters, n_parameters))
+    scale = np.r_[np.full(n_parameters - 9, 1e-5), np.full(9, 0.1 * NT)]
+    return root @ root.T / n_parameters * np.outer(scale, scale)
+
+
+def test_gradient_sigma_follows_the_calibration_and_is_absent_while_the_noise_is_unknown(tmp_path):
+    from std_msgs.msg import String
+
+    from tetra_gradiometer.core.uncertainty import compensated_sigma
+
+    rng = np.random.default_rng(8)
+    g, b, exact = interference_set(20, rng, 'rich')
+    noise, covariance = 0.1 * NT, _covariance(rng)
+    status = 'tetra/compensator: compensation'
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('compensator', calibration_file=str(tmp_path / 'missing.yaml'), diagnostics_period_s=0.2)
+        sigmas = _sigma_subscription(probe)
+        wait_for(lambda: _diag(probe, status).get('sigma', '').startswith('none: sensor noise unknown'),
+                 30, 'compensator diagnostics', graph)
+        wait_matched(feeder.raw, 2)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/sigma') >= 1, 10, 'sigma publisher', graph)
+        time.sleep(0.5)
+        with probe.lock:
+            probe.collecting = True
+        for i in range(5):  # uncompensated, noise unknown: no sigma
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 5, 10, 'pass-through tensors', graph)
+
+        document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
+                                   sensor_positions=GEOMETRY.to_flat(), sensor_noise_t=noise, covariance=covariance)
+        feeder.calibration.publish(String(data=document.to_yaml()))
+        wait_for(lambda: 'parameter covariance' in _diag(probe, status).get('sigma', ''), 10, 'the calibration', graph)
+        for i in range(5, 15):
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+        wait_for(lambda: len(sigmas) == 10, 10, 'sigma of the compensated tensors', graph)
+        stamps = [T0 + i * 10**8 for i in range(5, 15)]
+        assert sorted(sigmas) == stamps  # exactly the compensated samples, same stamps
+        expected = compensated_sigma(b[5:15], GEOMETRY, noise, exact, covariance)  # Monte-Carlo tested
+        np.testing.assert_allclose([sigmas[s] for s in stamps], expected, rtol=1e-9)
+        without_term = compensated_sigma(b[5:15], GEOMETRY, noise, exact)
+        assert np.max(expected / without_term) > 1.05  # the covariance term is really there
+
+        # A calibration without a noise estimate (and sensor_noise_t 0): no sigma any more.
+        feeder.calibration.publish(String(data=CalibrationFile(
+            parameters=exact, method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat()).to_yaml()))
+        wait_for(lambda: 'no estimate in the calibration' in _diag(probe, status).get('sigma', ''), 10,
+                 'the second calibration', graph)
+        for i in range(15, 20):
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 20, 10, 'compensated tensors', graph)
+        time.sleep(0.3)
+        assert len(sigmas) == 10
+
+
+def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibration_estimate(tmp_path):
+    from std_msgs.msg import String
+
+    from tetra_gradiometer.core.uncertainty import compensated_sigma
+
+    rng = np.random.default_rng(9)
+    g, b, exact = interference_set(6, rng, 'rich')
+    noise = 0.2 * NT
+    status = 'tetra/compensator: compensation'
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('compensator', calibration_file=str(tmp_path / 'missing.yaml'), sensor_noise_t=noise,
+                    diagnostics_period_s=0.2)
+        sigmas = _sigma_subscription(probe)
+        wait_for(lambda: 'raw tensor' in _diag(probe, status).get('sigma', ''), 30, 'compensator diagnostics', graph)
+        wait_matched(feeder.raw, 2)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/sigma') >= 1, 10, 'sigma publisher', graph)
+        time.sleep(0.5)
+        for i in range(3):
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+        wait_for(lambda: len(sigmas) == 3, 10, 'sigma of the raw tensors', graph)
+        # Independent truth: the spread of eq. 7 over noise draws on the four readings.
+        draws = rng.normal(0.0, noise, (20_000, 4, 3)) + rng.normal(0, 5e-5, 3)
+        spread = core.difference_tensor(draws, GEOMETRY).std(axis=0)
+        for sigma in sigmas.values():
+            np.testing.assert_allclose(sigma, spread, rtol=0.03)  # 20 000 draws: 0.5 % per std
+
+        # The parameter beats the calibration's own estimate (0.3 nT here).
+        feeder.calibration.publish(String(data=CalibrationFile(
+            parameters=exact, method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat(),
+            sensor_noise_t=0.3 * NT).to_yaml()))
+        wait_for(lambda: 'from sensor_noise_t' in _diag(probe, status).get('sigma', '')
+                 and _diag(probe, status).get('compensating') == 'True', 10, 'the calibration', graph)
+        for i in range(3, 6):
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+        wait_for(lambda: len(sigmas) == 6, 10, 'sigma of the compensated tensors', graph)
+        np.testing.assert_allclose([sigmas[T0 + i * 10**8] for i in range(3, 6)],
+                                   compensated_sigma(b[3:6], GEOMETRY, noise, exact), rtol=1e-9)

@@ -1,5 +1,5 @@
 """``python -m tetra_gradiometer compensate BAG --params FILE --calibration CALIB.yaml
---csv OUT.csv [--raw] [--out-bag DIR]``.
+--csv OUT.csv [--raw] [--sensor-noise-nt S] [--out-bag DIR]``.
 
 Streams the bag's matched magnetometer sets, forms the tensor (eq. 7) and compensates it
 (eq. 19) with the calibration's ``k``, ``b``; ``--raw`` skips the compensation. The work is
@@ -7,12 +7,18 @@ Streams the bag's matched magnetometer sets, forms the tensor (eq. 7) and compen
 
 CSV (written to a temporary file, renamed into place at the end)::
 
-    stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz
+    stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz,sigma_gxx,sigma_gxy,...,sigma_gzz
 
-one row per matched set (sets with a non-finite reading are skipped and counted);
-``stamp_s`` is the **absolute** header stamp of sensor 1 in
+one row per matched set (sets with a non-finite or implausible reading are skipped and
+counted); ``stamp_s`` is the **absolute** header stamp of sensor 1 in
 seconds since the Unix epoch, printed exactly from the integer nanoseconds (9 decimals);
-``gij = G_ij = dB_i/dx_j`` in **nT/m** (6 decimals), body frame.
+``gij = G_ij = dB_i/dx_j`` in **nT/m** (6 decimals), body frame; ``sigma_gij`` is its
+standard uncertainty (1-sigma, nT/m, 6 decimals): the sensor noise propagated through the
+geometry and the compensation, plus the calibration parameters' covariance when the file
+has one (core/uncertainty.py). The noise is ``--sensor-noise-nt`` when given, else the
+calibration's own estimate (``sensor_noise_T``); a calibration without one (older files,
+``constraint_lstsq``, ``paper_ga``) needs the option. ``--raw`` writes the sigma columns
+(sensor noise only) with ``--sensor-noise-nt``, and leaves them out without it.
 
 ``--out-bag DIR`` writes the tensors into a new rosbag2 folder (``--out-storage``, default
 the input's storage) as ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` with
@@ -26,16 +32,25 @@ import argparse
 import time
 from pathlib import Path
 
-from ..core.units import S_PER_MS
+from ..core.units import NT_PER_T, S_PER_MS
 from ..errors import InputError
 from ..io.bag import STORAGES
 from ..io.bag_compensation import (
-    calibration_parameters,
+    Compensation,
     check_outputs,
     compensate_bag,
+    load_compensation,
 )
 from ..io.params import geometry_from_params, load_params
-from ._args import add_bag_arguments, add_force_argument, add_progress_arguments
+from ._args import (
+    add_bag_arguments,
+    add_force_argument,
+    add_progress_arguments,
+    positive_float,
+)
+
+#: ``--sensor-noise-nt`` range: the calibration file's bound on ``sensor_noise_T`` (1e-6 T).
+MAX_SENSOR_NOISE_NT = 1000.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,9 +60,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help='calibration YAML (from "calibrate"); required unless --raw',
     )
-    parser.add_argument('--csv', default=None, help='CSV to write (stamp_s + 9 components, nT/m)')
+    parser.add_argument(
+        '--csv',
+        default=None,
+        help='CSV to write (stamp_s, 9 components and their 9 sigma, nT/m)',
+    )
     parser.add_argument(
         '--raw', action='store_true', help='write the uncompensated tensor (eq. 7)'
+    )
+    parser.add_argument(
+        '--sensor-noise-nt',
+        type=positive_float(MAX_SENSOR_NOISE_NT, 'nT'),
+        default=None,
+        help='white noise per sensor axis (nT RMS) for the sigma columns; default: the '
+        "calibration's estimate (required when it has none; --raw: no sigma without it)",
     )
     parser.add_argument(
         '--out-bag', default=None, help='also write the tensor topic into this new bag'
@@ -77,15 +103,17 @@ def run(args: argparse.Namespace) -> int:
     # Refuse before any work: nothing is read or written when an output is not ours to replace.
     check_outputs(args.csv, args.out_bag, force=args.force, inputs=inputs)
     geometry = geometry_from_params(load_params(args.params), source=args.params)
-    parameters = (
-        None
-        if args.raw
-        else calibration_parameters(args.calibration, geometry, target=str(args.params))
+    compensation = load_compensation(
+        None if args.raw else args.calibration,
+        geometry,
+        target=str(args.params),
+        sensor_noise_nt=args.sensor_noise_nt,
     )
     counts = compensate_bag(
         args.bag,
         geometry,
-        parameters,
+        compensation.parameters,
+        sigma=compensation.sigma,
         csv=args.csv,
         out_bag=args.out_bag,
         out_storage=args.out_storage,
@@ -109,7 +137,21 @@ def run(args: argparse.Namespace) -> int:
     if counts.skipped_summary:
         print(counts.skipped_summary)
     if args.csv is not None:
-        print(f'csv: {args.csv} (stamp_s absolute, nT/m)')
+        print(f'csv: {args.csv} (stamp_s absolute, nT/m; {_sigma_text(compensation)})')
     if args.out_bag is not None:
         print(f'bag: {args.out_bag} ({counts.topic}, T/m)')
     return 0
+
+
+def _sigma_text(compensation: Compensation) -> str:
+    """What the sigma columns hold, for the summary line."""
+    if compensation.sigma is None:
+        return 'no sigma columns: give --sensor-noise-nt for them'
+    noise_nt = (compensation.sensor_noise_t or 0.0) * NT_PER_T
+    terms = (
+        'sensor noise and calibration covariance'
+        if compensation.with_covariance
+        else 'sensor noise only'
+        + ('' if compensation.parameters is None else ': the calibration has no covariance')
+    )
+    return f'sigma from {terms}, noise {noise_nt:.3g} nT from {compensation.noise_source}'

@@ -5,13 +5,17 @@ calibration's ``k``, ``b``; without parameters the raw tensor is written.
 
 CSV (written to a temporary file, renamed into place at the end)::
 
-    stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz
+    stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz,sigma_gxx,sigma_gxy,...,sigma_gzz
 
 one row per matched set (sets with an implausible reading, non-finite or ``|B| > 1e-3 T``,
 are dropped and counted);
 ``stamp_s`` is the **absolute** header stamp of sensor 1 in seconds since the Unix epoch,
 printed exactly from the integer nanoseconds (9 decimals); ``gij = G_ij = dB_i/dx_j`` in
-**nT/m** (6 decimals), body frame.
+**nT/m** (6 decimals), body frame; ``sigma_gij`` its standard uncertainty (1-sigma, nT/m, 6
+decimals) from the sensor noise and the calibration's parameter covariance
+(:mod:`~tetra_gradiometer.core.uncertainty`, :func:`load_compensation` says which noise).
+Without a sensor-noise figure (the raw tensor without ``--sensor-noise-nt``) the nine
+``sigma_`` columns are left out.
 
 The output bag holds ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` for the raw
 tensor): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp = the
@@ -32,8 +36,9 @@ import numpy.typing as npt
 
 from ..core import InterferenceParameters, TetraGeometry, compensate, difference_tensor
 from ..core.plausibility import DroppedSets, plausible_sets
-from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS
-from ..errors import BagError, OutputError
+from ..core.uncertainty import SigmaModel
+from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS, T_PER_NT
+from ..errors import BagError, InputError, OutputError
 from . import conversions as cv
 from .bag import BagWriter, MagneticBag
 from .calibration import check_positions, load_calibration
@@ -43,16 +48,20 @@ from .outputs import BAG, CSV, atomic_output, check_output
 __all__ = [
     'COMPENSATED_TOPIC',
     'CSV_HEADER',
+    'CSV_SIGMA_HEADER',
     'RAW_TOPIC',
+    'Compensation',
     'CompensationCounts',
-    'calibration_parameters',
     'check_outputs',
     'compensate_bag',
     'format_rows',
     'input_storage',
+    'load_compensation',
 ]
 
 CSV_HEADER = 'stamp_s,' + ','.join(cv.TENSOR_NAMES)
+#: The header with the nine 1-sigma columns (nT/m) after the tensor.
+CSV_SIGMA_HEADER = CSV_HEADER + ',' + ','.join(f'sigma_{name}' for name in cv.TENSOR_NAMES)
 COMPENSATED_TOPIC = f'{cv.NAMESPACE}/gradient/compensated'
 RAW_TOPIC = f'{cv.NAMESPACE}/gradient/raw'
 
@@ -92,19 +101,27 @@ class CompensationCounts:
     skipped_summary: str = ''
 
 
-def format_rows(stamps_ns: IntArray, tensors_t_per_m: FloatArray) -> str:
-    """CSV rows (with trailing newline) for stamps (n,) ns and tensors (n, 3, 3) T/m."""
+def format_rows(
+    stamps_ns: IntArray, tensors_t_per_m: FloatArray, sigmas_t_per_m: FloatArray | None = None
+) -> str:
+    """CSV rows (with trailing newline) for stamps (n,) ns, tensors (n, 3, 3) T/m and,
+    when given, their 1-sigma (n, 3, 3) T/m."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
+    n = len(stamps)
     # Sign and magnitude apart: divmod floors, so -1.5 s would print as -2.500000000.
     seconds, nanoseconds = np.divmod(np.abs(stamps), NS_PER_S)
     signs = np.where(stamps < 0, '-', '')
-    values = tensors_t_per_m.reshape(len(stamps), 9) * NT_PER_T
-    row = '%s%d.%09d,' + ','.join(['%.6f'] * 9)
+    columns = [tensors_t_per_m.reshape(n, 9)]
+    if sigmas_t_per_m is not None:
+        columns.append(sigmas_t_per_m.reshape(n, 9))
+    values = np.concatenate(columns, axis=1) * NT_PER_T
+    prefixes = [
+        f'{sign}{s}.{ns:09d},'
+        for sign, s, ns in zip(signs.tolist(), seconds.tolist(), nanoseconds.tolist(), strict=True)
+    ]
+    row = ','.join(['%.6f'] * values.shape[1]) + '\n'
     return ''.join(
-        row % (sign, s, ns, *v) + '\n'
-        for sign, s, ns, v in zip(
-            signs.tolist(), seconds.tolist(), nanoseconds.tolist(), values.tolist(), strict=True
-        )
+        prefix + row % tuple(v) for prefix, v in zip(prefixes, values.tolist(), strict=True)
     )
 
 
@@ -130,19 +147,72 @@ def check_outputs(
         check_output(out_bag, BAG, force=force, inputs=inputs)
 
 
-def calibration_parameters(
-    path: PathLike, geometry: TetraGeometry, *, target: str
-) -> InterferenceParameters:
-    """The ``k``, ``b`` of the calibration file ``path``, checked against ``geometry``.
+@dataclass(frozen=True)
+class Compensation:
+    """What :func:`compensate_bag` applies, from :func:`load_compensation`.
+
+    Attributes
+    ----------
+    parameters : InterferenceParameters or None
+        ``k``, ``b`` of eq. 19; None for the raw tensor (eq. 7).
+    sigma : SigmaModel or None
+        The 1-sigma of each written tensor; None: no sigma columns (noise unknown).
+    sensor_noise_t : float or None
+        The per-axis sensor noise behind ``sigma``, tesla.
+    noise_source : str
+        Where it came from (for the command's summary line), '' when None.
+    with_covariance : bool
+        ``sigma`` includes the calibration parameters' covariance.
+    """
+
+    parameters: InterferenceParameters | None
+    sigma: SigmaModel | None = None
+    sensor_noise_t: float | None = None
+    noise_source: str = ''
+    with_covariance: bool = False
+
+
+def load_compensation(
+    calibration_path: PathLike | None,
+    geometry: TetraGeometry,
+    *,
+    target: str,
+    sensor_noise_nt: float | None = None,
+) -> Compensation:
+    """The calibration file's ``k``, ``b`` (checked against ``geometry``) and the 1-sigma model.
+
+    The sensor noise is ``sensor_noise_nt`` (nT per axis) when given, else the file's
+    ``sensor_noise_T`` (the fit's estimate); the file's ``covariance``, when it has one, adds
+    the calibration term. ``calibration_path`` None is the raw tensor: its sigma (noise only)
+    needs ``sensor_noise_nt``, without it there is none.
 
     Raises
     ------
     CalibrationFileError
         The file is unreadable, or was made for other sensor positions than ``target``'s.
+    InputError
+        A calibration without a noise estimate (older files, ``constraint_lstsq``,
+        ``paper_ga``) and no ``sensor_noise_nt``: the uncertainty could not be given.
     """
-    calibration = load_calibration(path)
-    check_positions(calibration, geometry, source=str(path), target=target)
-    return calibration.parameters
+    override = None if sensor_noise_nt is None else float(sensor_noise_nt) * T_PER_NT
+    if calibration_path is None:
+        if override is None:
+            return Compensation(None)
+        sigma = SigmaModel.build(geometry, override)
+        return Compensation(None, sigma, override, '--sensor-noise-nt')
+    calibration = load_calibration(calibration_path)
+    check_positions(calibration, geometry, source=str(calibration_path), target=target)
+    noise = override if override is not None else calibration.sensor_noise_t
+    if noise is None:
+        raise InputError(
+            f'{calibration_path} ({calibration.method}) has no sensor noise estimate '
+            '(sensor_noise_T): give --sensor-noise-nt for the sigma columns'
+        )
+    sigma = SigmaModel.build(geometry, noise, calibration.parameters, calibration.covariance)
+    source = '--sensor-noise-nt' if override is not None else f"{calibration_path}'s estimate"
+    return Compensation(
+        calibration.parameters, sigma, noise, source, calibration.covariance is not None
+    )
 
 
 def compensate_bag(
@@ -150,6 +220,7 @@ def compensate_bag(
     geometry: TetraGeometry,
     parameters: InterferenceParameters | None,
     *,
+    sigma: SigmaModel | None = None,
     csv: PathLike | None = None,
     out_bag: PathLike | None = None,
     out_storage: str | None = None,
@@ -168,6 +239,9 @@ def compensate_bag(
         The array that recorded the bag.
     parameters : InterferenceParameters or None
         ``k``, ``b`` of eq. 19; None writes the raw tensor (eq. 7).
+    sigma : SigmaModel, optional
+        The tensor's 1-sigma (built for ``parameters``): the CSV gets the nine ``sigma_``
+        columns (the output bag has no place for them).
     csv, out_bag : outputs (at least one), each written atomically
     out_storage : storage of ``out_bag`` (default: the input's)
     tolerance_s : largest spread of the four header stamps in one set, seconds
@@ -190,18 +264,9 @@ def compensate_bag(
     with ExitStack() as stack:
         bag = stack.enter_context(MagneticBag(bag_path))
         bag.check_contract()
-        handle = writer = None
-        if csv is not None:
-            tmp = stack.enter_context(atomic_output(csv, CSV, force=force, inputs=inputs))
-            handle = stack.enter_context(open(tmp, 'w', encoding='ascii', newline='\n'))
-            handle.write(CSV_HEADER + '\n')
-        if out_bag is not None:
-            storage = out_storage or input_storage(bag_path)
-            writer = stack.enter_context(
-                BagWriter(
-                    out_bag, storage=storage, force=force, inputs=inputs, command='compensate'
-                )
-            )
+        handle, writer = _open_outputs(
+            stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs
+        )
         sets = bag.iter_sets(tolerance_s=tolerance_s, progress=progress, fast=fast)
         for stamps, fields in sets:
             keep, chunk_dropped = plausible_sets(fields)
@@ -211,7 +276,8 @@ def compensate_bag(
                 if not len(stamps):
                     continue
             tensors = _tensors(fields, geometry, parameters)
-            _write(handle, writer, topic, stamps, tensors)
+            sigmas = None if sigma is None or handle is None else sigma(fields[:, 0, :])
+            _write(handle, writer, topic, stamps, tensors, sigmas)
             first = int(stamps[0]) if n_sets == 0 else first
             last = int(stamps[-1])
             n_sets += len(stamps)
@@ -223,6 +289,31 @@ def compensate_bag(
     span_s = (last - first) * S_PER_NS
     skipped = bag.skipped_messages, bag.skipped_summary()
     return CompensationCounts(n_sets, dropped, span_s, topic, bag.counters, *skipped)
+
+
+def _open_outputs(
+    stack: ExitStack,
+    bag_path: PathLike,
+    csv: PathLike | None,
+    out_bag: PathLike | None,
+    out_storage: str | None,
+    with_sigma: bool,
+    force: bool,
+    inputs: tuple[PathLike, ...],
+) -> tuple[TextIO | None, BagWriter | None]:
+    """The CSV (header written) and the bag writer, each None when not asked for; both
+    closed (and moved into place) by ``stack``."""
+    handle = writer = None
+    if csv is not None:
+        tmp = stack.enter_context(atomic_output(csv, CSV, force=force, inputs=inputs))
+        handle = stack.enter_context(open(tmp, 'w', encoding='ascii', newline='\n'))
+        handle.write((CSV_SIGMA_HEADER if with_sigma else CSV_HEADER) + '\n')
+    if out_bag is not None:
+        storage = out_storage or input_storage(bag_path)
+        writer = stack.enter_context(
+            BagWriter(out_bag, storage=storage, force=force, inputs=inputs, command='compensate')
+        )
+    return handle, writer
 
 
 def _tensors(
@@ -240,8 +331,9 @@ def _write(
     topic: str,
     stamps: IntArray,
     tensors: FloatArray,
+    sigmas: FloatArray | None,
 ) -> None:
     if handle is not None:
-        handle.write(format_rows(stamps, tensors))
+        handle.write(format_rows(stamps, tensors, sigmas))
     if writer is not None:
         writer.write_tensors(topic, stamps, tensors)

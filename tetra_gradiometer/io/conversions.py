@@ -7,7 +7,9 @@ Both libraries build messages from the same keyword fields, so each function tak
 Contract (README, "Topics"):
 
 * ``mag1``..``mag4``: ``sensor_msgs/MagneticField``, tesla, body frame (REP 103),
-  frames ``tetra_mag1``..``tetra_mag4``, ``header.stamp`` = sample time.
+  frames ``tetra_mag1``..``tetra_mag4``, ``header.stamp`` = sample time;
+  ``magnetic_field_covariance`` row-major 3 x 3 in T^2, ``diag(sigma^2)`` of the per-axis
+  sensor noise when known, all zeros when unknown (REP 145).
 * tensors (``gradient/raw``, ``gradient/compensated``, ``gradient/truth``):
   ``sensor_msgs/JointState`` with ``name = gxx, gxy, gxz, gyx, gyy, gyz, gzx, gzy, gzz``,
   ``position`` = ``G_ij = dB_i/dx_j`` in T/m, frame ``tetra_array``.
@@ -116,14 +118,27 @@ def _vector3(types: MessageTypes, values: np.ndarray) -> Any:
     )
 
 
+def noise_covariance(sensor_noise_t: float) -> np.ndarray:
+    """``magnetic_field_covariance`` (9,) row-major, T^2, of a reading with independent white
+    noise ``sensor_noise_t`` (tesla RMS) on each axis: ``diag(sigma^2)``; 0 gives all zeros
+    (REP 145: unknown)."""
+    return (np.eye(3) * float(sensor_noise_t) ** 2).reshape(9)
+
+
 def magnetic_field_msg(
-    types: MessageTypes, field_t: np.ndarray, stamp_ns: int, frame_id: str
+    types: MessageTypes,
+    field_t: np.ndarray,
+    stamp_ns: int,
+    frame_id: str,
+    covariance_t2: np.ndarray | None = None,
 ) -> Any:
-    """``sensor_msgs/MagneticField`` from a field (3,) in tesla; covariance unknown (zeros)."""
+    """``sensor_msgs/MagneticField`` from a field (3,) in tesla and its covariance (9,)
+    row-major in T^2 (None: unknown, zeros)."""
+    covariance = np.zeros(9) if covariance_t2 is None else np.asarray(covariance_t2, float)
     return types[MAGNETIC_FIELD](
         header=header(types, stamp_ns, frame_id),
         magnetic_field=_vector3(types, field_t),
-        magnetic_field_covariance=np.zeros(9),
+        magnetic_field_covariance=covariance.reshape(9),
     )
 
 
@@ -132,6 +147,19 @@ def magnetic_field_vector(msg: Any) -> np.ndarray:
     check)."""
     field = msg.magnetic_field
     return np.array([field.x, field.y, field.z], dtype=float)
+
+
+def magnetic_field_covariance(msg: Any) -> np.ndarray:
+    """``magnetic_field_covariance`` (9,) row-major, T^2, of a ``sensor_msgs/MagneticField``
+    (as recorded: zeros mean unknown; callers check finiteness)."""
+    return np.asarray(msg.magnetic_field_covariance, dtype=float).reshape(9)
+
+
+def magnetic_field_reading(msg: Any) -> np.ndarray:
+    """Field and covariance in one array (12,): the field (3,) in tesla, then the covariance
+    (9,) row-major in T^2 (what the tensor node's stamp matcher carries per sensor)."""
+    field = msg.magnetic_field
+    return np.concatenate(([field.x, field.y, field.z], msg.magnetic_field_covariance))
 
 
 def tensor_msg(

@@ -6,8 +6,12 @@ frames of messages ready to publish (built with a :class:`~.conversions.MessageT
   paced by log time. It opens the bag in a ``with`` block, so closing the generator (or
   exhausting it) closes the bag. A message that does not decode and an unreadable storage
   chunk are skipped (as :meth:`~.bag.MagneticBag.iter_sets` does), counted and logged.
+  A magnetometer message keeps its recorded ``magnetic_field_covariance`` when that is
+  finite and not all zero; otherwise it gets ``diag(sensor_noise_t^2)`` (zeros, "unknown"
+  per REP 145, when ``sensor_noise_t`` is 0).
 * :func:`simulate` runs the core mission simulator on a scenario and returns the frames of
-  its samples (four magnetometers, the true gradient, odometry), paced by sample time.
+  its samples (four magnetometers, the true gradient, odometry), paced by sample time; the
+  magnetometers' covariance is ``diag(noise^2)`` of the scenario's sensor noise.
 
 Nothing here imports rclpy: the caller passes the message classes.
 """
@@ -88,6 +92,7 @@ def iter_frames(
     types: cv.MessageTypes,
     *,
     max_duration_s: float = 0.0,
+    sensor_noise_t: float = 0.0,
     skipped: list[SkippedMessage] | None = None,
 ) -> Generator[Frame, None, None]:
     """Yield one frame per recorded message of :data:`REPLAY_TOPICS`, in log-time order.
@@ -97,6 +102,8 @@ def iter_frames(
     path : rosbag2 folder (sqlite3 or mcap)
     types : the message classes to build (``conversions.rclpy_types()`` for a node)
     max_duration_s : stop after this much log time, s (0: the whole bag)
+    sensor_noise_t : per-axis sensor noise, tesla RMS, for magnetometer messages recorded
+        without a covariance (all zero or non-finite); 0 leaves those unknown (zeros)
     skipped : if given, receives the skipped messages and chunks as they happen (they are
         also logged: the first few one by one, the count when the replay ends)
 
@@ -121,13 +128,14 @@ def iter_frames(
             return bag_summary(records, reader.start_time)
 
         first = None
+        default_covariance = cv.noise_covariance(sensor_noise_t)
         try:
             for connection, log_ns, raw in guarded_messages(reader, connections, on_skip):
                 try:
                     msg: Any = reader.deserialize(raw, connection.msgtype)
                     key, sensor = REPLAY_TOPICS[connection.topic]
                     stamp = checked_stamp_ns(msg.header.stamp)
-                    frame_msg = _rebuild(types, key, msg, stamp)
+                    frame_msg = _rebuild(types, key, msg, stamp, default_covariance)
                     log_ns = int(log_ns)
                 except Exception as error:  # a malformed message costs itself
                     on_skip(SkippedMessage(connection.topic, log_ns, skip_reason(error)))
@@ -142,11 +150,17 @@ def iter_frames(
                 LOG.warning('replay of %s: %s', path, bag.skipped_summary())
 
 
-def _rebuild(types: cv.MessageTypes, key: str, msg: Any, stamp: int) -> Any:
-    """A recorded (rosbags) message as one of ``types``."""
+def _rebuild(
+    types: cv.MessageTypes, key: str, msg: Any, stamp: int, default_covariance: np.ndarray
+) -> Any:
+    """A recorded (rosbags) message as one of ``types``; a magnetometer without a usable
+    recorded covariance gets ``default_covariance`` (9,) T^2."""
     if key == MAG:
+        covariance = cv.magnetic_field_covariance(msg)
+        if not (np.all(np.isfinite(covariance)) and np.any(covariance)):
+            covariance = default_covariance
         return cv.magnetic_field_msg(
-            types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id
+            types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id, covariance
         )
     if key == TRUTH:
         return cv.tensor_msg(types, cv.tensor_from_msg(msg), stamp)
@@ -186,7 +200,8 @@ def simulate(
     -------
     frames : one frame per sample: the four magnetometers (T), the true gradient (T/m)
         and odometry, paced by sample time
-    info : ``samples``, ``segments`` (segment kinds), ``sample_rate_hz``, ``dipoles``
+    info : ``samples``, ``segments`` (segment kinds), ``sample_rate_hz``, ``dipoles``,
+        ``sensor_noise_t`` (the scenario's per-axis noise, T)
     """
     from ..core import simulate as simulate_mission
     from .scenario import load_scenario_or_default
@@ -203,19 +218,25 @@ def simulate(
         'segments': ', '.join(type(s).__name__ for s in scenario.segments),
         'sample_rate_hz': scenario.sample_rate_hz,
         'dipoles': len(scenario.dipoles),
+        'sensor_noise_t': float(scenario.noise_t),
     }
-    return _mission_frames(mission, n, types, start_ns), info
+    covariance = cv.noise_covariance(scenario.noise_t)
+    return _mission_frames(mission, n, types, start_ns, covariance), info
 
 
 def _mission_frames(
-    mission: MissionData, n: int, types: cv.MessageTypes, start_ns: int
+    mission: MissionData,
+    n: int,
+    types: cv.MessageTypes,
+    start_ns: int,
+    covariance: np.ndarray,
 ) -> Generator[Frame, None, None]:
     for i in range(n):
         pace = int(round(mission.t[i] * NS_PER_S))
         stamp = start_ns + pace
         fields = mission.fields_measured[i]
         items: list[tuple[str, int, Any]] = [
-            (MAG, s, cv.magnetic_field_msg(types, fields[s], stamp, cv.MAG_FRAMES[s]))
+            (MAG, s, cv.magnetic_field_msg(types, fields[s], stamp, cv.MAG_FRAMES[s], covariance))
             for s in range(4)
         ]
         items.append((TRUTH, 0, cv.tensor_msg(types, mission.g_true[i], stamp)))

@@ -7,7 +7,15 @@ mismatched calibration (other ``sensor_positions``) leaves it running uncompensa
 
 Pairs ``gradient/raw`` (T/m) with ``reference_field`` (``B_1'``, T) by identical stamp and
 publishes ``gradient/compensated`` (JointState, T/m) and ``gradient/norm`` (Float64,
-Frobenius norm of the compensated tensor, nT/m). When ``gradient/truth`` arrives for the
+Frobenius norm of the compensated tensor, nT/m), and ``gradient/sigma`` (JointState named
+``gxx..gzz`` like the tensor, same stamp, positions = the 1-sigma of each compensated
+component in T/m: core/uncertainty.py, the sensor noise propagated through the geometry
+and the compensation plus the calibration's parameter covariance when it has one). The
+noise is the ``sensor_noise_t`` parameter, or with 0 the calibration's own estimate; when
+neither is known (0 and no calibration, or a calibration without an estimate) no sigma is
+published, and ``/diagnostics`` says so. Everything but the sample's ``B_1'`` is computed
+once per calibration (:class:`~tetra_gradiometer.core.uncertainty.SigmaModel`). When
+``gradient/truth`` arrives for the
 same stamp it publishes the running ``epsilon`` (eq. 24, over the samples compensated
 with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 (std_msgs/Float64). A new calibration, or ``~/reset_metrics``, restarts the running metric.
@@ -27,6 +35,7 @@ from std_srvs.srv import Trigger
 from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.metrics import epsilon_terms
 from ..core.plausibility import plausible_readings
+from ..core.uncertainty import SigmaModel
 from ..core.units import NT_PER_T
 from ..io import conversions as cv
 from ..io.calibration import (
@@ -48,6 +57,7 @@ from .common import (
     derived_qos,
     diagnostics_period_spec,
     latched_qos,
+    non_negative,
     resolve_node_path,
     spin_node,
     status,
@@ -68,6 +78,15 @@ PARAMETERS = [
         1000,
         'Bound of the stamp-pairing buffers, messages (at most 100000, 8 min at 200 sets/s).',
         int_range=(1, 100_000),
+    ),
+    ParamSpec(
+        'sensor_noise_t',
+        0.0,
+        'White noise per axis of each magnetometer, tesla RMS (0 to 1e-6), propagated into '
+        "gradient/sigma; 0 = the loaded calibration's estimate (none: no gradient/sigma). "
+        '(The driver and calibrator read the same value.)',
+        non_negative,
+        float_range=(0.0, 1e-6),
     ),
     WARN_THROTTLE_SPEC,
     diagnostics_period_spec(),
@@ -90,12 +109,17 @@ class CompensatorNode(Node):
         self._interference: InterferenceParameters | None = None
         self._source = ''
         self._problem = 'no calibration loaded yet'
+        self._noise = float(p['sensor_noise_t'])
+        self._sigma: SigmaModel | None = None
+        self._sigma_text = ''
+        self._set_sigma(None)
         self.published = 0
         self.dropped_non_finite = 0
         self._reset_metrics()
 
         self._comp_pub = self.create_publisher(JointState, 'gradient/compensated', derived_qos())
         self._norm_pub = self.create_publisher(Float64, 'gradient/norm', derived_qos())
+        self._sigma_pub = self.create_publisher(JointState, 'gradient/sigma', derived_qos())
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -134,12 +158,35 @@ class CompensatorNode(Node):
         check_positions(
             calibration, self._geometry, source=source, target='sensor_positions of this node'
         )
+        self._set_sigma(calibration)
         self._interference = calibration.parameters
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
         self._problem = ''
         self._reset_metrics()
         self.get_logger().info(f'compensating with {self._source}')
         self._publish_diagnostics()
+
+    def _set_sigma(self, calibration: CalibrationFile | None) -> None:
+        """The 1-sigma model of ``calibration`` (None: the raw tensor's) and its description."""
+        noise = self._noise or (None if calibration is None else calibration.sensor_noise_t)
+        if noise is None or noise <= 0:
+            self._sigma = None
+            self._sigma_text = 'none: sensor noise unknown (sensor_noise_t 0 and ' + (
+                'no calibration)' if calibration is None else 'no estimate in the calibration)'
+            )
+            return
+        source = 'sensor_noise_t' if self._noise else 'the calibration'
+        if calibration is None:
+            self._sigma = SigmaModel.build(self._geometry, noise)
+            terms = 'sensor noise (raw tensor)'
+        else:
+            self._sigma = SigmaModel.build(
+                self._geometry, noise, calibration.parameters, calibration.covariance
+            )
+            terms = 'sensor noise' + (
+                ' and parameter covariance' if calibration.covariance is not None else ' only'
+            )
+        self._sigma_text = f'{terms}, {noise * NT_PER_T:.3g} nT from {source}'
 
     def _refuse(self, reason: str) -> None:
         self._problem = reason
@@ -175,6 +222,10 @@ class CompensatorNode(Node):
             return
         self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
         self._norm_pub.publish(Float64(data=norm_nt))
+        if self._sigma is not None:
+            sigma = self._sigma.one(b_reference)
+            if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
+                self._sigma_pub.publish(cv.tensor_msg(self._types, sigma, stamp_ns))
         self.published += 1
         self._pair_truth(0, stamp_ns, (g_raw, g))
 
@@ -232,6 +283,7 @@ class CompensatorNode(Node):
                 cv.ARRAY_FRAME,
                 {
                     'compensating': self.compensating,
+                    'sigma': self._sigma_text,
                     'published': self.published,
                     'dropped_non_finite': self.dropped_non_finite,
                     'epsilon': float(eps),

@@ -4,11 +4,14 @@
 io/scenario.py, or the built-in default ``io.scenario.DEFAULT_SCENARIO``: a trim manoeuvre
 far from the target, then a survey line over a dipole). It publishes ``mag1``..``mag4``
 (sensor_msgs/MagneticField, T, frames tetra_mag1..4, header.stamp = sample time: the start
-time plus the simulated time of the sample), ``gradient/truth`` (the simulator's ``g_true``,
+time plus the simulated time of the sample; ``magnetic_field_covariance`` = ``diag(sigma^2)``
+T^2 of the scenario's sensor noise), ``gradient/truth`` (the simulator's ``g_true``,
 JointState T/m) and ``/odom`` (nav_msgs/Odometry, body -> world ENU).
 
 ``mode: replay`` plays a rosbag2 folder (sqlite3 or mcap): the magnetometer topics, and
-``/tetra/gradient/truth`` and ``/odom`` when recorded, with their recorded stamps.
+``/tetra/gradient/truth`` and ``/odom`` when recorded, with their recorded stamps. A
+magnetometer message keeps its recorded covariance; one recorded without (all zero) gets
+``diag(sensor_noise_t^2)``, or stays all zero (unknown, REP 145) with ``sensor_noise_t`` 0.
 
 Pacing: ``rate`` times real time (by sample time in sim, by log time in replay), or with
 ``rate: 0`` as fast as the graph takes it: at most ``max_in_flight`` sets are published
@@ -122,6 +125,15 @@ PARAMETERS = [
         '50 s at 200 sets/s).',
         int_range=(1, 10000),
     ),
+    ParamSpec(
+        'sensor_noise_t',
+        0.0,
+        'replay: white noise per axis of each magnetometer, tesla RMS (0 to 1e-6), for the '
+        'covariance of readings recorded without one; 0 = unknown (zeros, REP 145). sim: the '
+        "scenario's noise is used. (The compensator and calibrator read the same value.)",
+        non_negative,
+        float_range=(0.0, 1e-6),
+    ),
     diagnostics_period_spec(),
 ]
 
@@ -195,7 +207,12 @@ class DriverNode(Node):
         self.get_logger().info(
             f'replay: {path}: {info["messages"]} magnetometer messages; topics {info["topics"]}'
         )
-        frames = replay.iter_frames(path, types, max_duration_s=p['max_duration_s'])
+        frames = replay.iter_frames(
+            path,
+            types,
+            max_duration_s=p['max_duration_s'],
+            sensor_noise_t=p['sensor_noise_t'],
+        )
         return frames, info, 0.005 if self._rate > 0 else 0.01
 
     # ----------------------------------------------------------------- playing

@@ -8,7 +8,8 @@ drops and counts incomplete sets and sets with a non-finite or implausible readi
 * ``gradient/raw`` (sensor_msgs/JointState gxx..gzz, T/m, reliable): ``G_m``;
 * ``reference_field`` (sensor_msgs/MagneticField, T, reliable): ``B_1'``, the reference
   reading of the same set (the calibrator and compensator pair it with ``gradient/raw``
-  by identical stamp).
+  by identical stamp), with that ``mag1`` message's ``magnetic_field_covariance`` (T^2;
+  a non-finite one is published as all zeros, unknown).
 
 ``/diagnostics``: per sensor rate (Hz), staleness (s since its last message), invalid and
 out-of-order readings; a sensor silent for ``stale_timeout_s`` is ERROR and no tensor is
@@ -181,8 +182,10 @@ class TensorNode(Node):
         if last is not None and stamp < last - self._jump_back_ns:
             self._reset_matcher(sensor, last - stamp)
         self._last_stamp[sensor] = stamp
-        for stamp_ns, fields in self._matcher.add(sensor, stamp, cv.magnetic_field_vector(msg)):
-            self._emit(stamp_ns, fields)
+        # The matcher carries each reading's covariance with its field (12 values): the
+        # reference_field of a set gets the covariance of exactly its own mag1 message.
+        for stamp_ns, readings in self._matcher.add(sensor, stamp, cv.magnetic_field_reading(msg)):
+            self._emit(stamp_ns, readings[:, :3], readings[0, 3:])
 
     def _reset_matcher(self, sensor: int, jump_ns: int) -> None:
         """The source went back in time (a new replay): start matching afresh."""
@@ -200,8 +203,9 @@ class TensorNode(Node):
         counters = asdict(self._matcher.counters)
         return {key: value + self._earlier.get(key, 0) for key, value in counters.items()}
 
-    def _emit(self, stamp_ns: int, fields: np.ndarray) -> None:
-        """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T)."""
+    def _emit(self, stamp_ns: int, fields: np.ndarray, covariance: np.ndarray) -> None:
+        """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T) with
+        sensor 1's covariance (9,) T^2."""
         bad = ~plausible_readings(fields, self._max_field)  # the offline tools' rule
         if bad.any():
             self.sets_invalid += 1
@@ -223,8 +227,10 @@ class TensorNode(Node):
             self.sets_invalid += 1
             return
         self._raw_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
+        if not np.all(np.isfinite(covariance)):  # never publish non-finite: unknown instead
+            covariance = np.zeros(9)
         self._ref_pub.publish(
-            cv.magnetic_field_msg(self._types, fields[0], stamp_ns, cv.MAG_FRAMES[0])
+            cv.magnetic_field_msg(self._types, fields[0], stamp_ns, cv.MAG_FRAMES[0], covariance)
         )
         self.sets_published += 1
 
