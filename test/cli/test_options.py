@@ -42,6 +42,7 @@ BAD = [
     ],
     # compensate
     *[('compensate', '--sensor-noise-nt', value, ('0 < x <= 1000 nT',)) for value in ('0', '-1', 'nan', 'inf', '1001', 'x')],
+    *[('compensate', '--false-alarms-per-hour', value, ('0 < x <= 60 per hour',)) for value in ('0', '-1', 'nan', '61')],
     # calibrate
     ('calibrate', '--window', '10:5', ('0 <= T0 < T1',)),
     ('calibrate', '--window', 'a:b', ('T0:T1',)),

@@ -1,5 +1,5 @@
 """``python -m tetra_gradiometer compensate BAG --params FILE --calibration CALIB.yaml
---csv OUT.csv [--raw] [--sensor-noise-nt S] [--out-bag DIR]``.
+--csv OUT.csv [--raw] [--sensor-noise-nt S] [--out-bag DIR] [--report DIR]``.
 
 Streams the bag's matched magnetometer sets, forms the tensor (eq. 7) and compensates it
 (eq. 19) with the calibration's ``k``, ``b``; ``--raw`` skips the compensation. The work is
@@ -24,6 +24,11 @@ calibration's own estimate (``sensor_noise_T``); a calibration without one (olde
 the input's storage) as ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` with
 ``--raw``): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp =
 the set's stamp (``conversions.tensor_msg``).
+
+``--report DIR`` runs the health monitor (core/health.py) over the compensated sets and
+writes ``DIR/report.json`` (``alarms``: ``t_s`` seconds since the bag's first message,
+``kind``, ``sensors`` 1-based, ``statistic``, ``threshold``; io/health_report.py) and
+``DIR/health.png``; ``--false-alarms-per-hour`` sets its threshold.
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ import argparse
 import time
 from pathlib import Path
 
+from ..core.geometry import TetraGeometry
+from ..core.health import HealthConfig
 from ..core.units import NT_PER_T, S_PER_MS
 from ..errors import InputError
 from ..io.bag import STORAGES
@@ -41,6 +48,8 @@ from ..io.bag_compensation import (
     compensate_bag,
     load_compensation,
 )
+from ..io.health_report import HealthRecorder
+from ..io.outputs import HEALTH_REPORT, check_output
 from ..io.params import geometry_from_params, load_params
 from ._args import (
     add_bag_arguments,
@@ -51,6 +60,8 @@ from ._args import (
 
 #: ``--sensor-noise-nt`` range: the calibration file's bound on ``sensor_noise_T`` (1e-6 T).
 MAX_SENSOR_NOISE_NT = 1000.0
+#: ``--false-alarms-per-hour``: at most one a minute (a monitor that cries wolf is off).
+MAX_FALSE_ALARMS_PER_HOUR = 60.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -90,18 +101,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action='store_true',
         help='decode with rosbags and match message by message (slower; same result)',
     )
+    parser.add_argument(
+        '--report',
+        default=None,
+        metavar='DIR',
+        help='health report folder: alarms when the calibration stops holding (report.json, '
+        'health.png)',
+    )
+    parser.add_argument(
+        '--false-alarms-per-hour',
+        type=positive_float(MAX_FALSE_ALARMS_PER_HOUR, 'per hour'),
+        default=HealthConfig.false_alarms_per_hour,
+        help='health monitor: design false-alarm rate (default %(default)g per hour)',
+    )
     add_progress_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    if args.csv is None and args.out_bag is None:
-        raise InputError('nothing to write: give --csv OUT.csv and/or --out-bag DIR')
+    if args.csv is None and args.out_bag is None and args.report is None:
+        raise InputError('nothing to write: give --csv OUT.csv, --out-bag DIR and/or --report DIR')
+    if args.raw and args.report is not None:
+        raise InputError('--report monitors a calibration: it needs --calibration, not --raw')
     if not args.raw and args.calibration is None:
         raise InputError('--calibration is required (or --raw for the uncompensated tensor)')
     inputs = tuple(p for p in (args.bag, args.params, args.calibration) if p is not None)
     # Refuse before any work: nothing is read or written when an output is not ours to replace.
     check_outputs(args.csv, args.out_bag, force=args.force, inputs=inputs)
+    if args.report is not None:
+        check_output(args.report, HEALTH_REPORT, force=args.force, inputs=inputs)
     geometry = geometry_from_params(load_params(args.params), source=args.params)
     compensation = load_compensation(
         None if args.raw else args.calibration,
@@ -109,11 +137,13 @@ def run(args: argparse.Namespace) -> int:
         target=str(args.params),
         sensor_noise_nt=args.sensor_noise_nt,
     )
+    health = _health_recorder(args, geometry, compensation)
     counts = compensate_bag(
         args.bag,
         geometry,
         compensation.parameters,
         sigma=compensation.sigma,
+        health=health,
         csv=args.csv,
         out_bag=args.out_bag,
         out_storage=args.out_storage,
@@ -140,7 +170,28 @@ def run(args: argparse.Namespace) -> int:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m; {_sigma_text(compensation)})')
     if args.out_bag is not None:
         print(f'bag: {args.out_bag} ({counts.topic}, T/m)')
+    if health is not None:
+        health.write(args.report, force=args.force, inputs=inputs)
+        print(f'health: {health.document()["verdict"]}; report: {args.report}')
     return 0
+
+
+def _health_recorder(
+    args: argparse.Namespace, geometry: TetraGeometry, compensation: Compensation
+) -> HealthRecorder | None:
+    """The monitor behind ``--report`` (None without it)."""
+    if args.report is None:
+        return None
+    if compensation.parameters is None or compensation.sensor_noise_t is None:
+        raise InputError('--report needs a calibration and a sensor noise')
+    config = HealthConfig(false_alarms_per_hour=args.false_alarms_per_hour)
+    return HealthRecorder(
+        geometry,
+        compensation.parameters,
+        compensation.sensor_noise_t,
+        compensation.covariance,
+        config,
+    )
 
 
 def _sigma_text(compensation: Compensation) -> str:

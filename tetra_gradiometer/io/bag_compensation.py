@@ -42,6 +42,7 @@ from ..errors import BagError, InputError, OutputError
 from . import conversions as cv
 from .bag import BagWriter, MagneticBag
 from .calibration import check_positions, load_calibration
+from .health_report import HealthRecorder
 from .matching import MatchCounters
 from .outputs import BAG, CSV, atomic_output, check_output
 
@@ -163,6 +164,8 @@ class Compensation:
         Where it came from (for the command's summary line), '' when None.
     with_covariance : bool
         ``sigma`` includes the calibration parameters' covariance.
+    covariance : (P, P) ndarray or None
+        That covariance (for the health monitor's calibration-error bound).
     """
 
     parameters: InterferenceParameters | None
@@ -170,6 +173,7 @@ class Compensation:
     sensor_noise_t: float | None = None
     noise_source: str = ''
     with_covariance: bool = False
+    covariance: np.ndarray | None = None
 
 
 def load_compensation(
@@ -211,7 +215,12 @@ def load_compensation(
     sigma = SigmaModel.build(geometry, noise, calibration.parameters, calibration.covariance)
     source = '--sensor-noise-nt' if override is not None else f"{calibration_path}'s estimate"
     return Compensation(
-        calibration.parameters, sigma, noise, source, calibration.covariance is not None
+        calibration.parameters,
+        sigma,
+        noise,
+        source,
+        calibration.covariance is not None,
+        calibration.covariance,
     )
 
 
@@ -221,6 +230,7 @@ def compensate_bag(
     parameters: InterferenceParameters | None,
     *,
     sigma: SigmaModel | None = None,
+    health: HealthRecorder | None = None,
     csv: PathLike | None = None,
     out_bag: PathLike | None = None,
     out_storage: str | None = None,
@@ -242,6 +252,8 @@ def compensate_bag(
     sigma : SigmaModel, optional
         The tensor's 1-sigma (built for ``parameters``): the CSV gets the nine ``sigma_``
         columns (the output bag has no place for them).
+    health : HealthRecorder, optional
+        Fed every chunk of compensated sets (``compensate --report``).
     csv, out_bag : outputs (at least one), each written atomically
     out_storage : storage of ``out_bag`` (default: the input's)
     tolerance_s : largest spread of the four header stamps in one set, seconds
@@ -278,6 +290,8 @@ def compensate_bag(
             tensors = _tensors(fields, geometry, parameters)
             sigmas = None if sigma is None or handle is None else sigma(fields[:, 0, :])
             _write(handle, writer, topic, stamps, tensors, sigmas)
+            if health is not None:
+                health.add(stamps, fields, tensors, bag_start_ns=bag.reader.start_time)
             first = int(stamps[0]) if n_sets == 0 else first
             last = int(stamps[-1])
             n_sets += len(stamps)

@@ -47,8 +47,6 @@ class HealthRecorder:
     ----------
     geometry, parameters, sensor_noise_t, covariance, config
         As for :class:`~tetra_gradiometer.core.health.HealthMonitor`.
-    bag_start_ns : int
-        Log time of the bag's first message.
     """
 
     def __init__(
@@ -57,24 +55,25 @@ class HealthRecorder:
         parameters: InterferenceParameters,
         sensor_noise_t: float,
         covariance: np.ndarray | None,
-        bag_start_ns: int,
         config: HealthConfig | None = None,
     ) -> None:
         self.monitor = HealthMonitor(geometry, parameters, sensor_noise_t, covariance, config)
         self._sensor_noise_t = sensor_noise_t
-        self._bag_start_ns = int(bag_start_ns)
         self._origin_ns: int | None = None
         self._origin = 'bag start'
         self._bins: dict[int, tuple[float, float]] = {}
 
-    def add(self, stamps_ns: np.ndarray, fields: np.ndarray, tensors: np.ndarray) -> None:
-        """One chunk: stamps (n,) ns, fields (n, 4, 3) T, compensated tensors (n, 3, 3) T/m."""
+    def add(
+        self, stamps_ns: np.ndarray, fields: np.ndarray, tensors: np.ndarray, *, bag_start_ns: int
+    ) -> None:
+        """One chunk: stamps (n,) ns, fields (n, 4, 3) T, compensated tensors (n, 3, 3) T/m;
+        ``bag_start_ns`` the log time of the bag's first message."""
         if not len(stamps_ns):
             return
         if self._origin_ns is None:
             first = int(stamps_ns[0])
-            same_clock = abs(first - self._bag_start_ns) <= SAME_CLOCK_NS
-            self._origin_ns = self._bag_start_ns if same_clock else first
+            same_clock = abs(first - int(bag_start_ns)) <= SAME_CLOCK_NS
+            self._origin_ns = int(bag_start_ns) if same_clock else first
             self._origin = 'bag start' if same_clock else 'first set'
         t_s = (np.asarray(stamps_ns, dtype=np.int64) - self._origin_ns) * S_PER_NS
         self._keep(self.monitor.update(t_s, tensors, fields[:, 0, :]))
