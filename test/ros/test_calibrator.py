@@ -148,3 +148,81 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
         assert took < 2.0, took
         saved = load_calibration(calibration_file)
         assert np.all(np.isfinite(saved.parameters.to_vector(symmetric=True)))
+
+
+def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_from_odom(tmp_path):
+    """~/guidance (about 1 Hz, latched JSON) and the key figures on /diagnostics: one field
+    direction, the vehicle level on heading north (its /odom), is not enough and gets advice;
+    after ~/start, rich directions are enough. Truth: the attitudes and directions fed."""
+    import json
+
+    from nav_msgs.msg import Odometry
+    from scipy.spatial.transform import Rotation
+    from std_msgs.msg import String
+
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.nodes.common import derived_qos, latched_qos
+
+    rng = np.random.default_rng(6)
+    received: list[dict] = []
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('calibrator', calibration_file=str(tmp_path / 'calibration.yaml'))
+        probe.create_subscription(String, 'calibrator/guidance', lambda m: received.append(json.loads(m.data)),
+                                  latched_qos())
+        odom = probe.create_publisher(Odometry, '/odom', derived_qos())
+        for publisher in (feeder.raw, feeder.reference, odom):
+            wait_matched(publisher, 1)
+        assert probe.call('calibrator/start').success
+        north = Rotation.from_euler('ZYX', [90.0, 0.0, 0.0], degrees=True).as_quat()  # yaw 90° from east
+        g, b, _ = interference_set(200, rng, 'one')
+        for i in range(len(g)):
+            stamp = T0 + i * 10**8
+            odom.publish(cv.odometry_msg(feeder.types, np.zeros(3), north, stamp))
+            feeder.publish_raw(stamp, g[i], b[i])
+            time.sleep(0.002)
+        wait_for(lambda: received and received[-1]['samples'] == 200, 10, 'guidance on 200 samples', graph)
+        document = received[-1]
+        assert document['enough'] is False and document['ratio'] > 10, document['text']
+        assert document['advice']['kind'] in ('roll', 'pitch', 'level turn') and 'next: ' in document['text']
+        counts = np.array(document['coverage']['counts'])
+        assert document['coverage']['source'] == 'attitude'
+        assert counts[0, 2, 2] >= 195 and counts.sum() == counts[0, 2, 2]  # heading 0-30°, level
+        wait_for(lambda: probe.status(CALIBRATION).get('next_manoeuvre') == document['advice']['text'], 5,
+                 'the advice on /diagnostics', graph)
+        assert probe.status(CALIBRATION)['guidance'] == 'not enough'
+
+        # The site's field is checked like the offline tools' (|B| <= 1e-3 T) at run time too.
+        refused = _set_vector(probe, graph, 'earth_field_enu', [1.0, 0.0, 0.0])
+        assert not refused.successful and 'earth_field_enu' in refused.reason and '0.001 T' in refused.reason
+
+        assert probe.call('calibrator/start').success  # forgets the sums too
+        g, b, _ = interference_set(300, rng, 'rich')
+        for i in range(len(g)):
+            feeder.publish_raw(T0 + (1000 + i) * 10**8, g[i], b[i])
+            time.sleep(0.002)
+        wait_for(lambda: received[-1]['samples'] == 300, 10, 'guidance on the 300 new samples', graph)
+        document = received[-1]
+        assert document['enough'] is True and document['advice'] is None, document['text']
+        assert document['coverage']['source'] == 'field direction'  # the last /odom is too old
+
+
+def _set_vector(probe, graph, name, values):
+    """``calibrator/set_parameters`` for one double-array parameter; its result."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    client = probe.create_client(SetParameters, 'calibrator/set_parameters')
+    assert client.wait_for_service(timeout_sec=30)
+    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=[float(v) for v in values])
+    future = client.call_async(SetParameters.Request(parameters=[Parameter(name=name, value=value)]))
+    wait_for(future.done, 10, 'set_parameters', graph)
+    return future.result().results[0]
+
+
+def test_an_implausible_earth_field_is_refused_at_start_with_the_reason():
+    from ros_helpers import NodeProcess, unique_domain
+
+    code, output = NodeProcess('calibrator', unique_domain(), {'earth_field_enu': [0.0, 2e-5, -4.5e-2]}).refusal()
+    assert code == 1 and 'Traceback' not in output, output
+    line = [line for line in output.splitlines() if 'cannot start:' in line]
+    assert len(line) == 1 and "'earth_field_enu'" in line[0] and '|B| <= 0.001 T' in line[0], output

@@ -195,3 +195,40 @@ def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibra
         wait_for(lambda: len(sigmas) == 6, 10, 'sigma of the compensated tensors', graph)
         np.testing.assert_allclose([sigmas[T0 + i * 10**8] for i in range(3, 6)],
                                    compensated_sigma(b[3:6], GEOMETRY, noise, exact), rtol=1e-9)
+
+
+def test_health_alarm_names_the_jumped_sensor_within_5s_and_diagnostics_turn_error(tmp_path):
+    """10 Hz sets of a vehicle turning in a uniform field (true gradient zero), 0.05 nT noise,
+    compensated with its exact parameters; sensor 2's offset jumps by 2 nT at sample 250."""
+    import json
+
+    from std_msgs.msg import String
+
+    rng = np.random.default_rng(12)
+    n, jump_at, noise = 400, 250, 0.05 * NT
+    interference = core.random_interference(rng, k_scale=3e-3, b_scale_t=200 * NT)
+    directions = rng.normal(size=(n, 3))
+    b_true = 50_000 * NT * directions / np.linalg.norm(directions, axis=1)[:, None]
+    fields = interference.apply(np.repeat(b_true[:, None, :], 4, axis=1), b_true)
+    fields += rng.normal(0.0, noise, fields.shape)
+    fields[jump_at:, 1] += [1.2 * NT, 0.0, -1.6 * NT]
+    g = core.difference_tensor(fields, GEOMETRY)
+    document = CalibrationFile(parameters=interference.pair_parameters(), method='test', symmetric_k=True,
+                               sensor_positions=GEOMETRY.to_flat(), sensor_noise_t=noise)
+    calibration_file = tmp_path / 'calibration.yaml'
+    calibration_file.write_text(document.to_yaml())
+    alarms: list[dict] = []
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        probe.create_subscription(String, 'health/alarm', lambda msg: alarms.append(json.loads(msg.data)), 10)
+        wait_for(lambda: _diag(probe, 'tetra/compensator: health').get('message') == 'watching', 30,
+                 'the health monitor', graph)
+        wait_matched(feeder.raw, 1)
+        for i in range(n):
+            feeder.publish_raw(T0 + i * 10**8, g[i], fields[i, 0])
+        wait_for(lambda: alarms, 20, 'a health alarm', graph)
+        t_jump = (T0 + jump_at * 10**8) / 1e9
+        assert t_jump <= alarms[0]['t_s'] <= t_jump + 5.0
+        assert 2 in alarms[0]['sensors'] and alarms[0]['statistic'] > alarms[0]['threshold']
+        wait_for(lambda: _diag(probe, 'tetra/compensator: health').get('level') == 2, 10, 'ERROR', graph)
+        assert 'recalibrate' in _diag(probe, 'tetra/compensator: health')['message']

@@ -12,6 +12,10 @@ a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help`` desc
 
 The work is :func:`tetra_gradiometer.io.bag_calibration.calibrate_bag`: the window is
 read streaming, and thinned to at most ``--max-sets`` sets (the printed summary says so).
+Then the trim assessment of the sets used (:func:`~tetra_gradiometer.io.bag_calibration.
+assess_window`: predicted survey accuracy, coverage, enough or the next manoeuvre) is
+printed, and ``--report DIR`` writes it with plots
+(:mod:`tetra_gradiometer.io.calibration_report`).
 """
 
 from __future__ import annotations
@@ -28,10 +32,18 @@ from ..core.identification import (
     METHODS,
 )
 from ..core.units import NT_PER_T, S_PER_MS
-from ..io.bag_calibration import DEFAULT_MAX_SETS, MIN_SETS, BagCalibration, calibrate_bag
+from ..io.bag_calibration import (
+    DEFAULT_MAX_SETS,
+    MIN_SETS,
+    BagCalibration,
+    WindowAssessment,
+    assess_window,
+    calibrate_bag,
+)
 from ..io.calibration import save_calibration
-from ..io.outputs import CALIBRATION, check_output
-from ..io.params import geometry_from_params, load_params
+from ..io.calibration_report import write_calibration_report
+from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
+from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ._args import (
     add_bag_arguments,
     add_force_argument,
@@ -69,7 +81,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + f' (default: {DEFAULT_METHOD})',
     )
     parser.add_argument('--out', required=True, help='calibration YAML to write')
-    add_force_argument(parser, 'a previous calibration file at --out')
+    parser.add_argument(
+        '--report',
+        default=None,
+        metavar='DIR',
+        help='also write a calibration report folder: report.json, report.md, plots of the '
+        'residual over the window, attitude coverage, parameters with sigma and the '
+        'predicted survey accuracy',
+    )
+    add_force_argument(parser, 'a previous calibration file at --out (and report at --report)')
     parser.add_argument(
         '--seed', type=seed_arg, default=0, help='paper_ga: random seed, 0 <= n < 2^31 (default 0)'
     )
@@ -110,7 +130,11 @@ def run(args: argparse.Namespace) -> int:
     window = args.window  # (t0, t1) or None, checked by argparse (_args.window_arg)
     inputs = (args.bag, args.params)
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
-    geometry = geometry_from_params(load_params(args.params), source=args.params)
+    if args.report is not None:  # nor over the calibration file it sits beside
+        check_output(args.report, CALIBRATION_REPORT, force=args.force, inputs=(*inputs, args.out))
+    params = load_params(args.params)
+    geometry = geometry_from_params(params, source=args.params)
+    earth = earth_field_from_params(params, str(args.params))
     result = calibrate_bag(
         args.bag,
         geometry,
@@ -126,8 +150,46 @@ def run(args: argparse.Namespace) -> int:
     )
     save_calibration(args.out, result.record, force=args.force, inputs=inputs)
     _print_summary(args, result)
-    print(f'wrote {args.out} in {time.perf_counter() - started:.1f} s')
+    window_assessment = assess_window(result, args.bag, geometry, earth)
+    _print_assessment(window_assessment)
+    written = [str(args.out)]
+    if args.report is not None:
+        write_calibration_report(
+            args.report,
+            result,
+            window_assessment,
+            geometry,
+            force=args.force,
+            inputs=(*inputs, args.out),
+        )
+        written.append(str(args.report))
+    print(f'wrote {" and ".join(written)} in {time.perf_counter() - started:.1f} s')
     return 0
+
+
+def _print_assessment(window: WindowAssessment) -> None:
+    """The trim assessment: enough or not, coverage, the worst survey attitude, the advice."""
+    assessment = window.assessment
+    for note in window.notes:
+        print(f'  ({note})')
+    if assessment is None:
+        return
+    print(f'  trim assessment: {assessment.text()}')
+    print(
+        f'    coverage: {assessment.coverage.text}; condition number '
+        f'{assessment.condition_number:.3g}'
+    )
+    worst, (heading, roll, pitch) = assessment.worst
+    print(
+        f'    worst survey attitude: heading {heading:.0f}°, roll {roll:+.0f}°, pitch '
+        f'{pitch:+.0f}°: {worst * NT_PER_T:.3g} nT/m'
+    )
+    advice = assessment.advice
+    if advice is not None:
+        print(
+            f'    next manoeuvre: {advice.text} ({advice.duration_s:.0f} s; worst survey sigma '
+            f'after it {advice.worst_sigma * NT_PER_T:.3g} nT/m)'
+        )
 
 
 def _print_summary(args: argparse.Namespace, result: BagCalibration) -> None:

@@ -5,6 +5,10 @@ taken as zero**: a trim manoeuvre in a uniform field, away from targets
 (``constraint_lstsq`` and ``paper_ga`` do not use that assumption). It is read streaming;
 only its sets are kept. A window of more than ``max_sets`` sets is thinned uniformly (every
 k-th set) to bound the solver's memory (the design holds 9 x 36 floats per set).
+
+:func:`assess_window` adds the trim guidance of :mod:`tetra_gradiometer.core.guidance` on the
+sets the solve used: attitude coverage from the bag's ``/odom`` when it holds one, the Earth
+field from the params file (else estimated from ``/odom``).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import TetraGeometry, difference_tensor
+from ..core.guidance import TrimAssessment, assess, trim_statistics
 from ..core.identification import (
     DEFAULT_METHOD,
     MAX_COVERAGE_CONDITION,
@@ -28,9 +33,10 @@ from ..core.identification import (
 )
 from ..core.identification.paper_ga import GENERATIONS
 from ..core.plausibility import DroppedSets, plausible_sets
-from ..core.units import S_PER_NS
+from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import BagError, InputError
-from .bag import MagneticBag
+from . import conversions as cv
+from .bag import MagneticBag, Series
 from .calibration import CalibrationFile
 from .matching import MatchCounters
 
@@ -38,7 +44,9 @@ __all__ = [
     'DEFAULT_MAX_SETS',
     'MIN_SETS',
     'BagCalibration',
+    'WindowAssessment',
     'WindowSets',
+    'assess_window',
     'calibrate_bag',
     'read_window',
     'window_text',
@@ -103,6 +111,10 @@ class BagCalibration:
     counters : MatchCounters
         The stamp matcher's counts over what was read.
     skipped_messages, skipped_summary : as in :class:`WindowSets`
+    stamps_ns : ndarray, shape (n,), int64
+        Stamps of the sets the solve used (after thinning), ns.
+    fields : ndarray, shape (n, 4, 3)
+        Their readings, tesla, body frame.
     """
 
     calibration: Calibration
@@ -115,6 +127,8 @@ class BagCalibration:
     counters: MatchCounters
     skipped_messages: int = 0
     skipped_summary: str = ''
+    stamps_ns: IntArray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    fields: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 3)))
 
     @property
     def coverage_condition(self) -> float:
@@ -263,6 +277,8 @@ def calibrate_bag(
         counters=sets.counters,
         skipped_messages=sets.skipped_messages,
         skipped_summary=sets.skipped_summary,
+        stamps_ns=sets.stamps_ns[::thinned],
+        fields=fields,
     )
     extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
     record = dataclasses.replace(result.record, diagnostics={**result.record.diagnostics, **extra})
@@ -297,3 +313,111 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
         'messages_out_of_order': counters.out_of_order,
         'messages_skipped_undecodable': result.skipped_messages,
     }
+
+
+#: Sensor noise the assessment assumes if the window were too short to estimate its own, T.
+DEFAULT_SENSOR_NOISE_T = 0.1e-9
+#: An ``/odom`` message further than this from a set leaves that set's attitude unknown, s.
+MAX_ODOM_GAP_S = 0.5
+
+
+@dataclass(frozen=True)
+class WindowAssessment:
+    """The trim guidance of a calibration window (``assessment`` None when it is impossible).
+
+    Attributes
+    ----------
+    assessment : TrimAssessment or None
+        On the sets the solve used; None without an Earth field (see ``notes``).
+    earth_field_enu : ndarray, shape (3,), or None
+        The site's field used, tesla, ENU.
+    notes : tuple of str
+        Where the Earth field and the attitude came from, or why there is no assessment.
+    """
+
+    assessment: TrimAssessment | None
+    earth_field_enu: FloatArray | None
+    notes: tuple[str, ...]
+
+
+def _orientation_at(series: Series, stamps_ns: IntArray) -> FloatArray:
+    """The ``/odom`` orientation nearest each stamp, (n, 4); NaN beyond ``MAX_ODOM_GAP_S``
+    (nearest, not interpolated: the guidance only bins attitudes)."""
+    odom = series.stamps_ns
+    index = np.searchsorted(odom, stamps_ns)
+    lower, upper = np.clip(index - 1, 0, len(odom) - 1), np.clip(index, 0, len(odom) - 1)
+    nearest = np.where(
+        np.abs(odom[upper] - stamps_ns) < np.abs(stamps_ns - odom[lower]), upper, lower
+    )
+    orientation = series.values[nearest].copy()
+    orientation[np.abs(odom[nearest] - stamps_ns) * S_PER_NS > MAX_ODOM_GAP_S] = np.nan
+    return orientation
+
+
+def _odom_earth_field(orientation: FloatArray, b_reference: FloatArray) -> FloatArray | None:
+    """The Earth field in ENU as the mean of ``R B_1'`` over the sets with an attitude (sensor
+    1's own interference, a few hundred nT, biases it: negligible for the guidance)."""
+    from scipy.spatial.transform import Rotation
+
+    known = np.all(np.isfinite(orientation), axis=1)
+    if not known.any():
+        return None
+    return Rotation.from_quat(orientation[known]).apply(b_reference[known]).mean(axis=0)
+
+
+def assess_window(
+    result: BagCalibration,
+    bag_path: str | os.PathLike[str],
+    geometry: TetraGeometry,
+    earth_field_enu: FloatArray | None = None,
+) -> WindowAssessment:
+    """The trim guidance (:func:`tetra_gradiometer.core.guidance.assess`) of the sets a
+    calibration used: coverage by attitude from the bag's ``/odom`` when present, the Earth
+    field ``earth_field_enu`` (the params file's) or else estimated from ``/odom``; the model
+    assessed is the known-gradient solve of the method's parameter count.
+
+    Raises
+    ------
+    BagError
+        ``/odom`` is present but unreadable past the bag reader's skip limit.
+    """
+    stamps, fields = result.stamps_ns, result.fields
+    notes: list[str] = []
+    with MagneticBag(bag_path) as bag:
+        series = bag.read_series(cv.ODOM_TOPIC)
+    orientation = None if series is None else _orientation_at(series, stamps)
+    if orientation is None:
+        notes.append(
+            f'no {cv.ODOM_TOPIC} in the bag: coverage is of the body-frame field direction'
+        )
+    earth = earth_field_enu
+    if earth is not None:
+        notes.append('Earth field from the params file (earth_field_enu)')
+    elif orientation is not None:
+        earth = _odom_earth_field(orientation, fields[:, 0])
+        if earth is not None:
+            b_nt = ', '.join(f'{v * NT_PER_T:.0f}' for v in earth)
+            notes.append(f"Earth field estimated from {cv.ODOM_TOPIC} and B_1': [{b_nt}] nT ENU")
+    if earth is None:
+        notes.append(
+            'no trim assessment: the params file has no earth_field_enu and the bag no '
+            f'{cv.ODOM_TOPIC} to estimate it from'
+        )
+        return WindowAssessment(None, None, tuple(notes))
+    statistics = trim_statistics(
+        fields[:, 0],
+        difference_tensor(fields, geometry),
+        geometry,
+        orientation_xyzw=orientation,
+    )
+    span_s = (stamps[-1] - stamps[0]) * S_PER_NS if len(stamps) > 1 else 0.0
+    noise_nt = result.calibration.details.get('sensor_noise_nT')
+    assessment = assess(
+        statistics,
+        geometry,
+        earth,
+        sample_rate_hz=(len(stamps) - 1) / span_s if span_s > 0 else 1.0,
+        sensor_noise_t=noise_nt / NT_PER_T if noise_nt else DEFAULT_SENSOR_NOISE_T,
+        symmetric=result.calibration.n_parameters == 27,
+    )
+    return WindowAssessment(assessment, np.asarray(earth, dtype=float), tuple(notes))

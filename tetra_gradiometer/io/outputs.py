@@ -113,6 +113,7 @@ TRUTH = OutputKind('simulation truth file', recognize=_truth_npz)
 BAG = OutputKind('rosbag2 folder', folder=True)
 REPORT = OutputKind('discrepancy report folder', folder=True)
 HEALTH_REPORT = OutputKind('health report folder', folder=True)
+CALIBRATION_REPORT = OutputKind('calibration report folder', folder=True)
 PAPER = OutputKind('paper reproduction folder', folder=True)
 DEMO = OutputKind('demo folder', folder=True)
 

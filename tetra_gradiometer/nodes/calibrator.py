@@ -32,23 +32,41 @@ blocks the other callbacks until the solve ends.
 ``method`` is one of ``core.identification.CALIBRATION_METHODS`` (the registry;
 default ``known_gradient_lstsq_general``: the true gradient is taken as zero, a trim far
 from targets).
+
+Trim guidance (:mod:`tetra_gradiometer.core.guidance`): while samples arrive, about once a
+second (:data:`GUIDANCE_PERIOD_S`) the node publishes on ``~/guidance`` (std_msgs/String,
+JSON of ``TrimAssessment.to_dict``, latched) the predicted 1-sigma of every parameter and of
+the compensated tensor on a representative survey, the noise floor, the coverage condition
+number, the attitudes covered, whether that is *enough* (predicted sigma within 1.1x the
+floor) and else the next manoeuvre ("roll ±15° on heading 120–180°"); the key figures also go
+on ``/diagnostics``. Per sample it only appends (the sums and the attitude bin of the
+samples since the last tick are added in the timer, in its own callback group); a sample's
+attitude is the last ``/odom`` (nav_msgs/Odometry) within :data:`MAX_ODOM_AGE_S` of its
+stamp, else unknown (then the coverage is that of the body-frame field direction). The
+survey and the candidate manoeuvres are flown in ``earth_field_enu``; the sensor noise is
+``sensor_noise_t`` (or 0.1 nT) until the samples estimate their own.
 """
 
 from __future__ import annotations
 
+import json
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.callback_groups import ReentrantCallbackGroup
+from nav_msgs.msg import Odometry
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..core import TetraGeometry
+from ..core.guidance import TrimAssessment, TrimStatistics, assess, trim_statistics
 from ..core.identification import (
     CALIBRATION_METHODS,
     DEFAULT_METHOD,
@@ -58,7 +76,8 @@ from ..core.identification import (
     Options,
     identify,
 )
-from ..core.plausibility import plausible_readings
+from ..core.plausibility import MAX_FIELD_T, plausible_readings
+from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, CalibrationFileError, save_calibration
@@ -73,6 +92,7 @@ from .common import (
     derived_qos,
     diagnostics_period_spec,
     latched_qos,
+    non_negative,
     one_of,
     positive,
     resolve_node_path,
@@ -84,10 +104,23 @@ from .common import (
 #: Bounds of ``max_samples`` and ``ga_generations`` (see their descriptions).
 MAX_SAMPLES = 500_000
 MAX_GENERATIONS = 20_000
+#: Period of the trim guidance on ``~/guidance`` while samples arrive, s (the issue's ~1 Hz).
+GUIDANCE_PERIOD_S = 1.0
+#: A sample takes the attitude of the last ``/odom`` within this of its stamp, s.
+MAX_ODOM_AGE_S = 0.5
+#: The guidance's sensor noise before the samples estimate it, with ``sensor_noise_t`` 0, T.
+DEFAULT_NOISE_T = 1.0e-10
 
 
 def _path(value: str) -> str | None:
     return None if value.strip() else 'must name a file'
+
+
+def _field_enu(value: Any) -> str | None:
+    field = np.asarray(value, dtype=float)
+    if field.shape != (3,) or not plausible_readings(field):
+        return f'must be 3 finite floats, tesla ENU, with |B| <= {MAX_FIELD_T:g} T, got {value!r}'
+    return None
 
 
 PARAMETERS = [
@@ -147,6 +180,23 @@ PARAMETERS = [
         positive,
         float_range=(0.1, 600.0),
     ),
+    ParamSpec(
+        'earth_field_enu',
+        (0.0, 2.0e-5, -4.5e-5),
+        "The site's Earth field, tesla, ENU (east, north, up): the trim guidance flies its "
+        'survey attitudes and candidate manoeuvres in it (the offline tools read it too).',
+        _field_enu,
+    ),
+    ParamSpec(
+        'sensor_noise_t',
+        0.0,
+        'White noise per axis of each magnetometer, tesla RMS (0 to 1e-6), that the trim '
+        f'guidance assumes until {MIN_SAMPLES} samples estimate their own (the fit residual); '
+        f'0 = unknown ({DEFAULT_NOISE_T:g} T then). (The driver and compensator read the same '
+        'value.)',
+        non_negative,
+        float_range=(0.0, 1e-6),
+    ),
     diagnostics_period_spec(),
 ]
 
@@ -168,6 +218,8 @@ class CalibratorNode(Node):
                 'ga_seed',
                 'ga_generations',
                 'max_solve_s',
+                'earth_field_enu',
+                'sensor_noise_t',
             ),
         )
         if p['min_samples'] > p['max_samples']:
@@ -179,8 +231,10 @@ class CalibratorNode(Node):
         self._calibration_path = resolve_node_path(p['calibration_file'])
         self._lock = threading.Lock()
         self._collecting = False
-        self._g: list[np.ndarray] = []
-        self._b: list[np.ndarray] = []
+        # Deques: dropping the oldest sample beyond max_samples is O(1).
+        self._g: deque[np.ndarray] = deque()
+        self._b: deque[np.ndarray] = deque()
+        self._q: deque[np.ndarray] = deque()  # attitude per sample (NaN: unknown)
         self._pairer = StampPairer(2)
         self._dropped_implausible = 0
         self._state = 'idle'
@@ -193,6 +247,16 @@ class CalibratorNode(Node):
         self._cancel = threading.Event()
         self._solve_started: float | None = None
         self._solve_s = 0.0
+        # Trim guidance: the last /odom (stamp ns, quaternion), samples not yet in the sums.
+        self._odom: tuple[int, np.ndarray] | None = None
+        self._epoch = 0  # counts ~/start: a tick that straddles one discards its work
+        self._added: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (g, b, q)
+        self._removed: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._statistics = TrimStatistics.empty()
+        self._first_stamp: int | None = None
+        self._last_stamp = 0
+        self._n_received = 0
+        self._assessment: TrimAssessment | None = None
 
         self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -206,6 +270,13 @@ class CalibratorNode(Node):
         self.create_service(Trigger, '~/calibrate', self._on_calibrate, callback_group=control)
         self.create_service(Trigger, '~/cancel', self._on_cancel, callback_group=control)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self._guidance_pub = self.create_publisher(String, '~/guidance', latched_qos())
+        self.create_subscription(Odometry, cv.ODOM_TOPIC, self._on_odom, derived_qos())
+        self.create_timer(
+            GUIDANCE_PERIOD_S,
+            self._publish_guidance,
+            callback_group=MutuallyExclusiveCallbackGroup(),  # beside the samples
+        )
 
     # ----------------------------------------------------------------- samples
 
@@ -225,10 +296,90 @@ class CalibratorNode(Node):
             if not (np.all(np.isfinite(pair[0])) and plausible_readings(pair[1])):
                 self._dropped_implausible += 1  # the offline tools' rule; never fitted
                 return
-            self._g.append(pair[0])
-            self._b.append(pair[1])
-            if len(self._g) > self.get_parameter('max_samples').value:
-                del self._g[0], self._b[0]
+            sample = (pair[0], pair[1], self._attitude(stamp_ns))
+            self._g.append(sample[0])
+            self._b.append(sample[1])
+            self._q.append(sample[2])
+            self._added.append(sample)
+            self._first_stamp = stamp_ns if self._first_stamp is None else self._first_stamp
+            self._last_stamp, self._n_received = stamp_ns, self._n_received + 1
+            while len(self._g) > self.get_parameter('max_samples').value:
+                self._removed.append((self._g.popleft(), self._b.popleft(), self._q.popleft()))
+
+    def _on_odom(self, msg: Odometry) -> None:
+        self._odom = (cv.stamp_to_ns(msg.header.stamp), cv.odometry_orientation(msg))
+
+    def _attitude(self, stamp_ns: int) -> np.ndarray:
+        """The last /odom's orientation if within MAX_ODOM_AGE_S of ``stamp_ns``, else NaN."""
+        odom = self._odom
+        if odom is None or abs(odom[0] - stamp_ns) * S_PER_NS > MAX_ODOM_AGE_S:
+            return np.full(4, np.nan)
+        return odom[1]
+
+    # ----------------------------------------------------------------- guidance
+
+    def _reset_guidance(self) -> None:
+        """Forget the sums (``~/start``); the caller holds the lock (or is ``__init__``)."""
+        self._added = []
+        self._removed = []
+        self._statistics = TrimStatistics.empty()
+        self._first_stamp = None
+        self._last_stamp = 0
+        self._n_received = 0
+        self._assessment = None
+
+    def _batch(self, samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> TrimStatistics:
+        if not samples:
+            return TrimStatistics.empty()
+        g, b, q = (np.array(column) for column in zip(*samples, strict=True))
+        return trim_statistics(b, g, self._geometry, orientation_xyzw=q)
+
+    def _publish_guidance(self) -> None:
+        """Fold the new samples into the sums, assess, publish ``~/guidance`` (timer)."""
+        with self._lock:
+            added, removed, epoch = self._added, self._removed, self._epoch
+            self._added, self._removed = [], []
+            span_s = (self._last_stamp - (self._first_stamp or 0)) * S_PER_NS
+            rate = (self._n_received - 1) / span_s if span_s > 0 else 1.0
+            statistics = self._statistics
+        if not added and not removed:
+            return
+        statistics = statistics.plus(self._batch(added)).minus(self._batch(removed))
+        try:
+            assessment = assess(
+                statistics,
+                self._geometry,
+                self.get_parameter('earth_field_enu').value,
+                sample_rate_hz=rate,
+                sensor_noise_t=self.get_parameter('sensor_noise_t').value or DEFAULT_NOISE_T,
+                symmetric=self.get_parameter('method').value == 'known_gradient_lstsq',
+                max_coverage_condition=self.get_parameter('max_coverage_condition').value,
+            )
+        except (TetraError, np.linalg.LinAlgError) as error:  # never seen; never fatal
+            self.get_logger().warning(f'trim guidance: {error}')
+            assessment = None
+        with self._lock:
+            if epoch != self._epoch:  # a ~/start came meanwhile: these sums are stale
+                return
+            self._statistics, self._assessment = statistics, assessment
+        if assessment is not None:
+            document = json.dumps(assessment.to_dict(), allow_nan=False)
+            self._guidance_pub.publish(String(data=document))
+
+    def _guidance_values(self) -> dict[str, Any]:
+        """The key figures of the last assessment, for /diagnostics."""
+        assessment = self._assessment
+        if assessment is None:
+            return {}
+        advice = assessment.advice
+        return {
+            'guidance': 'enough' if assessment.enough else 'not enough',
+            'predicted_sigma_nT_per_m': assessment.predicted_sigma * NT_PER_T,
+            'noise_floor_nT_per_m': assessment.noise_floor * NT_PER_T,
+            'coverage_condition_number': assessment.condition_number,
+            'coverage': assessment.coverage.text,
+            'next_manoeuvre': '' if advice is None else advice.text,
+        }
 
     @property
     def n_samples(self) -> int:
@@ -239,8 +390,10 @@ class CalibratorNode(Node):
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
-            self._g, self._b = [], []
+            self._g, self._b, self._q = deque(), deque(), deque()
             self._pairer.clear()
+            self._reset_guidance()
+            self._epoch += 1
             self._collecting = True
         self._state = 'collecting'
         response.success, response.message = True, 'collecting (earlier samples discarded)'
@@ -387,6 +540,7 @@ class CalibratorNode(Node):
                     'dropped_implausible': self._dropped_implausible,
                     'method': self.get_parameter('method').value,
                     'calibration_file': str(self._calibration_path),
+                    **self._guidance_values(),
                 },
             )
         )

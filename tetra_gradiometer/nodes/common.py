@@ -63,13 +63,13 @@ def derived_qos(depth: int = DERIVED_DEPTH) -> Any:
     )
 
 
-def latched_qos() -> Any:
-    """Reliable, transient-local, depth 1: late joiners get the last message."""
+def latched_qos(depth: int = 1) -> Any:
+    """Reliable, transient-local, keep last ``depth``: late joiners get the last messages."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
-        depth=1,
+        depth=depth,
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )

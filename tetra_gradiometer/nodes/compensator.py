@@ -23,6 +23,7 @@ with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import numpy as np
@@ -33,10 +34,12 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from ..core import InterferenceParameters, TetraGeometry, compensate
+from ..core.health import MIN_SOURCE_RANGE_EDGES, HealthConfig, HealthMonitor
 from ..core.metrics import epsilon_terms
 from ..core.plausibility import plausible_readings
 from ..core.uncertainty import SigmaModel
-from ..core.units import NT_PER_T
+from ..core.units import NT_PER_T, S_PER_NS
+from ..errors import InputError
 from ..io import conversions as cv
 from ..io.calibration import (
     CalibrationFile,
@@ -45,6 +48,7 @@ from ..io.calibration import (
     load_calibration,
 )
 from .common import (
+    ERROR,
     NAMESPACE,
     OK,
     POSITIONS_SPEC,
@@ -88,9 +92,24 @@ PARAMETERS = [
         non_negative,
         float_range=(0.0, 1e-6),
     ),
+    ParamSpec(
+        'health_false_alarms_per_hour',
+        0.01,
+        'Health monitor (core/health.py): design false-alarm rate, per hour (1e-6 to 60).',
+        float_range=(1e-6, 60.0),
+    ),
+    ParamSpec(
+        'health_min_source_range_edges',
+        20.0,
+        'Health monitor: sources closer than this many longest edges may raise an alarm '
+        '(their differencing asymmetry is not bounded); 14 to 1000.',
+        float_range=(MIN_SOURCE_RANGE_EDGES, 1000.0),
+    ),
     WARN_THROTTLE_SPEC,
     diagnostics_period_spec(),
 ]
+#: Seconds between feeds of the health monitor (it works on chunks; ~1 ms per call).
+HEALTH_PERIOD_S = 0.1
 
 
 class CompensatorNode(Node):
@@ -112,6 +131,14 @@ class CompensatorNode(Node):
         self._noise = float(p['sensor_noise_t'])
         self._sigma: SigmaModel | None = None
         self._sigma_text = ''
+        self._health_config = HealthConfig(
+            false_alarms_per_hour=p['health_false_alarms_per_hour'],
+            min_source_range_edges=p['health_min_source_range_edges'],
+        )
+        self._health: HealthMonitor | None = None
+        self._health_text = 'off: no calibration'
+        self._health_buffer: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self._health_sent: dict[int, bool] = {}  # alarm index -> settled when published
         self._set_sigma(None)
         self.published = 0
         self.dropped_non_finite = 0
@@ -123,6 +150,7 @@ class CompensatorNode(Node):
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         self._load_file(str(resolve_node_path(p['calibration_file'])))
         self.create_subscription(String, 'calibration', self._on_calibration, latched_qos())
         self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
@@ -132,6 +160,7 @@ class CompensatorNode(Node):
         self.create_subscription(JointState, 'gradient/truth', self._on_truth, derived_qos())
         self.create_service(Trigger, '~/reset_metrics', self._on_reset)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.create_timer(HEALTH_PERIOD_S, self._feed_health)
 
     # ----------------------------------------------------------------- calibration
 
@@ -187,6 +216,47 @@ class CompensatorNode(Node):
                 ' and parameter covariance' if calibration.covariance is not None else ' only'
             )
         self._sigma_text = f'{terms}, {noise * NT_PER_T:.3g} nT from {source}'
+        self._start_health(calibration, noise)
+
+    def _start_health(self, calibration: CalibrationFile | None, noise: float) -> None:
+        """A fresh monitor for ``calibration`` (a new calibration clears every alarm)."""
+        self._health_buffer, self._health_sent = [], {}
+        if calibration is None:
+            self._health, self._health_text = None, 'off: no calibration'
+            return
+        self._health = HealthMonitor(
+            self._geometry,
+            calibration.parameters,
+            noise,
+            calibration.covariance,
+            self._health_config,
+        )
+        self._health_text = 'watching'
+
+    def _feed_health(self) -> None:
+        """Feed the buffered samples to the monitor; publish new (and newly settled) alarms."""
+        monitor, buffered = self._health, self._health_buffer
+        if monitor is None or not buffered:
+            return
+        self._health_buffer = []
+        t_s, g, b = (np.array(column) for column in zip(*buffered, strict=True))
+        try:
+            monitor.update(t_s, g, b)
+        except InputError as error:  # stamps that do not advance: the monitor stops
+            self._health, self._health_text = None, f'off: {error}'
+            self.get_logger().warning(f'health monitor stopped: {error}')
+            return
+        for index, alarm in enumerate(monitor.alarms):
+            if self._health_sent.get(index) == alarm.settled:
+                continue
+            self._health_sent[index] = alarm.settled
+            document = alarm.to_dict()
+            self._alarm_pub.publish(String(data=json.dumps(document)))
+            self.get_logger().error(
+                f'health alarm: {alarm.kind} at t={alarm.t_s:.3f} s, sensors {list(alarm.sensors)}'
+                f' (statistic {alarm.statistic:.1f} > {alarm.threshold:.1f})'
+                + ('' if alarm.settled else '; attribution to be confirmed')
+            )
 
     def _refuse(self, reason: str) -> None:
         self._problem = reason
@@ -222,6 +292,8 @@ class CompensatorNode(Node):
             return
         self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
         self._norm_pub.publish(Float64(data=norm_nt))
+        if self._health is not None:
+            self._health_buffer.append((stamp_ns * S_PER_NS, g, b_reference))
         if self._sigma is not None:
             sigma = self._sigma.one(b_reference)
             if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
@@ -293,7 +365,35 @@ class CompensatorNode(Node):
                 },
             )
         )
+        array.status.append(self._health_status())
         self._diag_pub.publish(array)
+
+    def _health_status(self) -> Any:
+        """``tetra/compensator: health``: ERROR after an alarm (until a new calibration), WARN
+        when the statistic passes half the threshold or the monitor is off, else OK."""
+        monitor = self._health
+        if monitor is None:
+            return status('tetra/compensator: health', WARN, self._health_text, cv.ARRAY_FRAME, {})
+        values: dict[str, Any] = {
+            'statistic': monitor.last_glr,
+            'drift_statistic': monitor.last_drift,
+            'threshold': monitor.threshold,
+            'alarms': len(monitor.alarms),
+            'noise_scale': monitor.noise_scale,
+            'samples': monitor.samples,
+        }
+        if monitor.alarms:
+            alarm = monitor.alarms[-1]
+            values.update(kind=alarm.kind, sensors=str(list(alarm.sensors)), t_s=alarm.t_s)
+            text = (
+                f'ALARM: {alarm.kind} at t={alarm.t_s:.1f} s, sensors {list(alarm.sensors)}: '
+                'the calibration no longer holds; recalibrate'
+            )
+            return status('tetra/compensator: health', ERROR, text, cv.ARRAY_FRAME, values)
+        rising = max(monitor.last_glr, monitor.last_drift) > 0.5 * monitor.threshold
+        level = WARN if rising else OK
+        text = 'statistic above half the threshold' if rising else self._health_text
+        return status('tetra/compensator: health', level, text, cv.ARRAY_FRAME, values)
 
 
 def main(args: list[str] | None = None) -> int:
