@@ -82,7 +82,11 @@ def evaluate(label: str, scenario: str, out: Path) -> list[dict]:
         t0 = time.perf_counter()
         cli('calibrate', bag, '--params', params, '--window', WINDOW, '--out', calib, '--force', *options)
         t_cal = time.perf_counter() - t0
-        cli('compensate', bag, '--params', params, '--calibration', calib, '--csv', out / f'{slug}_{name}.csv', '--force')
+        # constraint_lstsq and paper_ga estimate no sensor noise: give the simulated one for the
+        # sigma columns (compensate refuses a calibration without any noise figure).
+        noise = ('--sensor-noise-nt', float(truth['noise_t']) * 1e9)
+        cli('compensate', bag, '--params', params, '--calibration', calib, '--csv', out / f'{slug}_{name}.csv',
+            '--force', *noise)
         g_after = read_csv(out / f'{slug}_{name}.csv')[survey]
         import yaml
         diagnostics = yaml.safe_load(calib.read_text())['diagnostics']
