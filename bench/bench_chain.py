@@ -52,7 +52,11 @@ def main() -> int:
     vehicle = core.random_interference(rng, reference_clean=False)
     folder = Path(tempfile.mkdtemp(prefix='tg_bench_'))
     calibration = folder / 'calibration.yaml'
-    save_calibration(calibration, CalibrationFile(vehicle.effective_parameters(), 'bench', False, geometry.to_flat()))
+    # With a noise figure and a covariance, so the compensator also computes gradient/sigma and
+    # runs its health monitor (issue 12): the throughput target holds with both.
+    covariance = np.diag(np.r_[np.full(27, 1e-12), np.full(9, 1e-22)])
+    save_calibration(calibration, CalibrationFile(vehicle.effective_parameters(), 'bench', False, geometry.to_flat(),
+                                                  sensor_noise_t=1e-10, covariance=covariance))
     fields = vehicle.apply(np.tile([0.0, 2e-5, -4.5e-5], (1, 4, 1)), np.array([[0.0, 2e-5, -4.5e-5]]))[0]
 
     processes = [NodeProcess('tensor', domain, {'sensor_queue_depth': 200}),

@@ -34,7 +34,7 @@ from tetra_gradiometer.core.design import interference_design  # noqa: E402
 from tetra_gradiometer.core.identification import (constraint_lstsq, known_gradient_lstsq,  # noqa: E402
                                                    paper_ga, pei_yeo_2009)
 from tetra_gradiometer.core.identification._linear import solve_scaled  # noqa: E402
-from tetra_gradiometer.core.identification.lstsq import _noise_whitener  # noqa: E402
+from tetra_gradiometer.core.identification.lstsq import noise_whitener  # noqa: E402
 from tetra_gradiometer.core.paper import PAPER_B_HARD_NT, PAPER_K  # noqa: E402
 
 TARGET_SECONDS = 0.050  # 27 parameters from 10 000 samples
@@ -43,7 +43,7 @@ TARGET_SECONDS = 0.050  # 27 parameters from 10 000 samples
 def dense_known_gradient(g_measured, b_reference, geometry, *, symmetric_k):
     """The previous implementation: whitened (N, 9, P) design, SVD of the 9N x P matrix."""
     n = len(g_measured)
-    whitener = _noise_whitener(geometry)
+    whitener = noise_whitener(geometry)
     design = interference_design(b_reference, geometry, symmetric=symmetric_k)
     n_par = design.shape[2]
     design_w = np.einsum('nRjp,jk->nRkp', design.reshape(n, 3, 3, n_par), whitener).reshape(-1, n_par)

@@ -238,16 +238,13 @@ def _refusal(node: Any, spec: ParamSpec, error: Exception) -> str:
     return f'{head}: {reason or error}'
 
 
-#: Keys of the shared params file that no node declares (read by the offline tools).
-OFFLINE_PARAMETERS = frozenset({'earth_field_enu'})
-
-
 def suite_parameter_names() -> frozenset[str]:
-    """Every name a node of this package declares, and :data:`OFFLINE_PARAMETERS`."""
+    """Every name a node of this package declares (``earth_field_enu``, which the offline tools
+    also read, is the calibrator's)."""
     from . import calibrator, compensator, driver, tensor
 
     modules = (driver, tensor, calibrator, compensator)
-    return frozenset(s.name for m in modules for s in m.PARAMETERS) | OFFLINE_PARAMETERS
+    return frozenset(s.name for m in modules for s in m.PARAMETERS)
 
 
 def command_line_parameters(args: list[str] | None, node_name: str) -> dict[str, str]:

@@ -15,8 +15,8 @@ from ..identification._linear import AffineReduction, solve_scaled
 from ..identification.lstsq import (
     MAX_COVERAGE_CONDITION,
     MIN_SAMPLES,
-    _noise_whitener,
-    _reduced_design,
+    noise_whitener,
+    reduced_design,
 )
 from ..model import InterferenceParameters, n_parameters
 from ..simulator import TrimManoeuvre
@@ -106,9 +106,9 @@ def _whitened_design(
     reduction: AffineReduction, geometry: TetraGeometry, symmetric: bool
 ) -> FloatArray:
     """The whitened design at the pseudo-samples, (36, P), as ``known_gradient_lstsq``."""
-    design = _reduced_design(reduction, geometry, symmetric=symmetric)
+    design = reduced_design(reduction, geometry, symmetric=symmetric)
     p = design.shape[2]
-    whitener = _noise_whitener(geometry)
+    whitener = noise_whitener(geometry)
     return np.einsum('nRjp,jk->nRkp', design.reshape(4, 3, 3, p), whitener).reshape(-1, p)
 
 

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from .._validate import as_array, as_tensors, as_vectors, same_length
 from ..geometry import TetraGeometry
-from ..identification.lstsq import _noise_whitener
+from ..identification.lstsq import noise_whitener
 from ..types import ArrayLike, FloatArray, IntArray
 
 __all__ = [
@@ -232,7 +232,7 @@ def trim_statistics(
     n = same_length(b_reference=b, g_measured=g)
     if n == 0:
         return TrimStatistics.empty()
-    targets = (g @ _noise_whitener(geometry)).reshape(n, 9)
+    targets = (g @ noise_whitener(geometry)).reshape(n, 9)
     ref = targets[0].copy() if reference is None else as_array(reference, 'reference', (9,))
     shifted = targets - ref
     x = np.column_stack([b, np.ones(n)]) / REGRESSOR_UNIT

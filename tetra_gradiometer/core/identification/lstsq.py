@@ -54,7 +54,7 @@ def attitude_coverage(b_reference: ArrayLike) -> float:
     return float('inf') if singular[-1] == 0.0 else float(singular[0] / singular[-1])
 
 
-def _noise_whitener(geometry: TetraGeometry) -> FloatArray:
+def noise_whitener(geometry: TetraGeometry) -> FloatArray:
     """Right-multiplier making each tensor row's noise white for i.i.d. sensor noise.
 
     A tensor row is ``e a^-1`` with ``e = (n_2 - n_1, n_3 - n_1, n_4 - n_1)`` per axis,
@@ -63,7 +63,7 @@ def _noise_whitener(geometry: TetraGeometry) -> FloatArray:
     return geometry.a @ (np.eye(3) - np.ones((3, 3)) / 6.0)
 
 
-def _reduced_design(
+def reduced_design(
     reduction: AffineReduction, geometry: TetraGeometry, *, symmetric: bool
 ) -> FloatArray:
     """The interference design (eq. 18) at the 4 pseudo-samples of ``reduction``, (4, 9, P):
@@ -131,12 +131,12 @@ def known_gradient_lstsq(
             f'condition number {coverage:.3g} > {max_coverage_condition:.3g}); '
             'turn, roll and pitch more'
         )
-    whitener = _noise_whitener(geometry)
+    whitener = noise_whitener(geometry)
     target_w = (g_measured - g_true) @ whitener  # (N, 3, 3): rows of G, whitened columns
     # The whitened design is linear in x_n = (B_1', 1): reduce the 9N x P problem exactly to
     # 36 x P (see reduce_affine) and solve that by the same scaled SVD.
     reduction = reduce_affine(b_reference, target_w.reshape(n, 9))
-    design = _reduced_design(reduction, geometry, symmetric=symmetric_k)
+    design = reduced_design(reduction, geometry, symmetric=symmetric_k)
     n_par = design.shape[2]
     design_w = np.einsum('nRjp,jk->nRkp', design.reshape(4, 3, 3, n_par), whitener).reshape(
         -1, n_par
@@ -220,7 +220,7 @@ def constraint_lstsq(
     # Same reduction as known_gradient_lstsq: 4N x P -> 16 x P with the same normal matrix,
     # right-hand side and singular values (the objective differs by a constant).
     reduction = reduce_affine(b_reference, constraint_residual(g_measured))
-    reduced = _reduced_design(reduction, geometry, symmetric=symmetric_k)
+    reduced = reduced_design(reduction, geometry, symmetric=symmetric_k)
     design = np.einsum('kq,nqp->nkp', CONSTRAINT_ROWS, reduced).reshape(-1, reduced.shape[2])
     target = reduction.targets.reshape(-1)
     solution = solve_scaled(design, target)
