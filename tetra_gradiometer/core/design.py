@@ -57,6 +57,15 @@ def interference_design(
     return np.concatenate([k_columns, np.broadcast_to(b_columns, (n, 9, 9))], axis=2)
 
 
+def affine_interference_design(geometry: TetraGeometry, *, symmetric: bool) -> FloatArray:
+    """``M`` (4, 9, P) with ``A(B_1') = sum_c B_1',c M_c + M_3``: eq. 18's design is affine in
+    ``B_1'``, so its value at the unit vectors and at zero gives the ``M_c`` exactly."""
+    basis = np.vstack([np.eye(3), np.zeros(3)])
+    design = interference_design(basis, geometry, symmetric=symmetric).copy()
+    design[:3] -= design[3]
+    return design
+
+
 def constraint_residual(g: np.ndarray) -> FloatArray:
     """The four eq. 20 quantities of each tensor, shape (N, 4), T/m (zero for a true gradient)."""
     return g.reshape(len(g), 9) @ CONSTRAINT_ROWS.T

@@ -47,11 +47,12 @@ from scipy.stats import chi2
 
 from ..errors import InputError
 from ._validate import as_array, as_tensors, as_vectors, same_length
-from .design import CONSTRAINT_ROWS, constraint_design, constraint_residual
+from .design import CONSTRAINT_ROWS, affine_interference_design, constraint_residual
 from .geometry import TetraGeometry
 from .model import InterferenceParameters
 from .types import FloatArray
-from .uncertainty import noise_jacobian
+from .uncertainty import check_covariance, noise_jacobian
+from .units import NT_PER_T
 
 __all__ = ['Alarm', 'HealthConfig', 'HealthMonitor', 'HealthTrace', 'alarm_threshold']
 
@@ -144,7 +145,7 @@ class Alarm:
             'sensors': [int(s) for s in self.sensors],
             'statistic': float(self.statistic),
             'threshold': float(self.threshold),
-            'shift_nT_per_m': [float(v) * 1e9 for v in self.shift_t_per_m],
+            'shift_nT_per_m': [float(v) * NT_PER_T for v in self.shift_t_per_m],
             'settled': self.settled,
         }
 
@@ -546,13 +547,7 @@ def _bias_form(geometry: TetraGeometry, covariance: np.ndarray | None) -> FloatA
     """
     if covariance is None:
         return np.zeros((4, 4))
-    covariance = np.asarray(covariance, dtype=float)
-    if covariance.shape not in ((27, 27), (36, 36)) or not np.all(np.isfinite(covariance)):
-        raise InputError(
-            f'covariance must be a finite (27, 27) or (36, 36) array, got {covariance.shape}'
-        )
-    symmetric = covariance.shape == (27, 27)
-    points = np.vstack([np.zeros(3), np.eye(3)])  # B_1' = 0 (offsets only), then unit fields
-    designs = constraint_design(points, geometry, symmetric=symmetric)  # (4, 4, P)
-    h = np.concatenate([designs[1:] - designs[:1], designs[:1]])  # H_x, H_y, H_z, H_1
+    covariance, symmetric = check_covariance(covariance)
+    design = affine_interference_design(geometry, symmetric=symmetric)  # (4, 9, P)
+    h = np.einsum('kq,cqp->ckp', CONSTRAINT_ROWS, design)  # H_x, H_y, H_z, H_1
     return np.einsum('ckp,pq,dkq->cd', h, covariance, h)

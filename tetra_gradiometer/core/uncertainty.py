@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 from ._validate import as_vectors, frozen_array
-from .design import interference_design
+from .design import affine_interference_design
 from .geometry import TetraGeometry
 from .model import InterferenceParameters
 from .types import ArrayLike, FloatArray
@@ -59,6 +59,23 @@ def noise_jacobian(
     # Sensor 1: dG[i, j]/dB_1[m] = -sum_k a_inv[k, j] (delta(i, m) + K_k[i, m]).
     jacobian[:, :, 0, :] = -np.einsum('kj,kim->ijm', a_inv, eye[None] + k_soft)
     return jacobian.reshape(9, 12)
+
+
+def check_covariance(covariance: ArrayLike) -> tuple[FloatArray, bool]:
+    """A parameter covariance as a float array, and whether it is of the 27 symmetric
+    parameters (else the 36 general ones).
+
+    Raises
+    ------
+    InputError
+        Not a finite (27, 27) or (36, 36) array.
+    """
+    covariance = np.asarray(covariance, dtype=float)
+    if covariance.shape not in ((27, 27), (36, 36)) or not np.all(np.isfinite(covariance)):
+        raise InputError(
+            f'covariance must be a finite (27, 27) or (36, 36) array, got {covariance.shape}'
+        )
+    return covariance, covariance.shape == (27, 27)
 
 
 def noise_sigma(
@@ -145,18 +162,8 @@ class SigmaModel:
         form = np.zeros((9, 4, 4))
         form[:, 3, 3] = (noise_sigma(geometry, sensor_noise_t, parameters) ** 2).reshape(9)
         if covariance is not None:
-            covariance = np.asarray(covariance, dtype=float)
-            if covariance.shape not in ((27, 27), (36, 36)) or not np.all(np.isfinite(covariance)):
-                raise InputError(
-                    'covariance must be a finite (27, 27) or (36, 36) array, '
-                    f'got {covariance.shape}'
-                )
-            symmetric = covariance.shape == (27, 27)
-            # A(B) = sum_c B_c M_c + M_3: the design at the unit vectors and at zero gives
-            # the M_c exactly (no fit, no step size).
-            basis = np.vstack([np.eye(3), np.zeros(3)])
-            design = interference_design(basis, geometry, symmetric=symmetric).copy()
-            design[:3] -= design[3]  # (4, 9, P): M_0, M_1, M_2, M_3
+            covariance, symmetric = check_covariance(covariance)
+            design = affine_interference_design(geometry, symmetric=symmetric)  # (4, 9, P)
             form += np.einsum('cqp,pr,dqr->qcd', design, covariance, design)
         return cls(form)
 
