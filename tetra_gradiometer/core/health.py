@@ -70,6 +70,7 @@ MIN_SOURCE_RANGE_EDGES = 14.0
 #: noise scale (1).
 N_FEATURES = 15
 PHYSICAL = slice(5, 14)
+NOISE_SCALE = 14
 #: Successive differences needed before the online noise estimate is used.
 MIN_NOISE_DIFFERENCES = 50
 
@@ -215,10 +216,6 @@ class HealthMonitor:
         self.noise_scale = 1.0
 
     # ------------------------------------------------------------------ public
-
-    @property
-    def alarmed(self) -> bool:
-        return bool(self.alarms)
 
     def update(
         self, t_s: np.ndarray, g_compensated: np.ndarray, b_reference: np.ndarray
@@ -379,7 +376,11 @@ class HealthMonitor:
         """chi2(1) misfit (4,) of each sensor's offset-jump hypothesis for the jump between
         two ``w``-sample mean feature rows."""
         jump_y, jump_physical = recent[:4] - earlier[:4], recent[PHYSICAL] - earlier[PHYSICAL]
-        noise = self._eigenvalues * (recent[14] + earlier[14]) / w + recent[4] + earlier[4]
+        noise = (
+            self._eigenvalues * (recent[NOISE_SCALE] + earlier[NOISE_SCALE]) / w
+            + recent[4]
+            + earlier[4]
+        )
         misfit = np.zeros(4)
         for s, (design, physical) in enumerate(
             zip(self._y_signatures, self._physical_signatures, strict=True)
@@ -398,7 +399,7 @@ class HealthMonitor:
         level tests and the jump tests, and the window's mean shift and spread (n, 4) and its
         length in samples (negative: a jump test)."""
         n = len(features) - held
-        d = self._eigenvalues * features[held:, 14, None]  # (n, 4) at each window's end
+        d = self._eigenvalues * features[held:, NOISE_SCALE, None]  # (n, 4) at each window's end
         level_var = self._eigenvalues / self._level_n + self._level_bias
         sums = np.vstack([np.zeros((1, N_FEATURES)), np.cumsum(features, axis=0)])
         end = np.arange(held + 1, held + n + 1)  # exclusive window ends of the new samples
@@ -444,7 +445,7 @@ class HealthMonitor:
         weight = drift[:, 5]
         drift_mean = drift[:, :4] / weight[:, None]
         drift_spread = (
-            self._eigenvalues * new[:, 14, None] * (drift_variance / weight**2)[:, None]
+            self._eigenvalues * new[:, NOISE_SCALE, None] * (drift_variance / weight**2)[:, None]
             + (drift[:, 4] / weight)[:, None]
             + self._eigenvalues / self._level_n
             + self._level_bias
