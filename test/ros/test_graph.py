@@ -100,7 +100,10 @@ def test_replayed_bags_give_the_offline_core_tensors(tmp_path):
         assert probe.call('calibrator/start').success
         assert probe.call('driver/resume').success
         wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'trim replay', graph)
-        time.sleep(0.5)
+        # The driver paces on the tensor node; the calibrator (a process of its own, with its
+        # trim guidance) may still be working through its queue: let it, before stopping.
+        wait_for(lambda: _diag(probe, 'tetra/calibrator: calibration').get('samples') == '1200', 20,
+                 'the calibrator to take every set', graph)
         assert probe.call('calibrator/stop').success
         reply = probe.call('calibrator/calibrate', timeout_s=60)
         assert reply.success, reply.message
