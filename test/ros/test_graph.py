@@ -34,6 +34,22 @@ def _wait_discovered(probe, graph) -> None:
     time.sleep(0.5)
 
 
+def _wait_calibrator_idle(probe, graph) -> None:
+    """The calibrator (a process of its own) may still be working through its queue when
+    the driver holds: wait until its sample count has not grown for 2.5 s (diagnostics
+    come at 1 Hz) before ``~/stop``, so the test measures transit losses, not load."""
+    last = {'samples': None, 'since': time.monotonic()}
+
+    def idle() -> bool:
+        samples, now = _diag(probe, 'tetra/calibrator: calibration').get('samples'), time.monotonic()
+        if samples != last['samples']:
+            last.update(samples=samples, since=now)
+            return False
+        return samples is not None and now - last['since'] > 2.5
+
+    wait_for(idle, 60, 'the calibrator to take every set', graph)
+
+
 def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulator_truth(tmp_path):
     calibration_file = tmp_path / 'calibration.yaml'
     scenario, seed = load_scenario_or_default()
@@ -54,6 +70,7 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
         assert probe.call('calibrator/start').success
         assert probe.call('driver/resume').success
         wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'holding', 60, 'end of trim', graph)
+        _wait_calibrator_idle(probe, graph)
         assert probe.call('calibrator/stop').success
         reply = probe.call('calibrator/calibrate', timeout_s=60)
         assert reply.success, reply.message
