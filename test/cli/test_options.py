@@ -40,6 +40,17 @@ BAD = [
         for command in ('compensate', 'calibrate')
         for value in ('inf', 'nan', '-1', '1e9', '0', 'abc', '1000.001')
     ],
+    # how sets are formed (calibrate, compensate)
+    *[
+        (command, option, value, fragment)
+        for command in ('compensate', 'calibrate')
+        for option, fragment, values in (
+            ('--reference-rate-hz', ('0 <= x <= 10000 Hz',), ('-1', 'nan', 'inf', '10001', 'x')),
+            ('--max-gap-periods', ('1 <= x <= 1000',), ('0.5', 'nan', 'inf', '1001', 'x')),
+        )
+        for value in values
+    ],
+    ('compensate', '--sync', 'spline', ("invalid choice: 'spline'",)),
     # compensate
     *[('compensate', '--sensor-noise-nt', value, ('0 < x <= 1000 nT',)) for value in ('0', '-1', 'nan', 'inf', '1001', 'x')],
     *[('compensate', '--false-alarms-per-hour', value, ('0 < x <= 60 per hour',)) for value in ('0', '-1', 'nan', '61')],
@@ -163,6 +174,11 @@ def _parse(command, *options):
 
 @pytest.mark.parametrize('command, options, attribute, expected', [
     ('compensate', [], 'tolerance_ms', 2.0),
+    ('compensate', [], 'sync', 'interpolate'),
+    ('compensate', [], 'reference_rate_hz', 0.0),
+    ('calibrate', ['--reference-rate-hz', '100'], 'reference_rate_hz', 100.0),
+    ('calibrate', [], 'max_gap_periods', 3.0),
+    ('calibrate', ['--max-gap-periods', '1000'], 'max_gap_periods', 1000.0),
     ('compensate', ['--tolerance-ms', '1000'], 'tolerance_ms', 1000.0),
     ('calibrate', ['--tolerance-ms', '0.001'], 'tolerance_ms', 0.001),
     ('calibrate', [], 'window', None),

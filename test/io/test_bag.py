@@ -4,6 +4,8 @@ contract check."""
 import numpy as np
 import pytest
 
+from tetra_gradiometer.core.timebase import TimeBase
+
 from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io import matching
 from tetra_gradiometer.io.bag import (BagError, BagWriter, MagneticBag, _UnsupportedEncoding, decode_magnetic_field,
@@ -101,24 +103,31 @@ def _read(path, **options):
 
 
 @pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
-def test_fast_reading_equals_the_generic_path(tmp_path, storage):
+@pytest.mark.parametrize('sync', ['interpolate', 'nearest'])
+def test_fast_reading_equals_the_generic_path(tmp_path, storage, sync):
     streams = _irregular_streams(np.random.default_rng(11))
     _write_streams(tmp_path / 'bag', streams, storage)
-    generic = _read(tmp_path / 'bag', fast=False, chunk_size=20_000)
+    timebase = TimeBase(sync=sync)
+    generic = _read(tmp_path / 'bag', fast=False, chunk_size=20_000, timebase=timebase)
     for chunk_size in (1, 97, 1000, 20_000):
-        fast = _read(tmp_path / 'bag', fast=True, chunk_size=chunk_size)
+        fast = _read(tmp_path / 'bag', fast=True, chunk_size=chunk_size, timebase=timebase)
         assert np.array_equal(fast[0], generic[0])
         assert np.array_equal(fast[1], generic[1])
         assert fast[2] == generic[2]
-    window = _read(tmp_path / 'bag', fast=True, chunk_size=500, window_s=(3.0, 7.5))
-    window_generic = _read(tmp_path / 'bag', fast=False, window_s=(3.0, 7.5))
+    window = _read(tmp_path / 'bag', fast=True, chunk_size=500, window_s=(3.0, 7.5), timebase=timebase)
+    window_generic = _read(tmp_path / 'bag', fast=False, window_s=(3.0, 7.5), timebase=timebase)
     assert np.array_equal(window[0], window_generic[0]) and np.array_equal(window[1], window_generic[1])
     # Independent truth for the sets themselves: the clean stretch comes back verbatim.
     stamps, fields, counters = generic
     assert np.array_equal(stamps[:1500], streams[0][0][:1500])
     for sensor in range(4):
         assert np.array_equal(fields[:1500, sensor], streams[sensor][1][:1500])
-    assert counters.dropped_messages > 0 and counters.out_of_order == 1
+    assert counters.out_of_order == 1
+    if sync == 'nearest':
+        assert counters.dropped_messages > 0
+    else:  # the lost message and the jitter are interpolated across: every instant but none
+        assert counters.sets == 3000 and counters.skipped == 0
+        assert np.array_equal(stamps, streams[0][0])
 
 
 def test_a_synchronised_bag_takes_the_array_path(tmp_path, monkeypatch):
@@ -130,10 +139,13 @@ def test_a_synchronised_bag_takes_the_array_path(tmp_path, monkeypatch):
     calls = []
     original = matching.StampMatcher.add
     monkeypatch.setattr(matching.StampMatcher, 'add', lambda self, *a: calls.append(1) or original(self, *a))
-    got_stamps, got_fields, counters = _read(tmp_path / 'bag', chunk_size=700)
+    got_stamps, got_fields, counters = _read(tmp_path / 'bag', chunk_size=700, timebase=TimeBase(sync='nearest'))
     assert calls == []
     assert np.array_equal(got_stamps, stamps) and np.array_equal(got_fields, fields)
     assert counters.matched == 5000 and counters.dropped_messages == 0
+    # Resampling gives the very same sets (exact stamps take their own samples).
+    again = _read(tmp_path / 'bag', chunk_size=700)
+    assert np.array_equal(again[0], stamps) and np.array_equal(again[1], fields)
 
 
 def test_bag_without_magnetometers_is_refused(tmp_path):

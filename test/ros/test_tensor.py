@@ -35,8 +35,9 @@ def _tensor_graph_feed(feeder, probe, graph, n: int, start: int, bad: dict[int, 
 
 
 def test_non_finite_and_implausible_readings_drop_the_set_and_nothing_non_finite_is_published():
+    """Pairing stamps (sync nearest): a bad reading costs its set."""
     with ros_graph() as (graph, probe, feeder):
-        tensor = graph.start('tensor', warn_throttle_s=30.0, diagnostics_period_s=0.2)
+        tensor = graph.start('tensor', warn_throttle_s=30.0, diagnostics_period_s=0.2, sync='nearest')
         for publisher in feeder.mags:
             wait_matched(publisher, 1)
         wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 1, 20, 'tensor node', graph)
@@ -63,6 +64,36 @@ def test_non_finite_and_implausible_readings_drop_the_set_and_nothing_non_finite
     assert matching['messages_dropped_unmatched'] == '0'
     assert per_sensor == [1, 11, 1, 1]
     assert 1 <= log.count('dropped a set') <= 2  # warned, and throttled
+
+
+def test_resampling_interpolates_across_a_bad_reading_and_skips_a_long_gap():
+    """Resampling (the default): a bad reading costs its own set (dropped and counted, as
+    when pairing) and is never interpolated into its neighbours; ten in a row leave a gap
+    beyond 3 periods: the sets after it wait for two good earlier samples."""
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('tensor', warn_throttle_s=30.0, diagnostics_period_s=0.2)
+        for publisher in feeder.mags:
+            wait_matched(publisher, 1)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 1, 20, 'tensor node', graph)
+        time.sleep(0.5)
+        with probe.lock:
+            probe.collecting = True
+        bad = {10: (1, float('nan')), 11: (2, float('inf')), 12: (3, 2e-3), 13: (0, -float('inf')),
+               **{i: (1, float('nan')) for i in range(20, 30)}}
+        _tensor_graph_feed(feeder, probe, graph, 60, 0, bad)
+        # The streams share their stamps: every other instant is an exact sample of each sensor.
+        expected = [T0 + i * 10**8 for i in range(60) if i not in bad]
+        wait_for(lambda: probe.counts['gradient/raw'] >= len(expected), 10, f'tensors ({probe.counts})', graph)
+        time.sleep(0.5)
+        raw = dict(probe.tensors['gradient/raw'])
+        wait_for(lambda: [_diag(probe, f'tetra/tensor: mag{s}').get('dropped_invalid') for s in range(1, 5)]
+                 == ['1', '11', '1', '1'], 5, 'per-sensor refusals', graph)
+        matching = _diag(probe, 'tetra/tensor: matching')
+    assert sorted(raw) == expected
+    tensors = np.array(list(raw.values()))
+    np.testing.assert_allclose(tensors, np.broadcast_to(G_KNOWN, tensors.shape), rtol=0, atol=1e-10 * NT)
+    assert matching['sets_dropped_invalid'] == '14' and matching['sets_skipped_gap'] == '0'
+    assert matching['sets_matched'] == '60'
 
 
 def test_a_silent_sensor_is_an_error_on_diagnostics_and_no_tensor_is_published_until_it_returns():

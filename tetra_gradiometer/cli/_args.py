@@ -13,6 +13,8 @@ import argparse
 import math
 from collections.abc import Callable
 
+from ..core.timebase import SYNC_METHODS, TimeBase
+from ..core.units import S_PER_MS
 from ..errors import InputError
 
 __all__ = [
@@ -22,6 +24,7 @@ __all__ = [
     'add_bag_arguments',
     'add_force_argument',
     'add_progress_arguments',
+    'timebase_from_args',
     'finite_float',
     'int_range',
     'parse_window',
@@ -39,6 +42,10 @@ MAX_RATE = 1_000.0
 
 #: ``--tolerance-ms`` range: above 0; at most 1 s (a set spread over more is not a set).
 MAX_TOLERANCE_MS = 1000.0
+#: ``--reference-rate-hz`` range: 0 (sensor 1's stamps) to 10 kHz.
+MAX_REFERENCE_RATE_HZ = 10_000.0
+#: ``--max-gap-periods`` range: 1 (no gap at all) to 1000.
+MAX_GAP_PERIODS = 1000.0
 
 _WINDOW_FORMAT = '--window must be T0:T1 in seconds from the first stamp'
 
@@ -167,13 +174,47 @@ def add_force_argument(parser: argparse.ArgumentParser, what: str) -> None:
 
 
 def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
-    """The input of the offline commands: ``BAG``, ``--params``, ``--tolerance-ms``."""
+    """The input of the offline commands: ``BAG``, ``--params`` and how sets are formed
+    (``--sync``, ``--reference-rate-hz``, ``--max-gap-periods``, ``--tolerance-ms``)."""
     parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) following the data contract')
     parser.add_argument('--params', required=True, help='ROS 2 params YAML with sensor_positions')
+    parser.add_argument(
+        '--sync',
+        choices=SYNC_METHODS,
+        default='interpolate',
+        help="how the four sensors' readings become sets: 'interpolate' (default) resamples "
+        "each sensor to the reference instants (sensors on their own clocks, stamps = sample "
+        "times); 'nearest' pairs stamps within --tolerance-ms (sensors sampled together whose "
+        'stamps are arrival times)',
+    )
+    parser.add_argument(
+        '--reference-rate-hz',
+        type=finite_float(0.0, MAX_REFERENCE_RATE_HZ, 'Hz'),
+        default=0.0,
+        help="reference instants: 0 (default) sensor 1's stamps; > 0 a regular grid at this "
+        'rate (interpolate only)',
+    )
+    parser.add_argument(
+        '--max-gap-periods',
+        type=finite_float(1.0, MAX_GAP_PERIODS),
+        default=3.0,
+        help="never interpolate across a gap longer than this many of the sensor's sample "
+        'periods: such sets are skipped and counted (default 3)',
+    )
     parser.add_argument(
         '--tolerance-ms',
         type=positive_float(MAX_TOLERANCE_MS, 'ms'),
         default=2.0,
-        help='largest spread of the four header stamps in one set, 0 < ms <= '
+        help='--sync nearest: largest spread of the four header stamps in one set, 0 < ms <= '
         f'{MAX_TOLERANCE_MS:g} (default 2 ms)',
+    )
+
+
+def timebase_from_args(args: argparse.Namespace) -> TimeBase:
+    """The :class:`~tetra_gradiometer.core.timebase.TimeBase` of :func:`add_bag_arguments`."""
+    return TimeBase(
+        sync=args.sync,
+        reference_rate_hz=args.reference_rate_hz,
+        max_gap_periods=args.max_gap_periods,
+        tolerance_s=args.tolerance_ms * S_PER_MS,
     )

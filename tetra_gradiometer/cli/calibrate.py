@@ -31,7 +31,8 @@ from ..core.identification import (
     MAX_COVERAGE_CONDITION,
     METHODS,
 )
-from ..core.units import NT_PER_T, S_PER_MS
+from ..core.timebase import clocks_text
+from ..core.units import NT_PER_T
 from ..io.bag_calibration import (
     DEFAULT_MAX_SETS,
     MIN_SETS,
@@ -51,6 +52,7 @@ from ._args import (
     finite_float,
     int_range,
     seed_arg,
+    timebase_from_args,
     window_arg,
 )
 
@@ -144,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
         generations=args.generations,
         wide_bounds=args.wide_bounds,
         max_coverage_condition=args.max_coverage_condition,
-        tolerance_s=args.tolerance_ms * S_PER_MS,
+        timebase=timebase_from_args(args),
         max_sets=args.max_sets,
         progress=args.progress,
     )
@@ -199,11 +201,11 @@ def _print_summary(args: argparse.Namespace, result: BagCalibration) -> None:
     print(
         f'calibrated {args.bag}: method {args.method}, window {result.window} '
         f'({result.sets_in_window} sets{every}; read {result.span_s:.1f} s of the bag; '
-        f'{counters.dropped_messages} messages unmatched '
-        f'({counters.evicted_messages} evicted from a full queue), '
-        f'{counters.out_of_order} out of order, '
+        f'{counters.text()}, '
         f'implausible sets dropped: {result.dropped.text()})'
     )
+    if result.clocks is not None:
+        print(f'  {clocks_text(result.clocks)}')
     if result.skipped_summary:
         print(f'  {result.skipped_summary}')
     summary = calibration.summary()

@@ -39,7 +39,8 @@ from pathlib import Path
 
 from ..core.geometry import TetraGeometry
 from ..core.health import HealthConfig
-from ..core.units import NT_PER_T, S_PER_MS
+from ..core.timebase import clocks_text
+from ..core.units import NT_PER_T
 from ..errors import InputError
 from ..io.bag import STORAGES
 from ..io.bag_compensation import (
@@ -56,6 +57,7 @@ from ._args import (
     add_force_argument,
     add_progress_arguments,
     positive_float,
+    timebase_from_args,
 )
 
 #: ``--sensor-noise-nt`` range: the calibration file's bound on ``sensor_noise_T`` (1e-6 T).
@@ -147,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         csv=args.csv,
         out_bag=args.out_bag,
         out_storage=args.out_storage,
-        tolerance_s=args.tolerance_ms * S_PER_MS,
+        timebase=timebase_from_args(args),
         fast=not args.generic_reader,
         progress=args.progress,
         force=args.force,
@@ -158,12 +160,12 @@ def run(args: argparse.Namespace) -> int:
     counters = counts.counters
     print(
         f'{kind} {counts.n_sets} sets from {Path(args.bag)} ({counts.span_s:.1f} s of data; '
-        f'{counters.dropped_messages} messages unmatched '
-        f'({counters.evicted_messages} evicted from a full queue), '
-        f'{counters.out_of_order} out of order, '
+        f'{counters.text()}, '
         f'implausible sets dropped: {counts.dropped.text()}) '
         f'in {elapsed:.1f} s ({counts.n_sets / max(elapsed, 1e-9):.0f} sets/s)'
     )
+    if counts.clocks is not None:
+        print(f'  {clocks_text(counts.clocks)}')
     if counts.skipped_summary:
         print(counts.skipped_summary)
     if args.csv is not None:

@@ -1,6 +1,7 @@
 """ROS-free core: geometry, fields, the interference model, identification, metrics and
 the mission simulator. Imports numpy and scipy only. SI units (T, T/m, m, s)."""
 
+from .clocks import SensorClocks, SensorStream
 from .fields import MU0_OVER_4PI, dipole_field, dipole_gradient, uniform_field
 from .geometry import GeometryError, TetraGeometry, difference_tensor, sensor_differences
 from .identification import (
@@ -40,6 +41,7 @@ from .simulator import (
     SurveyLine,
     TemperatureProfile,
     TrimManoeuvre,
+    check_gradient_tensor,
     random_interference,
     simulate,
 )
@@ -56,13 +58,16 @@ __all__ = [
     'MissionData',
     'ReferenceSensorCalibration',
     'Scenario',
+    'SensorClocks',
     'SensorInterference',
+    'SensorStream',
     'SurveyLine',
     'TemperatureProfile',
     'TensorCalibration',
     'TetraGeometry',
     'TrimManoeuvre',
     'attitude_coverage',
+    'check_gradient_tensor',
     'compensate',
     'compensate_fields',
     'compensated_percent',

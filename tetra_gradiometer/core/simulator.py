@@ -9,9 +9,17 @@ The background that magnetises the vehicle, ``B^b``, is the true (clean) field a
 in the body frame. With a clean sensor 1 the paper's assumption ``B^b = B_1'`` is then
 exact up to noise, and every modelling error comes from an effect switched on here.
 
+The world field is ``B(x) = B_earth + G_w x`` plus the dipoles, with ``G_w`` the regional
+(geological) gradient, uniform, and ``x`` the ENU position from the world origin.
+
 Truth: ``g_true`` is eq. 7 applied to the clean, noise-free fields (what a perfect
 instrument of this geometry reads: the compensation target); ``g_analytic`` is the exact
-gradient at the array centroid (it differs from ``g_true`` by the differencing truncation).
+gradient at the array centroid, ``R^T (G_w + dipole gradients) R`` (it differs from
+``g_true`` by the differencing truncation of the dipoles; a linear field is exact).
+
+Sensor clocks (:mod:`.clocks`): without them the four sensors sample together at ``t``.
+With them each sensor samples on its own instants; the mission's arrays are then taken at
+sensor 1's instants and each sensor's own messages are in ``MissionData.streams``.
 """
 
 from __future__ import annotations
@@ -25,13 +33,16 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ._validate import frozen_array
+from .clocks import SensorClocks, SensorStream, kept_messages, sample_instants, select_streams
 from .fields import dipole_field, dipole_gradient, uniform_field
 from .geometry import TetraGeometry, difference_tensor
 from .model import SensorInterference
-from .types import FloatArray
+from .types import ArrayLike, FloatArray
 from .units import T_PER_NT
 
 _DERIVATIVE_STEP_S = 1.0e-3
+#: Relative tolerance (of the tensor's norm) of the regional gradient's symmetry and trace.
+GRADIENT_TOLERANCE = 1e-9
 
 
 def _require_positive(owner: str, **values: float) -> None:
@@ -39,6 +50,38 @@ def _require_positive(owner: str, **values: float) -> None:
     for name, value in values.items():
         if not (np.isfinite(value) and value > 0):
             raise InputError(f'{owner}.{name} must be positive, got {value}')
+
+
+def check_gradient_tensor(value: ArrayLike, name: str = 'regional_gradient_enu') -> FloatArray:
+    """``value`` as a read-only (3, 3) array once checked to be the uniform gradient
+    ``G[i, j] = dB_i / dx_j`` of a source-free field (symmetric, traceless).
+
+    Parameters
+    ----------
+    value : array_like, shape (3, 3)
+        Any unit (T/m in the core); the checks are relative to its Frobenius norm.
+    name : str
+        What to call it in an error message.
+
+    Raises
+    ------
+    InputError
+        Naming ``name``: not (3, 3) or not finite; not symmetric (a curl) or not traceless
+        (a divergence) beyond :data:`GRADIENT_TOLERANCE` of its norm.
+    """
+    tensor = frozen_array(value, name, (3, 3))
+    tolerance = GRADIENT_TOLERANCE * float(np.linalg.norm(tensor))
+    curl = float(np.linalg.norm(tensor - tensor.T)) / 2
+    if curl > tolerance:
+        raise InputError(
+            f'{name} must be symmetric: |G - G^T|/2 = {curl:.3g} > {GRADIENT_TOLERANCE:g} |G|'
+        )
+    trace = float(np.trace(tensor))
+    if abs(trace) > tolerance:
+        raise InputError(
+            f'{name} must be traceless: trace = {trace:.3g}, |trace| > {GRADIENT_TOLERANCE:g} |G|'
+        )
+    return tensor
 
 
 @dataclass(frozen=True)
@@ -236,6 +279,18 @@ class Scenario:
     effects : Effects
     temperature : TemperatureProfile
     current : CurrentProfile
+    regional_gradient_enu : (3, 3) T/m
+        Uniform world-frame gradient ``G_w`` (symmetric, traceless): the world field gains
+        ``G_w x`` at ENU position ``x`` (m from the world origin). Default zero.
+    clocks : SensorClocks or None
+        Each sensor's own sampling instants and message loss; None (default): the four
+        sensors sample together at ``k / sample_rate_hz``.
+
+    Raises
+    ------
+    InputError
+        No segment, a non-positive rate, negative noise, or a regional gradient that is not
+        symmetric and traceless (:func:`check_gradient_tensor`).
     """
 
     geometry: TetraGeometry
@@ -248,10 +303,15 @@ class Scenario:
     effects: Effects = field(default_factory=Effects)
     temperature: TemperatureProfile = field(default_factory=TemperatureProfile)
     current: CurrentProfile = field(default_factory=CurrentProfile)
+    regional_gradient_enu: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    clocks: SensorClocks | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(
             self, 'earth_field_enu', frozen_array(self.earth_field_enu, 'earth_field_enu', (3,))
+        )
+        object.__setattr__(
+            self, 'regional_gradient_enu', check_gradient_tensor(self.regional_gradient_enu)
         )
         object.__setattr__(self, 'segments', tuple(self.segments))
         object.__setattr__(self, 'dipoles', tuple(self.dipoles))
@@ -271,6 +331,12 @@ class Scenario:
 class MissionData:
     """A simulated mission, sampled at ``t``; body-frame vectors unless named ``_enu``.
 
+    With sensor clocks (``Scenario.clocks``), ``t`` are sensor 1's true instants (all of
+    them, also those whose message is lost) and every array is taken there: ground truth lines
+    up with sensor 1's stamps. ``fields_measured[:, s]`` for the other sensors is what sensor
+    ``s`` would read at sensor 1's instants (noise included), not what it logged: that is
+    in ``streams``.
+
     Attributes
     ----------
     t : (N,) s from the start
@@ -284,6 +350,11 @@ class MissionData:
     g_analytic : (N, 3, 3) T/m, exact gradient at the centroid
     temperature_c : (N,) degC
     current_a : (N,) A
+    streams : tuple of four SensorStream, or None
+        Without clocks None. With clocks, each sensor's messages as logged on its own
+        instants, after message loss: ``t`` (n_s,) s and ``fields`` (n_s, 3) T measured
+        (interference, effects, noise). Sensor 1's stream is ``fields_measured[:, 0]`` at the
+        instants of ``t`` whose message arrived.
     """
 
     t: np.ndarray
@@ -297,15 +368,25 @@ class MissionData:
     g_analytic: np.ndarray
     temperature_c: np.ndarray
     current_a: np.ndarray
+    streams: tuple[SensorStream, ...] | None = None
 
     def __len__(self) -> int:
         return len(self.t)
 
     def select(self, mask: npt.NDArray[np.bool_] | npt.NDArray[np.intp] | slice) -> MissionData:
-        """The samples that ``mask`` (bool (N,), indices or a slice) selects."""
-        return MissionData(
-            **{name: getattr(self, name)[mask] for name in self.__dataclass_fields__}
-        )
+        """The samples that ``mask`` (bool (N,), indices or a slice) selects.
+
+        Streams keep their messages within the time span of the selected ``t``, widened by
+        half a period of sensor 1 (:func:`~.clocks.select_streams`): for a contiguous
+        selection (a segment, a window) that is every message of that stretch of the mission;
+        a scattered one keeps every message between its first and last instant.
+        """
+        names = [name for name in self.__dataclass_fields__ if name != 'streams']
+        arrays = {name: getattr(self, name)[mask] for name in names}
+        streams = self.streams
+        if streams is not None:
+            streams = select_streams(streams, self.t, arrays['t'])
+        return MissionData(**arrays, streams=streams)
 
 
 def _segment_index(scenario: Scenario, t: np.ndarray) -> np.ndarray:
@@ -334,7 +415,10 @@ def _pose(
 
 
 def _world_field(scenario: Scenario, points: np.ndarray) -> np.ndarray:
+    """World field (N, 3) T at ENU points (N, 3) m: Earth, regional gradient, dipoles."""
     total = uniform_field(len(points), scenario.earth_field_enu)
+    if np.any(scenario.regional_gradient_enu):
+        total += points @ scenario.regional_gradient_enu.T
     for dipole in scenario.dipoles:
         total += dipole_field(points, dipole.moment, dipole.position)
     return total
@@ -399,23 +483,15 @@ def _readings(
     return readings
 
 
-def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
-    """Fly ``scenario`` and return every sample.
-
-    Parameters
-    ----------
-    scenario : Scenario
-    rng : numpy.random.Generator
-        Source of the noise and the current profile.
-    """
-    n = int(
-        np.floor(scenario.duration_s * scenario.sample_rate_hz + 1e-9)
-    )  # 4.35 s x 100 Hz = 435
-    if n < 1:
-        raise InputError('the scenario is shorter than one sample period')
-    t = np.arange(n) / scenario.sample_rate_hz
-    current = _current_function(scenario, rng)
-    fields_true, position, attitude, index = _clean_fields(scenario, t)
+def _measured(
+    scenario: Scenario,
+    t: np.ndarray,
+    index: np.ndarray,
+    current: Callable[[np.ndarray], np.ndarray],
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Measured readings (N, 4, 3) T of the four sensors at the instants ``t`` (s, flown on
+    segments ``index``): interference, effects, time skew and noise."""
     measured = _readings(scenario, t, current)
     skew = scenario.effects.time_skew
     if skew is not None:
@@ -424,8 +500,67 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
             # of the previous segment across a join, which is a jump).
             measured[:, sensor] = _readings(scenario, t - skew[sensor], current, index)[:, sensor]
     measured += rng.normal(0.0, scenario.noise_t, measured.shape) if scenario.noise_t > 0 else 0.0
+    return measured
+
+
+def _streams(
+    scenario: Scenario,
+    clocks: SensorClocks,
+    instants: tuple[np.ndarray, ...],
+    first: np.ndarray,
+    current: Callable[[np.ndarray], np.ndarray],
+    rng: np.random.Generator,
+) -> tuple[SensorStream, ...]:
+    """Each sensor's logged messages: its measured readings at its own ``instants`` (s), with
+    fresh noise (sensor 1's are ``first`` (n_1, 3) T, already measured), after message loss."""
+    fields = [first]
+    skew = scenario.effects.time_skew
+    for sensor in range(1, 4):
+        t = instants[sensor]
+        delay = 0.0 if skew is None else float(skew[sensor])
+        # As in _measured: a skewed sensor reads its own segment's trajectory, earlier.
+        readings = _readings(scenario, t - delay, current, _segment_index(scenario, t))[:, sensor]
+        if scenario.noise_t > 0:
+            readings += rng.normal(0.0, scenario.noise_t, readings.shape)
+        fields.append(readings)
+    kept = kept_messages(clocks, tuple(len(t) for t in instants), rng)
+    return tuple(SensorStream(t[k], f[k]) for t, f, k in zip(instants, fields, kept, strict=True))
+
+
+def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
+    """Fly ``scenario`` and return every sample.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    rng : numpy.random.Generator
+        Source of the current profile, the clocks' jitter, the noise and the message loss
+        (drawn in that order; without clocks only the current profile and the noise).
+
+    Raises
+    ------
+    InputError
+        If sensor 1 takes no sample within the scenario.
+    """
+    current = _current_function(scenario, rng)
+    clocks = scenario.clocks
+    if clocks is None:
+        n = int(np.floor(scenario.duration_s * scenario.sample_rate_hz + 1e-9))  # 4.35 s x 100 Hz
+        t = np.arange(n) / scenario.sample_rate_hz
+    else:
+        instants = sample_instants(clocks, scenario.sample_rate_hz, scenario.duration_s, rng)
+        t = instants[0]
+    if len(t) < 1:
+        raise InputError('the scenario is shorter than one sample period (of sensor 1)')
+    fields_true, position, attitude, index = _clean_fields(scenario, t)
+    measured = _measured(scenario, t, index, current, rng)
+    streams = None
+    if clocks is not None:
+        streams = _streams(scenario, clocks, instants, measured[:, 0], current, rng)
     centroid_world = position + attitude.apply(scenario.geometry.centroid)
-    g_world = np.zeros((n, 3, 3))
+    g_world = np.zeros((len(t), 3, 3))
+    if np.any(scenario.regional_gradient_enu):
+        g_world += scenario.regional_gradient_enu
     for dipole in scenario.dipoles:
         g_world += dipole_gradient(centroid_world, dipole.moment, dipole.position)
     rot = attitude.as_matrix()
@@ -441,6 +576,7 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
         g_analytic=np.einsum('nji,njk,nkl->nil', rot, g_world, rot),
         temperature_c=scenario.temperature(t, scenario.duration_s),
         current_a=current(t),
+        streams=streams,
     )
 
 

@@ -12,10 +12,12 @@ Fast paths (the generic ones stay, and a test checks both agree):
   ``frame_id`` (uint32 length incl. NUL, bytes), padding to 8 (counted from the end of the
   4-byte encapsulation header), 3 float64, 9 float64 covariance. Little- and big-endian
   plain CDR (XCDR1) are handled, as by rosbags' deserializer.
-* Sets are matched a batch at a time: when the next stamps of the four sensors are
-  identical and increasing (a synchronised driver), the batch is emitted with array
+* Sets are formed a batch at a time by :class:`~tetra_gradiometer.core.timebase.Resampler`
+  (the default: each sensor resampled to sensor 1's stamps, vectorised), or, with
+  ``TimeBase(sync='nearest')``, by pairing stamps: when the next stamps of the four sensors
+  are identical and increasing (a synchronised driver), the batch is emitted with array
   operations; otherwise it goes message by message through
-  :class:`~tetra_gradiometer.matching.StampMatcher`, as before.
+  :class:`~tetra_gradiometer.matching.StampMatcher`.
 * :meth:`BagWriter.write_fields` and :meth:`BagWriter.write_tensors` encode MagneticField
   and the tensor JointState directly (:func:`encode_magnetic_field`,
   :func:`encode_tensor`), byte-identical to rosbags' serializer.
@@ -42,6 +44,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from ..core.timebase import DEFAULT_TIMEBASE, ResampleCounters, Resampler, SensorClock, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
@@ -60,6 +63,10 @@ from .progress import progress_bar
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+
+#: What formed the sets counted: stamp pairing or resampling (both have ``sets``, ``text()``
+#: and ``as_dict()``).
+SetCounters = MatchCounters | ResampleCounters
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
@@ -100,7 +107,8 @@ def encode_tensor(stamp_ns: int, g: np.ndarray, frame_id: str = cv.ARRAY_FRAME) 
 
 
 class _BatchMatcher:
-    """Matches per-sensor batches; equal-stamp runs with arrays, the rest via StampMatcher.
+    """Pairs per-sensor batches by stamp (``sync='nearest'``); equal-stamp runs with
+    arrays, the rest via StampMatcher.
 
     Equivalent to feeding every message to the StampMatcher: a run is taken on the fast path
     only when the matcher holds nothing and the next ``k`` stamps of all four sensors are
@@ -110,6 +118,7 @@ class _BatchMatcher:
 
     def __init__(self, matcher: StampMatcher) -> None:
         self.matcher = matcher
+        self.counters = matcher.counters
         self.pending: list[tuple[np.ndarray, np.ndarray]] = [
             (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) for _ in range(4)
         ]
@@ -155,6 +164,39 @@ class _BatchMatcher:
         return _join(out_stamps, out_fields)
 
 
+    def clocks(self) -> None:
+        return None
+
+
+class _BatchResampler:
+    """Resamples per-sensor batches (``sync='interpolate'``); same interface as
+    :class:`_BatchMatcher`."""
+
+    def __init__(self, timebase: TimeBase) -> None:
+        self.resampler = Resampler(timebase)
+        self.counters = self.resampler.counters
+
+    def add(
+        self,
+        batches: list[tuple[np.ndarray, np.ndarray]],
+        *,
+        final: bool = False,
+        fast: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Add per-sensor ``(stamps, values)``; return the sets completed, in stamp order."""
+        out = [self.resampler.add(sensor, *batch) for sensor, batch in enumerate(batches)]
+        return _join([o[0] for o in out if len(o[0])], [o[1] for o in out if len(o[0])])
+
+    def clocks(self) -> tuple[SensorClock, ...]:
+        return self.resampler.clocks()
+
+
+def _set_former(timebase: TimeBase) -> _BatchMatcher | _BatchResampler:
+    if timebase.sync == 'nearest':
+        return _BatchMatcher(StampMatcher(int(round(timebase.tolerance_s * NS_PER_S))))
+    return _BatchResampler(timebase)
+
+
 def _join(stamps: list[np.ndarray], fields: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     if not stamps:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 3))
@@ -188,8 +230,11 @@ class MagneticBag:
     ----------
     skipped : list of SkippedMessage
         What the reads so far skipped (each message or chunk once), in reading order.
-    counters : MatchCounters
-        The matcher's counts of the last :meth:`iter_sets`.
+    counters : MatchCounters or ResampleCounters
+        The set former's counts of the last :meth:`iter_sets` (``text()``, ``as_dict()``).
+    clocks : tuple of SensorClock, or None
+        Each sensor's clock offset, jitter and rate against the reference instants, from the
+        last :meth:`iter_sets` (None when pairing stamps).
     """
 
     def __init__(
@@ -204,7 +249,8 @@ class MagneticBag:
             )
         self.max_skipped_fraction = max_skipped_fraction
         self._reader: AnyReader | None = None
-        self.counters = MatchCounters()
+        self.counters: SetCounters = MatchCounters()
+        self.clocks: tuple[SensorClock, ...] | None = None
         self.skipped: list[SkippedMessage] = []
         self._seen: set[SkippedMessage] = set()
 
@@ -281,16 +327,18 @@ class MagneticBag:
     def iter_sets(
         self,
         *,
-        tolerance_s: float = 2e-3,
+        timebase: TimeBase = DEFAULT_TIMEBASE,
         chunk_size: int = 20_000,
         window_s: tuple[float, float] | None = None,
         progress: bool | None = None,
         fast: bool = True,
     ) -> Generator[tuple[IntArray, FloatArray], None, None]:
-        """Matched sets in chunks: ``(stamps_ns (n,) int64, fields (n, 4, 3) tesla)``.
+        """Sample sets in chunks: ``(stamps_ns (n,) int64, fields (n, 4, 3) tesla)``, formed
+        as ``timebase`` says (default: resampled to sensor 1's stamps).
 
         ``window_s`` keeps sets whose stamp, in seconds from the first set's stamp, lies in
-        ``[t0, t1]``. After the loop, ``self.counters`` holds the matcher's counts.
+        ``[t0, t1]``. After the loop, ``self.counters`` holds the set former's counts and
+        ``self.clocks`` the sensors' clocks.
         ``fast=False`` forces the generic path (rosbags deserializer, one message at a time
         through the matcher); both give the same sets. An undecodable message or unreadable
         chunk is skipped and recorded in :attr:`skipped`.
@@ -304,9 +352,8 @@ class MagneticBag:
         total = self.check_contract()
         if chunk_size < 1:
             raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
-        matcher = StampMatcher(int(round(tolerance_s * NS_PER_S)))
-        self.counters = matcher.counters
-        batcher = _BatchMatcher(matcher)
+        form = _set_former(timebase)
+        self.counters, self.clocks = form.counters, None
         index = {
             c.id: cv.BAG_MAG_TOPICS.index(c.topic)
             for c in self.reader.connections
@@ -327,7 +374,7 @@ class MagneticBag:
             batches = [self._decode(raws[sensor], fast, on_skip) for sensor in range(4)]
             raws[:] = [[] for _ in range(4)]
             self._check_skipped(lost[0], total, 'magnetometer')
-            stamps, fields = batcher.add(batches, final=final, fast=fast)
+            stamps, fields = form.add(batches, final=final, fast=fast)
             if len(stamps) and not first:
                 first.append(int(stamps[0]))
             if window_s is not None and len(stamps):
@@ -349,11 +396,11 @@ class MagneticBag:
             yield from flush(final=True)
         finally:  # also when the caller stops early (generator closed)
             bar.close()
-        if matcher.counters.matched == 0:
+        self.clocks = form.clocks()
+        if form.counters.sets == 0:
             raise BagError(
-                f'{self.path}: no sample set could be matched by header stamp within '
-                f'{tolerance_s * 1e3:g} ms '
-                f'({matcher.counters.dropped_messages} messages unmatched)'
+                f'{self.path}: no sample set could be formed ({timebase.text}): '
+                f'{form.counters.text()}'
             )
 
     def _decode(

@@ -33,12 +33,12 @@ from ..core.identification import (
 )
 from ..core.identification.paper_ga import GENERATIONS
 from ..core.plausibility import DroppedSets, plausible_sets
+from ..core.timebase import DEFAULT_TIMEBASE, SensorClock, TimeBase
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
-from .bag import MagneticBag, Series
+from .bag import MagneticBag, Series, SetCounters
 from .calibration import CalibrationFile
-from .matching import MatchCounters
 
 __all__ = [
     'DEFAULT_MAX_SETS',
@@ -72,8 +72,10 @@ class WindowSets:
         Sensor fields, tesla, body frame.
     span_s : float
         Seconds of the bag read (from its first matched set to the last one read).
-    counters : MatchCounters
-        The stamp matcher's counts over what was read.
+    counters : MatchCounters or ResampleCounters
+        The set former's counts over what was read.
+    clocks : tuple of SensorClock, or None
+        The sensors' clocks against the reference instants (None when pairing stamps).
     skipped_messages : int
         Messages skipped as undecodable or unreadable (``MagneticBag.skipped``).
     skipped_summary : str
@@ -83,7 +85,8 @@ class WindowSets:
     stamps_ns: IntArray
     fields: FloatArray
     span_s: float
-    counters: MatchCounters
+    counters: SetCounters
+    clocks: tuple[SensorClock, ...] | None = None
     skipped_messages: int = 0
     skipped_summary: str = ''
 
@@ -108,8 +111,7 @@ class BagCalibration:
         Seconds of the bag read.
     dropped : DroppedSets
         Sets of the window dropped as implausible (non-finite, ``|B|`` too large), by reason.
-    counters : MatchCounters
-        The stamp matcher's counts over what was read.
+    counters, clocks : as in :class:`WindowSets`
     skipped_messages, skipped_summary : as in :class:`WindowSets`
     stamps_ns : ndarray, shape (n,), int64
         Stamps of the sets the solve used (after thinning), ns.
@@ -124,7 +126,8 @@ class BagCalibration:
     thinned_every: int
     span_s: float
     dropped: DroppedSets
-    counters: MatchCounters
+    counters: SetCounters
+    clocks: tuple[SensorClock, ...] | None = None
     skipped_messages: int = 0
     skipped_summary: str = ''
     stamps_ns: IntArray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
@@ -145,7 +148,7 @@ def read_window(
     bag_path: str | os.PathLike[str],
     window: tuple[float, float] | None,
     *,
-    tolerance_s: float,
+    timebase: TimeBase,
     progress: bool | None = None,
 ) -> WindowSets:
     """The matched sets of ``window`` (seconds from the first set; None: the whole bag).
@@ -162,7 +165,7 @@ def read_window(
     first: int | None = None
     last = 0
     with MagneticBag(bag_path) as bag:
-        sets = bag.iter_sets(tolerance_s=tolerance_s, progress=progress)
+        sets = bag.iter_sets(timebase=timebase, progress=progress)
         for chunk_stamps, chunk_fields in sets:
             first = int(chunk_stamps[0]) if first is None else first
             last = int(chunk_stamps[-1])
@@ -178,7 +181,7 @@ def read_window(
             if beyond:  # sets come in stamp order: the rest of the bag lies beyond the window
                 sets.close()
                 break
-        counters = bag.counters
+        counters, clocks = bag.counters, bag.clocks
         skipped = bag.skipped_messages, bag.skipped_summary()
     span = 0.0 if first is None else (last - first) * S_PER_NS
     if not stamps:
@@ -186,7 +189,9 @@ def read_window(
             f'{bag_path}: the window {window_text(window)} holds no sample set '
             f'(the bag spans 0:{span:.3f} s from its first stamp)'
         )
-    return WindowSets(np.concatenate(stamps), np.concatenate(fields), span, counters, *skipped)
+    return WindowSets(
+        np.concatenate(stamps), np.concatenate(fields), span, counters, clocks, *skipped
+    )
 
 
 def _plausible(
@@ -213,7 +218,7 @@ def calibrate_bag(
     generations: int | None = None,
     wide_bounds: bool = False,
     max_coverage_condition: float = MAX_COVERAGE_CONDITION,
-    tolerance_s: float = 2e-3,
+    timebase: TimeBase = DEFAULT_TIMEBASE,
     max_sets: int = DEFAULT_MAX_SETS,
     progress: bool | None = None,
 ) -> BagCalibration:
@@ -231,8 +236,8 @@ def calibrate_bag(
         generations (default ``GENERATIONS``) and the wide bounds
     max_coverage_condition : float
         Refuse a window whose attitude coverage condition number is larger.
-    tolerance_s : float
-        Largest spread of the four header stamps in one set, seconds.
+    timebase : TimeBase
+        How the four streams become sets (default: resampled to sensor 1's stamps).
     max_sets : int
         Thin the window to at most this many sets (at least :data:`MIN_SETS`).
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
@@ -253,7 +258,7 @@ def calibrate_bag(
     if generations is not None and generations < 1:
         raise InputError(f'--generations must be >= 1, got {generations}')
     sets, dropped = _plausible(
-        read_window(bag_path, window, tolerance_s=tolerance_s, progress=progress), bag_path
+        read_window(bag_path, window, timebase=timebase, progress=progress), bag_path
     )
     n_window = len(sets.stamps_ns)
     thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
@@ -275,6 +280,7 @@ def calibrate_bag(
         span_s=sets.span_s,
         dropped=dropped,
         counters=sets.counters,
+        clocks=sets.clocks,
         skipped_messages=sets.skipped_messages,
         skipped_summary=sets.skipped_summary,
         stamps_ns=sets.stamps_ns[::thinned],
@@ -298,7 +304,6 @@ def _identify(
 
 def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> dict[str, Any]:
     """What the calibration file's diagnostics add about the bag, the window and matching."""
-    counters = result.counters
     return {
         'bag': str(bag_path),
         'window_s': result.window,
@@ -307,12 +312,15 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
         'attitude_coverage_condition': result.calibration.details['attitude_coverage_condition'],
         'read_span_s': result.span_s,
         **result.dropped.as_dict(),
-        'sets_matched': counters.matched,
-        'messages_unmatched': counters.dropped_messages,
-        'messages_evicted': counters.evicted_messages,
-        'messages_out_of_order': counters.out_of_order,
+        **result.counters.as_dict(),
+        **_clock_diagnostics(result.clocks),
         'messages_skipped_undecodable': result.skipped_messages,
     }
+
+
+def _clock_diagnostics(clocks: tuple[SensorClock, ...] | None) -> dict[str, Any]:
+    """Each sensor's clock against the reference (absent when stamps were paired)."""
+    return {} if clocks is None else {'sensor_clocks': [c.to_dict() for c in clocks]}
 
 
 #: Sensor noise the assessment assumes if the window were too short to estimate its own, T.

@@ -36,14 +36,14 @@ import numpy.typing as npt
 
 from ..core import InterferenceParameters, TetraGeometry, compensate, difference_tensor
 from ..core.plausibility import DroppedSets, plausible_sets
+from ..core.timebase import DEFAULT_TIMEBASE, SensorClock, TimeBase
 from ..core.uncertainty import SigmaModel
 from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS, T_PER_NT
 from ..errors import BagError, InputError, OutputError
 from . import conversions as cv
-from .bag import BagWriter, MagneticBag
+from .bag import BagWriter, MagneticBag, SetCounters
 from .calibration import check_positions, load_calibration
 from .health_report import HealthRecorder
-from .matching import MatchCounters
 from .outputs import BAG, CSV, atomic_output, check_output
 
 __all__ = [
@@ -85,8 +85,10 @@ class CompensationCounts:
         Seconds from the first set written to the last.
     topic : str
         The tensor topic of the output bag.
-    counters : MatchCounters
-        The stamp matcher's counts.
+    counters : MatchCounters or ResampleCounters
+        The set former's counts.
+    clocks : tuple of SensorClock, or None
+        The sensors' clocks against the reference instants (None when pairing stamps).
     skipped_messages : int
         Messages skipped as undecodable or unreadable (``MagneticBag.skipped``).
     skipped_summary : str
@@ -97,7 +99,8 @@ class CompensationCounts:
     dropped: DroppedSets
     span_s: float
     topic: str
-    counters: MatchCounters
+    counters: SetCounters
+    clocks: tuple[SensorClock, ...] | None = None
     skipped_messages: int = 0
     skipped_summary: str = ''
 
@@ -234,7 +237,7 @@ def compensate_bag(
     csv: PathLike | None = None,
     out_bag: PathLike | None = None,
     out_storage: str | None = None,
-    tolerance_s: float = 2e-3,
+    timebase: TimeBase = DEFAULT_TIMEBASE,
     fast: bool = True,
     progress: bool | None = None,
     force: bool = False,
@@ -256,7 +259,7 @@ def compensate_bag(
         Fed every chunk of compensated sets (``compensate --report``).
     csv, out_bag : outputs (at least one), each written atomically
     out_storage : storage of ``out_bag`` (default: the input's)
-    tolerance_s : largest spread of the four header stamps in one set, seconds
+    timebase : how the four streams become sets (default: resampled to sensor 1's stamps)
     fast : False decodes with rosbags and matches message by message (same result)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force, inputs : as for :func:`~tetra_gradiometer.io.outputs.atomic_output`
@@ -279,7 +282,7 @@ def compensate_bag(
         handle, writer = _open_outputs(
             stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs
         )
-        sets = bag.iter_sets(tolerance_s=tolerance_s, progress=progress, fast=fast)
+        sets = bag.iter_sets(timebase=timebase, progress=progress, fast=fast)
         for stamps, fields in sets:
             keep, chunk_dropped = plausible_sets(fields)
             if chunk_dropped.total:  # an implausible reading: drop the set, count it
@@ -302,7 +305,7 @@ def compensate_bag(
             )
     span_s = (last - first) * S_PER_NS
     skipped = bag.skipped_messages, bag.skipped_summary()
-    return CompensationCounts(n_sets, dropped, span_s, topic, bag.counters, *skipped)
+    return CompensationCounts(n_sets, dropped, span_s, topic, bag.counters, bag.clocks, *skipped)
 
 
 def _open_outputs(

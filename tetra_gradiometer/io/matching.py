@@ -45,6 +45,26 @@ class MatchCounters:
     evicted_messages: int = 0
     out_of_order: int = 0
 
+    @property
+    def sets(self) -> int:
+        return self.matched
+
+    def text(self) -> str:
+        """For summaries: '3 messages unmatched (0 evicted from a full queue), 0 out of order'."""
+        return (
+            f'{self.dropped_messages} messages unmatched ({self.evicted_messages} evicted '
+            f'from a full queue), {self.out_of_order} out of order'
+        )
+
+    def as_dict(self) -> dict[str, int]:
+        """Calibration-file diagnostics."""
+        return {
+            'sets_matched': self.matched,
+            'messages_unmatched': self.dropped_messages,
+            'messages_evicted': self.evicted_messages,
+            'messages_out_of_order': self.out_of_order,
+        }
+
 
 class StampMatcher:
     """Approximate-time synchroniser for four streams.

@@ -11,16 +11,18 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ..core import MissionData
+from ..core import MissionData, SensorStream
 from ..core.plausibility import DroppedSets, plausible_sets
+from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
-from .bag import BagWriter, MagneticBag
+from .bag import BagWriter, MagneticBag, encode_magnetic_field
 from .progress import progress_bar
 
 
@@ -45,6 +47,11 @@ def write_mission_bag(
 ) -> Path:
     """Write the four magnetometers (and the optional topics) of ``mission`` to a bag.
 
+    Without ``mission.streams`` the four sensors are written together at ``t``. With them
+    (sensors on their own clocks) each ``/tetra/magN`` carries its sensor's stream, stamped
+    ``start_ns + round(t 1e9)``, and all messages are logged in stamp order as a recorder
+    would; the optional topics stay at sensor 1's instants ``t``.
+
     Parameters
     ----------
     path : target rosbag2 folder, written atomically; refused if it exists and is not a bag
@@ -55,38 +62,102 @@ def write_mission_bag(
     odom, temperature, battery : write ``/odom``, ``/tetra/temperature``, ``/battery_state``
     progress : tqdm bar on stderr (None: only on a terminal and for long missions)
     force, inputs, command : as for :class:`~tetra_gradiometer.io.bag.BagWriter`
+
+    Raises
+    ------
+    InputError
+        If the stamps of ``t`` or of a stream do not increase once rounded to ns.
     """
     stamps = mission_stamps_ns(mission, start_ns)
     if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
         raise InputError('mission stamps must increase (sample period below 1 ns?)')
-    bar = progress_bar(len(stamps) * 4, progress, 'writing bag')
+    extras = _Extras(mission, odom, temperature, battery)
     with BagWriter(path, storage=storage, force=force, inputs=inputs, command=command) as writer:
-        types = writer.types
-        for i, stamp in enumerate(stamps):
-            stamp = int(stamp)
-            if i % 1000 == 999:
-                bar.update(4000)
-            writer.write_sample(stamp, mission.fields_measured[i])
-            if odom:
-                writer.write(
-                    cv.ODOM_TOPIC,
-                    cv.odometry_msg(
-                        types, mission.position_enu[i], mission.orientation_xyzw[i], stamp
-                    ),
-                    stamp,
-                )
-            if temperature:
-                writer.write(
-                    cv.TEMPERATURE_TOPIC,
-                    cv.temperature_msg(types, mission.temperature_c[i], stamp),
-                    stamp,
-                )
-            if battery:
-                writer.write(
-                    cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp
-                )
+        if mission.streams is None:
+            bar = progress_bar(len(stamps) * 4, progress, 'writing bag')
+            for i, stamp in enumerate(stamps):
+                stamp = int(stamp)
+                if i % 1000 == 999:
+                    bar.update(4000)
+                writer.write_sample(stamp, mission.fields_measured[i])
+                extras.write(writer, i, stamp)
+        else:
+            bar = _write_streams(writer, mission.streams, stamps, start_ns, extras, progress)
     bar.close()
     return Path(path)
+
+
+@dataclass(frozen=True)
+class _Extras:
+    """The optional topics of a mission: which to write, and how, at sample ``i``."""
+
+    mission: MissionData
+    odom: bool
+    temperature: bool
+    battery: bool
+
+    def __bool__(self) -> bool:
+        return self.odom or self.temperature or self.battery
+
+    def write(self, writer: BagWriter, i: int, stamp: int) -> None:
+        """Write the chosen optional topics of sample ``i`` at header and log stamp ``stamp``."""
+        mission, types = self.mission, writer.types
+        if self.odom:
+            writer.write(
+                cv.ODOM_TOPIC,
+                cv.odometry_msg(
+                    types, mission.position_enu[i], mission.orientation_xyzw[i], stamp
+                ),
+                stamp,
+            )
+        if self.temperature:
+            writer.write(
+                cv.TEMPERATURE_TOPIC,
+                cv.temperature_msg(types, mission.temperature_c[i], stamp),
+                stamp,
+            )
+        if self.battery:
+            writer.write(
+                cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp
+            )
+
+
+def _write_streams(
+    writer: BagWriter,
+    streams: tuple[SensorStream, ...],
+    stamps: np.ndarray,
+    start_ns: int,
+    extras: _Extras,
+    progress: bool | None,
+) -> Any:
+    """Write each sensor's stream to its topic and the optional topics at ``stamps`` (ns),
+    every message in stamp order (at equal stamps: sensor 1 to 4, then the optional topics).
+    Returns the progress bar (still open)."""
+    events: list[tuple[np.ndarray, int]] = []  # (stamps ns, source: sensor index or 4)
+    for sensor, stream in enumerate(streams):
+        stream_stamps = start_ns + np.round(stream.t * NS_PER_S).astype(np.int64)
+        if len(stream_stamps) > 1 and np.any(np.diff(stream_stamps) <= 0):
+            raise InputError(f'the stamps of sensor {sensor + 1} must increase')
+        events.append((stream_stamps, sensor))
+    if extras:
+        events.append((stamps, len(streams)))
+    all_stamps = np.concatenate([e[0] for e in events])
+    source = np.concatenate([np.full(len(e[0]), e[1]) for e in events])
+    index = np.concatenate([np.arange(len(e[0])) for e in events])
+    order = np.lexsort((source, all_stamps))
+    bar = progress_bar(len(order), progress, 'writing bag')
+    for count, (stamp, sensor, i) in enumerate(
+        zip(all_stamps[order].tolist(), source[order].tolist(), index[order].tolist(), strict=True)
+    ):
+        if count % 4000 == 3999:
+            bar.update(4000)
+        if sensor == len(streams):
+            extras.write(writer, i, stamp)
+            continue
+        field_t = streams[sensor].fields[i]
+        message = encode_magnetic_field(stamp, field_t, cv.MAG_FRAMES[sensor])
+        writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD, message, stamp)
+    return bar
 
 
 @dataclass(frozen=True)
@@ -141,7 +212,7 @@ def _interp_orientation(
 def read_recording(
     path: str | os.PathLike,
     *,
-    tolerance_s: float = 2e-3,
+    timebase: TimeBase = DEFAULT_TIMEBASE,
     window_s: tuple[float, float] | None = None,
     progress: bool | None = None,
 ) -> Recording:
@@ -153,7 +224,7 @@ def read_recording(
     """
     with MagneticBag(path) as bag:
         stamps, fields = bag.read_sets(
-            tolerance_s=tolerance_s, window_s=window_s, progress=progress
+            timebase=timebase, window_s=window_s, progress=progress
         )
         keep, dropped = plausible_sets(fields)
         if not keep.any():

@@ -18,6 +18,12 @@ Example::
       - trim: {duration_s: 300, center_m: [3000, 3000, -50]}
       - line: {start_m: [-200, 30, -50], end_m: [200, 30, -50], speed_m_s: 2}
     effects: {}                                # see EFFECT_KEYS
+    regional_gradient_nT_per_m: [[0.5, 0.2, 0], [0.2, -0.3, 0.1], [0, 0.1, -0.2]]
+                                               # symmetric, traceless; default zero
+    clocks: {offset_ms: [0, 0.5, 2, 4], jitter_ms: 0.2, drift_ppm: [0, 20, -30, 50],
+             rate_hz: [100, 100, 100, 100], loss_fraction: 0.005}
+                                               # see CLOCK_KEYS; a number or 4 per key;
+                                               # no clocks: the sensors sample together
 """
 
 from __future__ import annotations
@@ -36,15 +42,17 @@ from ..core import (
     Dipole,
     Effects,
     Scenario,
+    SensorClocks,
     SensorInterference,
     SurveyLine,
     TemperatureProfile,
     TetraGeometry,
     TrimManoeuvre,
+    check_gradient_tensor,
     random_interference,
 )
 from ..core.simulator import EFFECT_SPECS
-from ..core.units import T_PER_NT
+from ..core.units import S_PER_MS, T_PER_NT
 from ..errors import InputError, ScenarioError
 from ._yaml import read_yaml
 
@@ -54,6 +62,18 @@ from ._yaml import read_yaml
 EFFECT_KEYS = {
     name: (spec.scenario_key, spec.scenario_factor) for name, spec in EFFECT_SPECS.items()
 }
+
+#: Scenario file keys of ``clocks``: ``{key: (SensorClocks attribute, factor to SI)}``; each
+#: takes a number (all sensors) or four.
+CLOCK_KEYS = {
+    'offset_ms': ('offset_s', S_PER_MS),
+    'jitter_ms': ('jitter_s', S_PER_MS),
+    'drift_ppm': ('drift_ppm', 1.0),
+    'rate_hz': ('rate_hz', 1.0),
+    'loss_fraction': ('loss_fraction', 1.0),
+}
+#: Scenario file key of the regional gradient, nT/m.
+REGIONAL_GRADIENT_KEY = 'regional_gradient_nT_per_m'
 
 
 def igrf_field_enu(
@@ -102,6 +122,8 @@ TOP_LEVEL_KEYS = {
     'temperature',
     'current',
     'description',
+    REGIONAL_GRADIENT_KEY,
+    'clocks',
 }
 
 
@@ -171,7 +193,15 @@ def _check_document(document: dict[str, Any]) -> None:
     unknown = set(document) - TOP_LEVEL_KEYS
     if unknown:
         raise ScenarioError(f'unknown key(s) {sorted(unknown)}; known: {sorted(TOP_LEVEL_KEYS)}')
-    for key in ('geometry', 'earth_field', 'interference', 'effects', 'temperature', 'current'):
+    for key in (
+        'geometry',
+        'earth_field',
+        'interference',
+        'effects',
+        'temperature',
+        'current',
+        'clocks',
+    ):
         if document.get(key) is not None and not isinstance(document[key], dict):
             raise ScenarioError(f'{key}: expected a mapping, got {document[key]!r}')
     if not isinstance(document.get('segments') or [], list):
@@ -253,6 +283,45 @@ def _effects(effects_spec: dict[str, Any]) -> Effects:
     )
 
 
+def _regional_gradient(document: dict[str, Any]) -> npt.NDArray[np.float64]:
+    """The regional gradient (3, 3) T/m, zero when the file has none."""
+    if document.get(REGIONAL_GRADIENT_KEY) is None:
+        return np.zeros((3, 3))
+    value = _vec(document, REGIONAL_GRADIENT_KEY, (3, 3), 'scenario')
+    try:
+        check_gradient_tensor(value, REGIONAL_GRADIENT_KEY)
+    except InputError as error:
+        raise ScenarioError(str(error)) from None
+    return value * T_PER_NT
+
+
+def _clocks(clocks_spec: dict[str, Any] | None) -> SensorClocks | None:
+    """The sensor clocks, None when the file has none (the sensors sample together)."""
+    if clocks_spec is None:
+        return None
+    unknown = set(clocks_spec) - set(CLOCK_KEYS)
+    if unknown:
+        raise ScenarioError(f'clocks: unknown {sorted(unknown)}; known: {sorted(CLOCK_KEYS)}')
+    values: dict[str, np.ndarray] = {}
+    for key, (name, factor) in CLOCK_KEYS.items():
+        if key not in clocks_spec:
+            continue
+        try:
+            value = np.asarray(clocks_spec[key], dtype=float)
+        except (TypeError, ValueError):
+            raise ScenarioError(f'clocks.{key}: not numeric: {clocks_spec[key]!r}') from None
+        if value.shape not in ((), (4,)):
+            raise ScenarioError(
+                f'clocks.{key}: expected a number or 4 numbers, got {clocks_spec[key]!r}'
+            )
+        try:
+            SensorClocks(**{name: value * factor})  # checks this key alone, to name it
+        except InputError as error:
+            raise ScenarioError(f'clocks.{key} = {clocks_spec[key]!r}: {error}') from None
+        values[name] = value * factor
+    return SensorClocks(**values)
+
+
 def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
     """Build the scenario and return it with its seed."""
     _check_document(document)
@@ -273,6 +342,8 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
     interference = _interference(document.get('interference', {}), seed)
     effects = _effects(document.get('effects') or {})
     segments = [_segment(entry, i) for i, entry in enumerate(document.get('segments') or [])]
+    regional_gradient = _regional_gradient(document)
+    clocks = _clocks(document.get('clocks'))
     try:
         scenario = Scenario(
             geometry=geometry,
@@ -285,6 +356,8 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
             effects=effects,
             temperature=TemperatureProfile(**document.get('temperature', {})),
             current=CurrentProfile(**document.get('current', {})),
+            regional_gradient_enu=regional_gradient,
+            clocks=clocks,
         )
     except (TypeError, ValueError) as error:
         raise ScenarioError(f'scenario: {error}') from None

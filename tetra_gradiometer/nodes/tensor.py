@@ -1,9 +1,13 @@
 """``tensor`` node: the four magnetometers -> the measured gradient tensor ``G_m`` (eq. 7).
 
-Subscribes ``mag1``..``mag4`` (sensor_msgs/MagneticField, T, sensor-data QoS), matches them
-by header stamp (:class:`~tetra_gradiometer.io.matching.StampMatcher`, ``stamp_tolerance_s``),
-drops and counts incomplete sets and sets with a non-finite or implausible reading
-(``|B| > max_field_t`` on any sensor), and publishes, for every good set, with sensor 1's stamp:
+Subscribes ``mag1``..``mag4`` (sensor_msgs/MagneticField, T, sensor-data QoS) and forms
+sets as the offline tools do: by default each sensor is resampled to sensor 1's stamps
+(:class:`~tetra_gradiometer.core.timebase.Resampler`, ``sync: interpolate``; a set leaves
+when every sensor has a sample at or after its instant: added latency at most one sample
+period), or stamps are paired within ``stamp_tolerance_s`` (``sync: nearest``,
+:class:`~tetra_gradiometer.io.matching.StampMatcher`). It drops and counts incomplete
+sets and sets with a non-finite or implausible reading (``|B| > max_field_t`` on any
+sensor), and publishes, for every good set, with its reference stamp:
 
 * ``gradient/raw`` (sensor_msgs/JointState gxx..gzz, T/m, reliable): ``G_m``;
 * ``reference_field`` (sensor_msgs/MagneticField, T, reliable): ``B_1'``, the reference
@@ -11,14 +15,15 @@ drops and counts incomplete sets and sets with a non-finite or implausible readi
   by identical stamp), with that ``mag1`` message's ``magnetic_field_covariance`` (T^2;
   a non-finite one is published as all zeros, unknown).
 
-``/diagnostics``: per sensor rate (Hz), staleness (s since its last message), invalid and
-out-of-order readings; a sensor silent for ``stale_timeout_s`` is ERROR and no tensor is
-published until it is back.
+``/diagnostics``: per sensor rate (Hz), staleness (s since its last message), invalid
+readings, clock offset and jitter against the reference (resampling); a sensor silent for
+``stale_timeout_s`` is ERROR and no tensor is published until it is back.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import asdict
 from functools import partial
 
@@ -29,6 +34,7 @@ from sensor_msgs.msg import JointState, MagneticField
 
 from ..core import TetraGeometry, difference_tensor
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
+from ..core.timebase import SYNC_METHODS, Resampler, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
 from ..io import conversions as cv
 from ..io.matching import StampMatcher
@@ -44,6 +50,7 @@ from .common import (
     declare_parameters,
     derived_qos,
     diagnostics_period_spec,
+    one_of,
     positive,
     sensor_qos,
     spin_node,
@@ -53,10 +60,32 @@ from .common import (
 PARAMETERS = [
     POSITIONS_SPEC,
     ParamSpec(
+        'sync',
+        'interpolate',
+        "How sets are formed: 'interpolate' resamples each sensor to the reference instants "
+        "(sensors on their own clocks, stamps = sample times); 'nearest' pairs stamps within "
+        'stamp_tolerance_s (sensors sampled together, stamps = arrival times).',
+        one_of(*SYNC_METHODS),
+    ),
+    ParamSpec(
+        'reference_rate_hz',
+        0.0,
+        "Reference instants (interpolate): 0 = sensor 1's stamps; > 0 = a regular grid at "
+        'this rate, Hz (0-10000).',
+        float_range=(0.0, 10_000.0),
+    ),
+    ParamSpec(
+        'max_gap_periods',
+        3.0,
+        "Never interpolate across a gap longer than this many of the sensor's sample periods "
+        '(1-1000); such sets are skipped and counted.',
+        float_range=(1.0, 1000.0),
+    ),
+    ParamSpec(
         'stamp_tolerance_s',
         2e-3,
-        'Largest spread of the four header stamps within one set, s (1e-6-1: it must stay '
-        'below half the sample period, else neighbouring sets merge).',
+        'sync nearest: largest spread of the four header stamps within one set, s (1e-6-1: '
+        'it must stay below half the sample period, else neighbouring sets merge).',
         positive,
         float_range=(1e-6, 1.0),
     ),
@@ -87,7 +116,8 @@ PARAMETERS = [
     ParamSpec(
         'max_pending',
         1000,
-        'Per-sensor bound of the stamp matcher queue, messages (at most 100000, 8 min at '
+        'Per-sensor bound of the stamp matcher queue (nearest), or of the reference instants '
+        'waiting for a silent sensor (interpolate), messages (at most 100000, 8 min at '
         '200 sets/s: a longer silence is a stale sensor, not a delay).',
         int_range=(1, 100_000),
     ),
@@ -105,13 +135,17 @@ PARAMETERS = [
 ]
 
 
-#: The stamp matcher's counters (io/matching.MatchCounters) -> their /diagnostics keys. A
-#: counter not named here is reported too, as ``matcher_<name>``.
+#: The set former's counters (io/matching.MatchCounters, core/timebase.ResampleCounters)
+#: -> their /diagnostics keys. A counter not named here is reported as ``matcher_<name>``.
 MATCHER_KEYS = {
     'matched': 'sets_matched',
     'dropped_messages': 'messages_dropped_unmatched',
     'evicted_messages': 'messages_evicted',
     'out_of_order': 'messages_out_of_order',
+    'sets': 'sets_matched',
+    'skipped_gap': 'sets_skipped_gap',
+    'skipped_start': 'sets_skipped_start',
+    'evicted': 'sets_evicted',
 }
 
 
@@ -125,10 +159,15 @@ class TensorNode(Node):
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._max_field = float(p['max_field_t'])
         self._stale_timeout = float(p['stale_timeout_s'])
-        self._tolerance_ns = int(round(p['stamp_tolerance_s'] * NS_PER_S))
+        self._timebase = TimeBase(
+            sync=p['sync'],
+            reference_rate_hz=p['reference_rate_hz'],
+            max_gap_periods=p['max_gap_periods'],
+            tolerance_s=p['stamp_tolerance_s'],
+        )
         self._max_pending = int(p['max_pending'])
         self._jump_back_ns = int(round(p['jump_back_s'] * NS_PER_S))
-        self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
+        self._matcher = self._new_former()
         self._earlier: dict[str, int] = {}  # counts of the matchers reset before
         self._last_stamp: list[int | None] = [None] * 4
         self.resets = 0
@@ -158,7 +197,7 @@ class TensorNode(Node):
         ]
         self._diag_timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self.get_logger().info(
-            f'matching {", ".join(cv.MAG_TOPICS)} within {p["stamp_tolerance_s"] * 1e3:g} ms; '
+            f'sets of {", ".join(cv.MAG_TOPICS)}: {self._timebase.text}; '
             f'array condition number {self._geometry.condition_number:.3g}'
         )
 
@@ -169,6 +208,8 @@ class TensorNode(Node):
         for parameter in parameters:
             if parameter.name == 'max_field_t':
                 self._max_field = float(parameter.value)
+                if isinstance(self._matcher, Resampler):
+                    self._matcher.max_field_t = self._max_field
             elif parameter.name == 'stale_timeout_s':
                 self._stale_timeout = float(parameter.value)
 
@@ -182,25 +223,43 @@ class TensorNode(Node):
         if last is not None and stamp < last - self._jump_back_ns:
             self._reset_matcher(sensor, last - stamp)
         self._last_stamp[sensor] = stamp
-        # The matcher carries each reading's covariance with its field (12 values): the
-        # reference_field of a set gets the covariance of exactly its own mag1 message.
-        for stamp_ns, readings in self._matcher.add(sensor, stamp, cv.magnetic_field_reading(msg)):
+        # Each reading's covariance travels with its field (12 values): the reference_field
+        # of a set gets that of its own mag1 message (interpolated on a grid reference).
+        reading = cv.magnetic_field_reading(msg)
+        sets: Iterable[tuple[int, np.ndarray]]
+        if isinstance(self._matcher, Resampler):
+            stamps, values = self._matcher.add(sensor, [stamp], reading[None])
+            sets = zip(stamps.tolist(), values, strict=True)
+        else:
+            sets = self._matcher.add(sensor, stamp, reading)
+        for stamp_ns, readings in sets:
             self._emit(stamp_ns, readings[:, :3], readings[0, 3:])
+
+    def _new_former(self) -> Resampler | StampMatcher:
+        """The set former the parameters ask for, empty."""
+        if self._timebase.sync == 'nearest':
+            tolerance_ns = int(round(self._timebase.tolerance_s * NS_PER_S))
+            return StampMatcher(tolerance_ns, max_pending=self._max_pending)
+        return Resampler(
+            self._timebase, width=12, max_pending=self._max_pending, max_field_t=self._max_field
+        )
 
     def _reset_matcher(self, sensor: int, jump_ns: int) -> None:
         """The source went back in time (a new replay): start matching afresh."""
         self._earlier = self._matcher_counts()
-        self._matcher = StampMatcher(self._tolerance_ns, max_pending=self._max_pending)
+        self._matcher = self._new_former()
         self._last_stamp = [None] * 4
         self.resets += 1
         self.get_logger().warning(
             f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * S_PER_NS:.3g} s in time: '
-            f'stamp matching restarted'
+            f'set forming restarted'
         )
 
     def _matcher_counts(self) -> dict[str, int]:
         """The stamp matcher's counters, including those of the matchers reset before."""
-        counters = asdict(self._matcher.counters)
+        counters = {
+            key: value for key, value in asdict(self._matcher.counters).items()
+        }
         return {key: value + self._earlier.get(key, 0) for key, value in counters.items()}
 
     def _emit(self, stamp_ns: int, fields: np.ndarray, covariance: np.ndarray) -> None:
@@ -247,8 +306,15 @@ class TensorNode(Node):
             self._rate = [(c - m) / (now - mark_time) for c, m in pairs]
         self._rate_mark = (now, list(self._received))
         stale = self._stale_sensors()
+        clocks: list[dict[str, float]] = [{} for _ in range(4)]
+        if isinstance(self._matcher, Resampler):
+            clocks = [
+                {'clock_offset_ms': c.offset_s * 1e3, 'clock_jitter_ms': c.jitter_s * 1e3}
+                for c in self._matcher.clocks()
+            ]
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
+        invalid = self._invalid
         for s, topic in enumerate(cv.MAG_TOPICS):
             staleness = now - self._last_arrival[s]
             if s in stale:
@@ -260,8 +326,8 @@ class TensorNode(Node):
                         else 'no data received'
                     ),
                 )
-            elif self._invalid[s]:
-                level, text = WARN, f'{self._invalid[s]} non-finite or implausible readings'
+            elif invalid[s]:
+                level, text = WARN, f'{invalid[s]} non-finite or implausible readings'
             else:
                 level, text = OK, 'ok'
             array.status.append(
@@ -274,12 +340,13 @@ class TensorNode(Node):
                         'rate_hz': float(self._rate[s]),
                         'staleness_s': float(staleness),
                         'received': self._received[s],
-                        'dropped_invalid': self._invalid[s],
+                        'dropped_invalid': invalid[s],
+                        **clocks[s],
                     },
                 )
             )
         counts = self._matcher_counts()
-        dropped = counts.get('dropped_messages', 0)
+        dropped = sum(counts.get(k, 0) for k in ('dropped_messages', 'skipped_gap', 'evicted'))
         level = ERROR if stale else (WARN if self.sets_invalid or dropped else OK)
         text = (
             f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}'
