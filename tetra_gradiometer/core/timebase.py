@@ -259,7 +259,6 @@ class Resampler:
         self._last[sensor] = int(stamps[-1])
         if sensor == 0 and not self.timebase.reference_rate_hz:
             self._pending = np.concatenate([self._pending, stamps])
-            self._bound_pending()
         good = plausible_readings(values[:, :3], self.max_field_t)
         if not good.all():
             self._bad_t[sensor] = np.concatenate([self._bad_t[sensor], stamps[~good]])
@@ -312,13 +311,14 @@ class Resampler:
 
     def _resolve(self) -> tuple[IntArray, FloatArray]:
         if not all(len(t) for t in self._t):
+            self._bound_pending()
             return np.zeros(0, np.int64), np.zeros((0, N_SENSORS, self.width))
         horizon = min(int(t[-1]) for t in self._t)  # every sensor has a good sample at or after
         if self.timebase.reference_rate_hz:
             self._pending = np.concatenate([self._pending, self._grid_instants(horizon)])
-            self._bound_pending()
         n_ready = int(np.searchsorted(self._pending, horizon, side='right'))
         instants, self._pending = self._pending[:n_ready], self._pending[n_ready:]
+        self._bound_pending()  # what still waits for a silent sensor
         if not n_ready:
             return np.zeros(0, np.int64), np.zeros((0, N_SENSORS, self.width))
         out = np.empty((n_ready, N_SENSORS, self.width))

@@ -184,7 +184,9 @@ class _BatchResampler:
         fast: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Add per-sensor ``(stamps, values)``; return the sets completed, in stamp order."""
-        out = [self.resampler.add(sensor, *batch) for sensor, batch in enumerate(batches)]
+        # Sensor 1 last: its stamps are the instants, resolved at once when the others
+        # are in (not queued against max_pending while they are still to come).
+        out = [self.resampler.add(sensor, *batches[sensor]) for sensor in (1, 2, 3, 0)]
         return _join([o[0] for o in out if len(o[0])], [o[1] for o in out if len(o[0])])
 
     def clocks(self) -> tuple[SensorClock, ...]:
@@ -396,7 +398,7 @@ class MagneticBag:
             yield from flush(final=True)
         finally:  # also when the caller stops early (generator closed)
             bar.close()
-        self.clocks = form.clocks()
+            self.clocks = form.clocks()
         if form.counters.sets == 0:
             raise BagError(
                 f'{self.path}: no sample set could be formed ({timebase.text}): '

@@ -1,25 +1,48 @@
 """Exact linear solvers: the paper's objective solved directly, and identification on
-data whose true gradient is known (trim manoeuvres)."""
+data whose true gradient is known (trim manoeuvres), optionally jointly with a constant
+regional (world-frame) gradient.
+
+Regional gradient: ``G_w`` (ENU, symmetric, traceless) is seen in the body frame as
+``R_n^T G_w R_n``, ``R_n`` the attitude rotating body vectors into ENU. Its 5 coefficients
+are ``c = (gxx, gxy, gxz, gyy, gyz)`` of ``G_w`` with ``gzz = -gxx - gyy``
+(:data:`REGIONAL_BASIS`).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import lsq_linear
+from scipy.spatial.transform import Rotation
 
-from ...errors import IdentifiabilityError
-from .._validate import as_tensors, as_vectors, same_length
+from ...errors import IdentifiabilityError, InputError
+from .._validate import as_array, as_tensors, as_vectors, same_length
 from ..design import CONSTRAINT_ROWS, constraint_design, constraint_residual, interference_design
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters, interference_tensor, n_parameters
 from ..types import ArrayLike, FloatArray
 from ..units import NT_PER_T
-from ._linear import AffineReduction, reduce_affine, solve_scaled
+from ._linear import AffineReduction, LinearSolution, reduce_affine, solve_scaled
 from .result import TensorCalibration
 
 #: Fewest samples any solver accepts.
 MIN_SAMPLES = 10
 #: Largest attitude-coverage condition number accepted by ``known_gradient_lstsq``.
 MAX_COVERAGE_CONDITION = 1.0e4
+#: Samples per chunk of the joint (regional-gradient) solve's TSQR: ``9 x 2000`` rows at once.
+TSQR_CHUNK = 2000
+
+
+def _regional_basis() -> FloatArray:
+    """(5, 3, 3): ``G_w = sum_k c_k E_k`` for ``c = (gxx, gxy, gxz, gyy, gyz)``."""
+    basis = np.zeros((5, 3, 3))
+    for k, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2))):
+        basis[k, i, j] = basis[k, j, i] = 1.0
+    basis[0, 2, 2] = basis[3, 2, 2] = -1.0  # traceless: gzz = -gxx - gyy
+    return basis
+
+
+#: The symmetric, traceless world-frame basis of the regional gradient, (5, 3, 3).
+REGIONAL_BASIS = _regional_basis()
 
 
 def paper_bounds(*, symmetric: bool = True, wide: bool = False) -> tuple[FloatArray, FloatArray]:
@@ -90,13 +113,25 @@ def known_gradient_lstsq(
     g_true: ArrayLike | None = None,
     symmetric_k: bool = True,
     max_coverage_condition: float = MAX_COVERAGE_CONDITION,
+    orientation_xyzw: ArrayLike | None = None,
 ) -> TensorCalibration:
-    """Identify ``k``, ``b`` where the true gradient is known (zero on a trim manoeuvre).
+    """Identify ``k``, ``b`` where the true gradient is known (zero on a trim manoeuvre), or
+    known up to a constant regional gradient when ``orientation_xyzw`` is given.
 
     Solves ``G_m - G_true = D(theta)`` (eq. 18) by generalised least squares, whitened for
     i.i.d. sensor noise, so that the returned covariance is ``sigma^2 (A^T A)^-1`` with
     ``sigma`` (per-axis sensor noise) estimated from the residual. Noise on ``B_1'`` as a
     regressor is neglected (it matters only for ``|K| ~ 1``).
+
+    With ``orientation_xyzw`` it solves ``G_m - G_true = R_n^T G_w R_n + D(theta)`` jointly
+    for ``theta`` and the 5 coefficients of a constant world-frame gradient ``G_w``
+    (symmetric, traceless; see the module docstring). The new columns are not linear in
+    ``(B_1', 1)``, so :func:`reduce_affine` alone does not apply: a chunked TSQR (QR per
+    :data:`TSQR_CHUNK` samples, the triangles stacked and re-factored; memory bounded by a
+    chunk) of the whitened ``[B_1' 1 | regional columns | target]`` gives, exactly and by
+    orthogonal transformations only, a small system with the whole problem's normal matrix
+    (see :func:`_regional_system`), solved by the same scaled SVD. ``G_w`` is signal:
+    compensation (eq. 19) does not remove it.
 
     Parameters
     ----------
@@ -112,18 +147,40 @@ def known_gradient_lstsq(
         sensor 1 carries its own interference (effective ``K_i1 (I + K_1)^-1``).
     max_coverage_condition : float
         Refuse data whose :func:`attitude_coverage` exceeds this.
+    orientation_xyzw : array_like, shape (N, 4), optional
+        Attitude quaternions (x, y, z, w; scipy convention) rotating body vectors into ENU.
+        Given: also fit the regional gradient (``regional_gradient_enu`` and
+        ``regional_gradient_sigma`` of the result, T/m; ``covariance`` stays the P x P
+        marginal of ``theta``, and ``sigma^2`` counts the 5 extra parameters).
 
     Raises
     ------
     IdentifiabilityError
-        Too few samples, or too little attitude diversity (message gives the condition number).
+        Too few samples, too little attitude diversity (message gives the condition number),
+        or attitudes that cannot separate a regional gradient from the interference.
+    InputError
+        Arrays of the wrong shape or with non-finite values (for ``orientation_xyzw``: how
+        many rows).
     """
     g_measured = as_tensors(g_measured, 'g_measured')
     b_reference = as_vectors(b_reference, 'b_reference')
     g_true = np.zeros_like(g_measured) if g_true is None else as_tensors(g_true, 'g_true')
     n = same_length(g_measured=g_measured, b_reference=b_reference, g_true=g_true)
     method = 'known_gradient_lstsq' if symmetric_k else 'known_gradient_lstsq_general'
+    quaternions = None if orientation_xyzw is None else _orientations(orientation_xyzw, n, method)
     _check_samples(n, method)
+    coverage = _coverage(b_reference, max_coverage_condition, method)
+    details = {'attitude_coverage_condition': coverage}
+    target = g_measured - g_true
+    if quaternions is not None:
+        return _regional_calibration(
+            target, b_reference, quaternions, geometry, symmetric_k, method, details
+        )
+    return _affine_calibration(target, b_reference, geometry, symmetric_k, method, details)
+
+
+def _coverage(b_reference: FloatArray, max_coverage_condition: float, method: str) -> float:
+    """:func:`attitude_coverage`, or :class:`IdentifiabilityError` above the limit."""
     coverage = attitude_coverage(b_reference)
     if not coverage <= max_coverage_condition:
         raise IdentifiabilityError(
@@ -131,8 +188,21 @@ def known_gradient_lstsq(
             f'condition number {coverage:.3g} > {max_coverage_condition:.3g}); '
             'turn, roll and pitch more'
         )
+    return coverage
+
+
+def _affine_calibration(
+    target: FloatArray,
+    b_reference: FloatArray,
+    geometry: TetraGeometry,
+    symmetric_k: bool,
+    method: str,
+    details: dict,
+) -> TensorCalibration:
+    """The solve without a regional gradient: ``target = G_m - G_true`` against eq. 18."""
+    n = len(target)
     whitener = noise_whitener(geometry)
-    target_w = (g_measured - g_true) @ whitener  # (N, 3, 3): rows of G, whitened columns
+    target_w = target @ whitener  # (N, 3, 3): rows of G, whitened columns
     # The whitened design is linear in x_n = (B_1', 1): reduce the 9N x P problem exactly to
     # 36 x P (see reduce_affine) and solve that by the same scaled SVD.
     reduction = reduce_affine(b_reference, target_w.reshape(n, 9))
@@ -143,25 +213,250 @@ def known_gradient_lstsq(
     )
     solution = solve_scaled(design_w, reduction.targets.reshape(-1))
     parameters = InterferenceParameters.from_vector(solution.theta, symmetric=symmetric_k)
-    residual = g_measured - g_true - interference_tensor(b_reference, parameters, geometry)
-    residual_w = residual @ whitener
-    dof = max(residual.size - solution.rank, 1)
-    sigma2 = float(np.sum(residual_w**2)) / dof
+    residual = target - interference_tensor(b_reference, parameters, geometry)
+    sigma2 = _sigma2(residual @ whitener, solution.rank)
+    return _tensor_calibration(
+        method, solution, residual, sigma2, parameters, symmetric_k, details
+    )
+
+
+def _sigma2(residual_w: FloatArray, rank: int) -> float:
+    """Per-axis sensor noise variance, T^2, from the whitened residual and the fitted rank."""
+    dof = max(residual_w.size - rank, 1)
+    return float(np.sum(residual_w**2)) / dof
+
+
+def _tensor_calibration(
+    method: str,
+    solution: LinearSolution,
+    residual: FloatArray,
+    sigma2: float,
+    parameters: InterferenceParameters,
+    symmetric: bool,
+    details: dict,
+    regional: tuple[FloatArray, FloatArray] | None = None,
+) -> TensorCalibration:
+    """The known-gradient result; ``regional`` is ``(G_w, its 1-sigma)``, (3, 3) T/m each."""
+    n_par = len(parameters.to_vector(symmetric=symmetric))
     return TensorCalibration(
         method=method,
-        n_samples=n,
+        n_samples=len(residual),
         n_parameters=n_par,
         rank=solution.rank,
         condition_number=solution.condition_number,
         residual_rms=float(np.sqrt(np.mean(residual**2))),
-        details={
-            'attitude_coverage_condition': coverage,
-            'sensor_noise_nT': float(np.sqrt(sigma2) * NT_PER_T),
-        },
+        details={**details, 'sensor_noise_nT': float(np.sqrt(sigma2) * NT_PER_T)},
         parameters=parameters,
-        symmetric=symmetric_k,
-        covariance=sigma2 * solution.covariance_unit,
+        symmetric=symmetric,
+        covariance=sigma2 * solution.covariance_unit[:n_par, :n_par],
+        regional_gradient_enu=None if regional is None else regional[0],
+        regional_gradient_sigma=None if regional is None else regional[1],
     )
+
+
+def _orientations(orientation_xyzw: ArrayLike, n: int, method: str) -> FloatArray:
+    """Quaternions (N, 4), finite and nonzero, or :class:`InputError` saying how many are not."""
+    q = np.asarray(orientation_xyzw, dtype=float)
+    if q.shape != (n, 4):
+        raise InputError(f'{method}: orientation_xyzw must have shape ({n}, 4), got {q.shape}')
+    bad = ~np.all(np.isfinite(q), axis=1)
+    if np.any(bad):
+        raise InputError(
+            f'{method}: orientation_xyzw has {int(bad.sum())} non-finite rows of {n} '
+            f'(first at index {int(np.argmax(bad))}); drop those samples'
+        )
+    zero = np.linalg.norm(q, axis=1) == 0.0
+    if np.any(zero):
+        raise InputError(
+            f'{method}: orientation_xyzw has {int(zero.sum())} zero quaternions of {n} '
+            f'(first at index {int(np.argmax(zero))})'
+        )
+    return q
+
+
+def regional_body_tensor(orientation_xyzw: ArrayLike, g_world: ArrayLike) -> FloatArray:
+    """A constant world-frame gradient seen in the body frame, ``R_n^T G_w R_n``.
+
+    Parameters
+    ----------
+    orientation_xyzw : array_like, shape (N, 4)
+        Quaternions (x, y, z, w) rotating body vectors into ENU.
+    g_world : array_like, shape (3, 3)
+        ``G_w``, T/m, ENU.
+
+    Returns
+    -------
+    ndarray, shape (N, 3, 3)
+        T/m, body frame.
+
+    Raises
+    ------
+    InputError
+        Wrong shapes, non-finite or zero quaternions (the message says how many).
+    """
+    quaternions = np.asarray(orientation_xyzw, dtype=float)
+    n = quaternions.shape[0] if quaternions.ndim else 0
+    quaternions = _orientations(quaternions, n, 'regional_body_tensor')
+    g_world = as_array(g_world, 'g_world', (3, 3))
+    rotation = Rotation.from_quat(quaternions).as_matrix().reshape(-1, 3, 3)
+    return np.swapaxes(rotation, 1, 2) @ g_world @ rotation
+
+
+def _regional_columns(
+    target_w: FloatArray, b_reference: FloatArray, quaternions: FloatArray, whitener: FloatArray
+) -> FloatArray:
+    """Per-sample columns ``[B_1' 1 | Z | y]``, shape (m, 58): ``Z`` the whitened body-frame
+    regional basis (9 whitened components x 5 coefficients, component-major), ``y`` the
+    whitened target (9)."""
+    m = len(b_reference)
+    rotation = Rotation.from_quat(quaternions).as_matrix().reshape(m, 1, 3, 3)
+    body = np.swapaxes(rotation, 2, 3) @ REGIONAL_BASIS @ rotation  # (m, 5, 3, 3)
+    regional_w = np.moveaxis(body @ whitener, 1, 3)  # (m, 3, 3, 5): [n, row, col_w, coef]
+    return np.column_stack(
+        [b_reference, np.ones(m), regional_w.reshape(m, 45), target_w.reshape(m, 9)]
+    )
+
+
+def _r_factor(matrix: FloatArray) -> FloatArray:
+    """``R`` of the Householder QR of ``matrix`` (M, K), shape (min(M, K), K)."""
+    return np.asarray(np.linalg.qr(matrix, mode='r'), dtype=float)
+
+
+def _regional_triangle(
+    target_w: FloatArray, b_reference: FloatArray, quaternions: FloatArray, whitener: FloatArray
+) -> FloatArray:
+    """``R`` (58, 58) of the QR of every sample's :func:`_regional_columns`, by chunked TSQR:
+    QR per :data:`TSQR_CHUNK` samples, the triangles stacked and re-factored."""
+    scale: FloatArray | None = None
+    stacked: FloatArray | None = None
+    for start in range(0, len(target_w), TSQR_CHUNK):
+        chunk = slice(start, start + TSQR_CHUNK)
+        columns = _regional_columns(
+            target_w[chunk], b_reference[chunk], quaternions[chunk], whitener
+        )
+        if scale is None:  # one column scale for all chunks (tesla vs 1 vs T/m)
+            scale = np.linalg.norm(columns, axis=0)
+            scale[scale == 0.0] = 1.0
+        r = _r_factor(columns / scale)
+        stacked = r if stacked is None else _r_factor(np.vstack([stacked, r]))
+    assert stacked is not None and scale is not None  # at least MIN_SAMPLES samples
+    triangle = stacked * scale
+    missing = triangle.shape[1] - triangle.shape[0]  # fewer rows than columns: zero rows
+    return np.vstack([triangle, np.zeros((missing, triangle.shape[1]))]) if missing else triangle
+
+
+def _regional_system(
+    triangle: FloatArray, geometry: TetraGeometry, whitener: FloatArray, symmetric: bool
+) -> tuple[FloatArray, FloatArray]:
+    """A small system ``A x ~ y`` (x = theta then c) with the normal matrix, right-hand side
+    and singular values of the whole whitened ``9N x (P + 5)`` problem.
+
+    Per whitened component ``r``, the interference columns over the samples are ``X H_r``
+    with ``X = [B_1' 1] = Q_x R_x``. So ``|X H_r theta + Z_r c - y_r|^2`` splits exactly into
+    the part in span(X), ``R_x H_r theta + Q_x^T (Z_r c - y_r)`` (4 rows: the design at the
+    pseudo-samples of :func:`reduce_affine`), and the rest, ``(I - Q_x Q_x^T)(Z_r c - y_r)``,
+    which involves ``c`` only. With ``R`` the triangle of ``[X | Z | y]``, ``R[:4]`` is
+    ``Q_x^T [X | Z | y]`` and ``R[4:]`` restricted to component ``r``'s columns has the Gram
+    matrix of the rest. Rows: 36 in span(X) (pseudo-sample-major) and 9 x 54 outside it.
+    """
+    reduction = AffineReduction(regressors=triangle[:4, :4], targets=triangle[:4, 49:])
+    design = reduced_design(reduction, geometry, symmetric=symmetric)
+    n_par = design.shape[2]
+    design_w = np.einsum('nRjp,jk->nRkp', design.reshape(4, 3, 3, n_par), whitener)
+    regional = triangle[:, 4:49].reshape(-1, 9, 5)
+    target = triangle[:, 49:]
+    outside = np.swapaxes(regional[4:], 0, 1).reshape(-1, 5)
+    system = np.block(
+        [
+            [design_w.reshape(36, n_par), regional[:4].reshape(36, 5)],
+            [np.zeros((len(outside), n_par)), outside],
+        ]
+    )
+    return system, np.concatenate([target[:4].reshape(36), target[4:].T.reshape(-1)])
+
+
+def _regional_calibration(
+    target: FloatArray,
+    b_reference: FloatArray,
+    quaternions: FloatArray,
+    geometry: TetraGeometry,
+    symmetric: bool,
+    method: str,
+    details: dict,
+) -> TensorCalibration:
+    """Joint solve of ``theta`` and the regional gradient (see :func:`known_gradient_lstsq`)."""
+    whitener = noise_whitener(geometry)
+    triangle = _regional_triangle(target @ whitener, b_reference, quaternions, whitener)
+    system, rhs = _regional_system(triangle, geometry, whitener, symmetric)
+    solution = solve_scaled(system, rhs)
+    m = system.shape[1]  # P + 5
+    if solution.rank < m:
+        raise IdentifiabilityError(
+            f'{method}: the attitudes cannot separate a regional gradient from the '
+            f'interference (rank {solution.rank} of {m - 5} + 5 parameters); roll and pitch '
+            'more, or fit without orientation_xyzw'
+        )
+    n_par = m - 5
+    parameters = InterferenceParameters.from_vector(solution.theta[:n_par], symmetric=symmetric)
+    g_world = np.einsum('q,qij->ij', solution.theta[n_par:], REGIONAL_BASIS)
+    residual = (
+        target
+        - interference_tensor(b_reference, parameters, geometry)
+        - regional_body_tensor(quaternions, g_world)
+    )
+    sigma2 = _sigma2(residual @ whitener, solution.rank)
+    cov_c = sigma2 * solution.covariance_unit[n_par:, n_par:]
+    sigma = np.sqrt(np.einsum('qij,qp,pij->ij', REGIONAL_BASIS, cov_c, REGIONAL_BASIS))
+    return _tensor_calibration(
+        method, solution, residual, sigma2, parameters, symmetric, details, (g_world, sigma)
+    )
+
+
+def calibration_residual(
+    calibration: TensorCalibration,
+    g_measured: ArrayLike,
+    b_reference: ArrayLike,
+    geometry: TetraGeometry,
+    *,
+    orientation_xyzw: ArrayLike | None = None,
+) -> FloatArray:
+    """What a known-gradient fit leaves: ``G_m - D(B_1'; theta) - R_n^T G_w R_n``.
+
+    The regional term is subtracted only when ``calibration`` has a regional gradient and
+    ``orientation_xyzw`` is given (otherwise the residual of eq. 19 alone, i.e. the
+    compensated tensor).
+
+    Parameters
+    ----------
+    calibration : TensorCalibration
+    g_measured : array_like, shape (N, 3, 3)
+        ``G_m``, T/m.
+    b_reference : array_like, shape (N, 3)
+        ``B_1'``, tesla, body frame.
+    geometry : TetraGeometry
+    orientation_xyzw : array_like, shape (N, 4), optional
+        Quaternions (x, y, z, w) rotating body vectors into ENU.
+
+    Returns
+    -------
+    ndarray, shape (N, 3, 3)
+        T/m, body frame, in the samples' order.
+
+    Raises
+    ------
+    InputError
+        Not a :class:`TensorCalibration`, wrong shapes or non-finite values.
+    """
+    if not isinstance(calibration, TensorCalibration):
+        raise InputError(f'{calibration.method} gives no k, b: no tensor residual to compute')
+    g_measured = as_tensors(g_measured, 'g_measured')
+    b_reference = as_vectors(b_reference, 'b_reference')
+    n = same_length(g_measured=g_measured, b_reference=b_reference)
+    residual = g_measured - interference_tensor(b_reference, calibration.parameters, geometry)
+    if calibration.regional_gradient_enu is not None and orientation_xyzw is not None:
+        quaternions = _orientations(orientation_xyzw, n, 'calibration_residual')
+        residual -= regional_body_tensor(quaternions, calibration.regional_gradient_enu)
+    return residual
 
 
 def constraint_objective(

@@ -58,6 +58,10 @@ class Options:
     should_stop : callable or None
         Asked once per step of an iterative solver; True ends it like ``deadline_s``
         (cancellation: the caller, which knows why, discards or keeps the result).
+    orientation_xyzw : ndarray, shape (N, 4), or None
+        Attitude quaternions (x, y, z, w) rotating body vectors into ENU. The known-gradient
+        methods then fit a constant regional (world-frame) gradient jointly with ``k``, ``b``
+        (the result's ``regional_gradient_enu``); the others ignore it.
     """
 
     rng: np.random.Generator | None = None
@@ -68,6 +72,7 @@ class Options:
     fields_measured: FloatArray | None = field(default=None, repr=False)
     deadline_s: float | None = None
     should_stop: Callable[[], bool] | None = field(default=None, repr=False)
+    orientation_xyzw: FloatArray | None = field(default=None, repr=False)
 
 
 Solver = Callable[[FloatArray, FloatArray, TetraGeometry, Options], Calibration]
@@ -108,6 +113,7 @@ def _known_gradient(symmetric: bool) -> Solver:
             g_true=o.g_true,
             symmetric_k=symmetric,
             max_coverage_condition=o.max_coverage_condition,
+            orientation_xyzw=o.orientation_xyzw,
         )
 
     return solve

@@ -71,16 +71,46 @@ class Calibration(ABC):
 class TensorCalibration(Calibration):
     """A calibration in the paper's form: ``k``, ``b`` applied by eq. 19.
 
-    ``covariance`` is the parameter covariance (P, P) in the SI units of
-    ``parameters.to_vector``, or None where the method gives none.
+    Attributes
+    ----------
+    parameters : InterferenceParameters
+    symmetric : bool
+        The paper's symmetric ``K_i1`` (27 parameters) or general ones (36).
+    covariance : ndarray, shape (P, P), or None
+        Covariance of ``parameters.to_vector`` in its SI units (the marginal of the
+        interference parameters when a regional gradient was fitted jointly), or None where
+        the method gives none.
+    regional_gradient_enu : ndarray, shape (3, 3), or None
+        The constant regional (world-frame, ENU) gradient fitted jointly with ``k``, ``b``
+        (symmetric, traceless), T/m; None when none was fitted. It is signal: compensation
+        leaves it in the tensor.
+    regional_gradient_sigma : ndarray, shape (3, 3), or None
+        1-sigma of each component of ``regional_gradient_enu``, T/m (from the joint
+        covariance).
     """
 
     parameters: InterferenceParameters = field(default_factory=InterferenceParameters.zero)
     symmetric: bool = True
     covariance: np.ndarray | None = None
+    regional_gradient_enu: np.ndarray | None = None
+    regional_gradient_sigma: np.ndarray | None = None
 
     def compensate_fields(self, fields_measured: ArrayLike, geometry: TetraGeometry) -> FloatArray:
         return compensate_fields(fields_measured, self.parameters, geometry)
+
+    def summary(self) -> dict:
+        """Diagnostics as plain types; with a regional gradient also
+        ``regional_gradient_enu_nT_per_m`` and ``regional_gradient_sigma_nT_per_m`` (3x3
+        nested lists, ENU) and the scalar ``regional_gradient_norm_nT_per_m`` (Frobenius)."""
+        summary = super().summary()
+        if self.regional_gradient_enu is not None:
+            g_world = np.asarray(self.regional_gradient_enu, dtype=float) * NT_PER_T
+            summary['regional_gradient_enu_nT_per_m'] = g_world.tolist()
+            if self.regional_gradient_sigma is not None:
+                sigma = np.asarray(self.regional_gradient_sigma, dtype=float) * NT_PER_T
+                summary['regional_gradient_sigma_nT_per_m'] = sigma.tolist()
+            summary['regional_gradient_norm_nT_per_m'] = float(np.linalg.norm(g_world))
+        return summary
 
     @property
     def standard_errors(self) -> np.ndarray | None:
