@@ -38,6 +38,11 @@ class IdentifiabilityError(InputError):
     """The data cannot identify the asked parameters (too few samples or field directions)."""
 
 
+class AssumptionError(InputError):
+    """The data break the fit's assumption (e.g. a constant gradient over a calibration
+    window): the residual is well above the noise."""
+
+
 class MessageError(InputError):
     """A ROS message does not hold what the contract says (names, sizes, values)."""
 

@@ -11,6 +11,7 @@ import pytest
 
 from tetra_gradiometer import core
 from tetra_gradiometer.core.units import NS_PER_S
+from tetra_gradiometer.errors import AssumptionError
 from tetra_gradiometer.io.bag import MagneticBag
 from tetra_gradiometer.io.bag_calibration import calibrate_bag
 from tetra_gradiometer.io.recording import write_mission_bag
@@ -83,8 +84,13 @@ def test_pairing_nearest_stamps_is_what_failed(tmp_path):
     scenario = _scenario(np.random.default_rng(1), clocks=clocks)
     mission = core.simulate(scenario, np.random.default_rng(1))
     write_mission_bag(tmp_path / 'bag', mission, start_ns=START_NS, progress=False)
-    paired = calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0),
-                           timebase=TimeBase(sync='nearest', tolerance_s=10e-3))
+    nearest = TimeBase(sync='nearest', tolerance_s=10e-3)
+    with pytest.raises(AssumptionError, match=r'not consistent with a constant gradient.*x the noise'):
+        calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0), timebase=nearest)
+    paired = calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0), timebase=nearest,
+                           force=True)
     resampled = calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0))
     assert paired.calibration.residual_rms > 5 * resampled.calibration.residual_rms
     assert dataclasses.asdict(paired.counters)['matched'] > 0
+    assert any(note.startswith('WARNING (--force)') for note in paired.record.diagnostics['notes'])
+    assert resampled.check.passed and not paired.check.passed

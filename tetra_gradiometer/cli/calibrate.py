@@ -91,7 +91,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         'residual over the window, attitude coverage, parameters with sigma and the '
         'predicted survey accuracy',
     )
-    add_force_argument(parser, 'a previous calibration file at --out (and report at --report)')
+    add_force_argument(
+        parser,
+        'a previous calibration file at --out (and report at --report); also write a '
+        'calibration whose window fails its self-test, with the warning in the file',
+    )
     parser.add_argument(
         '--seed', type=seed_arg, default=0, help='paper_ga: random seed, 0 <= n < 2^31 (default 0)'
     )
@@ -149,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         timebase=timebase_from_args(args),
         max_sets=args.max_sets,
         progress=args.progress,
+        force=args.force,
     )
     save_calibration(args.out, result.record, force=args.force, inputs=inputs)
     _print_summary(args, result)
@@ -223,6 +228,7 @@ def _print_summary(args: argparse.Namespace, result: BagCalibration) -> None:
         f'  residual RMS {summary["residual_rms_nT_per_m"]:.4g} nT/m, '
         f'attitude coverage condition number {result.coverage_condition:.3g}{noise}'
     )
+    _print_window_check(result)
     if 'objective_final' in summary:
         print(
             f'  GA objective {summary["objective_initial"]:.4g} -> '
@@ -230,6 +236,24 @@ def _print_summary(args: argparse.Namespace, result: BagCalibration) -> None:
             f'after {summary["generations"]} generations, seed {args.seed}'
         )
     _print_parameters(result)
+
+
+def _print_window_check(result: BagCalibration) -> None:
+    """The regional gradient (or why it is assumed zero) and the window's self-test."""
+    for note in result.notes:
+        print(f'  {note}')
+    gradient = getattr(result.calibration, 'regional_gradient_enu', None)
+    sigma = getattr(result.calibration, 'regional_gradient_sigma', None)
+    if gradient is not None and sigma is not None:
+        g_nt, sigma_nt = gradient * NT_PER_T, sigma * NT_PER_T
+        pairs = ', '.join(
+            f'g{"xyz"[i]}{"xyz"[j]} {g_nt[i, j]:+.3f} +- {sigma_nt[i, j]:.3f}'
+            for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        )
+        print(f'  regional gradient (world ENU, nT/m; signal, not compensated): {pairs}')
+    if result.check is not None:
+        verdict = 'passes' if result.check.passed else 'FAILS'
+        print(f'  window check {verdict}: {result.check.text()}')
 
 
 def _print_parameters(result: BagCalibration) -> None:

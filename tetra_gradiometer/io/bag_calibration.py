@@ -29,6 +29,7 @@ from ..core.identification import (
     Calibration,
     IdentifiabilityError,
     Options,
+    TensorCalibration,
     identify,
 )
 from ..core.identification.paper_ga import GENERATIONS
@@ -39,6 +40,13 @@ from ..errors import BagError, InputError
 from . import conversions as cv
 from .bag import MagneticBag, Series, SetCounters
 from .calibration import CalibrationFile
+from .window_check import (
+    KNOWN_GRADIENT_METHODS,
+    WindowCheck,
+    check_window,
+    odom_orientation,
+    refuse,
+)
 
 __all__ = [
     'DEFAULT_MAX_SETS',
@@ -76,6 +84,8 @@ class WindowSets:
         The set former's counts over what was read.
     clocks : tuple of SensorClock, or None
         The sensors' clocks against the reference instants (None when pairing stamps).
+    first_ns : int
+        Stamp of the bag's first set (window times count from it), ns.
     skipped_messages : int
         Messages skipped as undecodable or unreadable (``MagneticBag.skipped``).
     skipped_summary : str
@@ -87,6 +97,7 @@ class WindowSets:
     span_s: float
     counters: SetCounters
     clocks: tuple[SensorClock, ...] | None = None
+    first_ns: int = 0
     skipped_messages: int = 0
     skipped_summary: str = ''
 
@@ -112,11 +123,17 @@ class BagCalibration:
     dropped : DroppedSets
         Sets of the window dropped as implausible (non-finite, ``|B|`` too large), by reason.
     counters, clocks : as in :class:`WindowSets`
+    check : WindowCheck or None
+        The fit's test of its own assumption (known-gradient methods).
+    notes : tuple of str
+        How the regional gradient was handled; the warning of a forced calibration.
     skipped_messages, skipped_summary : as in :class:`WindowSets`
     stamps_ns : ndarray, shape (n,), int64
         Stamps of the sets the solve used (after thinning), ns.
     fields : ndarray, shape (n, 4, 3)
         Their readings, tesla, body frame.
+    orientation_xyzw : ndarray, shape (n, 4), or None
+        Their attitude from ``/odom`` when the regional gradient was fitted jointly.
     """
 
     calibration: Calibration
@@ -128,10 +145,13 @@ class BagCalibration:
     dropped: DroppedSets
     counters: SetCounters
     clocks: tuple[SensorClock, ...] | None = None
+    check: WindowCheck | None = None
+    notes: tuple[str, ...] = ()
     skipped_messages: int = 0
     skipped_summary: str = ''
     stamps_ns: IntArray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     fields: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 3)))
+    orientation_xyzw: FloatArray | None = None
 
     @property
     def coverage_condition(self) -> float:
@@ -189,9 +209,8 @@ def read_window(
             f'{bag_path}: the window {window_text(window)} holds no sample set '
             f'(the bag spans 0:{span:.3f} s from its first stamp)'
         )
-    return WindowSets(
-        np.concatenate(stamps), np.concatenate(fields), span, counters, clocks, *skipped
-    )
+    joined = np.concatenate(stamps), np.concatenate(fields)
+    return WindowSets(*joined, span, counters, clocks, first or 0, *skipped)
 
 
 def _plausible(
@@ -221,56 +240,52 @@ def calibrate_bag(
     timebase: TimeBase = DEFAULT_TIMEBASE,
     max_sets: int = DEFAULT_MAX_SETS,
     progress: bool | None = None,
+    force: bool = False,
 ) -> BagCalibration:
     """Identify the interference of the array ``geometry`` on a window of the bag.
+
+    Known-gradient methods estimate a regional gradient jointly when the bag has ``/odom``
+    (else assume zero: ``notes``) and test the residual against the noise (window_check).
 
     Parameters
     ----------
     bag_path : path of the rosbag2 folder
-    geometry : TetraGeometry
-        The array that recorded the bag.
+    geometry : TetraGeometry of the array that recorded the bag
     window : (t0, t1) in seconds from the first matched set, or None for the whole bag
-    method : str
-        A method of ``core.identification.CALIBRATION_METHODS``.
-    seed, generations, wide_bounds : ``paper_ga`` only: the generator's seed, the number of
-        generations (default ``GENERATIONS``) and the wide bounds
-    max_coverage_condition : float
-        Refuse a window whose attitude coverage condition number is larger.
-    timebase : TimeBase
-        How the four streams become sets (default: resampled to sensor 1's stamps).
-    max_sets : int
-        Thin the window to at most this many sets (at least :data:`MIN_SETS`).
+    method : a method of ``core.identification.CALIBRATION_METHODS``
+    seed, generations, wide_bounds : ``paper_ga`` only (generations default ``GENERATIONS``)
+    max_coverage_condition : refuse a window whose attitude coverage condition is larger
+    timebase : how the four streams become sets (default: resampled to sensor 1's stamps)
+    max_sets : thin the window to at most this many sets (at least :data:`MIN_SETS`)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
+    force : keep a calibration that fails the window check (warning in its diagnostics)
 
     Raises
     ------
-    InputError
-        ``max_sets`` or ``generations`` out of range, or an unknown method.
-    BagError
-        The bag breaks the data contract, or the window holds no usable set.
-    IdentifiabilityError
-        The window cannot identify the parameters; the message names the window.
-    CalibrationFileError
-        The method gives no ``k, b`` calibration.
+    AssumptionError : the window is not consistent with a constant gradient (no ``force``)
+    InputError : ``max_sets`` or ``generations`` out of range, or an unknown method
+    BagError : the bag breaks the data contract, or the window holds no usable set
+    IdentifiabilityError : the window cannot identify the parameters (message names it)
+    CalibrationFileError : the method gives no ``k, b`` calibration
     """
-    if max_sets < MIN_SETS:
-        raise InputError(f'--max-sets must be at least {MIN_SETS}, got {max_sets}')
-    if generations is not None and generations < 1:
-        raise InputError(f'--generations must be >= 1, got {generations}')
+    _check_limits(max_sets, generations)
     sets, dropped = _plausible(
         read_window(bag_path, window, timebase=timebase, progress=progress), bag_path
     )
     n_window = len(sets.stamps_ns)
     thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
-    fields = sets.fields[::thinned]
-    text = window_text(window)
+    text, fields = window_text(window), sets.fields[::thinned]
     options = Options(
         rng=np.random.default_rng(seed),
         generations=generations or GENERATIONS,
         wide_bounds=wide_bounds,
         max_coverage_condition=max_coverage_condition,
     )
+    options, notes = _with_attitude(options, method, bag_path, sets.stamps_ns[::thinned])
     calibration = _identify(method, fields, geometry, options, text)
+    check, notes = _check(
+        calibration, method, sets, thinned, geometry, options, notes, force, text
+    )
     result = BagCalibration(
         calibration=calibration,
         record=CalibrationFile.from_calibration(calibration, geometry),
@@ -281,14 +296,59 @@ def calibrate_bag(
         dropped=dropped,
         counters=sets.counters,
         clocks=sets.clocks,
+        check=check,
+        notes=notes,
         skipped_messages=sets.skipped_messages,
         skipped_summary=sets.skipped_summary,
         stamps_ns=sets.stamps_ns[::thinned],
         fields=fields,
+        orientation_xyzw=options.orientation_xyzw,
     )
     extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
     record = dataclasses.replace(result.record, diagnostics={**result.record.diagnostics, **extra})
     return dataclasses.replace(result, record=record)
+
+
+def _check_limits(max_sets: int, generations: int | None) -> None:
+    if max_sets < MIN_SETS:
+        raise InputError(f'--max-sets must be at least {MIN_SETS}, got {max_sets}')
+    if generations is not None and generations < 1:
+        raise InputError(f'--generations must be >= 1, got {generations}')
+
+
+def _with_attitude(
+    options: Options, method: str, bag_path: str | os.PathLike[str], stamps_ns: IntArray
+) -> tuple[Options, tuple[str, ...]]:
+    """Known-gradient methods: the ``/odom`` attitude of each set, for the joint regional
+    gradient (none without ``/odom``: assumed zero, as the note says)."""
+    if method not in KNOWN_GRADIENT_METHODS:
+        return options, ()
+    orientation, note = odom_orientation(bag_path, stamps_ns)
+    return dataclasses.replace(options, orientation_xyzw=orientation), (note,)
+
+
+def _check(
+    calibration: Calibration,
+    method: str,
+    sets: WindowSets,
+    thinned: int,
+    geometry: TetraGeometry,
+    options: Options,
+    notes: tuple[str, ...],
+    force: bool,
+    window: str,
+) -> tuple[WindowCheck | None, tuple[str, ...]]:
+    """The known-gradient fit's test of its window; refuse it, or keep it with a warning."""
+    if method not in KNOWN_GRADIENT_METHODS or not isinstance(calibration, TensorCalibration):
+        return None, notes
+    stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
+    check = check_window(calibration, method, stamps, fields, geometry, options, sets.first_ns)
+    if check.passed:
+        return check, notes
+    error = refuse(check, window)
+    if not force:
+        raise error
+    return check, (*notes, f'WARNING (--force): {error}')
 
 
 def _identify(
@@ -314,8 +374,26 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
         **result.dropped.as_dict(),
         **result.counters.as_dict(),
         **_clock_diagnostics(result.clocks),
+        **_check_diagnostics(result),
         'messages_skipped_undecodable': result.skipped_messages,
     }
+
+
+def _check_diagnostics(result: BagCalibration) -> dict[str, Any]:
+    """The window check, the regional gradient and the notes (a forced calibration's
+    warning among them)."""
+    out: dict[str, Any] = {'notes': list(result.notes)} if result.notes else {}
+    if result.check is not None:
+        out['window_check'] = result.check.to_dict()
+    calibration = result.calibration
+    gradient = getattr(calibration, 'regional_gradient_enu', None)
+    if gradient is not None:
+        sigma = getattr(calibration, 'regional_gradient_sigma', None)
+        gradient = gradient * NT_PER_T
+        out['regional_gradient_enu_nT_per_m'] = gradient.tolist()
+        if sigma is not None:
+            out['regional_gradient_sigma_nT_per_m'] = (sigma * NT_PER_T).tolist()
+    return out
 
 
 def _clock_diagnostics(clocks: tuple[SensorClock, ...] | None) -> dict[str, Any]:

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..core import InterferenceParameters, TetraGeometry
 from ..core.guidance import ENOUGH_RATIO, SURVEY_HEADINGS_DEG, SURVEY_SWAY_DEG, TrimAssessment
+from ..core.identification import regional_body_tensor
 from ..core.units import NT_PER_T, S_PER_NS
 from .bag_calibration import BagCalibration, WindowAssessment
 from .outputs import CALIBRATION_REPORT, atomic_output
@@ -49,8 +50,12 @@ def _plain(value: Any) -> Any:
 
 def window_residual(result: BagCalibration, geometry: TetraGeometry) -> tuple[Any, Any]:
     """Seconds from the first set used (n,) and the RMS over the 9 components of each set's
-    compensated tensor (n,), T/m: the residual where the true gradient is taken as zero."""
+    compensated tensor (n,), T/m: the residual where the true gradient is taken as zero, or
+    as the regional gradient fitted with the calibration."""
     compensated = result.calibration.compensate_fields(result.fields, geometry)
+    regional = getattr(result.calibration, 'regional_gradient_enu', None)
+    if regional is not None and result.orientation_xyzw is not None:
+        compensated = compensated - regional_body_tensor(result.orientation_xyzw, regional)
     t = (result.stamps_ns - result.stamps_ns[0]) * S_PER_NS
     return t, np.sqrt(np.mean(compensated.reshape(len(t), 9) ** 2, axis=1))
 

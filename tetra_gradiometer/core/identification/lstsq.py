@@ -242,7 +242,9 @@ def _tensor_calibration(
         method=method,
         n_samples=len(residual),
         n_parameters=n_par,
-        rank=solution.rank,
+        # Of the interference parameters: the joint solve refuses unless the 5 gradient
+        # coefficients are all resolved, so they take exactly 5 of its rank.
+        rank=solution.rank - (0 if regional is None else 5),
         condition_number=solution.condition_number,
         residual_rms=float(np.sqrt(np.mean(residual**2))),
         details={**details, 'sensor_noise_nT': float(np.sqrt(sigma2) * NT_PER_T)},
