@@ -94,3 +94,37 @@ def test_pairing_nearest_stamps_is_what_failed(tmp_path):
     assert dataclasses.asdict(paired.counters)['matched'] > 0
     assert any(note.startswith('WARNING (--force)') for note in paired.record.diagnostics['notes'])
     assert resampled.check.passed and not paired.check.passed
+
+
+def test_a_trim_inside_a_regional_gradient_is_calibrated_jointly(tmp_path):
+    """4 nT/m of geology (symmetric, traceless, world frame): estimated with /odom within
+    3 sigma, left in the compensated survey (signal), and the survey at the noise floor."""
+    g_world = np.array([[2.5, 1.0, -0.8], [1.0, -1.5, 1.4], [-0.8, 1.4, -1.0]])
+    g_world *= 4.0 * NT / np.linalg.norm(g_world)
+    scenario = _scenario(np.random.default_rng(3), clocks=core.SensorClocks(
+        offset_s=[0.0, 0.5e-3, 2.1e-3, 4.0e-3], jitter_s=0.2e-3, loss_fraction=0.005), gradient=g_world)
+    residual, floor, result = _run(tmp_path, scenario, 3)
+    assert residual <= 1.2 * floor, (residual / NT, floor / NT)
+    fitted, sigma = result.calibration.regional_gradient_enu, result.calibration.regional_gradient_sigma
+    assert np.all(np.abs(fitted - g_world) <= 3 * sigma + 1e-3 * NT), ((fitted - g_world) / sigma)
+    saved = np.array(result.record.diagnostics['regional_gradient_enu_nT_per_m'])
+    np.testing.assert_allclose(saved, fitted / NT)
+    assert result.check.passed
+
+
+def test_a_window_over_a_target_is_refused_and_points_to_a_clean_part(tmp_path):
+    """A window of the survey with a magnetic target in it: the residual is far above the
+    noise; refused with the figures, and forced only with --force (warning in the file)."""
+    rng = np.random.default_rng(4)
+    scenario = dataclasses.replace(
+        _scenario(rng), dipoles=(core.Dipole([80.0, 25.0, -60.0], [4e3, 1e3, -3e3]),))
+    mission = core.simulate(scenario, np.random.default_rng(4))
+    write_mission_bag(tmp_path / 'bag', mission, start_ns=START_NS, progress=False)
+    with pytest.raises(AssumptionError, match=r'x the noise .* fails in'):
+        calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(150.0, 339.0))
+    forced = calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(150.0, 339.0), force=True)
+    assert not forced.check.passed and forced.check.consistency.ratio > 3
+    failing = forced.check.consistency.failing_spans()
+    assert any(a <= 330.0 <= b for a, b in failing), failing  # the line passes the target at 330 s
+    # The clean trim alone passes (no false refusal).
+    assert calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0)).check.passed
