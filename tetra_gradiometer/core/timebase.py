@@ -168,8 +168,9 @@ class _ClockSums:
 
 
 @dataclass(frozen=True)
-class SensorClock:
-    """One sensor's clock against the reference instants.
+class ClockEstimate:
+    """One sensor's clock as estimated against the reference instants (the simulator's clocks
+    are :class:`~tetra_gradiometer.core.clocks.SensorClocks`).
 
     Attributes
     ----------
@@ -193,7 +194,7 @@ class SensorClock:
         }
 
 
-def clocks_text(clocks: tuple[SensorClock, ...]) -> str:
+def clocks_text(clocks: tuple[ClockEstimate, ...]) -> str:
     """'sensor clocks vs reference: 2 +1.98 ms (jitter 0.28 ms, 50.0 Hz), ...'"""
     parts = [
         f'{i + 1} {c.offset_s * 1e3:+.2f} ms '
@@ -293,7 +294,7 @@ class Resampler:
     def _grid_instants(self, until_ns: int) -> IntArray:
         """The grid instants not yet issued up to ``until_ns`` (grid mode)."""
         period = NS_PER_S / self.timebase.reference_rate_hz
-        first = self._last_first()
+        first = self._earliest_buffered()
         if self._grid_next is None:
             self._grid_next = int(np.ceil(first / period))
         last_index = int(np.floor(until_ns / period))
@@ -303,7 +304,7 @@ class Resampler:
         self._grid_next = last_index + 1
         return np.round(indices * period).astype(np.int64)
 
-    def _last_first(self) -> int:
+    def _earliest_buffered(self) -> int:
         """The earliest stamp buffered (grid origin); only called once all sensors have data."""
         return min(int(t[0]) for t in self._t)
 
@@ -415,14 +416,14 @@ class Resampler:
         """Reference instants waiting for a sensor's next sample."""
         return len(self._pending)
 
-    def clocks(self) -> tuple[SensorClock, ...]:
+    def clocks(self) -> tuple[ClockEstimate, ...]:
         """Each sensor's offset and jitter against the reference instants, and its rate."""
         result = []
         for sums in self._sums:
             variance = sums.m2 / (sums.count - 1) if sums.count > 1 else 0.0
             period = sums.period_ns()
             result.append(
-                SensorClock(
+                ClockEstimate(
                     offset_s=sums.mean_ns * S_PER_NS,
                     jitter_s=float(np.sqrt(variance)) * S_PER_NS,
                     rate_hz=NS_PER_S / period if period else 0.0,

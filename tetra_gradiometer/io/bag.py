@@ -44,7 +44,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from ..core.timebase import DEFAULT_TIMEBASE, ResampleCounters, Resampler, SensorClock, TimeBase
+from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, ResampleCounters, Resampler, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
@@ -189,7 +189,7 @@ class _BatchResampler:
         out = [self.resampler.add(sensor, *batches[sensor]) for sensor in (1, 2, 3, 0)]
         return _join([o[0] for o in out if len(o[0])], [o[1] for o in out if len(o[0])])
 
-    def clocks(self) -> tuple[SensorClock, ...]:
+    def clocks(self) -> tuple[ClockEstimate, ...]:
         return self.resampler.clocks()
 
 
@@ -234,7 +234,7 @@ class MagneticBag:
         What the reads so far skipped (each message or chunk once), in reading order.
     counters : MatchCounters or ResampleCounters
         The set former's counts of the last :meth:`iter_sets` (``text()``, ``as_dict()``).
-    clocks : tuple of SensorClock, or None
+    clocks : tuple of ClockEstimate, or None
         Each sensor's clock offset, jitter and rate against the reference instants, from the
         last :meth:`iter_sets` (None when pairing stamps).
     """
@@ -252,7 +252,7 @@ class MagneticBag:
         self.max_skipped_fraction = max_skipped_fraction
         self._reader: AnyReader | None = None
         self.counters: SetCounters = MatchCounters()
-        self.clocks: tuple[SensorClock, ...] | None = None
+        self.clocks: tuple[ClockEstimate, ...] | None = None
         self.skipped: list[SkippedMessage] = []
         self._seen: set[SkippedMessage] = set()
 

@@ -34,7 +34,7 @@ from ..core.identification import (
 )
 from ..core.identification.paper_ga import GENERATIONS
 from ..core.plausibility import DroppedSets, plausible_sets
-from ..core.timebase import DEFAULT_TIMEBASE, SensorClock, TimeBase
+from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
@@ -42,6 +42,7 @@ from .bag import MagneticBag, Series, SetCounters
 from .calibration import CalibrationFile
 from .window_check import (
     KNOWN_GRADIENT_METHODS,
+    MAX_ODOM_GAP_S,
     WindowCheck,
     check_window,
     odom_orientation,
@@ -82,7 +83,7 @@ class WindowSets:
         Seconds of the bag read (from its first matched set to the last one read).
     counters : MatchCounters or ResampleCounters
         The set former's counts over what was read.
-    clocks : tuple of SensorClock, or None
+    clocks : tuple of ClockEstimate, or None
         The sensors' clocks against the reference instants (None when pairing stamps).
     first_ns : int
         Stamp of the bag's first set (window times count from it), ns.
@@ -96,7 +97,7 @@ class WindowSets:
     fields: FloatArray
     span_s: float
     counters: SetCounters
-    clocks: tuple[SensorClock, ...] | None = None
+    clocks: tuple[ClockEstimate, ...] | None = None
     first_ns: int = 0
     skipped_messages: int = 0
     skipped_summary: str = ''
@@ -144,7 +145,7 @@ class BagCalibration:
     span_s: float
     dropped: DroppedSets
     counters: SetCounters
-    clocks: tuple[SensorClock, ...] | None = None
+    clocks: tuple[ClockEstimate, ...] | None = None
     check: WindowCheck | None = None
     notes: tuple[str, ...] = ()
     skipped_messages: int = 0
@@ -396,15 +397,13 @@ def _check_diagnostics(result: BagCalibration) -> dict[str, Any]:
     return out
 
 
-def _clock_diagnostics(clocks: tuple[SensorClock, ...] | None) -> dict[str, Any]:
+def _clock_diagnostics(clocks: tuple[ClockEstimate, ...] | None) -> dict[str, Any]:
     """Each sensor's clock against the reference (absent when stamps were paired)."""
     return {} if clocks is None else {'sensor_clocks': [c.to_dict() for c in clocks]}
 
 
 #: Sensor noise the assessment assumes if the window were too short to estimate its own, T.
 DEFAULT_SENSOR_NOISE_T = 0.1e-9
-#: An ``/odom`` message further than this from a set leaves that set's attitude unknown, s.
-MAX_ODOM_GAP_S = 0.5
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ import numpy.typing as npt
 
 from ..core import InterferenceParameters, TetraGeometry, compensate, difference_tensor
 from ..core.plausibility import DroppedSets, plausible_sets
-from ..core.timebase import DEFAULT_TIMEBASE, SensorClock, TimeBase
+from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.uncertainty import SigmaModel
 from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS, T_PER_NT
 from ..errors import BagError, InputError, OutputError
@@ -87,7 +87,7 @@ class CompensationCounts:
         The tensor topic of the output bag.
     counters : MatchCounters or ResampleCounters
         The set former's counts.
-    clocks : tuple of SensorClock, or None
+    clocks : tuple of ClockEstimate, or None
         The sensors' clocks against the reference instants (None when pairing stamps).
     skipped_messages : int
         Messages skipped as undecodable or unreadable (``MagneticBag.skipped``).
@@ -100,7 +100,7 @@ class CompensationCounts:
     span_s: float
     topic: str
     counters: SetCounters
-    clocks: tuple[SensorClock, ...] | None = None
+    clocks: tuple[ClockEstimate, ...] | None = None
     skipped_messages: int = 0
     skipped_summary: str = ''
 

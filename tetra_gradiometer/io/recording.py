@@ -198,9 +198,11 @@ class Recording:
         return len(self.stamps_ns)
 
 
-def _interp_orientation(
+def interp_orientation(
     series_stamps: np.ndarray, quats: np.ndarray, stamps: np.ndarray
 ) -> np.ndarray:
+    """Quaternions ``quats`` (m, 4) at ``series_stamps`` (m,) ns slerped onto ``stamps`` (n,)
+    ns, held at the ends: (n, 4)."""
     if len(series_stamps) == 1:
         return np.repeat(quats, len(stamps), axis=0)
     t0 = series_stamps[0]
@@ -242,7 +244,7 @@ def read_recording(
                 extras[name] = None
                 missing[topic] = f'{topic} is not in the bag'
             elif name == 'orientation_xyzw':
-                extras[name] = _interp_orientation(series.stamps_ns, series.values, stamps)
+                extras[name] = interp_orientation(series.stamps_ns, series.values, stamps)
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
         skipped = bag.skipped_messages

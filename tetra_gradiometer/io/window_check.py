@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation, Slerp
 
 from ..core import TetraGeometry, difference_tensor
 from ..core.identification import (
@@ -28,13 +27,15 @@ from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import AssumptionError, IdentifiabilityError
 from . import conversions as cv
 from .bag import MagneticBag
+from .recording import interp_orientation
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: Methods that assume a known (zero, or jointly fitted regional) gradient over the window.
 KNOWN_GRADIENT_METHODS = ('known_gradient_lstsq', 'known_gradient_lstsq_general')
-#: ``/odom`` further than this from a set: its attitude is unknown, s.
+#: An ``/odom`` message further than this from a set leaves that set's attitude unknown, s
+#: (the joint regional gradient and the trim guidance alike).
 MAX_ODOM_GAP_S = 0.5
 #: Shortest sub-window worth pointing to, s.
 MIN_SUB_WINDOW_S = 30.0
@@ -63,11 +64,8 @@ def odom_orientation(
             f'{cv.ODOM_TOPIC} misses {int(np.sum(gap * S_PER_NS > MAX_ODOM_GAP_S))} sets of the '
             f'window by more than {MAX_ODOM_GAP_S:g} s: the regional gradient is assumed zero'
         )
-    t0 = odom[0]
-    slerp = Slerp((odom - t0) * S_PER_NS, Rotation.from_quat(series.values))
-    t = np.clip((stamps_ns - t0) * S_PER_NS, 0.0, (odom[-1] - t0) * S_PER_NS)
     note = f'regional gradient estimated jointly (attitude from {cv.ODOM_TOPIC})'
-    return slerp(t).as_quat(), note
+    return interp_orientation(odom, series.values, stamps_ns), note
 
 
 @dataclass(frozen=True)
