@@ -243,15 +243,17 @@ def interference_set(n: int, rng: np.random.Generator, directions: str, geometry
     return core.difference_tensor(fields, geometry), fields[:, 0], exact
 
 
-def set_parameter(probe: Any, graph: Graph, node: str, name: str, value: str | float) -> Any:
-    """Call ``<node>/set_parameters`` for one string or double parameter; return its
+def set_parameter(probe: Any, graph: Graph, node: str, name: str, value: str | float | bool) -> Any:
+    """Call ``<node>/set_parameters`` for one string, bool or double parameter; return its
     ``SetParametersResult`` (the caller asserts success or refusal)."""
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
 
     client = probe.create_client(SetParameters, f'{node}/set_parameters')
     assert client.wait_for_service(timeout_sec=30)
-    if isinstance(value, str):
+    if isinstance(value, bool):
+        parameter_value = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value)
+    elif isinstance(value, str):
         parameter_value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
     else:
         parameter_value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=float(value))

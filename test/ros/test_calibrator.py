@@ -226,3 +226,77 @@ def test_an_implausible_earth_field_is_refused_at_start_with_the_reason():
     assert code == 1 and 'Traceback' not in output, output
     line = [line for line in output.splitlines() if 'cannot start:' in line]
     assert len(line) == 1 and "'earth_field_enu'" in line[0] and '|B| <= 0.001 T' in line[0], output
+
+
+def _trim(seed, dipoles=()):
+    """A 60 s trim at 10 Hz in a 4 nT/m regional gradient (world frame), simulated: the
+    samples (stamps, G_m, B_1'), the attitudes, and the gradient's truth, T/m."""
+    g_world = np.array([[2.5, 1.0, -0.8], [1.0, -1.5, 1.4], [-0.8, 1.4, -1.0]])
+    g_world *= 4e-9 / np.linalg.norm(g_world)
+    rng = np.random.default_rng(seed)
+    scenario = core.Scenario(
+        geometry=GEOMETRY, earth_field_enu=np.array([0.0, 2e-5, -4.5e-5]),
+        segments=(core.TrimManoeuvre(60.0),), sample_rate_hz=10.0,
+        interference=core.random_interference(rng, reference_clean=True), noise_t=0.1e-9,
+        regional_gradient_enu=g_world, dipoles=dipoles)
+    mission = core.simulate(scenario, rng)
+    stamps = T0 + np.round(mission.t * 1e9).astype(np.int64)
+    fields = mission.fields_measured
+    return stamps, core.difference_tensor(fields, GEOMETRY), fields[:, 0], mission.orientation_xyzw, g_world
+
+
+def _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q) -> None:
+    from tetra_gradiometer.io import conversions as cv
+
+    assert probe.call('calibrator/start').success
+    wait_for(lambda: probe.status(CALIBRATION).get('samples') == '0', 10, 'samples 0 after ~/start', graph)
+    for i in range(len(g)):
+        odom.publish(cv.odometry_msg(feeder.types, np.zeros(3), q[i], int(stamps[i])))
+        feeder.publish_raw(int(stamps[i]), g[i], b[i])
+        time.sleep(0.008)  # 3 messages per sample: paced so the node keeps up on 2 loaded cores
+    wait_for(lambda: probe.status(CALIBRATION).get('samples') == str(len(g)), 20, f'{len(g)} samples', graph)
+    assert probe.call('calibrator/stop').success
+
+
+def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a_target(tmp_path):
+    """~/calibrate as `calibrate` does (issue 15): with /odom, the simulator's 4 nT/m regional
+    gradient is recovered within 3 sigma and stored; a trim over a magnetic target (its
+    gradient changes along the circle) is refused with the figures and nothing written,
+    and written with the warning only with force:=true."""
+    import yaml
+    from nav_msgs.msg import Odometry
+
+    from tetra_gradiometer.nodes.common import derived_qos
+
+    calibration_file = tmp_path / 'calibration.yaml'
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('calibrator', calibration_file=str(calibration_file))
+        odom = probe.create_publisher(Odometry, '/odom', derived_qos())
+        for publisher in (feeder.raw, feeder.reference, odom):
+            wait_matched(publisher, 1)
+        stamps, g, b, q, g_world = _trim(8)
+        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
+        reply = probe.call('calibrator/calibrate')
+        assert reply.success and 'regional gradient (ENU, nT/m) gxx' in reply.message, reply.message
+        diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
+        fitted = np.array(diagnostics['regional_gradient_enu_nT_per_m'])
+        sigma = np.array(diagnostics['regional_gradient_sigma_nT_per_m'])
+        assert np.all(np.abs(fitted - g_world * 1e9) <= 3 * sigma + 1e-6), (fitted - g_world * 1e9) / sigma
+        assert diagnostics['window_check']['passed'] is True
+        assert 'estimated jointly' in diagnostics['notes'][0]
+        calibration_file.unlink()
+
+        target = core.Dipole([0.0, 0.0, -65.0], [2e3, 1e3, -3e3])
+        stamps, g, b, q, _ = _trim(9, dipoles=(target,))
+        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
+        reply = probe.call('calibrator/calibrate')
+        assert not reply.success, reply.message
+        assert re.search(r'not consistent with a constant gradient.*x the noise.*force:=true', reply.message), \
+            reply.message
+        assert not calibration_file.exists()
+        assert set_parameter(probe, graph, 'calibrator', 'force', True).successful
+        reply = probe.call('calibrator/calibrate')
+        assert reply.success and 'WARNING (force:=true)' in reply.message, reply.message
+        diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
+        assert diagnostics['window_check']['passed'] is False
+        assert any(note.startswith('WARNING (force:=true)') for note in diagnostics['notes'])

@@ -242,14 +242,8 @@ def _print_window_check(result: BagCalibration) -> None:
     """The regional gradient (or why it is assumed zero) and the window's self-test."""
     for note in result.notes:
         print(f'  {note}')
-    gradient = getattr(result.calibration, 'regional_gradient_enu', None)
-    sigma = getattr(result.calibration, 'regional_gradient_sigma', None)
-    if gradient is not None and sigma is not None:
-        g_nt, sigma_nt = gradient * NT_PER_T, sigma * NT_PER_T
-        pairs = ', '.join(
-            f'g{"xyz"[i]}{"xyz"[j]} {g_nt[i, j]:+.3f} +- {sigma_nt[i, j]:.3f}'
-            for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-        )
+    pairs = result.checked.regional_text()
+    if pairs:
         print(f'  regional gradient (world ENU, nT/m; signal, not compensated): {pairs}')
     if result.check is not None:
         verdict = 'passes' if result.check.passed else 'FAILS'

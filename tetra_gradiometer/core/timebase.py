@@ -7,7 +7,8 @@ each sensor, never across a gap longer than ``max_gap_periods`` of that sensor's
 period; such sets are skipped and counted. The same :class:`Resampler` serves the offline
 readers (batches of thousands of samples) and the live tensor node (one message at a time):
 a reference instant is resolved as soon as every sensor has a sample at or after it, so the
-added latency is at most one sample period of the slowest sensor plus the transport delay.
+added latency is the wait for the latest sensor's next sample: up to one of its sample
+periods (one more per message of it lost, up to the gap limit) plus the transport delay.
 
 Interpolation: quadratic through the two samples before the instant and the one after (the
 latency stays one period); an instant without two earlier samples within the gap limit (the

@@ -27,10 +27,7 @@ from ..core.identification import (
     DEFAULT_METHOD,
     MAX_COVERAGE_CONDITION,
     Calibration,
-    IdentifiabilityError,
     Options,
-    TensorCalibration,
-    identify,
 )
 from ..core.identification.paper_ga import GENERATIONS
 from ..core.plausibility import DroppedSets, plausible_sets
@@ -38,15 +35,15 @@ from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
-from .bag import MagneticBag, Series, SetCounters
+from .bag import MagneticBag, SetCounters
 from .calibration import CalibrationFile
 from .window_check import (
     KNOWN_GRADIENT_METHODS,
-    MAX_ODOM_GAP_S,
+    CheckedCalibration,
     WindowCheck,
-    check_window,
+    identify_checked,
     odom_orientation,
-    refuse,
+    orientation_at,
 )
 
 __all__ = [
@@ -153,6 +150,11 @@ class BagCalibration:
     stamps_ns: IntArray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     fields: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 3)))
     orientation_xyzw: FloatArray | None = None
+
+    @property
+    def checked(self) -> CheckedCalibration:
+        """The solve with its window check and notes."""
+        return CheckedCalibration(self.calibration, self.check, self.notes)
 
     @property
     def coverage_condition(self) -> float:
@@ -282,14 +284,11 @@ def calibrate_bag(
         wide_bounds=wide_bounds,
         max_coverage_condition=max_coverage_condition,
     )
-    options, notes = _with_attitude(options, method, bag_path, sets.stamps_ns[::thinned])
-    calibration = _identify(method, fields, geometry, options, text)
-    check, notes = _check(
-        calibration, method, sets, thinned, geometry, options, notes, force, text
-    )
+    options, note = _with_attitude(options, method, bag_path, sets.stamps_ns[::thinned])
+    checked = _solve(method, sets, thinned, geometry, options, text, force, note)
     result = BagCalibration(
-        calibration=calibration,
-        record=CalibrationFile.from_calibration(calibration, geometry),
+        calibration=checked.calibration,
+        record=CalibrationFile.from_calibration(checked.calibration, geometry),
         window=text,
         sets_in_window=n_window,
         thinned_every=thinned,
@@ -297,8 +296,8 @@ def calibrate_bag(
         dropped=dropped,
         counters=sets.counters,
         clocks=sets.clocks,
-        check=check,
-        notes=notes,
+        check=checked.check,
+        notes=checked.notes,
         skipped_messages=sets.skipped_messages,
         skipped_summary=sets.skipped_summary,
         stamps_ns=sets.stamps_ns[::thinned],
@@ -308,6 +307,33 @@ def calibrate_bag(
     extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
     record = dataclasses.replace(result.record, diagnostics={**result.record.diagnostics, **extra})
     return dataclasses.replace(result, record=record)
+
+
+def _solve(
+    method: str,
+    sets: WindowSets,
+    thinned: int,
+    geometry: TetraGeometry,
+    options: Options,
+    window: str,
+    force: bool,
+    notes: tuple[str, ...],
+) -> CheckedCalibration:
+    """The checked solve (:func:`~.window_check.identify_checked`) on every ``thinned``-th
+    set of the window."""
+    fields = sets.fields[::thinned]
+    return identify_checked(
+        method,
+        sets.stamps_ns[::thinned],
+        difference_tensor(fields, geometry),
+        fields[:, 0],
+        geometry,
+        options,
+        window=window,
+        first_ns=sets.first_ns,
+        force=force,
+        notes=notes,
+    )
 
 
 def _check_limits(max_sets: int, generations: int | None) -> None:
@@ -328,41 +354,6 @@ def _with_attitude(
     return dataclasses.replace(options, orientation_xyzw=orientation), (note,)
 
 
-def _check(
-    calibration: Calibration,
-    method: str,
-    sets: WindowSets,
-    thinned: int,
-    geometry: TetraGeometry,
-    options: Options,
-    notes: tuple[str, ...],
-    force: bool,
-    window: str,
-) -> tuple[WindowCheck | None, tuple[str, ...]]:
-    """The known-gradient fit's test of its window; refuse it, or keep it with a warning."""
-    if method not in KNOWN_GRADIENT_METHODS or not isinstance(calibration, TensorCalibration):
-        return None, notes
-    stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
-    check = check_window(calibration, method, stamps, fields, geometry, options, sets.first_ns)
-    if check.passed:
-        return check, notes
-    error = refuse(check, window)
-    if not force:
-        raise error
-    return check, (*notes, f'WARNING (--force): {error}')
-
-
-def _identify(
-    method: str, fields: FloatArray, geometry: TetraGeometry, options: Options, window: str
-) -> Calibration:
-    """``identify`` on the window's sets, its identifiability errors naming the window."""
-    try:
-        g_measured = difference_tensor(fields, geometry)
-        return identify(method, g_measured, fields[:, 0, :], geometry, options)
-    except IdentifiabilityError as error:
-        raise IdentifiabilityError(f'the window ({window}, {len(fields)} sets): {error}') from None
-
-
 def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> dict[str, Any]:
     """What the calibration file's diagnostics add about the bag, the window and matching."""
     return {
@@ -375,26 +366,9 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
         **result.dropped.as_dict(),
         **result.counters.as_dict(),
         **_clock_diagnostics(result.clocks),
-        **_check_diagnostics(result),
+        **result.checked.diagnostics(),
         'messages_skipped_undecodable': result.skipped_messages,
     }
-
-
-def _check_diagnostics(result: BagCalibration) -> dict[str, Any]:
-    """The window check, the regional gradient and the notes (a forced calibration's
-    warning among them)."""
-    out: dict[str, Any] = {'notes': list(result.notes)} if result.notes else {}
-    if result.check is not None:
-        out['window_check'] = result.check.to_dict()
-    calibration = result.calibration
-    gradient = getattr(calibration, 'regional_gradient_enu', None)
-    if gradient is not None:
-        sigma = getattr(calibration, 'regional_gradient_sigma', None)
-        gradient = gradient * NT_PER_T
-        out['regional_gradient_enu_nT_per_m'] = gradient.tolist()
-        if sigma is not None:
-            out['regional_gradient_sigma_nT_per_m'] = (sigma * NT_PER_T).tolist()
-    return out
 
 
 def _clock_diagnostics(clocks: tuple[ClockEstimate, ...] | None) -> dict[str, Any]:
@@ -423,20 +397,6 @@ class WindowAssessment:
     assessment: TrimAssessment | None
     earth_field_enu: FloatArray | None
     notes: tuple[str, ...]
-
-
-def _orientation_at(series: Series, stamps_ns: IntArray) -> FloatArray:
-    """The ``/odom`` orientation nearest each stamp, (n, 4); NaN beyond ``MAX_ODOM_GAP_S``
-    (nearest, not interpolated: the guidance only bins attitudes)."""
-    odom = series.stamps_ns
-    index = np.searchsorted(odom, stamps_ns)
-    lower, upper = np.clip(index - 1, 0, len(odom) - 1), np.clip(index, 0, len(odom) - 1)
-    nearest = np.where(
-        np.abs(odom[upper] - stamps_ns) < np.abs(stamps_ns - odom[lower]), upper, lower
-    )
-    orientation = series.values[nearest].copy()
-    orientation[np.abs(odom[nearest] - stamps_ns) * S_PER_NS > MAX_ODOM_GAP_S] = np.nan
-    return orientation
 
 
 def _odom_earth_field(orientation: FloatArray, b_reference: FloatArray) -> FloatArray | None:
@@ -470,7 +430,9 @@ def assess_window(
     notes: list[str] = []
     with MagneticBag(bag_path) as bag:
         series = bag.read_series(cv.ODOM_TOPIC)
-    orientation = None if series is None else _orientation_at(series, stamps)
+    orientation = (
+        None if series is None else orientation_at(series.stamps_ns, series.values, stamps)
+    )
     if orientation is None:
         notes.append(
             f'no {cv.ODOM_TOPIC} in the bag: coverage is of the body-frame field direction'

@@ -1,21 +1,27 @@
-"""What ``calibrate`` adds around a known-gradient solve on a bag window (issue 15): the
-attitude from ``/odom`` so that a regional gradient is estimated jointly, and the test of
-the fit's own assumption (a constant gradient over the window) with its verdict, the part
-of the window that fails and a sub-window that would pass.
+"""What ``calibrate`` and the calibrator node's ``~/calibrate`` add around a known-gradient
+solve (issue 15): the attitude from ``/odom`` so that a regional gradient is estimated
+jointly, and the test of the fit's own assumption (a constant gradient over the window)
+with its verdict, the part of the window that fails and a sub-window that would pass.
+:func:`identify_checked` is the one path both take: solve, check, refuse or keep a forced
+calibration with its warning.
 """
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import os
+import threading
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from ..core import TetraGeometry, difference_tensor
+from ..core import TetraGeometry
 from ..core.identification import (
+    Calibration,
     FitConsistency,
     Options,
     TensorCalibration,
@@ -56,16 +62,86 @@ def odom_orientation(
             f'no {cv.ODOM_TOPIC} in the bag: a regional gradient cannot be told from the '
             'interference without the attitude, and is assumed zero'
         )
-    odom = series.stamps_ns
-    index = np.clip(np.searchsorted(odom, stamps_ns), 1, len(odom) - 1)
-    gap = np.minimum(np.abs(odom[index] - stamps_ns), np.abs(stamps_ns - odom[index - 1]))
-    if np.any(gap * S_PER_NS > MAX_ODOM_GAP_S):
+    return joint_attitude(orientation_at(series.stamps_ns, series.values, stamps_ns))
+
+
+def orientation_at(
+    odom_stamps_ns: IntArray, odom_xyzw: FloatArray, stamps_ns: IntArray
+) -> FloatArray:
+    """``/odom`` orientations (m, 4) at ``odom_stamps_ns`` (m,) slerped onto ``stamps_ns``
+    (n,), held at the ends: (n, 4) xyzw; NaN where no message lies within
+    :data:`MAX_ODOM_GAP_S` (a gap in ``/odom``, or beyond its ends)."""
+    if len(odom_stamps_ns) == 0:
+        return np.full((len(stamps_ns), 4), np.nan)
+    orientation = interp_orientation(odom_stamps_ns, odom_xyzw, stamps_ns)
+    after = np.clip(np.searchsorted(odom_stamps_ns, stamps_ns), 0, len(odom_stamps_ns) - 1)
+    before = np.maximum(after - 1, 0)
+    gap = np.minimum(
+        np.abs(odom_stamps_ns[after] - stamps_ns), np.abs(stamps_ns - odom_stamps_ns[before])
+    )
+    orientation[gap * S_PER_NS > MAX_ODOM_GAP_S] = np.nan
+    return orientation
+
+
+def joint_attitude(orientation_xyzw: FloatArray) -> tuple[FloatArray | None, str]:
+    """The attitudes (n, 4) for a joint regional gradient when every sample has one (no
+    NaN), else None; with the note saying which."""
+    unknown = int(np.sum(~np.all(np.isfinite(orientation_xyzw), axis=1)))
+    if unknown:
         return None, (
-            f'{cv.ODOM_TOPIC} misses {int(np.sum(gap * S_PER_NS > MAX_ODOM_GAP_S))} sets of the '
-            f'window by more than {MAX_ODOM_GAP_S:g} s: the regional gradient is assumed zero'
+            f'{unknown} of {len(orientation_xyzw)} samples have no {cv.ODOM_TOPIC} message '
+            f'within {MAX_ODOM_GAP_S:g} s: a regional gradient cannot be told from the '
+            'interference and is assumed zero'
         )
-    note = f'regional gradient estimated jointly (attitude from {cv.ODOM_TOPIC})'
-    return interp_orientation(odom, series.values, stamps_ns), note
+    return orientation_xyzw, f'regional gradient estimated jointly (attitude from {cv.ODOM_TOPIC})'
+
+
+class AttitudeHistory:
+    """``/odom`` orientations received live, for the calibrator node: :meth:`at` one stamp
+    as a sample arrives (the trim guidance, whose attitude bins are 30 degrees wide: the
+    nearest message, no slerp, cheap per sample), :meth:`over` all the samples' stamps at
+    ``~/calibrate`` (the joint regional gradient: :func:`orientation_at`, by which time
+    every message around every sample has arrived).
+
+    Parameters
+    ----------
+    length : messages kept (42 min at 50 Hz: as long as the calibrator keeps samples)
+    """
+
+    def __init__(self, length: int = 125_000) -> None:
+        self._stamps: deque[int] = deque(maxlen=length)
+        self._quats: deque[FloatArray] = deque(maxlen=length)
+        self._lock = threading.Lock()  # the two deques change together
+
+    def add(self, stamp_ns: int, quaternion_xyzw: FloatArray) -> None:
+        """One message; a stamp earlier than the last (a replay restarted) forgets the rest."""
+        with self._lock:
+            if self._stamps and stamp_ns < self._stamps[-1]:
+                self.clear()
+            self._stamps.append(stamp_ns)
+            self._quats.append(np.asarray(quaternion_xyzw, dtype=float))
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._quats.clear()
+
+    def at(self, stamp_ns: int) -> FloatArray:
+        """The nearest message's attitude to ``stamp_ns`` (ns), (4,) xyzw; NaN when none is
+        within :data:`MAX_ODOM_GAP_S`."""
+        with self._lock:
+            after = bisect.bisect_left(self._stamps, stamp_ns)
+            around = range(max(after - 1, 0), min(after + 1, len(self._stamps)))
+            gaps = {abs(self._stamps[i] - stamp_ns): i for i in around}
+            if not gaps or min(gaps) * S_PER_NS > MAX_ODOM_GAP_S:
+                return np.full(4, np.nan)
+            return self._quats[gaps[min(gaps)]]
+
+    def over(self, stamps_ns: IntArray) -> FloatArray:
+        """The attitudes at ``stamps_ns`` (n,) ns, (n, 4) xyzw, NaN where unknown."""
+        with self._lock:
+            stamps = np.array(self._stamps, dtype=np.int64)
+            quats = np.array(self._quats).reshape(-1, 4)
+        return orientation_at(stamps, quats, stamps_ns)
 
 
 @dataclass(frozen=True)
@@ -88,8 +164,9 @@ class WindowCheck:
     def passed(self) -> bool:
         return self.consistency.passed
 
-    def text(self) -> str:
-        """One line: the verdict with the figures, the failing part, the passing window."""
+    def text(self, sub_window: str = '--window {0:.0f}:{1:.0f}') -> str:
+        """One line: the verdict with the figures, the failing part, the passing window
+        (named by ``sub_window``, a format of its two ends in seconds)."""
         c = self.consistency
         line = (
             f'fit residual {c.residual_rms * NT_PER_T:.3g} nT/m is {c.ratio:.2f}x the noise '
@@ -101,7 +178,7 @@ class WindowCheck:
             line += '; fails in ' + ', '.join(f'{a:.0f}-{b:.0f} s' for a, b in failing[:3])
         if not self.passed:
             line += (
-                f'; --window {self.passing_window[0]:.0f}:{self.passing_window[1]:.0f} would pass'
+                f'; {sub_window.format(*self.passing_window)} would pass'
                 if self.passing_window
                 else '; no sub-window passes'
             )
@@ -118,15 +195,23 @@ def check_window(
     calibration: TensorCalibration,
     method: str,
     stamps_ns: IntArray,
-    fields: FloatArray,
+    g_measured: FloatArray,
+    b_reference: FloatArray,
     geometry: TetraGeometry,
     options: Options,
     first_ns: int,
 ) -> WindowCheck:
     """Test the fit on its window; when it fails, refit the longest passing run of blocks
-    and point to it if that passes. Times are seconds from ``first_ns``."""
+    and point to it if that passes. Times are seconds from ``first_ns``.
+
+    ``stamps_ns`` (n,) strictly increasing, ns; ``g_measured`` (n, 3, 3) T/m and
+    ``b_reference`` (n, 3) T: the samples ``calibration`` was fitted on, with the attitude
+    in ``options.orientation_xyzw`` when the regional gradient was fitted jointly.
+    """
     orientation = options.orientation_xyzw
-    consistency = _consistency(calibration, stamps_ns, fields, geometry, orientation, first_ns)
+    consistency = _consistency(
+        calibration, stamps_ns, g_measured, b_reference, geometry, orientation, first_ns
+    )
     passing = None
     span = None if consistency.passed else consistency.longest_passing_span()
     if span is not None and span[1] - span[0] >= MIN_SUB_WINDOW_S:
@@ -135,14 +220,14 @@ def check_window(
         sub = dataclasses.replace(
             options, orientation_xyzw=None if orientation is None else orientation[keep]
         )
+        g_kept, b_kept = g_measured[keep], b_reference[keep]
         try:
-            g_sub = difference_tensor(fields[keep], geometry)
-            refit = identify(method, g_sub, fields[keep, 0], geometry, sub)
+            refit = identify(method, g_kept, b_kept, geometry, sub)
         except IdentifiabilityError:
             refit = None
         if isinstance(refit, TensorCalibration):
             again = _consistency(
-                refit, stamps_ns[keep], fields[keep], geometry, sub.orientation_xyzw, first_ns
+                refit, stamps_ns[keep], g_kept, b_kept, geometry, sub.orientation_xyzw, first_ns
             )
             passing = span if again.passed else None
     return WindowCheck(consistency, first_ns, passing)
@@ -151,14 +236,14 @@ def check_window(
 def _consistency(
     calibration: TensorCalibration,
     stamps_ns: IntArray,
-    fields: FloatArray,
+    g_measured: FloatArray,
+    b_reference: FloatArray,
     geometry: TetraGeometry,
     orientation: FloatArray | None,
     first_ns: int,
 ) -> FitConsistency:
-    g_measured = difference_tensor(fields, geometry)
     residual = calibration_residual(
-        calibration, g_measured, fields[:, 0], geometry, orientation_xyzw=orientation
+        calibration, g_measured, b_reference, geometry, orientation_xyzw=orientation
     )
     regional = calibration.regional_gradient_enu is not None
     n_parameters = calibration.n_parameters + (5 if regional else 0)
@@ -166,10 +251,97 @@ def _consistency(
     return fit_consistency(residual, t_s, geometry, n_parameters)
 
 
-def refuse(check: WindowCheck, window: str) -> AssumptionError:
-    """The error ``calibrate`` raises on a failed check (without ``--force``)."""
+def _refusal(
+    check: WindowCheck,
+    window: str,
+    *,
+    force: str = '--force writes it anyway, with this warning in the file',
+    sub_window: str = '--window {0:.0f}:{1:.0f}',
+) -> AssumptionError:
+    """The error of a failed check; ``force`` and ``sub_window`` say how the caller may act."""
     return AssumptionError(
         f'the window ({window}) is not consistent with a constant gradient (a target, a '
-        f'spatially varying field or a bad stretch): {check.text()}; no calibration written '
-        '(--force writes it anyway, with this warning in the file)'
+        f'spatially varying field or a bad stretch): {check.text(sub_window)}; no '
+        f'calibration written ({force})'
     )
+
+
+@dataclass(frozen=True)
+class CheckedCalibration:
+    """A solve with its window check (None for the methods that do not assume a known
+    gradient) and its notes: how the regional gradient was handled, a forced calibration's
+    warning."""
+
+    calibration: Calibration
+    check: WindowCheck | None
+    notes: tuple[str, ...]
+
+    def diagnostics(self) -> dict[str, Any]:
+        """What the calibration file's diagnostics say about the window check, the regional
+        gradient (nT/m, ENU, with its 1-sigma: the solver's summary) and the notes."""
+        out: dict[str, Any] = {'notes': list(self.notes)} if self.notes else {}
+        if self.check is not None:
+            out['window_check'] = self.check.to_dict()
+        summary = self.calibration.summary()
+        for key in ('regional_gradient_enu_nT_per_m', 'regional_gradient_sigma_nT_per_m'):
+            if key in summary:
+                out[key] = summary[key]
+        return out
+
+    def regional_text(self) -> str:
+        """The fitted regional gradient's six components with their 1-sigma, nT/m, ENU
+        (``gxx +1.234 +- 0.010, ...``); '' when none was fitted."""
+        gradient = getattr(self.calibration, 'regional_gradient_enu', None)
+        sigma = getattr(self.calibration, 'regional_gradient_sigma', None)
+        if gradient is None or sigma is None:
+            return ''
+        g_nt, sigma_nt = gradient * NT_PER_T, sigma * NT_PER_T
+        return ', '.join(
+            f'g{"xyz"[i]}{"xyz"[j]} {g_nt[i, j]:+.3f} +- {sigma_nt[i, j]:.3f}'
+            for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        )
+
+
+def identify_checked(
+    method: str,
+    stamps_ns: IntArray,
+    g_measured: FloatArray,
+    b_reference: FloatArray,
+    geometry: TetraGeometry,
+    options: Options,
+    *,
+    window: str,
+    first_ns: int,
+    force: bool = False,
+    force_name: str = '--force',
+    sub_window: str = '--window {0:.0f}:{1:.0f}',
+    notes: tuple[str, ...] = (),
+) -> CheckedCalibration:
+    """Identify on the samples, then (known-gradient methods) test the fit's window.
+
+    ``window`` names the samples in messages; ``force_name`` is how the caller forces a
+    failed check (``--force``; the node's ``force:=true``) and ``sub_window`` how it names a
+    passing sub-window (a format of its ends, s from ``first_ns``).
+
+    Raises
+    ------
+    IdentifiabilityError : the samples cannot identify the parameters (naming ``window``)
+    AssumptionError : the check fails and ``force`` is False
+    """
+    try:
+        calibration = identify(method, g_measured, b_reference, geometry, options)
+    except IdentifiabilityError as error:
+        n = len(g_measured)
+        raise IdentifiabilityError(f'the window ({window}, {n} sets): {error}') from None
+    if method not in KNOWN_GRADIENT_METHODS or not isinstance(calibration, TensorCalibration):
+        return CheckedCalibration(calibration, None, notes)
+    check = check_window(
+        calibration, method, stamps_ns, g_measured, b_reference, geometry, options, first_ns
+    )
+    if check.passed:
+        return CheckedCalibration(calibration, check, notes)
+    hint = f'{force_name} writes it anyway, with this warning in the file'
+    refusal = _refusal(check, window, force=hint, sub_window=sub_window)
+    if not force:
+        raise refusal
+    return CheckedCalibration(calibration, check, (*notes, f'WARNING ({force_name}): {refusal}'))

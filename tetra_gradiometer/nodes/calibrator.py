@@ -7,10 +7,17 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
 * ``~/stop``: stop collecting (samples are kept);
 * ``~/calibrate``: solve with ``method`` on a snapshot of the collected samples. Too few
   samples, or a body-frame field spanning too few directions (the attitude-coverage
-  condition number is given), answer success=false with the reason. On success the
-  parameters are written atomically to ``calibration_file`` and published on
-  ``calibration`` (std_msgs/String holding the calibration file's YAML text, transient
-  local = latched).
+  condition number is given), answer success=false with the reason. The known-gradient
+  methods solve as ``calibrate`` does (:func:`~tetra_gradiometer.io.window_check.
+  identify_checked`): a regional world-frame gradient jointly when every sample has an
+  ``/odom`` attitude (else it is assumed zero, as the reply and the file's ``notes`` say),
+  then the test of the fit's assumption; samples that fail it (a target, a bad stretch)
+  answer success=false with the figures, the failing part (s after the first sample) and
+  a passing sub-window, and nothing is written, unless ``force`` is true (then the
+  warning goes into the file's ``notes``). On success the parameters are written
+  atomically to ``calibration_file`` (with the regional gradient, its 1-sigma and the
+  check) and published on ``calibration`` (std_msgs/String holding the calibration file's
+  YAML text, transient local = latched).
   ``calibration_file`` is read-only after start-up (nobody on the ROS domain can point the
   write elsewhere), relative paths resolve under ``$ROS_HOME`` (default ``~/.ros``), and
   the write replaces only a previous calibration file: any other file there is left
@@ -18,7 +25,8 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
 * ``~/cancel``: stop a running solve; its ``~/calibrate`` answers success=false
   "cancelled ..." and writes nothing.
 
-The solve runs off the executor: in a worker thread (one at a time), while the
+The solve runs off the executor (:class:`.solve_worker.SolveWorker`): in a worker thread
+(one at a time), while the
 ``~/calibrate`` callback, in a reentrant callback group, waits for it and then replies
 (synchronously, with the result). ``main()`` spins a MultiThreadedExecutor, so meanwhile
 the samples, ``~/cancel``, a second ``~/calibrate`` (answered at once: "a solve is already
@@ -41,19 +49,20 @@ number, the attitudes covered, whether that is *enough* (predicted sigma within 
 floor) and else the next manoeuvre ("roll ±15° on heading 120–180°"); the key figures also go
 on ``/diagnostics``. Per sample it only appends (the sums and the attitude bin of the
 samples since the last tick are added in the timer, in its own callback group); a sample's
-attitude is the last ``/odom`` (nav_msgs/Odometry) within :data:`MAX_ODOM_AGE_S` of its
-stamp, else unknown (then the coverage is that of the body-frame field direction). The
-survey and the candidate manoeuvres are flown in ``earth_field_enu``; the sensor noise is
-``sensor_noise_t`` (or 0.1 nT) until the samples estimate their own.
+attitude is the nearest ``/odom`` (nav_msgs/Odometry) within 0.5 s
+(:class:`~tetra_gradiometer.io.window_check.AttitudeHistory`), else unknown (then the
+coverage is that of the body-frame field direction). The survey and the candidate
+manoeuvres are flown in ``earth_field_enu``; the sensor noise is ``sensor_noise_t`` (or
+0.1 nT) until the samples estimate their own.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -74,13 +83,19 @@ from ..core.identification import (
     METHODS,
     MIN_SAMPLES,
     Options,
-    identify,
 )
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, CalibrationFileError, save_calibration
+from ..io.window_check import (
+    KNOWN_GRADIENT_METHODS,
+    AttitudeHistory,
+    CheckedCalibration,
+    identify_checked,
+    joint_attitude,
+)
 from .common import (
     NAMESPACE,
     OK,
@@ -100,14 +115,15 @@ from .common import (
     status,
     tensor_or_nan,
 )
+from .solve_worker import SolveWorker
 
 #: Bounds of ``max_samples`` and ``ga_generations`` (see their descriptions).
 MAX_SAMPLES = 500_000
 MAX_GENERATIONS = 20_000
 #: Period of the trim guidance on ``~/guidance`` while samples arrive, s (the issue's ~1 Hz).
 GUIDANCE_PERIOD_S = 1.0
-#: A sample takes the attitude of the last ``/odom`` within this of its stamp, s.
-MAX_ODOM_AGE_S = 0.5
+#: How ``~/calibrate`` names a passing part of the samples (times from the first one, s).
+SUB_WINDOW = 'the samples {0:.0f}-{1:.0f} s after the first'
 #: The guidance's sensor noise before the samples estimate it, with ``sensor_noise_t`` 0, T.
 DEFAULT_NOISE_T = 1.0e-10
 
@@ -164,6 +180,12 @@ PARAMETERS = [
         positive,
         float_range=(1.0, 1e8),
     ),
+    ParamSpec(
+        'force',
+        False,
+        '~/calibrate keeps a calibration whose samples fail the test of its assumption '
+        "(residual vs sensor noise), warning in the file's notes (false: refused, not written).",
+    ),
     ParamSpec('ga_seed', 0, 'paper_ga: random seed.', int_range=(0, 2**31 - 1)),
     ParamSpec(
         'ga_generations',
@@ -215,6 +237,7 @@ class CalibratorNode(Node):
                 'min_samples',
                 'max_samples',
                 'max_coverage_condition',
+                'force',
                 'ga_seed',
                 'ga_generations',
                 'max_solve_s',
@@ -235,6 +258,7 @@ class CalibratorNode(Node):
         self._g: deque[np.ndarray] = deque()
         self._b: deque[np.ndarray] = deque()
         self._q: deque[np.ndarray] = deque()  # attitude per sample (NaN: unknown)
+        self._t: deque[int] = deque()  # stamp per sample, ns
         self._pairer = StampPairer(2)
         self._dropped_implausible = 0
         self._state = 'idle'
@@ -242,13 +266,9 @@ class CalibratorNode(Node):
         self._last_ok: bool | None = None
         self._calibrations = 0
         # The solve: one worker thread; the lock is held while a solve runs.
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix='calibrator_solve')
-        self._solving = threading.Lock()
-        self._cancel = threading.Event()
-        self._solve_started: float | None = None
-        self._solve_s = 0.0
-        # Trim guidance: the last /odom (stamp ns, quaternion), samples not yet in the sums.
-        self._odom: tuple[int, np.ndarray] | None = None
+        self._worker = SolveWorker('calibrator_solve', on_start=self._publish_diagnostics)
+        # Trim guidance: recent /odom (stamp ns, quaternion), samples not yet in the sums.
+        self._odom = AttitudeHistory()
         self._epoch = 0  # counts ~/start: a tick that straddles one discards its work
         self._added: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (g, b, q)
         self._removed: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -271,12 +291,11 @@ class CalibratorNode(Node):
         self.create_service(Trigger, '~/cancel', self._on_cancel, callback_group=control)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self._guidance_pub = self.create_publisher(String, '~/guidance', latched_qos())
-        self.create_subscription(Odometry, cv.ODOM_TOPIC, self._on_odom, derived_qos())
-        self.create_timer(
-            GUIDANCE_PERIOD_S,
-            self._publish_guidance,
-            callback_group=MutuallyExclusiveCallbackGroup(),  # beside the samples
-        )
+        # Each beside the samples: the guidance's work, and /odom never behind a burst.
+        guidance, odom = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
+        self.create_timer(GUIDANCE_PERIOD_S, self._publish_guidance, callback_group=guidance)
+        odom_topic = (Odometry, cv.ODOM_TOPIC, self._on_odom, derived_qos())
+        self.create_subscription(*odom_topic, callback_group=odom)
 
     # ----------------------------------------------------------------- samples
 
@@ -296,25 +315,21 @@ class CalibratorNode(Node):
             if not (np.all(np.isfinite(pair[0])) and plausible_readings(pair[1])):
                 self._dropped_implausible += 1  # the offline tools' rule; never fitted
                 return
-            sample = (pair[0], pair[1], self._attitude(stamp_ns))
+            sample = (pair[0], pair[1], self._odom.at(stamp_ns))
             self._g.append(sample[0])
             self._b.append(sample[1])
             self._q.append(sample[2])
+            self._t.append(stamp_ns)
             self._added.append(sample)
             self._first_stamp = stamp_ns if self._first_stamp is None else self._first_stamp
             self._last_stamp, self._n_received = stamp_ns, self._n_received + 1
             while len(self._g) > self.get_parameter('max_samples').value:
                 self._removed.append((self._g.popleft(), self._b.popleft(), self._q.popleft()))
+                self._t.popleft()
 
     def _on_odom(self, msg: Odometry) -> None:
-        self._odom = (cv.stamp_to_ns(msg.header.stamp), cv.odometry_orientation(msg))
+        self._odom.add(cv.stamp_to_ns(msg.header.stamp), cv.odometry_orientation(msg))
 
-    def _attitude(self, stamp_ns: int) -> np.ndarray:
-        """The last /odom's orientation if within MAX_ODOM_AGE_S of ``stamp_ns``, else NaN."""
-        odom = self._odom
-        if odom is None or abs(odom[0] - stamp_ns) * S_PER_NS > MAX_ODOM_AGE_S:
-            return np.full(4, np.nan)
-        return odom[1]
 
     # ----------------------------------------------------------------- guidance
 
@@ -390,7 +405,7 @@ class CalibratorNode(Node):
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
-            self._g, self._b, self._q = deque(), deque(), deque()
+            self._g, self._b, self._q, self._t = deque(), deque(), deque(), deque()
             self._pairer.clear()
             self._reset_guidance()
             self._epoch += 1
@@ -412,21 +427,11 @@ class CalibratorNode(Node):
     def _on_calibrate(
         self, request: Trigger.Request, response: Trigger.Response
     ) -> Trigger.Response:
-        if not self._solving.acquire(blocking=False):
+        result = self._worker.run(self._calibrate)
+        if result is None:
             response.success, response.message = False, 'a solve is already running'
             return response
-        try:
-            self._cancel.clear()
-            self._solve_started = time.monotonic()
-            self._publish_diagnostics()
-            try:
-                ok, message = self._worker.submit(self._calibrate).result()
-            except RuntimeError:  # the worker was shut down: the node is stopping
-                ok, message = False, 'the calibrator is shutting down'
-        finally:
-            self._solve_s = time.monotonic() - (self._solve_started or time.monotonic())
-            self._solve_started = None
-            self._solving.release()
+        ok, message = result
         response.success, response.message = ok, message
         self._last_ok, self._last_result = ok, message
         if ok:
@@ -437,10 +442,9 @@ class CalibratorNode(Node):
         return response
 
     def _on_cancel(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        if self._solve_started is None:
+        if not self._worker.cancel():
             response.success, response.message = False, 'no solve is running'
             return response
-        self._cancel.set()
         response.success, response.message = True, 'cancelling the running solve'
         self.get_logger().info(response.message)
         return response
@@ -448,24 +452,44 @@ class CalibratorNode(Node):
     def stop_work(self) -> None:
         """Cancel a running solve and wait for its worker (at most one GA generation, or the
         rest of a closed-form solve); ``spin_node`` calls it before stopping the executor."""
-        self._cancel.set()
-        self._worker.shutdown(wait=True, cancel_futures=True)
+        self._worker.shutdown()
 
     def destroy_node(self) -> None:
         """Stop the solve first, so no worker outlives the node."""
         self.stop_work()
         super().destroy_node()
 
-    def _calibrate(self) -> tuple[bool, str]:
-        """Solve on a snapshot of the samples; write and publish on success."""
+    def _snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The samples in stamp order, one per stamp: stamps (n,) ns, ``G_m`` (n, 3, 3) T/m,
+        ``B_1'`` (n, 3) T."""
         with self._lock:
+            t = np.array(self._t, dtype=np.int64)
             g = np.array(self._g).reshape(-1, 3, 3)
             b = np.array(self._b).reshape(-1, 3)
+        _, first = np.unique(t, return_index=True)  # sorted; a repeated stamp counts once
+        return t[first], g[first], b[first]
+
+    def _options(self, method: str, stamps_ns: np.ndarray) -> tuple[Options, tuple[str, ...]]:
+        """The solve's options; for the known-gradient methods the attitudes at the samples'
+        ``stamps_ns`` for a joint regional gradient when every sample has one, and the note
+        saying which."""
+        options = Options(
+            rng=np.random.default_rng(self.get_parameter('ga_seed').value),
+            generations=int(self.get_parameter('ga_generations').value),
+            max_coverage_condition=float(self.get_parameter('max_coverage_condition').value),
+            deadline_s=time.monotonic() + float(self.get_parameter('max_solve_s').value),
+            should_stop=self._worker.should_stop,
+        )
+        if method not in KNOWN_GRADIENT_METHODS:
+            return options, ()
+        orientation, note = joint_attitude(self._odom.over(stamps_ns))
+        return dataclasses.replace(options, orientation_xyzw=orientation), (note,)
+
+    def _calibrate(self) -> tuple[bool, str]:
+        """Solve on a snapshot of the samples; write and publish on success."""
+        t, g, b = self._snapshot()
         method = self.get_parameter('method').value
         minimum = int(self.get_parameter('min_samples').value)
-        limit = float(self.get_parameter('max_coverage_condition').value)
-        budget = float(self.get_parameter('max_solve_s').value)
-        generations = int(self.get_parameter('ga_generations').value)
         maximum = int(self.get_parameter('max_samples').value)
         if minimum > maximum:
             return False, f'min_samples {minimum} exceeds max_samples {maximum}: lower it'
@@ -474,21 +498,35 @@ class CalibratorNode(Node):
                 f'{len(g)} samples are too few (need at least {minimum}); call ~/start, '
                 f'fly the trim manoeuvre, then ~/stop'
             )
+        options, notes = self._options(method, t)
         try:
-            options = Options(
-                rng=np.random.default_rng(self.get_parameter('ga_seed').value),
-                generations=generations,
-                max_coverage_condition=limit,
-                deadline_s=time.monotonic() + budget,
-                should_stop=self._cancel.is_set,
+            checked = identify_checked(
+                method,
+                t,
+                g,
+                b,
+                self._geometry,
+                options,
+                window=f'the {len(t)} samples since ~/start',
+                first_ns=int(t[0]),
+                force=bool(self.get_parameter('force').value),
+                force_name='force:=true',
+                sub_window=SUB_WINDOW,
+                notes=notes,
             )
-            result = identify(method, g, b, self._geometry, options)
         except (TetraError, np.linalg.LinAlgError) as error:
             return False, str(error)
+        return self._keep(checked, method)
+
+    def _keep(self, checked: CheckedCalibration, method: str) -> tuple[bool, str]:
+        """Write and publish a solved calibration (unless cancelled); the reply."""
+        result = checked.calibration
+        generations = int(self.get_parameter('ga_generations').value)
         ran = result.details.get('generations', generations)
-        if self._cancel.is_set():
+        if self._worker.should_stop():
             progress = f' after {ran} of {generations} generations' if method == 'paper_ga' else ''
             return False, f'cancelled (~/cancel){progress}; nothing written'
+        budget = float(self.get_parameter('max_solve_s').value)
         stopped = (
             f'; stopped at max_solve_s {budget:g} s after {ran} of {generations} generations'
             if result.details.get('stopped') == 'deadline'
@@ -498,6 +536,8 @@ class CalibratorNode(Node):
             calibration = CalibrationFile.from_calibration(result, self._geometry)
         except CalibrationFileError as error:  # k or b outside the physical bounds
             return False, str(error)
+        diagnostics = {**calibration.diagnostics, **checked.diagnostics()}
+        calibration = dataclasses.replace(calibration, diagnostics=diagnostics)
         path = self._calibration_path
         try:
             save_calibration(path, calibration, force=True)  # replaces only a previous calibration
@@ -507,20 +547,24 @@ class CalibratorNode(Node):
         self._calibrations += 1
         self._state = 'calibrated' if not self._collecting else 'collecting'
         s = result.summary()
+        check = '' if checked.check is None else f'; {checked.check.text(SUB_WINDOW)}'
+        regional = f'; regional gradient (ENU, nT/m) {g}' if (g := checked.regional_text()) else ''
+        notes = ''.join(f'; {note}' for note in checked.notes)
         return True, (
             f'{s["method"]}: {s["n_samples"]} samples, {s["n_parameters"]} parameters, rank '
             f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
             f'{s["attitude_coverage_condition"]:.3g}, fit residual '
-            f'{s["residual_rms_nT_per_m"]:.3g} nT/m{stopped}; written to {path}'
+            f'{s["residual_rms_nT_per_m"]:.3g} nT/m{regional}{check}{stopped}'
+            f'{notes}; written to {path}'
         )
 
     def _publish_diagnostics(self) -> None:
         level = WARN if self._last_ok is False else OK
-        started = self._solve_started
-        state, elapsed = self._state, self._solve_s
+        running = self._worker.running_s
+        state, elapsed = self._state, self._worker.last_s
         message = f'{state}: {self._last_result}'
-        if started is not None:
-            state, elapsed = 'solving', time.monotonic() - started
+        if running is not None:
+            state, elapsed = 'solving', running
             budget = self.get_parameter('max_solve_s').value
             message = f'solving for {elapsed:.1f} s (max_solve_s {budget:g})'
         array = DiagnosticArray()

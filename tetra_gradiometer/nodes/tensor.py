@@ -3,8 +3,9 @@
 Subscribes ``mag1``..``mag4`` (sensor_msgs/MagneticField, T, sensor-data QoS) and forms
 sets as the offline tools do: by default each sensor is resampled to sensor 1's stamps
 (:class:`~tetra_gradiometer.core.timebase.Resampler`, ``sync: interpolate``; a set leaves
-when every sensor has a sample at or after its instant: added latency at most one sample
-period), or stamps are paired within ``stamp_tolerance_s`` (``sync: nearest``,
+when every sensor has a sample at or after its instant: the added latency is the wait for
+the latest sensor's next sample, up to one sample period, one more per message of it lost),
+or stamps are paired within ``stamp_tolerance_s`` (``sync: nearest``,
 :class:`~tetra_gradiometer.io.matching.StampMatcher`). It drops and counts incomplete
 sets and sets with a non-finite or implausible reading (``|B| > max_field_t`` on any
 sensor), and publishes, for every good set, with its reference stamp:

@@ -77,6 +77,16 @@ def test_white_noise_is_not_refused():
     assert results[0].noise_rms == pytest.approx(tensor_rms, rel=0.03)
 
 
+def test_a_noise_free_fit_passes_by_its_roundoff_and_femtotesla_noise_is_still_tested():
+    """Roundoff (here 1e-20 T, fit to exact data) is not noise to compare with: ratio 0. Noise
+    just above it (1e-15 T, SQUID level) with a slow misfit is still refused."""
+    rng = np.random.default_rng(7)
+    roundoff = fit_consistency(white_noise(rng) * 1e-10 + dipole_pass(T_S) * 1e-11, T_S, GEOMETRY, P)
+    assert roundoff.passed and roundoff.ratio == 0.0
+    squid = fit_consistency(white_noise(rng) * 1e-5 + dipole_pass(T_S) * 1e-5, T_S, GEOMETRY, P)
+    assert not squid.passed
+
+
 def test_interpolated_ma1_noise_is_not_refused():
     results = [fit_consistency(interpolated_noise(np.random.default_rng(s)), T_S, GEOMETRY, P)
                for s in range(100)]
