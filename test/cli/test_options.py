@@ -34,16 +34,16 @@ SEED = ('0 <= n <= 2147483647',)
 
 #: (command, option, bad value, fragments of the one error line)
 BAD = [
-    # --tolerance-ms (calibrate, compensate): the cases
+    # --tolerance-ms (calibrate, compensate, discrepancy): the cases
     *[
         (command, '--tolerance-ms', value, TOLERANCE)
-        for command in ('compensate', 'calibrate')
+        for command in ('compensate', 'calibrate', 'discrepancy')
         for value in ('inf', 'nan', '-1', '1e9', '0', 'abc', '1000.001')
     ],
-    # how sets are formed (calibrate, compensate)
+    # how sets are formed (calibrate, compensate, discrepancy)
     *[
         (command, option, value, fragment)
-        for command in ('compensate', 'calibrate')
+        for command in ('compensate', 'calibrate', 'discrepancy')
         for option, fragment, values in (
             ('--reference-rate-hz', ('0 <= x <= 10000 Hz',), ('-1', 'nan', 'inf', '10001', 'x')),
             ('--max-gap-periods', ('1 <= x <= 1000',), ('0.5', 'nan', 'inf', '1001', 'x')),

@@ -5,6 +5,7 @@ ground truth at sensor 1's instants; the must-hold figure is 1.2x the noise floo
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -128,3 +129,26 @@ def test_a_window_over_a_target_is_refused_and_points_to_a_clean_part(tmp_path):
     assert any(a <= 330.0 <= b for a, b in failing), failing  # the line passes the target at 330 s
     # The clean trim alone passes (no false refusal).
     assert calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0)).check.passed
+
+
+def test_a_window_without_attitude_excitation_is_refused_with_the_figures(tmp_path, capsys):
+    """A straight survey leg (heading fixed, roll 3°, pitch 2°) does not excite the 36
+    parameters (compensating with them: ~5x the floor): `calibrate` exits 1 with one error:
+    line giving the predicted sigma against the floor and the coverage condition number, and
+    writes nothing; the trim of the same bag is accepted."""
+    from tetra_gradiometer.__main__ import main
+    from tetra_gradiometer.io.params import params_document
+
+    scenario = _scenario(np.random.default_rng(6))
+    mission = core.simulate(scenario, np.random.default_rng(6))
+    write_mission_bag(tmp_path / 'bag', mission, start_ns=START_NS, progress=False)
+    params = tmp_path / 'params.yaml'
+    params.write_text(params_document({'sensor_positions': scenario.geometry.to_flat(),
+                                       'earth_field_enu': EARTH.tolist()}))
+    out = tmp_path / 'cal.yaml'
+    args = ['calibrate', str(tmp_path / 'bag'), '--params', str(params), '--out', str(out), '--no-progress']
+    assert main([*args, '--window', '260:330']) == 1 and not out.exists()
+    error = [line for line in capsys.readouterr().err.splitlines() if line.startswith('error:')]
+    assert len(error) == 1 and 'does not excite the attitudes enough for 36 parameters' in error[0], error
+    assert re.search(r'= \d+\.\d+ x noise floor .* \(limit 2x; attitude coverage condition number \d+', error[0])
+    assert main([*args, '--window', f'0:{TRIM_S - 1:g}']) == 0 and out.exists()

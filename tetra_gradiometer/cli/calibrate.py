@@ -45,6 +45,7 @@ from ..io.calibration import save_calibration
 from ..io.calibration_report import write_calibration_report
 from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
+from ..io.window_check import excitation_refusal
 from ._args import (
     add_bag_arguments,
     add_force_argument,
@@ -155,9 +156,10 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
         force=args.force,
     )
+    window_assessment = assess_window(result, args.bag, geometry, earth)
+    result = _check_excitation(result, window_assessment, args.force)
     save_calibration(args.out, result.record, force=args.force, inputs=inputs)
     _print_summary(args, result)
-    window_assessment = assess_window(result, args.bag, geometry, earth)
     _print_assessment(window_assessment)
     written = [str(args.out)]
     if args.report is not None:
@@ -172,6 +174,21 @@ def run(args: argparse.Namespace) -> int:
         written.append(str(args.report))
     print(f'wrote {" and ".join(written)} in {time.perf_counter() - started:.1f} s')
     return 0
+
+
+def _check_excitation(
+    result: BagCalibration, window: WindowAssessment, force: bool
+) -> BagCalibration:
+    """Refuse a window whose attitudes do not excite the parameters (``AssumptionError``),
+    or with ``--force`` keep it with the warning in its notes."""
+    refusal = None
+    if window.assessment is not None:
+        refusal = excitation_refusal(window.assessment, result.window)
+    if refusal is None:
+        return result
+    if not force:
+        raise refusal
+    return result.with_note(f'WARNING (--force): {refusal}')
 
 
 def _print_assessment(window: WindowAssessment) -> None:

@@ -12,7 +12,7 @@ from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..io.recording import read_recording
 from ..io.report import channel_warnings, write_report
-from ._args import finite_float, int_range, window_arg
+from ._args import add_bag_arguments, finite_float, int_range, timebase_from_args, window_arg
 
 #: ``--folds``: at least 2 (one to fit, one to test); the run is cut into ~40 blocks, so more
 #: than 20 folds leave each fewer than 2 blocks.
@@ -35,10 +35,7 @@ def candidate_names(text: str) -> tuple[str, ...]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('bag', help='rosbag2 folder (sqlite3 or mcap) of a recorded run')
-    parser.add_argument(
-        '--params', required=True, help='ROS 2 parameter file (sensor_positions, earth_field_enu)'
-    )
+    add_bag_arguments(parser)  # BAG, --params (sensor_positions, earth_field_enu), --sync ...
     parser.add_argument(
         '--out', required=True, help='output folder for report.json, report.md and plots'
     )
@@ -100,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     geometry = geometry_from_params(params, str(args.params))
     earth = earth_field_from_params(params, str(args.params))
-    recording = read_recording(args.bag)
+    recording = read_recording(args.bag, timebase=timebase_from_args(args))
     run_data = RecordedRun(
         recording.t_s,
         recording.fields,

@@ -151,6 +151,13 @@ class BagCalibration:
     fields: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 3)))
     orientation_xyzw: FloatArray | None = None
 
+    def with_note(self, note: str) -> BagCalibration:
+        """The same calibration with ``note`` added to its notes and its file's."""
+        notes = (*self.notes, note)
+        diagnostics = {**self.record.diagnostics, 'notes': list(notes)}
+        record = dataclasses.replace(self.record, diagnostics=diagnostics)
+        return dataclasses.replace(self, notes=notes, record=record)
+
     @property
     def checked(self) -> CheckedCalibration:
         """The solve with its window check and notes."""

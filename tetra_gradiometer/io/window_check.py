@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import TetraGeometry
+from ..core.guidance import TrimAssessment
 from ..core.identification import (
     Calibration,
     FitConsistency,
@@ -45,6 +46,11 @@ KNOWN_GRADIENT_METHODS = ('known_gradient_lstsq', 'known_gradient_lstsq_general'
 MAX_ODOM_GAP_S = 0.5
 #: Shortest sub-window worth pointing to, s.
 MIN_SUB_WINDOW_S = 30.0
+#: Refuse a calibration whose trim assessment predicts a compensated survey sigma above
+#: this many noise floors: its attitudes do not excite the parameters asked for (a straight
+#: survey leg predicts ~7x and compensates at ~5x; a trim 1.0x; the guidance's "enough" is
+#: 1.1x). Loose on purpose: the prediction is linearised, the survey representative only.
+MAX_PREDICTED_RATIO = 2.0
 
 
 def odom_orientation(
@@ -251,13 +257,7 @@ def _consistency(
     return fit_consistency(residual, t_s, geometry, n_parameters)
 
 
-def _refusal(
-    check: WindowCheck,
-    window: str,
-    *,
-    force: str = '--force writes it anyway, with this warning in the file',
-    sub_window: str = '--window {0:.0f}:{1:.0f}',
-) -> AssumptionError:
+def _refusal(check: WindowCheck, window: str, force: str, sub_window: str) -> AssumptionError:
     """The error of a failed check; ``force`` and ``sub_window`` say how the caller may act."""
     return AssumptionError(
         f'the window ({window}) is not consistent with a constant gradient (a target, a '
@@ -302,6 +302,26 @@ class CheckedCalibration:
         )
 
 
+def excitation_refusal(
+    assessment: TrimAssessment, window: str, force_name: str = '--force'
+) -> AssumptionError | None:
+    """The error for samples whose attitudes do not excite the parameters (the assessment's
+    predicted survey sigma above :data:`MAX_PREDICTED_RATIO` noise floors), else None (also
+    for noise-free samples: a zero floor predicts nothing)."""
+    if assessment.noise_floor == 0.0 or assessment.ratio <= MAX_PREDICTED_RATIO:
+        return None
+    advice = assessment.advice
+    return AssumptionError(
+        f'the window ({window}) does not excite the attitudes enough for '
+        f'{assessment.parameter_sigma.size} parameters: predicted compensated sigma '
+        f'{assessment.predicted_sigma * NT_PER_T:.3g} nT/m = {assessment.ratio:.3g} x noise '
+        f'floor {assessment.noise_floor * NT_PER_T:.3g} nT/m (limit {MAX_PREDICTED_RATIO:g}x; '
+        f'attitude coverage condition number {assessment.condition_number:.3g}); next: '
+        f'{advice.text if advice else "fly a trim manoeuvre"}; no calibration written '
+        f'({force_name} writes it anyway, with this warning in the file)'
+    )
+
+
 def identify_checked(
     method: str,
     stamps_ns: IntArray,
@@ -316,8 +336,11 @@ def identify_checked(
     force_name: str = '--force',
     sub_window: str = '--window {0:.0f}:{1:.0f}',
     notes: tuple[str, ...] = (),
+    assessment: TrimAssessment | None = None,
 ) -> CheckedCalibration:
-    """Identify on the samples, then (known-gradient methods) test the fit's window.
+    """Identify on the samples, then (known-gradient methods) test the fit's window, and
+    with the samples' trim ``assessment`` their attitude excitation
+    (:func:`excitation_refusal`).
 
     ``window`` names the samples in messages; ``force_name`` is how the caller forces a
     failed check (``--force``; the node's ``force:=true``) and ``sub_window`` how it names a
@@ -333,15 +356,16 @@ def identify_checked(
     except IdentifiabilityError as error:
         n = len(g_measured)
         raise IdentifiabilityError(f'the window ({window}, {n} sets): {error}') from None
-    if method not in KNOWN_GRADIENT_METHODS or not isinstance(calibration, TensorCalibration):
-        return CheckedCalibration(calibration, None, notes)
-    check = check_window(
-        calibration, method, stamps_ns, g_measured, b_reference, geometry, options, first_ns
-    )
-    if check.passed:
-        return CheckedCalibration(calibration, check, notes)
-    hint = f'{force_name} writes it anyway, with this warning in the file'
-    refusal = _refusal(check, window, force=hint, sub_window=sub_window)
-    if not force:
-        raise refusal
-    return CheckedCalibration(calibration, check, (*notes, f'WARNING ({force_name}): {refusal}'))
+    refusals = [] if assessment is None else [excitation_refusal(assessment, window, force_name)]
+    check = None
+    if method in KNOWN_GRADIENT_METHODS and isinstance(calibration, TensorCalibration):
+        check = check_window(
+            calibration, method, stamps_ns, g_measured, b_reference, geometry, options, first_ns
+        )
+        hint = f'{force_name} writes it anyway, with this warning in the file'
+        refusals.append(None if check.passed else _refusal(check, window, hint, sub_window))
+    for refusal in refusals:
+        if refusal is not None and not force:
+            raise refusal
+    warnings = tuple(f'WARNING ({force_name}): {r}' for r in refusals if r is not None)
+    return CheckedCalibration(calibration, check, (*notes, *warnings))

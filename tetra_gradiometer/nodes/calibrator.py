@@ -513,6 +513,7 @@ class CalibratorNode(Node):
                 force_name='force:=true',
                 sub_window=SUB_WINDOW,
                 notes=notes,
+                assessment=self._assessment,  # the guidance's, at its last tick
             )
         except (TetraError, np.linalg.LinAlgError) as error:
             return False, str(error)
