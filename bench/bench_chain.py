@@ -1,14 +1,23 @@
 """Benchmark of the ROS chain mag1..4 -> tensor -> compensator -> gradient/compensated.
 
 The tensor and compensator nodes run as separate processes (``python -m tetra_gradiometer
-node ...``, default parameters, a calibration loaded so eq. 19 is applied). This script
-plays the driver: it publishes sets of four MagneticField messages at a fixed rate, each
-stamped with the wall-clock time of publication, and receives ``gradient/compensated``;
-latency = receipt time - header stamp (driver stamp to compensated output, including the
-last DDS hop). For each rate it reports sets sent/received, drops and p50/p99/max latency;
-the maximum sustained rate is the highest rate with no drop.
+node ...``, default parameters but the tensor node's ``sync``, a calibration loaded so eq. 19
+is applied). This script plays the driver: it publishes sets of four MagneticField messages
+at a fixed rate and receives ``gradient/compensated``. Synchronous sets (the default, all
+offsets 0): the four messages of a set carry one stamp, the wall-clock time of publication.
+With ``--offsets-ms`` (sensors on their own clocks), each sensor's message is published
+at its own instant, the set's reference instant + that sensor's offset, and stamped with the
+wall-clock time of its own publication (sensors with equal offsets share a stamp).
+Latency = receipt time - sensor 1's stamp (the reference instant: the tensor node's
+``gradient/compensated`` stamp), driver to compensated output including the last DDS hop
+and, with offsets, the wait for the latest sensor. For each rate it reports sets
+sent/received, drops and p50/p99/max latency; the maximum sustained rate is the highest rate
+with no drop. Each rate step begins with 2 sets that are published but not counted: after
+the pause between steps (and at the start) the resampler needs two earlier samples of every
+sensor before it interpolates, so with offsets those sets are skipped by design.
 
     .venv/bin/python bench/bench_chain.py [--rates 100 200 300 400] [--seconds 5]
+        [--sync interpolate|nearest] [--offsets-ms 0 0.5 2.1 4.0]
 """
 from __future__ import annotations
 
@@ -19,6 +28,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,103 +38,174 @@ sys.path.insert(0, str(REPO / 'test' / 'ros'))
 
 from ros_helpers import NodeProcess, unique_domain, wait_for  # noqa: E402
 
+#: Sets published at the start of each rate step and not counted (see the docstring).
+LEAD_IN_SETS = 2
 
-def main() -> int:
+
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--rates', type=float, nargs='+', default=[100, 200, 300, 400, 500])
     parser.add_argument('--seconds', type=float, default=5.0, help='duration of each rate step')
-    args = parser.parse_args()
+    parser.add_argument('--sync', choices=('interpolate', 'nearest'), default='interpolate',
+                        help="the tensor node's parameter sync")
+    parser.add_argument('--offsets-ms', type=float, nargs=4, default=[0.0] * 4,
+                        metavar=('O1', 'O2', 'O3', 'O4'),
+                        help="each sensor's publication instant after the reference instant, ms")
+    return parser.parse_args()
 
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-    from sensor_msgs.msg import JointState, MagneticField
 
-    from tetra_gradiometer.io import conversions as cv
+def write_calibration(folder: Path) -> tuple[Path, np.ndarray]:
+    """A calibration file in ``folder`` and the four fields (4, 3) T the driver publishes."""
     from tetra_gradiometer import core
     from tetra_gradiometer.io.calibration import CalibrationFile, save_calibration
-    from tetra_gradiometer.nodes.common import derived_qos
 
-    domain = unique_domain()
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     geometry = core.TetraGeometry.regular(0.5)
     rng = np.random.default_rng(1)
     vehicle = core.random_interference(rng, reference_clean=False)
-    folder = Path(tempfile.mkdtemp(prefix='tg_bench_'))
     calibration = folder / 'calibration.yaml'
     # With a noise figure and a covariance, so the compensator also computes gradient/sigma and
     # runs its health monitor (issue 12): the throughput target holds with both.
     covariance = np.diag(np.r_[np.full(27, 1e-12), np.full(9, 1e-22)])
-    save_calibration(calibration, CalibrationFile(vehicle.effective_parameters(), 'bench', False, geometry.to_flat(),
-                                                  sensor_noise_t=1e-10, covariance=covariance))
-    fields = vehicle.apply(np.tile([0.0, 2e-5, -4.5e-5], (1, 4, 1)), np.array([[0.0, 2e-5, -4.5e-5]]))[0]
+    save_calibration(calibration, CalibrationFile(
+        vehicle.effective_parameters(), 'bench', False, geometry.to_flat(),
+        sensor_noise_t=1e-10, covariance=covariance))
+    earth = np.array([[0.0, 2e-5, -4.5e-5]])
+    fields = vehicle.apply(np.tile(earth, (1, 4, 1)), earth)[0]
+    return calibration, fields
 
-    processes = [NodeProcess('tensor', domain, {'sensor_queue_depth': 200}),
+
+Event = tuple[float, int, tuple[int, ...]]
+
+
+def schedule(rate: float, n: int, offsets_ms: list[float]) -> list[Event]:
+    """Publication events ``(seconds from the step start, set index, sensors)`` in time order;
+    sensors with equal offsets publish together (all four when synchronous)."""
+    groups: dict[float, tuple[int, ...]] = {}
+    for s, offset in enumerate(offsets_ms):
+        groups[offset] = groups.get(offset, ()) + (s,)
+    first = min(offsets_ms)
+    events = [(i / rate + (offset - first) * 1e-3, i, sensors)
+              for i in range(n) for offset, sensors in groups.items()]
+    return sorted(events, key=lambda e: (e[0], e[1]))
+
+
+class Driver:
+    """The bench node: four magnetometer publishers and the ``gradient/compensated`` receipts."""
+
+    def __init__(self, fields: np.ndarray) -> None:
+        from rclpy.node import Node
+        from sensor_msgs.msg import JointState, MagneticField
+
+        from tetra_gradiometer.io import conversions as cv
+        from tetra_gradiometer.nodes.common import derived_qos
+
+        self.cv, self.fields, self.types = cv, fields, cv.rclpy_types()
+        self.node = Node('bench', namespace='/tetra')
+        self.mags = [self.node.create_publisher(MagneticField, t, 200) for t in cv.MAG_TOPICS]
+        self.received: dict[int, int] = {}
+        self.lock = threading.Lock()
+        self.node.create_subscription(JointState, 'gradient/compensated', self._on_compensated,
+                                      derived_qos())
+
+    def _on_compensated(self, msg: Any) -> None:
+        now = time.time_ns()
+        with self.lock:
+            self.received[self.cv.stamp_to_ns(msg.header.stamp)] = now
+
+    def wait_for_chain(self) -> None:
+        for publisher in self.mags:
+            wait_for(lambda p=publisher: p.get_subscription_count() >= 1, 30, 'the tensor node')
+        wait_for(lambda: self.node.count_publishers('/tetra/gradient/compensated') >= 1, 30,
+                 'the compensator')
+
+    def publish(self, sensors: tuple[int, ...]) -> int:
+        """Publish the readings of ``sensors`` now, stamped now; return the stamp (ns)."""
+        cv, stamp = self.cv, time.time_ns()
+        for s in sensors:
+            self.mags[s].publish(cv.magnetic_field_msg(self.types, self.fields[s], stamp,
+                                                       cv.MAG_FRAMES[s]))
+        return stamp
+
+    def run_step(self, rate: float, seconds: float, offsets_ms: list[float]) -> tuple:
+        """One rate step: ``(rate, achieved, sent, received, drops, p50, p99, max)``, ms."""
+        with self.lock:
+            self.received.clear()
+        n = int(rate * seconds)
+        reference: dict[int, int] = {}  # set index -> sensor 1's stamp
+        events = schedule(rate, LEAD_IN_SETS + n, offsets_ms)
+        start = time.monotonic()
+        for at, i, sensors in events:
+            delay = start + at - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            stamp = self.publish(sensors)
+            if 0 in sensors:
+                reference[i] = stamp
+        achieved = n / max(time.monotonic() - start - LEAD_IN_SETS / rate, 1e-9)
+        time.sleep(1.0)
+        sent = [reference[i] for i in range(LEAD_IN_SETS, LEAD_IN_SETS + n)]
+        with self.lock:
+            latencies = np.array([self.received[s] - s for s in sent if s in self.received]) * 1e-6
+        drops = n - len(latencies)
+        p50, p99, worst = (np.percentile(latencies, [50, 99]).tolist() + [latencies.max()]
+                           if len(latencies) else [float('nan')] * 3)
+        return rate, achieved, n, len(latencies), drops, p50, p99, worst
+
+
+def print_step(result: tuple) -> None:
+    rate, achieved, n, count, drops, p50, p99, worst = result
+    short = '' if achieved > 0.98 * rate else f'  (publisher reached only {achieved:.0f}/s)'
+    print(f'{rate:8.0f} {n:6d} {count:6d} {drops:6d} {p50:8.2f} {p99:8.2f} {worst:8.2f}{short}',
+          flush=True)
+
+
+def print_result(results: list[tuple]) -> None:
+    clean = [r for r in results if r[4] == 0 and r[1] > 0.98 * r[0]]
+    fast = [r for r in clean if r[6] < 10.0]
+    best = max(clean, key=lambda r: r[0]) if clean else None
+    best_fast = max(fast, key=lambda r: r[0]) if fast else None
+    p50, p99 = (best[5], best[6]) if best else (float('nan'), float('nan'))
+    print(f'RESULT max_rate_no_drops={best[0] if best else 0:.0f}/s '
+          f'(p50 {p50:.2f} ms, p99 {p99:.2f} ms); '
+          f'max_rate_no_drops_p99_under_10ms={best_fast[0] if best_fast else 0:.0f}/s; '
+          f'load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs')
+
+
+def main() -> int:
+    args = parse_args()
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    domain = unique_domain()
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    calibration, fields = write_calibration(Path(tempfile.mkdtemp(prefix='tg_bench_')))
+    processes = [NodeProcess('tensor', domain, {'sensor_queue_depth': 200, 'sync': args.sync}),
                  NodeProcess('compensator', domain, {'calibration_file': str(calibration)})]
     rclpy.init(domain_id=domain)
-    node = Node('bench', namespace='/tetra')
-    types = cv.rclpy_types()
-    mags = [node.create_publisher(MagneticField, t, 200) for t in cv.MAG_TOPICS]
-    received: dict[int, int] = {}
-    lock = threading.Lock()
-
-    def on_compensated(msg: JointState) -> None:
-        now = time.time_ns()
-        with lock:
-            received[cv.stamp_to_ns(msg.header.stamp)] = now
-
-    node.create_subscription(JointState, 'gradient/compensated', on_compensated, derived_qos())
+    driver = Driver(fields)
     executor = SingleThreadedExecutor()
     spinner = threading.Thread(target=executor.spin, daemon=True)
-    executor.add_node(node)
+    executor.add_node(driver.node)
     spinner.start()
-    results = []
     try:
-        for publisher in mags:
-            wait_for(lambda: publisher.get_subscription_count() >= 1, 30, 'the tensor node')
-        wait_for(lambda: node.count_publishers('/tetra/gradient/compensated') >= 1, 30, 'the compensator')
+        driver.wait_for_chain()
         time.sleep(1.0)
-        print(f'bench: ROS_DOMAIN_ID {domain}; tensor + compensator as separate processes; '
-              f'{os.cpu_count()} CPUs (shared), load average {os.getloadavg()[0]:.2f}', flush=True)
-        print(f'{"rate/s":>8} {"sent":>6} {"recv":>6} {"drops":>6} {"p50 ms":>8} {"p99 ms":>8} {"max ms":>8}')
+        offsets = ' '.join(f'{o:g}' for o in args.offsets_ms)
+        print(f'bench: ROS_DOMAIN_ID {domain}; tensor (sync {args.sync}) + compensator as '
+              f'separate processes; sensor offsets {offsets} ms; {os.cpu_count()} CPUs (shared), '
+              f'load average {os.getloadavg()[0]:.2f}', flush=True)
+        print(f'{"rate/s":>8} {"sent":>6} {"recv":>6} {"drops":>6} {"p50 ms":>8} {"p99 ms":>8} '
+              f'{"max ms":>8}')
+        results = []
         for rate in args.rates:
-            with lock:
-                received.clear()
-            sent: list[int] = []
-            period = 1.0 / rate
-            start = time.monotonic()
-            n = int(rate * args.seconds)
-            for i in range(n):
-                delay = start + i * period - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                stamp = time.time_ns()
-                for s in range(4):
-                    mags[s].publish(cv.magnetic_field_msg(types, fields[s], stamp, cv.MAG_FRAMES[s]))
-                sent.append(stamp)
-            achieved = n / (time.monotonic() - start)
-            time.sleep(1.0)
-            with lock:
-                latencies = np.array([received[s] - s for s in sent if s in received]) * 1e-6
-            drops = n - len(latencies)
-            p50, p99, worst = (np.percentile(latencies, [50, 99]).tolist() + [latencies.max()]
-                               if len(latencies) else [float('nan')] * 3)
-            results.append((rate, achieved, n, len(latencies), drops, p50, p99, worst))
-            print(f'{rate:8.0f} {n:6d} {len(latencies):6d} {drops:6d} {p50:8.2f} {p99:8.2f} {worst:8.2f}'
-                  + ('' if achieved > 0.98 * rate else f'  (publisher reached only {achieved:.0f}/s)'), flush=True)
-        clean = [r for r in results if r[4] == 0 and r[1] > 0.98 * r[0]]
-        fast = [r for r in clean if r[6] < 10.0]
-        best = max(clean, key=lambda r: r[0]) if clean else None
-        best_fast = max(fast, key=lambda r: r[0]) if fast else None
-        print(f'RESULT max_rate_no_drops={best[0] if best else 0:.0f}/s '
-              f'(p50 {best[5] if best else float("nan"):.2f} ms, p99 {best[6] if best else float("nan"):.2f} ms); '
-              f'max_rate_no_drops_p99_under_10ms={best_fast[0] if best_fast else 0:.0f}/s; '
-              f'load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs')
+            results.append(driver.run_step(rate, args.seconds, args.offsets_ms))
+            print_step(results[-1])
+        print_result(results)
     finally:
         executor.shutdown(timeout_sec=2)
         if spinner.is_alive():
             spinner.join(timeout=5)
-        node.destroy_node()
+        driver.node.destroy_node()
         rclpy.try_shutdown()
         for process in processes:
             process.stop()

@@ -197,7 +197,7 @@ class WindowCheck:
         }
 
 
-def check_window(
+def _check_window(
     calibration: TensorCalibration,
     method: str,
     stamps_ns: IntArray,
@@ -359,7 +359,7 @@ def identify_checked(
     refusals = [] if assessment is None else [excitation_refusal(assessment, window, force_name)]
     check = None
     if method in KNOWN_GRADIENT_METHODS and isinstance(calibration, TensorCalibration):
-        check = check_window(
+        check = _check_window(
             calibration, method, stamps_ns, g_measured, b_reference, geometry, options, first_ns
         )
         hint = f'{force_name} writes it anyway, with this warning in the file'
