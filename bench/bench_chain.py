@@ -8,11 +8,12 @@ offsets 0): the four messages of a set carry one stamp, the wall-clock time of p
 With ``--offsets-ms`` (sensors on their own clocks), each sensor's message is published
 at its own instant, the set's reference instant + that sensor's offset, and stamped with the
 wall-clock time of its own publication (sensors with equal offsets share a stamp).
-Latency = receipt time - sensor 1's stamp (the reference instant: the tensor node's
-``gradient/compensated`` stamp), driver to compensated output including the last DDS hop
+Latency = receipt time - sensor 1's stamp (the reference instant, the set's stamp carried
+to ``gradient/compensated``), driver to compensated output including the last DDS hop
 and, with offsets, the wait for the latest sensor. For each rate it reports sets
 sent/received, drops and p50/p99/max latency; the maximum sustained rate is the highest rate
-with no drop. Each rate step begins with 2 sets that are published but not counted: after
+with no drop (the queues are deep: an overloaded chain shows a growing p50 before drops).
+Each rate step begins with 2 sets that are published but not counted: after
 the pause between steps (and at the start) the resampler needs two earlier samples of every
 sensor before it interpolates, so with offsets those sets are skipped by design.
 
