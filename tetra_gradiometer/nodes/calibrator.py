@@ -11,10 +11,11 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
   methods solve as ``calibrate`` does (:func:`~tetra_gradiometer.io.window_check.
   identify_checked`): a regional world-frame gradient jointly when every sample has an
   ``/odom`` attitude (else it is assumed zero, as the reply and the file's ``notes`` say),
-  then the test of the fit's assumption; samples that fail it (a target, a bad stretch)
-  answer success=false with the figures, the failing part (s after the first sample) and
-  a passing sub-window, and nothing is written, unless ``force`` is true (then the
-  warning goes into the file's ``notes``). On success the parameters are written
+  then the test of the fit's assumption; samples that fail it (a target, a bad stretch),
+  or whose last trim assessment predicts more than 2x the noise floor (too little
+  attitude excitation), answer success=false with the figures (the failing part in s
+  after the first sample, a passing sub-window), and nothing is written, unless ``force``
+  is true (then the warning goes into the file's ``notes``). On success the parameters are written
   atomically to ``calibration_file`` (with the regional gradient, its 1-sigma and the
   check) and published on ``calibration`` (std_msgs/String holding the calibration file's
   YAML text, transient local = latched).
@@ -26,8 +27,8 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
   "cancelled ..." and writes nothing.
 
 The solve runs off the executor (:class:`.solve_worker.SolveWorker`): in a worker thread
-(one at a time), while the
-``~/calibrate`` callback, in a reentrant callback group, waits for it and then replies
+(one at a time), while the ``~/calibrate`` callback, in a reentrant callback group, waits
+for it and then replies
 (synchronously, with the result). ``main()`` spins a MultiThreadedExecutor, so meanwhile
 the samples, ``~/cancel``, a second ``~/calibrate`` (answered at once: "a solve is already
 running") and ``/diagnostics`` (state ``solving``, ``solve_elapsed_s``) are served.
@@ -265,7 +266,7 @@ class CalibratorNode(Node):
         self._last_result = 'no calibration yet'
         self._last_ok: bool | None = None
         self._calibrations = 0
-        # The solve: one worker thread; the lock is held while a solve runs.
+        # The solve: off the executor, one at a time, cancellable.
         self._worker = SolveWorker('calibrator_solve', on_start=self._publish_diagnostics)
         # Trim guidance: recent /odom (stamp ns, quaternion), samples not yet in the sums.
         self._odom = AttitudeHistory()
@@ -329,7 +330,6 @@ class CalibratorNode(Node):
 
     def _on_odom(self, msg: Odometry) -> None:
         self._odom.add(cv.stamp_to_ns(msg.header.stamp), cv.odometry_orientation(msg))
-
 
     # ----------------------------------------------------------------- guidance
 
