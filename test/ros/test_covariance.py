@@ -74,7 +74,12 @@ def test_driver_replay_fills_a_missing_covariance_from_sensor_noise_t(tmp_path):
         wait_for(lambda: probe.count_publishers('/tetra/reference_field') >= 1, 20, 'tensor node', graph)
         time.sleep(1.0)
         graph.start('driver', mode='replay', bag=str(tmp_path / 'bag'), rate=0.0, min_subscribers=1,
-                    sensor_noise_t=noise)
+                    sensor_noise_t=noise, start_paused=True)
+        # The driver's publishers known to the tensor node before it plays (best effort: a set
+        # sent before the tensor node matched them is lost, and 20 sets take 0.7 s at rate 0).
+        wait_for(lambda: probe.count_publishers('/tetra/mag2') >= 2, 30, 'the driver (and the feeder)', graph)
+        time.sleep(1.0)
+        assert probe.call('driver/resume').success
         wait_for(lambda: len(reference) == 20, 30, 'the replayed sets', graph)
     assert len(mag1) >= 15  # best effort: a few may be lost, none has another covariance
     for covariance in [*mag1.values(), *reference.values()]:
