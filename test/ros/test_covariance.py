@@ -68,6 +68,7 @@ def test_driver_replay_fills_a_missing_covariance_from_sensor_noise_t(tmp_path):
     expected = np.diag([noise**2] * 3).reshape(9)
     with ros_graph() as (graph, probe, feeder):
         mag1 = _collect(probe, 'mag1', sensor_qos(100))
+        mag2_reliable = _collect(probe, 'mag2', 10)  # REP 2003: a plain reliable subscriber
         reference = _collect(probe, 'reference_field', derived_qos())
         graph.start('tensor')
         # Discovery first: the driver waits for the tensor node, not for this probe.
@@ -80,7 +81,7 @@ def test_driver_replay_fills_a_missing_covariance_from_sensor_noise_t(tmp_path):
         wait_for(lambda: probe.count_publishers('/tetra/mag2') >= 2, 30, 'the driver (and the feeder)', graph)
         time.sleep(1.0)
         assert probe.call('driver/resume').success
-        wait_for(lambda: len(reference) == 20, 30, 'the replayed sets', graph)
+        wait_for(lambda: len(reference) == 20 and len(mag2_reliable) == 20, 30, 'the replayed sets', graph)
     assert len(mag1) >= 15  # best effort: a few may be lost, none has another covariance
     for covariance in [*mag1.values(), *reference.values()]:
         np.testing.assert_allclose(covariance, expected, rtol=1e-12, atol=0)

@@ -54,7 +54,6 @@ from .common import (
     non_negative,
     one_of,
     positive,
-    sensor_qos,
     spin_node,
     status,
 )
@@ -121,8 +120,8 @@ PARAMETERS = [
     ParamSpec(
         'publisher_depth',
         100,
-        'Queue depth of the magnetometer publishers (best effort), messages (at most 10000, '
-        '50 s at 200 sets/s).',
+        'Queue depth of the magnetometer publishers (reliable: the system default, REP 2003), '
+        'messages (at most 10000, 50 s at 200 sets/s).',
         int_range=(1, 10000),
     ),
     ParamSpec(
@@ -166,8 +165,12 @@ class DriverNode(Node):
         self._last_progress = time.monotonic()
         self._origin = (time.monotonic(), self._next.pace_ns if self._next else 0)
 
+        # REP 2003: a sensor driver publishes with the system default (reliable, volatile);
+        # consumers (the tensor node) subscribe with sensor-data QoS, and a reliable
+        # subscriber (a recorder, a plain depth-10 subscription) gets the data too.
+        mag_qos = derived_qos(p['publisher_depth'])
         self._pubs = {
-            (MAG, s): self.create_publisher(MagneticField, topic, sensor_qos(p['publisher_depth']))
+            (MAG, s): self.create_publisher(MagneticField, topic, mag_qos)
             for s, topic in enumerate(cv.MAG_TOPICS)
         }
         self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
