@@ -41,6 +41,8 @@ def child_env(domain: int) -> dict[str, str]:
 def ros_value(value: Any) -> str:
     if isinstance(value, bool):
         return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+        return '[' + ','.join(f"'{v}'" for v in value) + ']'
     if isinstance(value, (list, tuple)):
         return '[' + ','.join(repr(float(v)) for v in value) + ']'
     return str(value)

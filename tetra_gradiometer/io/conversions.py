@@ -34,6 +34,11 @@ NAMESPACE = '/tetra'
 MAG_TOPICS = ('mag1', 'mag2', 'mag3', 'mag4')
 MAG_FRAMES = ('tetra_mag1', 'tetra_mag2', 'tetra_mag3', 'tetra_mag4')
 ARRAY_FRAME = 'tetra_array'
+#: REP 105: the world-fixed frame of odometry and the body frame (REP 103 axes); the sensor
+#: frames and the array frame are children of the body frame. Defaults of the nodes'
+#: frame-id parameters.
+ODOM_FRAME = 'odom'
+BASE_FRAME = 'base_link'
 TENSOR_NAMES = ('gxx', 'gxy', 'gxz', 'gyx', 'gyy', 'gyz', 'gzx', 'gzy', 'gzz')
 ODOM_TOPIC = '/odom'
 TEMPERATURE_TOPIC = '/tetra/temperature'
@@ -201,8 +206,8 @@ def odometry_msg(
     orientation_xyzw: np.ndarray,
     stamp_ns: int,
     *,
-    frame_id: str = 'world',
-    child_frame_id: str = 'base_link',
+    frame_id: str = ODOM_FRAME,
+    child_frame_id: str = BASE_FRAME,
 ) -> Any:
     """``nav_msgs/Odometry``: position (3,) m ENU, orientation (4,) x, y, z, w (body -> ENU)."""
     q = np.asarray(orientation_xyzw, dtype=float)

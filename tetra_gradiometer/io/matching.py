@@ -4,12 +4,15 @@ Used by the tensor node (live topics) and the bag reader (recorded topics), so b
 and count incomplete sets the same way. Each sensor's stamps must increase; a set is the
 four queue heads when they lie within ``tolerance_ns`` of each other. A head that cannot
 match any more (another sensor has already moved past it) is dropped and counted.
+:class:`StampPairer` joins streams on identical stamps (the calibrator's and compensator's
+``gradient/raw`` with ``reference_field``).
 """
 
 from __future__ import annotations
 
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -144,3 +147,33 @@ class StampMatcher:
         self._last = [int(stamps_ns[-1])] * N_SENSORS
         self.counters.matched += len(stamps_ns)
         return True
+
+
+class StampPairer:
+    """Joins ``n`` streams on identical header stamps (ns): :meth:`add` returns the tuple of
+    values once every stream has delivered that stamp. Bounded: the oldest incomplete
+    stamps are evicted beyond ``max_pending`` and counted in :attr:`evicted` (the nodes
+    report it on ``/diagnostics``)."""
+
+    def __init__(self, n: int, max_pending: int = 1000) -> None:
+        self.n = int(n)
+        self.max_pending = int(max_pending)
+        self.evicted = 0
+        self._pending: OrderedDict[int, list] = OrderedDict()
+
+    def add(self, stream: int, stamp_ns: int, value: Any) -> tuple | None:
+        slot = self._pending.get(stamp_ns)
+        if slot is None:
+            slot = self._pending[stamp_ns] = [None] * self.n
+            while len(self._pending) > self.max_pending:
+                self._pending.popitem(last=False)
+                self.evicted += 1
+        slot[stream] = value
+        if all(v is not None for v in slot):
+            del self._pending[stamp_ns]
+            return tuple(slot)
+        return None
+
+    def clear(self) -> None:
+        """Forget the incomplete stamps (:attr:`evicted` keeps counting)."""
+        self._pending.clear()

@@ -185,6 +185,7 @@ def simulate(
     *,
     start_ns: int,
     max_duration_s: float = 0.0,
+    frame_ids: FrameIds | None = None,
 ) -> tuple[Generator[Frame, None, None], dict[str, Any]]:
     """Simulate a mission and return its frames and a description.
 
@@ -195,6 +196,7 @@ def simulate(
     types : the message classes to build
     start_ns : header stamp of the first sample, ns (stamps are ``start_ns`` + sample time)
     max_duration_s : keep the samples before this sample time, s (0: all)
+    frame_ids : the messages' frame ids (default :class:`FrameIds`: REP 105 names)
 
     Returns
     -------
@@ -221,7 +223,17 @@ def simulate(
         'sensor_noise_t': float(scenario.noise_t),
     }
     covariance = cv.noise_covariance(scenario.noise_t)
-    return _mission_frames(mission, n, types, start_ns, covariance), info
+    frames = _mission_frames(mission, n, types, start_ns, covariance, frame_ids or FrameIds())
+    return frames, info
+
+
+@dataclass(frozen=True)
+class FrameIds:
+    """Frame ids of the simulated messages (REP 105; the driver's frame-id parameters)."""
+
+    odom: str = cv.ODOM_FRAME
+    base: str = cv.BASE_FRAME
+    sensors: tuple[str, ...] = cv.MAG_FRAMES
 
 
 def _mission_frames(
@@ -230,16 +242,25 @@ def _mission_frames(
     types: cv.MessageTypes,
     start_ns: int,
     covariance: np.ndarray,
+    frame_ids: FrameIds,
 ) -> Generator[Frame, None, None]:
+    sensors = frame_ids.sensors
     for i in range(n):
         pace = int(round(mission.t[i] * NS_PER_S))
         stamp = start_ns + pace
         fields = mission.fields_measured[i]
         items: list[tuple[str, int, Any]] = [
-            (MAG, s, cv.magnetic_field_msg(types, fields[s], stamp, cv.MAG_FRAMES[s], covariance))
+            (MAG, s, cv.magnetic_field_msg(types, fields[s], stamp, sensors[s], covariance))
             for s in range(4)
         ]
         items.append((TRUTH, 0, cv.tensor_msg(types, mission.g_true[i], stamp)))
-        odom = cv.odometry_msg(types, mission.position_enu[i], mission.orientation_xyzw[i], stamp)
+        odom = cv.odometry_msg(
+            types,
+            mission.position_enu[i],
+            mission.orientation_xyzw[i],
+            stamp,
+            frame_id=frame_ids.odom,
+            child_frame_id=frame_ids.base,
+        )
         items.append((ODOM, 0, odom))
         yield Frame(pace, int(mission.segment[i]), stamp, items)

@@ -90,6 +90,7 @@ from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, CalibrationFileError, save_calibration
+from ..io.matching import StampPairer
 from ..io.window_check import (
     KNOWN_GRADIENT_METHODS,
     AttitudeHistory,
@@ -103,7 +104,6 @@ from .common import (
     POSITIONS_SPEC,
     WARN,
     ParamSpec,
-    StampPairer,
     declare_parameters,
     derived_qos,
     diagnostics_period_spec,

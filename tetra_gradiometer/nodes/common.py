@@ -24,7 +24,6 @@ import math
 import os
 import sys
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParamsError, TetraError
+from ..io import conversions as cv
 
 NAMESPACE = '/tetra'
 
@@ -126,6 +126,8 @@ def _descriptor(spec: ParamSpec, read_only: bool) -> Any:
         kind = ParameterType.PARAMETER_STRING
     elif isinstance(default, (list, tuple)) and all(isinstance(v, float) for v in default):
         kind = ParameterType.PARAMETER_DOUBLE_ARRAY
+    elif isinstance(default, (list, tuple)) and all(isinstance(v, str) for v in default):
+        kind = ParameterType.PARAMETER_STRING_ARRAY
     else:
         raise TypeError(f'parameter {spec.name}: unsupported default {default!r}')
     descriptor = ParameterDescriptor(
@@ -380,6 +382,22 @@ POSITIONS_SPEC = ParamSpec(
 )
 
 
+def frame_ids(value: Any) -> str | None:
+    """Validator of frame ids (a string or a list): non-empty, no leading '/' (tf2's rule)."""
+    ids = [value] if isinstance(value, str) else list(value)
+    bad = [i for i in ids if not i or i.startswith('/')]
+    return f'frame ids must be non-empty without a leading "/", got {bad!r}' if bad else None
+
+
+#: The tensor and compensator's frame of the gradient tensors (a child of the body frame).
+ARRAY_FRAME_SPEC = ParamSpec(
+    'array_frame_id',
+    cv.ARRAY_FRAME,
+    'Frame id of the published gradient tensors (REP 103 body axes; a child of base_link).',
+    frame_ids,
+    read_only=True,
+)
+
 #: Shared by the nodes that warn on every dropped message (0: no throttling).
 WARN_THROTTLE_SPEC = ParamSpec(
     'warn_throttle_s',
@@ -416,36 +434,6 @@ class Throttle:
             self._last = now
             return True
         return False
-
-
-class StampPairer:
-    """Joins ``n`` streams on identical header stamps (ns): :meth:`add` returns the tuple of
-    values once every stream has delivered that stamp. Bounded: the oldest incomplete
-    stamps are evicted beyond ``max_pending`` and counted in :attr:`evicted` (the nodes
-    report it on ``/diagnostics``)."""
-
-    def __init__(self, n: int, max_pending: int = 1000) -> None:
-        self.n = int(n)
-        self.max_pending = int(max_pending)
-        self.evicted = 0
-        self._pending: OrderedDict[int, list] = OrderedDict()
-
-    def add(self, stream: int, stamp_ns: int, value: Any) -> tuple | None:
-        slot = self._pending.get(stamp_ns)
-        if slot is None:
-            slot = self._pending[stamp_ns] = [None] * self.n
-            while len(self._pending) > self.max_pending:
-                self._pending.popitem(last=False)
-                self.evicted += 1
-        slot[stream] = value
-        if all(v is not None for v in slot):
-            del self._pending[stamp_ns]
-            return tuple(slot)
-        return None
-
-    def clear(self) -> None:
-        """Forget the incomplete stamps (:attr:`evicted` keeps counting)."""
-        self._pending.clear()
 
 
 def key_values(values: dict[str, Any]) -> list:
@@ -491,8 +479,6 @@ def interrupt_on_signals() -> None:
 def tensor_or_nan(msg: Any) -> np.ndarray:
     """A tensor JointState as (3, 3) T/m; a malformed one (wrong names or count) as NaN, which
     the callers' non-finite checks drop and count, so one bad message cannot stop a node."""
-    from ..io import conversions as cv
-
     try:
         return cv.tensor_from_msg(msg)
     except cv.MessageError:

@@ -47,7 +47,9 @@ from ..io.calibration import (
     check_positions,
     load_calibration,
 )
+from ..io.matching import StampPairer
 from .common import (
+    ARRAY_FRAME_SPEC,
     ERROR,
     NAMESPACE,
     OK,
@@ -55,7 +57,6 @@ from .common import (
     WARN,
     WARN_THROTTLE_SPEC,
     ParamSpec,
-    StampPairer,
     Throttle,
     declare_parameters,
     derived_qos,
@@ -105,6 +106,7 @@ PARAMETERS = [
         '(their differencing asymmetry is not bounded); 14 to 1000.',
         float_range=(MIN_SOURCE_RANGE_EDGES, 1000.0),
     ),
+    ARRAY_FRAME_SPEC,
     WARN_THROTTLE_SPEC,
     diagnostics_period_spec(),
 ]
@@ -121,6 +123,7 @@ class CompensatorNode(Node):
         p = declare_parameters(self, PARAMETERS)
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._types = cv.rclpy_types()
+        self._array_frame = p['array_frame_id']
         self._inputs = StampPairer(2, p['max_pending'])  # raw, reference
         self._truth = StampPairer(2, p['max_pending'])  # (raw, compensated), truth
         self._warn = Throttle(p['warn_throttle_s'])
@@ -290,14 +293,15 @@ class CompensatorNode(Node):
         if not (np.all(np.isfinite(g)) and np.isfinite(norm_nt)):  # never publish inf or NaN
             self._drop(stamp_ns, 'a non-finite compensated tensor')
             return
-        self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
+        self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns, self._array_frame))
         self._norm_pub.publish(Float64(data=norm_nt))
         if self._health is not None:
             self._health_buffer.append((stamp_ns * S_PER_NS, g, b_reference))
         if self._sigma is not None:
             sigma = self._sigma.one(b_reference)
             if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
-                self._sigma_pub.publish(cv.tensor_msg(self._types, sigma, stamp_ns))
+                sigma_msg = cv.tensor_msg(self._types, sigma, stamp_ns, self._array_frame)
+                self._sigma_pub.publish(sigma_msg)
         self.published += 1
         self._pair_truth(0, stamp_ns, (g_raw, g))
 

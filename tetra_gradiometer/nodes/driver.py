@@ -51,6 +51,7 @@ from .common import (
     declare_parameters,
     derived_qos,
     diagnostics_period_spec,
+    frame_ids,
     non_negative,
     one_of,
     positive,
@@ -133,6 +134,14 @@ PARAMETERS = [
         non_negative,
         float_range=(0.0, 1e-6),
     ),
+    ParamSpec('odom_frame_id', cv.ODOM_FRAME, 'sim: /odom header frame (REP 105).', frame_ids),
+    ParamSpec('base_frame_id', cv.BASE_FRAME, 'sim: /odom child frame, the body.', frame_ids),
+    ParamSpec(
+        'sensor_frame_ids',
+        cv.MAG_FRAMES,
+        'sim: frames of mag1..4 (children of base_frame_id). Replay keeps the recorded ids.',
+        frame_ids,
+    ),
     diagnostics_period_spec(),
 ]
 
@@ -196,6 +205,9 @@ class DriverNode(Node):
                 types,
                 start_ns=start_ns,
                 max_duration_s=p['max_duration_s'],
+                frame_ids=replay.FrameIds(
+                    p['odom_frame_id'], p['base_frame_id'], tuple(p['sensor_frame_ids'])
+                ),
             )
             self.get_logger().info(
                 f'sim: {info["samples"]} samples at {info["sample_rate_hz"]:g} Hz, segments '

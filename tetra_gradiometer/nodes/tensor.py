@@ -40,6 +40,7 @@ from ..core.units import NS_PER_S, S_PER_NS
 from ..io import conversions as cv
 from ..io.matching import StampMatcher
 from .common import (
+    ARRAY_FRAME_SPEC,
     ERROR,
     NAMESPACE,
     OK,
@@ -131,6 +132,7 @@ PARAMETERS = [
         positive,
         float_range=(0.01, 86400.0),
     ),
+    ARRAY_FRAME_SPEC,
     WARN_THROTTLE_SPEC,
     diagnostics_period_spec(),
 ]
@@ -159,6 +161,8 @@ class TensorNode(Node):
         p = declare_parameters(self, PARAMETERS, dynamic=('max_field_t', 'stale_timeout_s'))
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._max_field = float(p['max_field_t'])
+        self._array_frame = p['array_frame_id']
+        self._mag1_frame = cv.MAG_FRAMES[0]  # then that of the last mag1 message
         self._stale_timeout = float(p['stale_timeout_s'])
         self._timebase = TimeBase(
             sync=p['sync'],
@@ -224,6 +228,8 @@ class TensorNode(Node):
         if last is not None and stamp < last - self._jump_back_ns:
             self._reset_matcher(sensor, last - stamp)
         self._last_stamp[sensor] = stamp
+        if sensor == 0:
+            self._mag1_frame = msg.header.frame_id
         # Each reading's covariance travels with its field (12 values): the reference_field
         # of a set gets that of its own mag1 message (interpolated on a grid reference).
         reading = cv.magnetic_field_reading(msg)
@@ -286,11 +292,11 @@ class TensorNode(Node):
         if not np.all(np.isfinite(g)):  # cannot happen for finite fields; never publish non-finite
             self.sets_invalid += 1
             return
-        self._raw_pub.publish(cv.tensor_msg(self._types, g, stamp_ns))
+        self._raw_pub.publish(cv.tensor_msg(self._types, g, stamp_ns, self._array_frame))
         if not np.all(np.isfinite(covariance)):  # never publish non-finite: unknown instead
             covariance = np.zeros(9)
         self._ref_pub.publish(
-            cv.magnetic_field_msg(self._types, fields[0], stamp_ns, cv.MAG_FRAMES[0], covariance)
+            cv.magnetic_field_msg(self._types, fields[0], stamp_ns, self._mag1_frame, covariance)
         )
         self.sets_published += 1
 
