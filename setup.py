@@ -13,6 +13,8 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/config/scenarios', glob('config/scenarios/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
         ('share/' + package_name + '/bags', glob('bags/*.yaml')),
     ],
     install_requires=['setuptools'],
@@ -21,7 +23,7 @@ setup(
     maintainer_email='maintainers@tetra-gradiometer.invalid',
     description='Vehicle magnetic interference compensation for a tetrahedral gradiometer',
     license='Apache-2.0',
-    tests_require=['pytest'],
+    extras_require={'test': ['pytest', 'pytest-timeout']},
     entry_points={
         'console_scripts': [
             'driver = tetra_gradiometer.nodes.driver:main',
