@@ -23,6 +23,7 @@ REQUIRED = {
     'compensate': ['BAG', '--params', 'P.yaml', '--csv', 'O.csv'],
     'simulate': ['--scenario', 'S.yaml', '--out', 'OUT'],
     'discrepancy': ['BAG', '--params', 'P.yaml', '--out', 'OUT'],
+    'batch': ['DIR', '--out', 'OUT'],
     'paper': ['--out', 'OUT'],
     'bringup': [],
     'record': ['--out', 'OUT', '--duration', '5'],
@@ -87,6 +88,9 @@ BAD = [
     ('discrepancy', '--window', '3:1', ('0 <= T0 < T1',)),
     ('discrepancy', '--candidates', 'eddy_current,nonsense', ("['nonsense']", 'eddy_current')),
     ('discrepancy', '--candidates', ',', ('at least one of',)),
+    # batch
+    ('batch', '--window', '3:1', ('0 <= T0 < T1',)),
+    *[('batch', '--workers', value, ('1 <= n <= 256',)) for value in ('0', '257', '1.5', 'x')],
     # paper
     ('paper', '--generations', '0', ('1 <= n <= 100000',)),
     ('paper', '--seed', str(2**31), SEED),
@@ -198,6 +202,8 @@ def _parse(command, *options):
     ('discrepancy', ['--folds', '20', '--relevance', '0'], 'folds', 20),
     ('discrepancy', ['--relevance', '0'], 'relevance', 0.0),
     ('discrepancy', ['--window', '10:'], 'window', (10.0, math.inf)),
+    ('batch', [], 'workers', None),
+    ('batch', ['--workers', '256', '--window', '0:59'], 'window', (0.0, 59.0)),
     ('paper', [], 'generations', 1000),
     ('bringup', ['--rate', '0'], 'rate', 0.0),
     ('bringup', [], 'rate', None),

@@ -10,11 +10,11 @@ manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and ``pape
 do not use that assumption). ``--method`` is one of the registry's methods whose result is
 a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help`` describes them).
 
-The work is :func:`tetra_gradiometer.io.bag_calibration.calibrate_bag`: the window is
-read streaming, and thinned to at most ``--max-sets`` sets (the printed summary says so).
-Then the trim assessment of the sets used (:func:`~tetra_gradiometer.io.bag_calibration.
-assess_window`: predicted survey accuracy, coverage, enough or the next manoeuvre) is
-printed, and ``--report DIR`` writes it with plots
+The work is :func:`tetra_gradiometer.io.bag_calibration.calibrate_assessed` (``batch``
+calls it too): the window is read streaming, and thinned to at most ``--max-sets`` sets (the
+printed summary says so); the trim assessment of the sets used (predicted survey accuracy,
+coverage, enough or the next manoeuvre) refuses a window that does not excite the
+parameters. The assessment is printed, and ``--report DIR`` writes it with plots
 (:mod:`tetra_gradiometer.io.calibration_report`).
 """
 
@@ -38,14 +38,12 @@ from ..io.bag_calibration import (
     MIN_SETS,
     BagCalibration,
     WindowAssessment,
-    assess_window,
-    calibrate_bag,
+    calibrate_assessed,
 )
 from ..io.calibration import save_calibration
 from ..io.calibration_report import write_calibration_report
 from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
-from ..io.window_check import excitation_refusal
 from ._args import (
     add_bag_arguments,
     add_force_argument,
@@ -142,9 +140,10 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     geometry = geometry_from_params(params, source=args.params)
     earth = earth_field_from_params(params, str(args.params))
-    result = calibrate_bag(
+    result, window_assessment = calibrate_assessed(
         args.bag,
         geometry,
+        earth,
         window=window,
         method=args.method,
         seed=args.seed,
@@ -156,8 +155,6 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
         force=args.force,
     )
-    window_assessment = assess_window(result, args.bag, geometry, earth)
-    result = _check_excitation(result, window_assessment, args.force)
     save_calibration(args.out, result.record, force=args.force, inputs=inputs)
     _print_summary(args, result)
     _print_assessment(window_assessment)
@@ -174,21 +171,6 @@ def run(args: argparse.Namespace) -> int:
         written.append(str(args.report))
     print(f'wrote {" and ".join(written)} in {time.perf_counter() - started:.1f} s')
     return 0
-
-
-def _check_excitation(
-    result: BagCalibration, window: WindowAssessment, force: bool
-) -> BagCalibration:
-    """Refuse a window whose attitudes do not excite the parameters (``AssumptionError``),
-    or with ``--force`` keep it with the warning in its notes."""
-    refusal = None
-    if window.assessment is not None:
-        refusal = excitation_refusal(window.assessment, result.window)
-    if refusal is None:
-        return result
-    if not force:
-        raise refusal
-    return result.with_note(f'WARNING (--force): {refusal}')
 
 
 def _print_assessment(window: WindowAssessment) -> None:

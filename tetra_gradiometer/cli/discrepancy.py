@@ -1,16 +1,19 @@
-"""``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR [--window T0:T1]``."""
+"""``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR [--window T0:T1]``.
+
+The work is :func:`tetra_gradiometer.io.bag_discrepancy.analyze_bag` (``batch`` calls it
+too); the report folder is :func:`tetra_gradiometer.io.report.write_report`.
+"""
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 
-from ..core.discrepancy import CANDIDATES, LIBRARY, RecordedRun, Settings, analyze
+from ..core.discrepancy import CANDIDATES, LIBRARY, Settings
+from ..io.bag_discrepancy import analyze_bag
 from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
-from ..io.recording import read_recording
 from ..io.report import channel_warnings, write_report
 from ._args import add_bag_arguments, finite_float, int_range, timebase_from_args, window_arg
 
@@ -89,6 +92,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def settings_from_args(args: argparse.Namespace) -> Settings:
+    """The search's :class:`Settings` from the options (none given: ``Settings()``)."""
+    return Settings(
+        n_folds=args.folds,
+        max_effects=args.max_effects,
+        relevance=args.relevance,
+        candidates=args.candidates,
+        exclude_targets=not args.keep_targets,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     window = args.window  # (t0, t1) or None, checked by argparse (_args.window_arg)
@@ -97,25 +111,14 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     geometry = geometry_from_params(params, str(args.params))
     earth = earth_field_from_params(params, str(args.params))
-    recording = read_recording(args.bag, timebase=timebase_from_args(args))
-    run_data = RecordedRun(
-        recording.t_s,
-        recording.fields,
-        recording.orientation_xyzw,
-        recording.temperature_c,
-        recording.current_a,
-        recording.missing,
+    report, recording = analyze_bag(
+        args.bag,
+        geometry,
+        earth,
+        settings=settings_from_args(args),
+        window=window,
+        timebase=timebase_from_args(args),
     )
-    settings = Settings(
-        n_folds=args.folds,
-        max_effects=args.max_effects,
-        relevance=args.relevance,
-        candidates=args.candidates,
-        exclude_targets=not args.keep_targets,
-    )
-    report = analyze(run_data, geometry, earth, settings=settings, window_s=window)
-    # What never reached the analysis (implausible sets, undecodable messages) is reported too.
-    report = dataclasses.replace(report, data={**report.data, **recording.input_counts()})
     out = write_report(report, args.out, plots=not args.no_plots, force=args.force, inputs=inputs)
     for note in report.notes:
         print(f'note: {note}', file=sys.stderr)

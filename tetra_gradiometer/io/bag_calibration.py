@@ -8,7 +8,9 @@ k-th set) to bound the solver's memory (the design holds 9 x 36 floats per set).
 
 :func:`assess_window` adds the trim guidance of :mod:`tetra_gradiometer.core.guidance` on the
 sets the solve used: attitude coverage from the bag's ``/odom`` when it holds one, the Earth
-field from the params file (else estimated from ``/odom``).
+field from the params file (else estimated from ``/odom``). :func:`calibrate_assessed` is what
+the ``calibrate`` command (and ``batch``, per bag) does before it writes: the calibration, its
+assessment and the refusal of a window whose attitudes do not excite the parameters.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from .window_check import (
     KNOWN_GRADIENT_METHODS,
     CheckedCalibration,
     WindowCheck,
+    excitation_refusal,
     identify_checked,
     odom_orientation,
     orientation_at,
@@ -53,7 +56,9 @@ __all__ = [
     'WindowAssessment',
     'WindowSets',
     'assess_window',
+    'calibrate_assessed',
     'calibrate_bag',
+    'check_excitation',
     'read_window',
     'window_text',
 ]
@@ -475,3 +480,50 @@ def assess_window(
         symmetric=result.calibration.n_parameters == 27,
     )
     return WindowAssessment(assessment, np.asarray(earth, dtype=float), tuple(notes))
+
+
+def check_excitation(
+    result: BagCalibration, window: WindowAssessment, force: bool = False
+) -> BagCalibration:
+    """Refuse a calibration whose window's attitudes do not excite its parameters, or with
+    ``force`` keep it with the warning in its notes (and its file's).
+
+    Raises
+    ------
+    AssumptionError
+        The trim assessment predicts a compensated survey sigma above
+        :data:`~.window_check.MAX_PREDICTED_RATIO` noise floors, and not ``force``.
+    """
+    refusal = None
+    if window.assessment is not None:
+        refusal = excitation_refusal(window.assessment, result.window)
+    if refusal is None:
+        return result
+    if not force:
+        raise refusal
+    return result.with_note(f'WARNING (--force): {refusal}')
+
+
+def calibrate_assessed(
+    bag_path: str | os.PathLike[str],
+    geometry: TetraGeometry,
+    earth_field_enu: FloatArray | None = None,
+    *,
+    force: bool = False,
+    **options: Any,
+) -> tuple[BagCalibration, WindowAssessment]:
+    """The ``calibrate`` command's work before it writes: :func:`calibrate_bag` (``options``
+    are its keywords; ``force`` keeps a window that fails a check, with the warning), the trim
+    assessment of the sets used (:func:`assess_window`, ``earth_field_enu`` the params
+    file's) and :func:`check_excitation`.
+
+    Raises
+    ------
+    AssumptionError : the window breaks the fit's assumption or does not excite the
+        parameters (not ``force``)
+    BagError, IdentifiabilityError, InputError, CalibrationFileError : as
+        :func:`calibrate_bag`
+    """
+    result = calibrate_bag(bag_path, geometry, force=force, **options)
+    window = assess_window(result, bag_path, geometry, earth_field_enu)
+    return check_excitation(result, window, force), window

@@ -53,6 +53,7 @@ __all__ = [
     'RAW_TOPIC',
     'Compensation',
     'CompensationCounts',
+    'TensorStatistics',
     'check_outputs',
     'compensate_bag',
     'format_rows',
@@ -103,6 +104,40 @@ class CompensationCounts:
     clocks: tuple[ClockEstimate, ...] | None = None
     skipped_messages: int = 0
     skipped_summary: str = ''
+
+
+@dataclass
+class TensorStatistics:
+    """Running RMS over all nine components of the raw (eq. 7) and written tensors of
+    :func:`compensate_bag` (``batch``'s figures).
+
+    Attributes
+    ----------
+    n_sets : int
+        Sets added.
+    raw_square_sum, square_sum : float
+        Sums of the squared components, (T/m)^2, of the raw and of the written tensors.
+    """
+
+    n_sets: int = 0
+    raw_square_sum: float = 0.0
+    square_sum: float = 0.0
+
+    def add(self, raw: FloatArray, tensors: FloatArray) -> None:
+        """Add a chunk: raw and written tensors, each (n, 3, 3) T/m."""
+        self.n_sets += len(raw)
+        self.raw_square_sum += float(np.sum(np.square(raw)))
+        self.square_sum += float(np.sum(np.square(tensors)))
+
+    @property
+    def raw_rms(self) -> float:
+        """RMS of the raw tensor's components, T/m (NaN before any set)."""
+        return float(np.sqrt(self.raw_square_sum / (9 * self.n_sets))) if self.n_sets else np.nan
+
+    @property
+    def rms(self) -> float:
+        """RMS of the written tensor's components, T/m (NaN before any set)."""
+        return float(np.sqrt(self.square_sum / (9 * self.n_sets))) if self.n_sets else np.nan
 
 
 def format_rows(
@@ -234,6 +269,7 @@ def compensate_bag(
     *,
     sigma: SigmaModel | None = None,
     health: HealthRecorder | None = None,
+    statistics: TensorStatistics | None = None,
     csv: PathLike | None = None,
     out_bag: PathLike | None = None,
     out_storage: str | None = None,
@@ -257,6 +293,7 @@ def compensate_bag(
         columns (the output bag has no place for them).
     health : HealthRecorder, optional
         Fed every chunk of compensated sets (``compensate --report``).
+    statistics : TensorStatistics, optional; fed every chunk's raw and written tensors
     csv, out_bag : outputs (at least one), each written atomically
     out_storage : storage of ``out_bag`` (default: the input's)
     timebase : how the four streams become sets (default: resampled to sensor 1's stamps)
@@ -284,17 +321,16 @@ def compensate_bag(
         )
         sets = bag.iter_sets(timebase=timebase, progress=progress, fast=fast)
         for stamps, fields in sets:
-            keep, chunk_dropped = plausible_sets(fields)
-            if chunk_dropped.total:  # an implausible reading: drop the set, count it
-                dropped.add(chunk_dropped)
-                stamps, fields = stamps[keep], fields[keep]
-                if not len(stamps):
-                    continue
-            tensors = _tensors(fields, geometry, parameters)
+            stamps, fields = _drop_implausible(stamps, fields, dropped)
+            if not len(stamps):
+                continue
+            raw, tensors = _tensors(fields, geometry, parameters)
             sigmas = None if sigma is None or handle is None else sigma(fields[:, 0, :])
             _write(handle, writer, topic, stamps, tensors, sigmas)
             if health is not None:
                 health.add(stamps, fields, tensors, bag_start_ns=bag.reader.start_time)
+            if statistics is not None:
+                statistics.add(raw, tensors)
             first = int(stamps[0]) if n_sets == 0 else first
             last = int(stamps[-1])
             n_sets += len(stamps)
@@ -333,13 +369,25 @@ def _open_outputs(
     return handle, writer
 
 
+def _drop_implausible(
+    stamps: IntArray, fields: FloatArray, dropped: DroppedSets
+) -> tuple[IntArray, FloatArray]:
+    """The sets whose four readings are plausible; the others are counted into ``dropped``."""
+    keep, chunk_dropped = plausible_sets(fields)
+    if not chunk_dropped.total:
+        return stamps, fields
+    dropped.add(chunk_dropped)
+    return stamps[keep], fields[keep]
+
+
 def _tensors(
     fields: FloatArray, geometry: TetraGeometry, parameters: InterferenceParameters | None
-) -> FloatArray:
-    tensors = difference_tensor(fields, geometry)
-    if parameters is not None:
-        tensors = compensate(tensors, fields[:, 0, :], parameters, geometry)
-    return tensors
+) -> tuple[FloatArray, FloatArray]:
+    """The raw tensor (eq. 7) and the one written: compensated (eq. 19), or the raw one."""
+    raw = difference_tensor(fields, geometry)
+    if parameters is None:
+        return raw, raw
+    return raw, compensate(raw, fields[:, 0, :], parameters, geometry)
 
 
 def _write(

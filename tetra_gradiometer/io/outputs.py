@@ -18,6 +18,9 @@ Every file or folder a command writes goes through :func:`atomic_output`:
   again and moves it into place with one ``os.replace``. A folder that replaces a previous
   output is first moved aside into that temporary folder, then deleted. On any error (or a
   kill) the target is as it was; a killed run may leave a ``.NAME.*.partial`` folder.
+* **Folders filled over time** (``batch``'s output folder): :func:`output_folder` refuses
+  what :func:`check_output` refuses, continues a previous output of its kind (never replaces
+  it) and marks a new one at once; each entry inside is its own atomic output.
 """
 
 from __future__ import annotations
@@ -36,6 +39,9 @@ from ..errors import OutputError
 
 __all__ = [
     'BAG',
+    'BATCH',
+    'BATCH_BAG',
+    'BATCH_SUMMARY',
     'CALIBRATION',
     'CSV',
     'DEMO',
@@ -49,6 +55,7 @@ __all__ = [
     'atomic_output',
     'atomic_write_text',
     'check_output',
+    'output_folder',
 ]
 
 #: Name of the marker file inside every folder this package writes (JSON: kind, command).
@@ -116,6 +123,15 @@ HEALTH_REPORT = OutputKind('health report folder', folder=True)
 CALIBRATION_REPORT = OutputKind('calibration report folder', folder=True)
 PAPER = OutputKind('paper reproduction folder', folder=True)
 DEMO = OutputKind('demo folder', folder=True)
+#: ``batch --out``: the fleet's folder (``summary.csv`` and one :data:`BATCH_BAG` per bag).
+BATCH = OutputKind('batch folder', folder=True)
+#: ``batch``: one bag's outputs (calibration, CSV, report, ``row.json``), written as a whole.
+BATCH_BAG = OutputKind('batch bag folder', folder=True)
+BATCH_SUMMARY = OutputKind('batch summary CSV', recognize=_starts_with(b'bag,status,reason,'))
+
+
+def _marker_text(kind: OutputKind, command: str) -> str:
+    return json.dumps({'kind': kind.name, 'command': command}) + '\n'
 
 
 def _marker_kind(folder: Path) -> str | None:
@@ -224,9 +240,7 @@ def atomic_output(
         if kind.folder:
             if not tmp.is_dir():
                 raise OutputError(f'{path}: nothing was written')
-            (tmp / MARKER).write_text(
-                json.dumps({'kind': kind.name, 'command': command}) + '\n', encoding='utf-8'
-            )
+            (tmp / MARKER).write_text(_marker_text(kind, command), encoding='utf-8')
         _fsync_tree(tmp)
         check_output(path, kind, force=force, inputs=inputs)  # it may have appeared meanwhile
         _move_into_place(tmp, path, work)
@@ -236,6 +250,32 @@ def atomic_output(
         ) from error
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def output_folder(
+    path: str | os.PathLike,
+    kind: OutputKind,
+    *,
+    inputs: Iterable[str | os.PathLike] = (),
+    command: str = '',
+) -> Path:
+    """The folder ``path`` of ``kind``, to be filled over time: created (with its marker)
+    when absent or empty, continued when it is a previous output of ``kind``.
+
+    Entries are written into it one by one, each through :func:`atomic_output`; the folder
+    itself is never replaced. Refused (:class:`OutputError`, nothing touched) as by
+    :func:`check_output`: an input, inside a rosbag2 folder, or anything else already there.
+    """
+    path = check_output(path, kind, force=True, inputs=inputs)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if _marker_kind(path) != kind.name:
+            tmp = path / f'{MARKER}.partial'
+            tmp.write_text(_marker_text(kind, command), encoding='utf-8')
+            os.replace(tmp, path / MARKER)
+    except OSError as error:
+        raise OutputError(f'cannot write {path}: {error.strerror or error}') from error
+    return path
 
 
 def atomic_write_text(

@@ -11,7 +11,14 @@ __all__ = ['MIN_TOTAL', 'progress_bar']
 MIN_TOTAL = 50_000
 
 
-def progress_bar(total: int, enabled: bool | None, description: str, unit: str = 'msg') -> Any:
+def progress_bar(
+    total: int,
+    enabled: bool | None,
+    description: str,
+    unit: str = 'msg',
+    *,
+    min_total: int = MIN_TOTAL,
+) -> Any:
     """A tqdm bar of ``total`` items on stderr.
 
     Parameters
@@ -20,11 +27,13 @@ def progress_bar(total: int, enabled: bool | None, description: str, unit: str =
         Number of items the bar counts to.
     enabled : bool or None
         True or False to force the bar on or off; None shows it only when stderr is a
-        terminal. Either way, no bar is drawn below :data:`MIN_TOTAL` items.
+        terminal. Either way, no bar is drawn below ``min_total`` items.
     description : str
         Text shown before the bar.
     unit : str, optional
         Name of one item.
+    min_total : int, optional
+        Fewest items worth a bar (default :data:`MIN_TOTAL`; ``batch``: 1, one bag is long).
     """
     from tqdm import tqdm
 
@@ -33,7 +42,7 @@ def progress_bar(total: int, enabled: bool | None, description: str, unit: str =
         total=total,
         desc=description,
         unit=unit,
-        disable=not show or total < MIN_TOTAL,
+        disable=not show or total < min_total,
         mininterval=0.5,
         file=sys.stderr,
     )
