@@ -203,7 +203,8 @@ def simulate(
     frames : one frame per sample: the four magnetometers (T), the true gradient (T/m)
         and odometry, paced by sample time
     info : ``samples``, ``segments`` (segment kinds), ``sample_rate_hz``, ``dipoles``,
-        ``sensor_noise_t`` (the scenario's per-axis noise, T)
+        ``sensor_noise_t`` (the scenario's per-axis noise, T), ``sensor_positions`` (the
+        scenario's array, flat (12,), m)
     """
     from ..core import simulate as simulate_mission
     from .scenario import load_scenario_or_default
@@ -221,6 +222,7 @@ def simulate(
         'sample_rate_hz': scenario.sample_rate_hz,
         'dipoles': len(scenario.dipoles),
         'sensor_noise_t': float(scenario.noise_t),
+        'sensor_positions': scenario.geometry.to_flat(),
     }
     covariance = cv.noise_covariance(scenario.noise_t)
     frames = _mission_frames(mission, n, types, start_ns, covariance, frame_ids or FrameIds())

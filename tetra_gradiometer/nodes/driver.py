@@ -32,6 +32,7 @@ from collections import deque
 from collections.abc import Generator
 from typing import Any
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
@@ -46,6 +47,7 @@ from ..io.replay import MAG, ODOM, TRUTH, Frame
 from .common import (
     NAMESPACE,
     OK,
+    POSITIONS_SPEC,
     WARN,
     ParamSpec,
     declare_parameters,
@@ -134,6 +136,7 @@ PARAMETERS = [
         non_negative,
         float_range=(0.0, 1e-6),
     ),
+    POSITIONS_SPEC,
     ParamSpec('odom_frame_id', cv.ODOM_FRAME, 'sim: /odom header frame (REP 105).', frame_ids),
     ParamSpec('base_frame_id', cv.BASE_FRAME, 'sim: /odom child frame, the body.', frame_ids),
     ParamSpec(
@@ -209,6 +212,7 @@ class DriverNode(Node):
                     p['odom_frame_id'], p['base_frame_id'], tuple(p['sensor_frame_ids'])
                 ),
             )
+            _same_geometry(info['sensor_positions'], p['sensor_positions'], p['scenario'])
             self.get_logger().info(
                 f'sim: {info["samples"]} samples at {info["sample_rate_hz"]:g} Hz, segments '
                 f'[{info["segments"]}], {info["dipoles"]} dipole(s)'
@@ -342,6 +346,18 @@ class DriverNode(Node):
             )
         )
         self._diag_pub.publish(array)
+
+
+def _same_geometry(simulated: Any, declared: Any, scenario: str) -> None:
+    """One source of the array geometry: the simulated array must be the ``sensor_positions``
+    the tensor node differences with (the same params file feeds both)."""
+    if not np.allclose(np.asarray(simulated), np.asarray(declared), rtol=0.0, atol=1e-9):
+        raise InputError(
+            f'the scenario {scenario or "(built-in default)"} simulates the array '
+            f'{np.round(simulated, 6).tolist()} m but sensor_positions is '
+            f'{np.round(declared, 6).tolist()} m: the tensor node would difference with the '
+            'wrong positions; make them agree'
+        )
 
 
 def main(args: list[str] | None = None) -> int:
