@@ -64,3 +64,8 @@ def test_a_frame_id_with_a_leading_slash_is_refused_at_start():
     assert code == 1 and 'Traceback' not in output, output
     line = [line for line in output.splitlines() if 'cannot start:' in line]
     assert len(line) == 1 and "'array_frame_id'" in line[0] and 'leading "/"' in line[0], output
+
+
+def test_sensor_frame_ids_must_name_four_frames():
+    code, output = NodeProcess('driver', unique_domain(), {'sensor_frame_ids': ['a', 'b', 'c']}).refusal()
+    assert code == 1 and "'sensor_frame_ids'" in output and 'must name 4 frames' in output, output

@@ -143,7 +143,7 @@ PARAMETERS = [
         'sensor_frame_ids',
         cv.MAG_FRAMES,
         'sim: frames of mag1..4 (children of base_frame_id). Replay keeps the recorded ids.',
-        frame_ids,
+        lambda ids: f'must name 4 frames, got {list(ids)!r}' if len(ids) != 4 else frame_ids(ids),
     ),
     diagnostics_period_spec(),
 ]
