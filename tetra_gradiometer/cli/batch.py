@@ -25,6 +25,7 @@ from typing import Any
 
 from ..errors import InputError
 from ..io.fleet import (
+    STATUSES,
     SUMMARY_FILE,
     BagJob,
     done_row,
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         with _client(args.scheduler, args.workers, len(todo)) as (client, where):
             print(f'running on {where}')
             _run_jobs(client, todo, rows, out, args.progress)
-    counts = {s: sum(r['status'] == s for r in rows.values()) for s in ('ok', 'refused', 'failed')}
+    counts = {s: sum(r['status'] == s for r in rows.values()) for s in STATUSES}
     print(
         f'batch: {len(rows)} bags: {counts["ok"]} ok, {counts["refused"]} refused, '
         f'{counts["failed"]} failed ({len(todo)} run on {where}, {len(jobs) - len(todo)} '

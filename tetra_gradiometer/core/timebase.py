@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -225,6 +226,15 @@ def clocks_text(clocks: tuple[ClockEstimate, ...]) -> str:
     return 'sensor clocks vs reference: ' + ', '.join(parts)
 
 
+def _lagrange_weights(x: Any, xa: Any, x1: Any) -> tuple[Any, Any, Any]:
+    """Quadratic Lagrange weights on the nodes ``(x1, 0, xa)`` at ``x`` (floats or arrays,
+    ns relative to the sample before): those of the samples before-before, before, after."""
+    w1 = x * (x - xa) / (x1 * (x1 - xa))
+    w0 = (x - x1) * (x - xa) / (x1 * xa)
+    wa = (x - x1) * x / ((xa - x1) * xa)
+    return w1, w0, wa
+
+
 class Resampler:
     """Streaming resampler of four sensors onto common reference instants.
 
@@ -383,11 +393,8 @@ class Resampler:
         out[exact] = v[after[exact]]
         q = valid & ~exact
         if np.any(q):
-            x, xa, x1 = (instants[q] - t[b0[q]]).astype(float), x_after[q], x_b1[q]
-            # Lagrange weights on the nodes (x1, 0, xa) at x.
-            w1 = x * (x - xa) / (x1 * (x1 - xa))
-            w0 = (x - x1) * (x - xa) / (x1 * xa)
-            wa = (x - x1) * x / ((xa - x1) * xa)
+            x = (instants[q] - t[b0[q]]).astype(float)
+            w1, w0, wa = _lagrange_weights(x, x_after[q], x_b1[q])
             out[q] = w1[:, None] * v[b1[q]] + w0[:, None] * v[b0[q]] + wa[:, None] * v[after[q]]
         nearest = np.where(exact | (instants - t[b0] > t[after] - instants), after, b0)
         delta = (t[nearest] - instants).astype(float)
@@ -415,10 +422,7 @@ class Resampler:
         if exact:
             out[0] = v[after]
         elif valid:
-            x, xa, x1 = float(instant - t0), x_after, x_b1
-            w1 = x * (x - xa) / (x1 * (x1 - xa))
-            w0 = (x - x1) * (x - xa) / (x1 * xa)
-            wa = (x - x1) * x / ((xa - x1) * xa)
+            w1, w0, wa = _lagrange_weights(float(instant - t0), x_after, x_b1)
             out[0] = w1 * v[b1] + w0 * v[b0] + wa * v[after]
         nearest = after if exact or instant - t0 > t_after - instant else b0
         delta = float(int(t[nearest]) - instant)

@@ -163,7 +163,6 @@ class _BatchMatcher:
             self.pending = [(p[0][:0], p[1][:0]) for p in self.pending]
         return _join(out_stamps, out_fields)
 
-
     def clocks(self) -> None:
         return None
 

@@ -44,6 +44,7 @@ from .window_check import (
     CheckedCalibration,
     WindowCheck,
     excitation_refusal,
+    forced,
     identify_checked,
     odom_orientation,
     orientation_at,
@@ -289,15 +290,16 @@ def calibrate_bag(
     )
     n_window = len(sets.stamps_ns)
     thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
-    text, fields = window_text(window), sets.fields[::thinned]
+    text = window_text(window)
+    stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
     options = Options(
         rng=np.random.default_rng(seed),
         generations=generations or GENERATIONS,
         wide_bounds=wide_bounds,
         max_coverage_condition=max_coverage_condition,
     )
-    options, note = _with_attitude(options, method, bag_path, sets.stamps_ns[::thinned])
-    checked = _solve(method, sets, thinned, geometry, options, text, force, note)
+    options, note = _with_attitude(options, method, bag_path, stamps)
+    checked = _solve(method, stamps, fields, geometry, options, text, sets.first_ns, force, note)
     result = BagCalibration(
         calibration=checked.calibration,
         record=CalibrationFile.from_calibration(checked.calibration, geometry),
@@ -312,7 +314,7 @@ def calibrate_bag(
         notes=checked.notes,
         skipped_messages=sets.skipped_messages,
         skipped_summary=sets.skipped_summary,
-        stamps_ns=sets.stamps_ns[::thinned],
+        stamps_ns=stamps,
         fields=fields,
         orientation_xyzw=options.orientation_xyzw,
     )
@@ -323,28 +325,20 @@ def calibrate_bag(
 
 def _solve(
     method: str,
-    sets: WindowSets,
-    thinned: int,
+    stamps: IntArray,
+    fields: FloatArray,
     geometry: TetraGeometry,
     options: Options,
     window: str,
+    first_ns: int,
     force: bool,
     notes: tuple[str, ...],
 ) -> CheckedCalibration:
-    """The checked solve (:func:`~.window_check.identify_checked`) on every ``thinned``-th
-    set of the window."""
-    fields = sets.fields[::thinned]
+    """The checked solve (:func:`~.window_check.identify_checked`) on the sets used."""
+    g_measured = difference_tensor(fields, geometry)
     return identify_checked(
-        method,
-        sets.stamps_ns[::thinned],
-        difference_tensor(fields, geometry),
-        fields[:, 0],
-        geometry,
-        options,
-        window=window,
-        first_ns=sets.first_ns,
-        force=force,
-        notes=notes,
+        method, stamps, g_measured, fields[:, 0], geometry, options,
+        window=window, first_ns=first_ns, force=force, notes=notes,
     )
 
 
@@ -440,11 +434,12 @@ def assess_window(
     """
     stamps, fields = result.stamps_ns, result.fields
     notes: list[str] = []
-    with MagneticBag(bag_path) as bag:
-        series = bag.read_series(cv.ODOM_TOPIC)
-    orientation = (
-        None if series is None else orientation_at(series.stamps_ns, series.values, stamps)
-    )
+    orientation = result.orientation_xyzw  # read for the joint fit: every set has one
+    if orientation is None:  # not read, or some sets lack one: the coverage takes the rest
+        with MagneticBag(bag_path) as bag:
+            series = bag.read_series(cv.ODOM_TOPIC)
+        if series is not None:
+            orientation = orientation_at(series.stamps_ns, series.values, stamps)
     if orientation is None:
         notes.append(
             f'no {cv.ODOM_TOPIC} in the bag: coverage is of the body-frame field direction'
@@ -497,11 +492,9 @@ def check_excitation(
     refusal = None
     if window.assessment is not None:
         refusal = excitation_refusal(window.assessment, result.window)
-    if refusal is None:
-        return result
-    if not force:
-        raise refusal
-    return result.with_note(f'WARNING (--force): {refusal}')
+    for warning in forced([refusal], force):
+        result = result.with_note(warning)
+    return result
 
 
 def calibrate_assessed(

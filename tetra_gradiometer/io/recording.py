@@ -28,7 +28,15 @@ from .progress import progress_bar
 
 def mission_stamps_ns(mission: MissionData, start_ns: int) -> np.ndarray:
     """Header stamps (N,) int64 ns of a mission starting at ``start_ns``."""
-    return start_ns + np.round(mission.t * NS_PER_S).astype(np.int64)
+    return _stamps_ns(mission.t, start_ns, 'mission stamps')
+
+
+def _stamps_ns(t_s: np.ndarray, start_ns: int, what: str) -> np.ndarray:
+    """``start_ns + round(t_s 1e9)``, int64 ns; InputError if they do not increase."""
+    stamps = start_ns + np.round(t_s * NS_PER_S).astype(np.int64)
+    if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+        raise InputError(f'{what} must increase (sample period below 1 ns?)')
+    return stamps
 
 
 def write_mission_bag(
@@ -69,8 +77,6 @@ def write_mission_bag(
         If the stamps of ``t`` or of a stream do not increase once rounded to ns.
     """
     stamps = mission_stamps_ns(mission, start_ns)
-    if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
-        raise InputError('mission stamps must increase (sample period below 1 ns?)')
     extras = _Extras(mission, odom, temperature, battery)
     with BagWriter(path, storage=storage, force=force, inputs=inputs, command=command) as writer:
         if mission.streams is None:
@@ -135,9 +141,7 @@ def _write_streams(
     Returns the progress bar (still open)."""
     events: list[tuple[np.ndarray, int]] = []  # (stamps ns, source: sensor index or 4)
     for sensor, stream in enumerate(streams):
-        stream_stamps = start_ns + np.round(stream.t * NS_PER_S).astype(np.int64)
-        if len(stream_stamps) > 1 and np.any(np.diff(stream_stamps) <= 0):
-            raise InputError(f'the stamps of sensor {sensor + 1} must increase')
+        stream_stamps = _stamps_ns(stream.t, start_ns, f'the stamps of sensor {sensor + 1}')
         events.append((stream_stamps, sensor))
     if extras:
         events.append((stamps, len(streams)))

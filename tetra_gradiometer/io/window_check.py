@@ -364,8 +364,15 @@ def identify_checked(
         )
         hint = f'{force_name} writes it anyway, with this warning in the file'
         refusals.append(None if check.passed else _refusal(check, window, hint, sub_window))
-    for refusal in refusals:
-        if refusal is not None and not force:
-            raise refusal
-    warnings = tuple(f'WARNING ({force_name}): {r}' for r in refusals if r is not None)
-    return CheckedCalibration(calibration, check, (*notes, *warnings))
+    return CheckedCalibration(calibration, check, (*notes, *forced(refusals, force, force_name)))
+
+
+def forced(
+    refusals: list[AssumptionError | None], force: bool, force_name: str = '--force'
+) -> tuple[str, ...]:
+    """The rule of every refusal of a calibration: raise the first unless ``force``; with it,
+    the warnings to keep in the file's notes (``WARNING (--force): ...``)."""
+    errors = [refusal for refusal in refusals if refusal is not None]
+    if errors and not force:
+        raise errors[0]
+    return tuple(f'WARNING ({force_name}): {error}' for error in errors)

@@ -299,7 +299,11 @@ def regional_body_tensor(orientation_xyzw: ArrayLike, g_world: ArrayLike) -> Flo
     quaternions = np.asarray(orientation_xyzw, dtype=float)
     n = quaternions.shape[0] if quaternions.ndim else 0
     quaternions = _orientations(quaternions, n, 'regional_body_tensor')
-    g_world = as_array(g_world, 'g_world', (3, 3))
+    return _body_tensor(quaternions, as_array(g_world, 'g_world', (3, 3)))
+
+
+def _body_tensor(quaternions: FloatArray, g_world: FloatArray) -> FloatArray:
+    """:func:`regional_body_tensor` of validated (N, 4) quaternions and (3, 3) ``G_w``."""
     rotation = Rotation.from_quat(quaternions).as_matrix().reshape(-1, 3, 3)
     return np.swapaxes(rotation, 1, 2) @ g_world @ rotation
 
@@ -404,7 +408,7 @@ def _regional_calibration(
     residual = (
         target
         - interference_tensor(b_reference, parameters, geometry)
-        - regional_body_tensor(quaternions, g_world)
+        - _body_tensor(quaternions, g_world)
     )
     sigma2 = _sigma2(residual @ whitener, solution.rank)
     cov_c = sigma2 * solution.covariance_unit[n_par:, n_par:]
@@ -457,7 +461,7 @@ def calibration_residual(
     residual = g_measured - interference_tensor(b_reference, calibration.parameters, geometry)
     if calibration.regional_gradient_enu is not None and orientation_xyzw is not None:
         quaternions = _orientations(orientation_xyzw, n, 'calibration_residual')
-        residual -= regional_body_tensor(quaternions, calibration.regional_gradient_enu)
+        residual -= _body_tensor(quaternions, calibration.regional_gradient_enu)
     return residual
 
 
