@@ -111,7 +111,8 @@ def launch_setup(context, *args, **kwargs):
     values = context.launch_configurations
     names = selected_nodes(values['nodes'])
     autostart = as_bool('autostart', values['autostart'])
-    common = {'use_sim_time': as_bool('use_sim_time', values['use_sim_time'])}
+    # The nodes never configure themselves here: the sequence below (or a manager) does.
+    common = {'use_sim_time': as_bool('use_sim_time', values['use_sim_time']), 'autostart': False}
     params_file = values['params_file']
     if params_file and not os.path.isfile(params_file):
         raise ValueError(f'params_file {params_file!r}: no such file')

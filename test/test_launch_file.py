@@ -162,7 +162,7 @@ def test_default_starts_the_four_nodes_and_activates_them_one_after_the_other(la
         assert isinstance(node.on_exit, standins.Shutdown)
         params_file, overrides = node.parameters
         assert params_file == str(share / 'config' / 'tetra_gradiometer.yaml')
-        expected = {'use_sim_time': False}
+        expected = {'use_sim_time': False, 'autostart': False}  # the sequence configures them
         if node.name == 'driver':  # bringup: wait for the tensor node's subscriptions
             expected['min_subscribers'] = 1
         assert overrides == expected
@@ -240,13 +240,14 @@ def test_driver_arguments_become_its_parameters_as_bringup_passes_them(launch, a
     run = launch(**arguments)
     assert run.node('driver').parameters[-1] == {
         'use_sim_time': False,
+        'autostart': False,
         'min_subscribers': 1,
         **driver,
     }
     rate = run.node('driver').parameters[-1].get('rate')
     assert rate is None or type(rate) is float  # the node refuses an integer for a double
     for name in ('tensor', 'calibrator', 'compensator'):
-        assert run.node(name).parameters[-1] == {'use_sim_time': False}
+        assert run.node(name).parameters[-1] == {'use_sim_time': False, 'autostart': False}
 
 
 def test_calibration_file_goes_to_calibrator_and_compensator_only(launch):

@@ -1,5 +1,6 @@
-"""nodes/compensator.py as a process over real DDS: uncompensated pass-through on a corrupt
-file, then the exact parameters from the latched topic give the true (zero) tensor."""
+"""nodes/compensator.py as a process over real DDS: uncompensated pass-through without a
+calibration file, then the exact parameters from the latched topic give the true (zero)
+tensor; a corrupt file refuses the start (the lifecycle refusal: test_lifecycle.py)."""
 from __future__ import annotations
 
 import time
@@ -19,9 +20,18 @@ def _diag(probe, name: str) -> dict:
     return probe.status(name)
 
 
-def test_corrupt_calibration_file_runs_uncompensated_then_follows_the_latched_topic(tmp_path):
+def test_corrupt_calibration_file_refuses_the_start_with_the_reason(tmp_path):
     calibration_file = tmp_path / 'calibration.yaml'
     calibration_file.write_text('tetra_gradiometer_calibration: 1\nmethod: known_gradient_lstsq\nk_soft: [[[0.1, ')
+    with ros_graph() as (graph, _, _):
+        code, log = graph.start('compensator', calibration_file=str(calibration_file)).refusal()
+    assert code == 1
+    assert 'cannot start' in log and str(calibration_file) in log and 'not valid YAML' in log
+    assert 'Traceback' not in log
+
+
+def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_topic(tmp_path):
+    calibration_file = tmp_path / 'calibration.yaml'  # not written yet
     rng = np.random.default_rng(5)
     g, b, exact = interference_set(20, rng, 'rich')
     with ros_graph() as (graph, probe, feeder):
@@ -29,7 +39,7 @@ def test_corrupt_calibration_file_runs_uncompensated_then_follows_the_latched_to
         wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'False',
                  30, 'compensator diagnostics', graph)
         status = _diag(probe, 'tetra/compensator: compensation')
-        assert status['level'] == 1 and 'UNCOMPENSATED' in status['message'] and 'not valid YAML' in status['message']
+        assert status['level'] == 1 and 'UNCOMPENSATED' in status['message'] and 'no calibration file' in status['message']
         from std_msgs.msg import Float64, String
         norms: list[float] = []
         probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)

@@ -1,5 +1,11 @@
-"""``python -m tetra_gradiometer bringup [--params FILE] [--mode sim|replay] [--bag PATH]``:
-the four nodes in one process on a MultiThreadedExecutor until Ctrl-C."""
+"""``python -m tetra_gradiometer bringup [--params FILE] [--mode sim|replay] [--bag PATH]
+[--unconfigured]``: the four nodes in one process on a MultiThreadedExecutor until Ctrl-C.
+
+The nodes are lifecycle nodes (nodes/managed.py): bringup creates them unconfigured and
+then configures and activates each in the order tensor, calibrator, compensator, driver (the
+consumers first, so no set is published to nobody), as the launch file does; a refused
+configuration ends bringup with its ``error:`` line. ``--unconfigured`` leaves them
+unconfigured for an external lifecycle manager (``lifecycle_msgs`` services)."""
 
 from __future__ import annotations
 
@@ -26,6 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--scenario', help='sim: scenario YAML (default: built-in)')
     parser.add_argument(
         '--calibration-file', help='calibration file of calibrator and compensator'
+    )
+    parser.add_argument(
+        '--unconfigured',
+        action='store_true',
+        help='leave the nodes unconfigured for an external lifecycle manager',
     )
     parser.add_argument(
         '--ros-args',
@@ -57,7 +68,8 @@ def driver_overrides(args: argparse.Namespace) -> list[Any]:
 
 
 def create_nodes(args: argparse.Namespace, driver_extra: Sequence[Any] = ()) -> list[Any]:
-    """The four nodes (rclpy must be initialised), command-line overrides applied."""
+    """The four nodes (rclpy must be initialised), command-line overrides applied, in start
+    order and unconfigured."""
     from rclpy.parameter import Parameter
 
     from ..nodes.calibrator import CalibratorNode
@@ -65,17 +77,19 @@ def create_nodes(args: argparse.Namespace, driver_extra: Sequence[Any] = ()) -> 
     from ..nodes.driver import DriverNode
     from ..nodes.tensor import TensorNode
 
-    calibration = (
+    managed = [Parameter('autostart', value=False)]
+    calibration = managed + (
         [Parameter('calibration_file', value=os.path.abspath(args.calibration_file))]
         if args.calibration_file
         else []
     )
     nodes: list[Any] = []
     try:
-        nodes.append(TensorNode())
+        nodes.append(TensorNode(parameter_overrides=list(managed)))
         nodes.append(CalibratorNode(parameter_overrides=list(calibration)))
         nodes.append(CompensatorNode(parameter_overrides=list(calibration)))
-        nodes.append(DriverNode(parameter_overrides=driver_overrides(args) + list(driver_extra)))
+        driver = managed + driver_overrides(args) + list(driver_extra)
+        nodes.append(DriverNode(parameter_overrides=driver))
     except BaseException:
         for node in nodes:
             node.destroy_node()
@@ -102,6 +116,9 @@ def run(args: argparse.Namespace) -> int:
         nodes = create_nodes(args)
         for node in nodes:
             executor.add_node(node)
+        if not args.unconfigured:
+            for node in nodes:
+                node.bring_up()
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

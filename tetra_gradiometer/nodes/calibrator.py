@@ -70,7 +70,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -99,12 +98,10 @@ from ..io.window_check import (
     joint_attitude,
 )
 from .common import (
-    NAMESPACE,
     OK,
     POSITIONS_SPEC,
     WARN,
     ParamSpec,
-    declare_parameters,
     derived_qos,
     diagnostics_period_spec,
     latched_qos,
@@ -116,6 +113,7 @@ from .common import (
     status,
     tensor_or_nan,
 )
+from .managed import ManagedNode
 from .solve_worker import SolveWorker
 
 #: Bounds of ``max_samples`` and ``ga_generations`` (see their descriptions).
@@ -224,28 +222,20 @@ PARAMETERS = [
 ]
 
 
-class CalibratorNode(Node):
+class CalibratorNode(ManagedNode):
     """Collects ``(B_1', G_m)`` on demand and identifies the compensation parameters."""
 
-    def __init__(self, **kwargs) -> None:
-        kwargs.setdefault('namespace', NAMESPACE)
+    PARAMETERS = PARAMETERS
+    DYNAMIC = (
+        *('method', 'min_samples', 'max_samples', 'max_coverage_condition', 'force'),
+        *('ga_seed', 'ga_generations', 'max_solve_s', 'earth_field_enu', 'sensor_noise_t'),
+    )
+
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__('calibrator', **kwargs)
-        p = declare_parameters(
-            self,
-            PARAMETERS,
-            dynamic=(
-                'method',
-                'min_samples',
-                'max_samples',
-                'max_coverage_condition',
-                'force',
-                'ga_seed',
-                'ga_generations',
-                'max_solve_s',
-                'earth_field_enu',
-                'sensor_noise_t',
-            ),
-        )
+
+    def configure(self, p: dict[str, Any]) -> None:
+        """Buffers, the solve worker, publishers, subscriptions and services."""
         if p['min_samples'] > p['max_samples']:
             raise ParamsError(
                 f"parameter 'min_samples' = {p['min_samples']} refused: must be at most "
@@ -281,22 +271,26 @@ class CalibratorNode(Node):
 
         self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
+        gated = self.when_active
+        self.create_subscription(JointState, 'gradient/raw', gated(self._on_raw), derived_qos())
         self.create_subscription(
-            MagneticField, 'reference_field', self._on_reference, derived_qos()
+            MagneticField, 'reference_field', gated(self._on_reference), derived_qos()
         )
-        self.create_service(Trigger, '~/start', self._on_start)
-        self.create_service(Trigger, '~/stop', self._on_stop)
+        self.create_service(Trigger, '~/start', gated(self._on_start))
+        self.create_service(Trigger, '~/stop', gated(self._on_stop))
         control = ReentrantCallbackGroup()  # served while a ~/calibrate waits for its solve
-        self.create_service(Trigger, '~/calibrate', self._on_calibrate, callback_group=control)
-        self.create_service(Trigger, '~/cancel', self._on_cancel, callback_group=control)
+        self.create_service(
+            Trigger, '~/calibrate', gated(self._on_calibrate), callback_group=control
+        )
+        self.create_service(Trigger, '~/cancel', gated(self._on_cancel), callback_group=control)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self._guidance_pub = self.create_publisher(String, '~/guidance', latched_qos())
         # Each beside the samples: the guidance's work, and /odom never behind a burst.
         guidance, odom = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         self.create_timer(GUIDANCE_PERIOD_S, self._publish_guidance, callback_group=guidance)
-        odom_topic = (Odometry, cv.ODOM_TOPIC, self._on_odom, derived_qos())
-        self.create_subscription(*odom_topic, callback_group=odom)
+        self.create_subscription(
+            Odometry, cv.ODOM_TOPIC, gated(self._on_odom), derived_qos(), callback_group=odom
+        )
 
     # ----------------------------------------------------------------- samples
 
@@ -449,15 +443,15 @@ class CalibratorNode(Node):
         self.get_logger().info(response.message)
         return response
 
-    def stop_work(self) -> None:
-        """Cancel a running solve and wait for its worker (at most one GA generation, or the
-        rest of a closed-form solve); ``spin_node`` calls it before stopping the executor."""
-        self._worker.shutdown()
+    def deactivated(self) -> None:
+        """A running solve is cancelled (its ``~/calibrate`` answers "cancelled"); the
+        samples and the calibration file stay."""
+        self._worker.cancel()
 
-    def destroy_node(self) -> None:
-        """Stop the solve first, so no worker outlives the node."""
-        self.stop_work()
-        super().destroy_node()
+    def released(self) -> None:
+        """Cancel a running solve and wait for its worker (at most one GA generation, or the
+        rest of a closed-form solve), so no worker outlives the configuration."""
+        self._worker.shutdown()
 
     def _snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The samples in stamp order, one per stamp: stamps (n,) ns, ``G_m`` (n, 3, 3) T/m,

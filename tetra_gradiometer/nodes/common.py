@@ -506,8 +506,8 @@ def spin_node(
     factory: Callable[[], Any], name: str, args: list[str] | None, threads: int = 1
 ) -> int:
     """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
-    Ctrl-C or an external shutdown, then stop its long work (``stop_work()``, when it has
-    one), the executor, the node and ``rclpy.try_shutdown()``.
+    Ctrl-C or an external shutdown, then stop its long work (``stop_work()``:
+    nodes/managed.py), the executor, the node and ``rclpy.try_shutdown()``.
 
     ``threads`` > 1 spins a MultiThreadedExecutor of that many threads (the calibrator: its
     callback groups let diagnostics and ``~/cancel`` run while a solve runs); else the
@@ -554,9 +554,7 @@ def spin_node(
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        stop_work = getattr(node, 'stop_work', None)
-        if callable(stop_work):
-            stop_work()
+        node.stop_work()
         executor.shutdown(timeout_sec=5)
         node.destroy_node()
         rclpy.try_shutdown()

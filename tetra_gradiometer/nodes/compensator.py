@@ -1,9 +1,11 @@
 """``compensator`` node: ``G = G_m - D`` (eq. 19) on every measured tensor.
 
-Loads ``calibration_file`` at start and follows the latched ``calibration`` topic
-(std_msgs/String holding a calibration file's YAML text). A missing, corrupt or
-mismatched calibration (other ``sensor_positions``) leaves it running uncompensated
-(``gradient/compensated`` = ``gradient/raw``), said so on ``/diagnostics`` (WARN).
+Loads ``calibration_file`` on configure (a corrupt file, or one of another array, refuses
+the configuration: nodes/managed.py) and follows the latched ``calibration`` topic
+(std_msgs/String holding a calibration file's YAML text). A missing file, or a corrupt or
+mismatched calibration on the topic (other ``sensor_positions``), leaves it running
+uncompensated (``gradient/compensated`` = ``gradient/raw``) or on the calibration it has,
+said so on ``/diagnostics`` (WARN).
 
 Pairs ``gradient/raw`` (T/m) with ``reference_field`` (``B_1'``, T) by identical stamp and
 publishes ``gradient/compensated`` (JointState, T/m) and ``gradient/norm`` (Float64,
@@ -24,11 +26,11 @@ with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
@@ -51,14 +53,12 @@ from ..io.matching import StampPairer
 from .common import (
     ARRAY_FRAME_SPEC,
     ERROR,
-    NAMESPACE,
     OK,
     POSITIONS_SPEC,
     WARN,
     WARN_THROTTLE_SPEC,
     ParamSpec,
     Throttle,
-    declare_parameters,
     derived_qos,
     diagnostics_period_spec,
     latched_qos,
@@ -68,15 +68,16 @@ from .common import (
     status,
     tensor_or_nan,
 )
+from .managed import ManagedNode
 
 PARAMETERS = [
     POSITIONS_SPEC,
     ParamSpec(
         'calibration_file',
         'calibration.yaml',
-        'Calibration loaded at start (YAML, as the calibrator writes it); "~" is expanded, '
-        'a relative path is under $ROS_HOME (default ~/.ros). Missing or corrupt: run '
-        'uncompensated.',
+        'Calibration loaded on configure (YAML, as the calibrator writes it); "~" is expanded, '
+        'a relative path is under $ROS_HOME (default ~/.ros). Missing: run uncompensated until '
+        'the calibration topic brings one; corrupt or of another array: configure refused.',
     ),
     ParamSpec(
         'max_pending',
@@ -114,13 +115,18 @@ PARAMETERS = [
 HEALTH_PERIOD_S = 0.1
 
 
-class CompensatorNode(Node):
+class CompensatorNode(ManagedNode):
     """Applies the current calibration to the measured tensor stream."""
 
-    def __init__(self, **kwargs) -> None:
-        kwargs.setdefault('namespace', NAMESPACE)
+    PARAMETERS = PARAMETERS
+
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__('compensator', **kwargs)
-        p = declare_parameters(self, PARAMETERS)
+
+    def configure(self, p: dict[str, Any]) -> None:
+        """Publishers, subscriptions and the calibration file (a corrupt one, or one of
+        another array, refuses the configuration; a missing one: uncompensated until the
+        ``calibration`` topic brings one)."""
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._types = cv.rclpy_types()
         self._array_frame = p['array_frame_id']
@@ -154,14 +160,19 @@ class CompensatorNode(Node):
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
-        self._load_file(str(resolve_node_path(p['calibration_file'])))
-        self.create_subscription(String, 'calibration', self._on_calibration, latched_qos())
-        self.create_subscription(JointState, 'gradient/raw', self._on_raw, derived_qos())
+        self._load_file(resolve_node_path(p['calibration_file']))
+        gated = self.when_active
         self.create_subscription(
-            MagneticField, 'reference_field', self._on_reference, derived_qos()
+            String, 'calibration', gated(self._on_calibration), latched_qos()
         )
-        self.create_subscription(JointState, 'gradient/truth', self._on_truth, derived_qos())
-        self.create_service(Trigger, '~/reset_metrics', self._on_reset)
+        self.create_subscription(JointState, 'gradient/raw', gated(self._on_raw), derived_qos())
+        self.create_subscription(
+            MagneticField, 'reference_field', gated(self._on_reference), derived_qos()
+        )
+        self.create_subscription(
+            JointState, 'gradient/truth', gated(self._on_truth), derived_qos()
+        )
+        self.create_service(Trigger, '~/reset_metrics', gated(self._on_reset))
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self.create_timer(HEALTH_PERIOD_S, self._feed_health)
 
@@ -171,11 +182,18 @@ class CompensatorNode(Node):
     def compensating(self) -> bool:
         return self._interference is not None
 
-    def _load_file(self, path: str) -> None:
-        try:
-            self._apply(load_calibration(path), f'file {path}')
-        except CalibrationFileError as error:
-            self._refuse(str(error))
+    def _load_file(self, path: Path) -> None:
+        """Apply the calibration file ``path``; a missing one is waited for on the topic.
+
+        Raises
+        ------
+        CalibrationFileError
+            The file exists but is unreadable, corrupt, implausible or of another array.
+        """
+        if not path.exists():
+            self._refuse(f'no calibration file {path} yet (waiting for the calibration topic)')
+            return
+        self._apply(load_calibration(path), f'file {path}')
 
     def _on_calibration(self, msg: String) -> None:
         try:

@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
@@ -45,12 +44,10 @@ from ..io import conversions as cv
 from ..io import replay
 from ..io.replay import MAG, ODOM, TRUTH, Frame
 from .common import (
-    NAMESPACE,
     OK,
     POSITIONS_SPEC,
     WARN,
     ParamSpec,
-    declare_parameters,
     derived_qos,
     diagnostics_period_spec,
     frame_ids,
@@ -60,6 +57,7 @@ from .common import (
     spin_node,
     status,
 )
+from .managed import ManagedNode
 
 PARAMETERS = [
     ParamSpec(
@@ -153,13 +151,17 @@ PARAMETERS = [
 MATCH_SETTLE_S = 0.5
 
 
-class DriverNode(Node):
+class DriverNode(ManagedNode):
     """Publishes the magnetometers (and truth, odometry) from the simulator or a bag."""
 
-    def __init__(self, **kwargs) -> None:
-        kwargs.setdefault('namespace', NAMESPACE)
+    PARAMETERS = PARAMETERS
+
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__('driver', **kwargs)
-        p = declare_parameters(self, PARAMETERS)
+
+    def configure(self, p: dict[str, Any]) -> None:
+        """Open the source (simulate the scenario, or open the bag) and create the
+        publishers, services and timers."""
         self._rate = float(p['rate'])
         self._hold = bool(p['hold_between_segments'])
         self._window = int(p['max_in_flight'])
@@ -188,10 +190,13 @@ class DriverNode(Node):
         self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
         self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_TOPIC, derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        gated = self.when_active
         if self._rate == 0:
-            self.create_subscription(JointState, 'gradient/raw', self._on_ack, derived_qos())
-        self.create_service(Trigger, '~/resume', self._on_resume)
-        self.create_service(Trigger, '~/pause', self._on_pause)
+            self.create_subscription(
+                JointState, 'gradient/raw', gated(self._on_ack), derived_qos()
+            )
+        self.create_service(Trigger, '~/resume', gated(self._on_resume))
+        self.create_service(Trigger, '~/pause', gated(self._on_pause))
         self.create_timer(min(max(period, 0.002), 0.05), self._tick)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
 
@@ -320,10 +325,14 @@ class DriverNode(Node):
         response.success, response.message = True, 'paused'
         return response
 
-    def destroy_node(self) -> None:
-        """Close the source (a replayed bag) with the node."""
+    def activated(self) -> None:
+        """Pacing restarts from the next frame: the time spent inactive is not caught up."""
+        self._origin = (time.monotonic(), self._next.pace_ns if self._next else 0)
+        self._last_progress = time.monotonic()
+
+    def released(self) -> None:
+        """Close the source (a replayed bag)."""
         self._frames.close()
-        super().destroy_node()
 
     def _publish_diagnostics(self) -> None:
         array = DiagnosticArray()

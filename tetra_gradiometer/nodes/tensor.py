@@ -27,10 +27,10 @@ import time
 from collections.abc import Iterable
 from dataclasses import asdict
 from functools import partial
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.node import Node
 from sensor_msgs.msg import JointState, MagneticField
 
 from ..core import TetraGeometry, difference_tensor
@@ -42,14 +42,12 @@ from ..io.matching import StampMatcher
 from .common import (
     ARRAY_FRAME_SPEC,
     ERROR,
-    NAMESPACE,
     OK,
     POSITIONS_SPEC,
     WARN,
     WARN_THROTTLE_SPEC,
     ParamSpec,
     Throttle,
-    declare_parameters,
     derived_qos,
     diagnostics_period_spec,
     one_of,
@@ -58,6 +56,7 @@ from .common import (
     spin_node,
     status,
 )
+from .managed import ManagedNode
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -152,13 +151,18 @@ MATCHER_KEYS = {
 }
 
 
-class TensorNode(Node):
+class TensorNode(ManagedNode):
     """Matches the four magnetometers by stamp and publishes ``G_m`` and ``B_1'``."""
 
-    def __init__(self, **kwargs) -> None:
-        kwargs.setdefault('namespace', NAMESPACE)
+    PARAMETERS = PARAMETERS
+    DYNAMIC = ('max_field_t', 'stale_timeout_s')
+
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__('tensor', **kwargs)
-        p = declare_parameters(self, PARAMETERS, dynamic=('max_field_t', 'stale_timeout_s'))
+        self.add_post_set_parameters_callback(self._on_parameters)
+
+    def configure(self, p: dict[str, Any]) -> None:
+        """The set former, publishers and subscriptions from the parameters ``p``."""
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._max_field = float(p['max_field_t'])
         self._array_frame = p['array_frame_id']
@@ -177,7 +181,6 @@ class TensorNode(Node):
         self._last_stamp: list[int | None] = [None] * 4
         self.resets = 0
         self._types = cv.rclpy_types()
-        self.add_post_set_parameters_callback(self._on_parameters)
         self._warn = Throttle(p['warn_throttle_s'])
         self._stale_warn = Throttle(p['warn_throttle_s'])
 
@@ -197,7 +200,9 @@ class TensorNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         qos = sensor_qos(p['sensor_queue_depth'])
         self._subs = [
-            self.create_subscription(MagneticField, topic, partial(self._on_mag, i), qos)
+            self.create_subscription(
+                MagneticField, topic, self.when_active(partial(self._on_mag, i)), qos
+            )
             for i, topic in enumerate(cv.MAG_TOPICS)
         ]
         self._diag_timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
@@ -206,10 +211,17 @@ class TensorNode(Node):
             f'array condition number {self._geometry.condition_number:.3g}'
         )
 
+    def activated(self) -> None:
+        """Staleness counts from the activation, not from the time spent inactive."""
+        self._last_arrival = [time.monotonic()] * 4
+
     # ----------------------------------------------------------------- callbacks
 
     def _on_parameters(self, parameters: list) -> None:
-        """Take validated run-time changes of ``max_field_t`` and ``stale_timeout_s``."""
+        """Take validated run-time changes of ``max_field_t`` and ``stale_timeout_s`` (an
+        unconfigured node reads them when it is configured)."""
+        if not self._configured:
+            return
         for parameter in parameters:
             if parameter.name == 'max_field_t':
                 self._max_field = float(parameter.value)
