@@ -76,11 +76,13 @@ def rclpy_types() -> MessageTypes:
         Vector3,
     )
     from nav_msgs.msg import Odometry
+    from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import BatteryState, JointState, MagneticField, Temperature
     from std_msgs.msg import Header
 
     classes = {
         'builtin_interfaces/msg/Time': Time,
+        'rosgraph_msgs/msg/Clock': Clock,
         'std_msgs/msg/Header': Header,
         'geometry_msgs/msg/Vector3': Vector3,
         'geometry_msgs/msg/Point': Point,
@@ -110,11 +112,20 @@ def stamp_to_ns(stamp: Any) -> int:
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
+def time_msg(types: MessageTypes, stamp_ns: int) -> Any:
+    """A ``builtin_interfaces/Time`` at ``stamp_ns`` (integer nanoseconds)."""
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
+
+
 def header(types: MessageTypes, stamp_ns: int, frame_id: str) -> Any:
     """A ``std_msgs/Header`` at ``stamp_ns`` (integer nanoseconds)."""
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
-    time = types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
-    return types['std_msgs/msg/Header'](stamp=time, frame_id=frame_id)
+    return types['std_msgs/msg/Header'](stamp=time_msg(types, stamp_ns), frame_id=frame_id)
+
+
+def clock_msg(types: MessageTypes, stamp_ns: int) -> Any:
+    """A ``rosgraph_msgs/Clock`` (``/clock``, sim time) at ``stamp_ns`` (integer ns)."""
+    return types['rosgraph_msgs/msg/Clock'](clock=time_msg(types, stamp_ns))
 
 
 def _vector3(types: MessageTypes, values: np.ndarray) -> Any:

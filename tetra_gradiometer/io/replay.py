@@ -55,6 +55,9 @@ class Frame:
     ----------
     pace_ns : int
         Time of the frame relative to the first one, ns (sample time or log time).
+    clock_ns : int
+        The frame's absolute time, ns (the log time in replay, the sample stamp in sim): what
+        the driver publishes on ``/clock``.
     segment : int
         Scenario segment (sim) or 0 (replay).
     mag1_stamp : int or None
@@ -64,6 +67,7 @@ class Frame:
     """
 
     pace_ns: int
+    clock_ns: int
     segment: int
     mag1_stamp: int | None
     items: list[tuple[str, int, Any]]
@@ -144,7 +148,7 @@ def iter_frames(
                 if max_duration_s > 0 and (log_ns - first) * S_PER_NS > max_duration_s:
                     return
                 mag1 = stamp if (key == MAG and sensor == 0) else None
-                yield Frame(log_ns - first, 0, mag1, [(key, sensor, frame_msg)])
+                yield Frame(log_ns - first, log_ns, 0, mag1, [(key, sensor, frame_msg)])
         finally:
             if bag.skipped:
                 LOG.warning('replay of %s: %s', path, bag.skipped_summary())
@@ -265,4 +269,4 @@ def _mission_frames(
             child_frame_id=frame_ids.base,
         )
         items.append((ODOM, 0, odom))
-        yield Frame(pace, int(mission.segment[i]), stamp, items)
+        yield Frame(pace, stamp, int(mission.segment[i]), stamp, items)

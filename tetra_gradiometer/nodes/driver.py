@@ -35,6 +35,9 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
@@ -143,8 +146,19 @@ PARAMETERS = [
         'sim: frames of mag1..4 (children of base_frame_id). Replay keeps the recorded ids.',
         lambda ids: f'must name 4 frames, got {list(ids)!r}' if len(ids) != 4 else frame_ids(ids),
     ),
+    ParamSpec(
+        'publish_clock',
+        True,
+        'Publish /clock (rosgraph_msgs/Clock): the time of the last frame played (the log time '
+        'in replay, the sample time in sim), so nodes with use_sim_time follow the playback '
+        '(its rate, its pauses).',
+    ),
     diagnostics_period_spec(),
 ]
+
+#: /clock is published when the played time has advanced this much, ns (1 ms: finer than any
+#: node's staleness or rate window, and at most 1000 clock messages per second of playback).
+CLOCK_STEP_NS = 1_000_000
 
 #: With ``min_subscribers``: wait this long after the subscriptions appear (s), so that the
 #: subscribers' side of the discovery has completed too.
@@ -190,6 +204,10 @@ class DriverNode(ManagedNode):
         self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
         self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_TOPIC, derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._clock_pub = (
+            self.create_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
+        )
+        self._clock_ns = -CLOCK_STEP_NS
         gated = self.when_active
         if self._rate == 0:
             self.create_subscription(
@@ -197,14 +215,17 @@ class DriverNode(ManagedNode):
             )
         self.create_service(Trigger, '~/resume', gated(self._on_resume))
         self.create_service(Trigger, '~/pause', gated(self._on_pause))
-        self.create_timer(min(max(period, 0.002), 0.05), self._tick)
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        # Wall-clock (steady) timers: the driver is the source of /clock, so it must not wait
+        # for it when the launch gives every node use_sim_time.
+        steady = RosClock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(min(max(period, 0.002), 0.05), self._tick, clock=steady)
+        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
 
     def _open_source(
         self, p: dict[str, Any]
     ) -> tuple[Generator[Frame, None, None], dict[str, Any], float]:
         """The frames to play (io/replay.py), their description and the tick period, s."""
-        types = cv.rclpy_types()
+        types = self._types = cv.rclpy_types()
         if self._mode == 'sim':
             start_ns = self.get_clock().now().nanoseconds
             frames, info = replay.simulate(
@@ -281,6 +302,9 @@ class DriverNode(ManagedNode):
             self._next = next(self._frames, None)
 
     def _publish(self, frame: Frame) -> None:
+        if self._clock_pub is not None and frame.clock_ns >= self._clock_ns + CLOCK_STEP_NS:
+            self._clock_ns = frame.clock_ns  # before the frame: no message is ahead of /clock
+            self._clock_pub.publish(cv.clock_msg(self._types, frame.clock_ns))
         for key, sensor, msg in frame.items:
             self._pubs[(key, sensor)].publish(msg)
         if frame.mag1_stamp is not None:

@@ -16,14 +16,14 @@ sensor), and publishes, for every good set, with its reference stamp:
   by identical stamp), with that ``mag1`` message's ``magnetic_field_covariance`` (T^2;
   a non-finite one is published as all zeros, unknown).
 
-``/diagnostics``: per sensor rate (Hz), staleness (s since its last message), invalid
+``/diagnostics``: per sensor rate (Hz), staleness (s since its last message; both on the
+node's clock, so ``/clock`` under ``use_sim_time``: a replay at any rate gives the bag's), invalid
 readings, clock offset and jitter against the reference (resampling); a sensor silent for
 ``stale_timeout_s`` is ERROR and no tensor is published until it is back.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterable
 from dataclasses import asdict
 from functools import partial
@@ -102,7 +102,7 @@ PARAMETERS = [
     ParamSpec(
         'stale_timeout_s',
         1.0,
-        'A sensor silent this long (s, wall clock) is ERROR on '
+        "A sensor silent this long (s, the node's clock: /clock under use_sim_time) is ERROR on "
         '/diagnostics and no tensor is published until it returns (0.01-600).',
         positive,
         float_range=(0.01, 600.0),
@@ -184,7 +184,7 @@ class TensorNode(ManagedNode):
         self._warn = Throttle(p['warn_throttle_s'])
         self._stale_warn = Throttle(p['warn_throttle_s'])
 
-        started = time.monotonic()
+        started = self._now_s()
         self._received = [0] * 4
         self._invalid = [0] * 4
         self._last_arrival = [started] * 4
@@ -213,7 +213,7 @@ class TensorNode(ManagedNode):
 
     def activated(self) -> None:
         """Staleness counts from the activation, not from the time spent inactive."""
-        self._last_arrival = [time.monotonic()] * 4
+        self._last_arrival = [self._now_s()] * 4
 
     # ----------------------------------------------------------------- callbacks
 
@@ -233,7 +233,7 @@ class TensorNode(ManagedNode):
     def _on_mag(self, sensor: int, msg: MagneticField) -> None:
         """One reading (T): queue it; publish every set it completes."""
         self._received[sensor] += 1
-        self._last_arrival[sensor] = time.monotonic()
+        self._last_arrival[sensor] = self._now_s()
         self._ever[sensor] = True
         stamp = cv.stamp_to_ns(msg.header.stamp)
         last = self._last_stamp[sensor]
@@ -312,13 +312,18 @@ class TensorNode(ManagedNode):
         )
         self.sets_published += 1
 
+    def _now_s(self) -> float:
+        """The node's clock, s: ROS time, i.e. ``/clock`` under ``use_sim_time`` (a replay at
+        10x real time, or paused, shows the bag's rates and staleness, not the wall clock's)."""
+        return self.get_clock().now().nanoseconds * S_PER_NS
+
     def _stale_sensors(self) -> list[int]:
-        now = time.monotonic()
+        now = self._now_s()
         return [s for s in range(4) if now - self._last_arrival[s] > self._stale_timeout]
 
     def _publish_diagnostics(self) -> None:
         """Per-sensor rate, staleness and drops; the matching counters."""
-        now = time.monotonic()
+        now = self._now_s()
         mark_time, mark_counts = self._rate_mark
         if now - mark_time > 0:
             pairs = zip(self._received, mark_counts, strict=True)
