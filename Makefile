@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-.PHONY: setup check demo test paper bench bags clean
+.PHONY: setup check demo test test-noble paper bench bags clean
 
 setup: $(STAMP)
 
@@ -30,6 +30,24 @@ check: setup
 test: setup check
 	$(PY) -m pytest
 
+# The suite against Ubuntu Noble's numpy 1.26.4 and scipy 1.11.4 (what a ROS 2 Jazzy install
+# has): a second venv with the main pins but the deviations of constraints-noble.txt
+# (scripts/noble_pins.py substitutes them). Not in CI (`make test`); needs no ROS install.
+NOBLE_VENV  := .venv-noble
+NOBLE_PY    := $(NOBLE_VENV)/bin/python
+NOBLE_STAMP := $(NOBLE_VENV)/.installed
+
+$(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraints-noble.txt scripts/noble_pins.py setup.py setup.cfg package.xml
+	test -x $(NOBLE_PY) || $(PYTHON) -m venv $(NOBLE_VENV)
+	$(NOBLE_PY) scripts/noble_pins.py $(NOBLE_VENV)/pins
+	$(NOBLE_PY) -m pip install --quiet --disable-pip-version-check -r $(NOBLE_VENV)/pins/requirements.txt -c $(NOBLE_VENV)/pins/constraints.txt
+	$(NOBLE_PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
+	touch $(NOBLE_STAMP)
+
+test-noble: $(NOBLE_STAMP)
+	$(NOBLE_PY) -c 'import numpy, scipy; print("numpy", numpy.__version__, "scipy", scipy.__version__)'
+	$(NOBLE_PY) -m pytest
+
 paper: setup
 	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper --force
 
@@ -41,7 +59,7 @@ bench: setup
 	$(PY) bench/bench_discrepancy.py
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache *.egg-info mutants
+	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants
 
 # Mutation smoke check (not in CI, a few minutes): mutmut (requirements-dev.txt) mutates
 # core/metrics.py, geometry.py and fields.py and runs their tests (config: setup.cfg [mutmut]).

@@ -1,7 +1,7 @@
 """io/replay.py and io/conversions.py: the magnetometers' ``magnetic_field_covariance``
 (REP 145) in the driver's frames. Simulated: ``diag(sigma^2)`` of the scenario's noise;
 replayed: the recorded covariance kept when it is usable, else ``diag(sensor_noise_t^2)``,
-else zeros (unknown). Through rosbags' own CDR (no ROS graph)."""
+else REP 145's unknown (-1 in the first element). Through rosbags' own CDR (no ROS graph)."""
 from __future__ import annotations
 
 import numpy as np
@@ -15,6 +15,7 @@ from tetra_gradiometer.io.bag import BagWriter
 
 T0 = 1_767_225_600 * 10**9
 FIELD = np.array([1e-6, 2e-5, -4.5e-5])
+UNKNOWN = [-1.0, 0, 0, 0, 0, 0, 0, 0, 0]  # REP 145
 TYPES = cv.rosbags_types(get_typestore(Stores.ROS2_JAZZY))
 
 
@@ -41,10 +42,12 @@ def _covariances(path, **options):
     return found
 
 
-def test_a_bag_recorded_without_covariance_gets_the_parameter_or_stays_unknown(tmp_path):
-    bag = _bag(tmp_path / 'bag', lambda s: None)
+@pytest.mark.parametrize('recorded', [None, np.zeros(9)], ids=['rep145-unknown', 'all-zero'])
+def test_a_bag_recorded_without_covariance_gets_the_parameter_or_stays_unknown(tmp_path, recorded):
+    bag = _bag(tmp_path / 'bag', lambda s: recorded)
     for found in (_covariances(bag), _covariances(bag, sensor_noise_t=0.0)):
-        assert all(len(v) == 10 and not np.any(v) for v in found.values())  # REP 145: unknown
+        for values in found.values():
+            np.testing.assert_array_equal(values, [UNKNOWN] * 10)
     found = _covariances(bag, sensor_noise_t=2e-10)
     expected = [4e-20, 0, 0, 0, 4e-20, 0, 0, 0, 4e-20]  # T^2, row-major diag(sigma^2)
     for values in found.values():
@@ -71,9 +74,9 @@ def test_simulated_frames_carry_the_scenario_noise(tmp_path, noise_nt):
     assert info['sensor_noise_t'] == pytest.approx(noise_nt * 1e-9)
     mags = [msg for frame in frames for key, _, msg in frame.items if key == replay.MAG]
     assert len(mags) == 40
+    expected = np.diag([(noise_nt * 1e-9) ** 2] * 3).reshape(9) if noise_nt else UNKNOWN  # REP 145
     for msg in mags:
-        np.testing.assert_allclose(msg.magnetic_field_covariance, np.diag([(noise_nt * 1e-9) ** 2] * 3).reshape(9),
-                                   rtol=1e-12, atol=0)
+        np.testing.assert_allclose(msg.magnetic_field_covariance, expected, rtol=1e-12, atol=0)
 
 
 def test_magnetic_field_covariance_round_trips_through_rosbags_cdr():
@@ -83,4 +86,5 @@ def test_magnetic_field_covariance_round_trips_through_rosbags_cdr():
     back = store.deserialize_cdr(store.serialize_cdr(msg, cv.MAGNETIC_FIELD), cv.MAGNETIC_FIELD)
     np.testing.assert_array_equal(cv.magnetic_field_covariance(back), covariance)
     np.testing.assert_array_equal(cv.magnetic_field_reading(back), np.r_[FIELD, covariance])
-    assert not np.any(cv.magnetic_field_covariance(cv.magnetic_field_msg(TYPES, FIELD, T0, 'tetra_mag1')))
+    np.testing.assert_array_equal(
+        cv.magnetic_field_covariance(cv.magnetic_field_msg(TYPES, FIELD, T0, 'tetra_mag1')), UNKNOWN)

@@ -17,10 +17,13 @@ from ros_helpers import REPO, NodeProcess, unique_domain
 
 
 def _declared() -> dict[str, dict[str, object]]:
-    """``{node: {parameter: default}}`` from the nodes' PARAMETERS lists."""
+    """``{node: {parameter: default}}`` from the nodes' PARAMETERS lists and the lifecycle
+    base's ``autostart`` (every node declares it)."""
     from tetra_gradiometer.nodes import calibrator, compensator, driver, tensor
+    from tetra_gradiometer.nodes.managed import AUTOSTART_SPEC
 
-    return {module.__name__.rsplit('.', 1)[1]: {spec.name: spec.default for spec in module.PARAMETERS}
+    return {module.__name__.rsplit('.', 1)[1]:
+            {spec.name: spec.default for spec in [*module.PARAMETERS, AUTOSTART_SPEC]}
             for module in (driver, tensor, calibrator, compensator)}
 
 

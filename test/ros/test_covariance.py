@@ -1,6 +1,6 @@
 """``MagneticField.magnetic_field_covariance`` through the graph (issue 12, REP 145), over
 real DDS: the tensor node's ``reference_field`` carries the covariance of its set's own
-``mag1`` message (a non-finite one as zeros, unknown); the driver replaying a bag recorded
+``mag1`` message (a non-finite or all-zero one as REP 145's unknown, -1 first); the driver replaying a bag recorded
 without covariance fills ``diag(sensor_noise_t^2)``, and the tensor node passes it on."""
 from __future__ import annotations
 
@@ -47,16 +47,19 @@ def test_reference_field_carries_the_covariance_of_its_own_mag1_message():
             for s in range(4):  # each sensor and each sample its own covariance: no mix-up passes
                 covariance = np.diag([1.0, 2.0, 3.0]).reshape(9) * (s + 1 + 10 * i) * 1e-22
                 if i == 11 and s == 0:
-                    covariance = np.full(9, np.nan)  # never published: unknown (zeros) instead
+                    covariance = np.full(9, np.nan)  # never published: unknown (-1 first) instead
+                if i == 10 and s == 0:
+                    covariance = np.zeros(9)  # the old unknown: published as REP 145's
                 if s == 0:
                     sent[stamp] = covariance
                 feeder.mags[s].publish(cv.magnetic_field_msg(feeder.types, FIELDS[s], stamp, cv.MAG_FRAMES[s],
                                                              covariance))
             time.sleep(0.004)
         wait_for(lambda: len(reference) == 12, 10, 'the reference fields', graph)
-    for i in range(11):
+    for i in range(10):
         np.testing.assert_array_equal(reference[T0 + i * 10**8], sent[T0 + i * 10**8])
-    np.testing.assert_array_equal(reference[T0 + 11 * 10**8], np.zeros(9))
+    for i in (10, 11):  # REP 145: -1 in the first element means unknown
+        np.testing.assert_array_equal(reference[T0 + i * 10**8], [-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
 
 
 def test_driver_replay_fills_a_missing_covariance_from_sensor_noise_t(tmp_path):

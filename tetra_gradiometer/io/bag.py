@@ -71,13 +71,18 @@ SetCounters = MatchCounters | ResampleCounters
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
 
-def encode_magnetic_field(stamp_ns: int, field_t: np.ndarray, frame_id: str) -> bytes:
-    """Little-endian CDR of a ``sensor_msgs/MagneticField`` with zero covariance."""
+def encode_magnetic_field(
+    stamp_ns: int, field_t: np.ndarray, frame_id: str, covariance_t2: np.ndarray | None = None
+) -> bytes:
+    """Little-endian CDR of a ``sensor_msgs/MagneticField``: field (3,) T, covariance (9,)
+    T^2 (None: REP 145's unknown, ``conversions.UNKNOWN_COVARIANCE``)."""
+    covariance = cv.UNKNOWN_COVARIANCE if covariance_t2 is None else covariance_t2
     sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     frame = frame_id.encode('utf-8') + b'\x00'
     head = _CDR_LE + b'\x00\x00' + struct.pack('<iII', sec, nanosec, len(frame)) + frame
     pad = -(len(head) - 4) % 8
-    return head + b'\x00' * pad + struct.pack('<3d', *(float(v) for v in field_t)) + bytes(72)
+    values = [*(float(v) for v in field_t), *np.asarray(covariance, dtype=float).reshape(9)]
+    return head + b'\x00' * pad + struct.pack('<12d', *values)
 
 
 def _cdr_string(text: str, length_so_far: int) -> bytes:

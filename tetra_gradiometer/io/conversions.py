@@ -9,7 +9,7 @@ Contract (README, "Topics"):
 * ``mag1``..``mag4``: ``sensor_msgs/MagneticField``, tesla, body frame (REP 103),
   frames ``tetra_mag1``..``tetra_mag4``, ``header.stamp`` = sample time;
   ``magnetic_field_covariance`` row-major 3 x 3 in T^2, ``diag(sigma^2)`` of the per-axis
-  sensor noise when known, all zeros when unknown (REP 145).
+  sensor noise when known, -1 in the first element when unknown (REP 145).
 * tensors (``gradient/raw``, ``gradient/compensated``, ``gradient/truth``):
   ``sensor_msgs/JointState`` with ``name = gxx, gxy, gxz, gyx, gyy, gyz, gzx, gzy, gzz``,
   ``position`` = ``G_ij = dB_i/dx_j`` in T/m, frame ``tetra_array``.
@@ -134,10 +134,25 @@ def _vector3(types: MessageTypes, values: np.ndarray) -> Any:
     )
 
 
+#: REP 145 "covariance unknown": -1 in the first element (sensor_msgs/MagneticField says 0
+#: too, but a zero covariance also reads as a perfect sensor; -1 cannot be mistaken).
+UNKNOWN_COVARIANCE = np.r_[-1.0, np.zeros(8)]
+UNKNOWN_COVARIANCE.setflags(write=False)
+
+
+def known_covariance(covariance_t2: np.ndarray) -> bool:
+    """Whether a ``magnetic_field_covariance`` (9,) T^2 states a covariance: finite, its first
+    element not negative (REP 145's unknown) and not all zero (the older unknown)."""
+    values = np.asarray(covariance_t2, dtype=float)
+    return bool(np.all(np.isfinite(values)) and values[0] >= 0 and np.any(values))
+
+
 def noise_covariance(sensor_noise_t: float) -> np.ndarray:
     """``magnetic_field_covariance`` (9,) row-major, T^2, of a reading with independent white
-    noise ``sensor_noise_t`` (tesla RMS) on each axis: ``diag(sigma^2)``; 0 gives all zeros
-    (REP 145: unknown)."""
+    noise ``sensor_noise_t`` (tesla RMS) on each axis: ``diag(sigma^2)``; 0 (no noise figure)
+    gives :data:`UNKNOWN_COVARIANCE`."""
+    if sensor_noise_t <= 0:
+        return UNKNOWN_COVARIANCE.copy()
     return (np.eye(3) * float(sensor_noise_t) ** 2).reshape(9)
 
 
@@ -149,12 +164,12 @@ def magnetic_field_msg(
     covariance_t2: np.ndarray | None = None,
 ) -> Any:
     """``sensor_msgs/MagneticField`` from a field (3,) in tesla and its covariance (9,)
-    row-major in T^2 (None: unknown, zeros)."""
-    covariance = np.zeros(9) if covariance_t2 is None else np.asarray(covariance_t2, float)
+    row-major in T^2 (None: :data:`UNKNOWN_COVARIANCE`)."""
+    covariance = UNKNOWN_COVARIANCE if covariance_t2 is None else covariance_t2
     return types[MAGNETIC_FIELD](
         header=header(types, stamp_ns, frame_id),
         magnetic_field=_vector3(types, field_t),
-        magnetic_field_covariance=covariance.reshape(9),
+        magnetic_field_covariance=np.asarray(covariance, dtype=float).reshape(9),
     )
 
 
@@ -167,7 +182,7 @@ def magnetic_field_vector(msg: Any) -> np.ndarray:
 
 def magnetic_field_covariance(msg: Any) -> np.ndarray:
     """``magnetic_field_covariance`` (9,) row-major, T^2, of a ``sensor_msgs/MagneticField``
-    (as recorded: zeros mean unknown; callers check finiteness)."""
+    (as recorded: :func:`known_covariance` tells whether it states one)."""
     return np.asarray(msg.magnetic_field_covariance, dtype=float).reshape(9)
 
 

@@ -7,8 +7,9 @@ frames of messages ready to publish (built with a :class:`~.conversions.MessageT
   exhausting it) closes the bag. A message that does not decode and an unreadable storage
   chunk are skipped (as :meth:`~.bag.MagneticBag.iter_sets` does), counted and logged.
   A magnetometer message keeps its recorded ``magnetic_field_covariance`` when that is
-  finite and not all zero; otherwise it gets ``diag(sensor_noise_t^2)`` (zeros, "unknown"
-  per REP 145, when ``sensor_noise_t`` is 0).
+  known (``conversions.known_covariance``: finite, not REP 145's -1, not all zero);
+  otherwise it gets ``diag(sensor_noise_t^2)`` (REP 145's unknown, -1 first, when
+  ``sensor_noise_t`` is 0).
 * :func:`simulate` runs the core mission simulator on a scenario and returns the frames of
   its samples (four magnetometers, the true gradient, odometry), paced by sample time; the
   magnetometers' covariance is ``diag(noise^2)`` of the scenario's sensor noise.
@@ -107,7 +108,7 @@ def iter_frames(
     types : the message classes to build (``conversions.rclpy_types()`` for a node)
     max_duration_s : stop after this much log time, s (0: the whole bag)
     sensor_noise_t : per-axis sensor noise, tesla RMS, for magnetometer messages recorded
-        without a covariance (all zero or non-finite); 0 leaves those unknown (zeros)
+        without a covariance (unknown, all zero or non-finite); 0 marks them unknown (-1)
     skipped : if given, receives the skipped messages and chunks as they happen (they are
         also logged: the first few one by one, the count when the replay ends)
 
@@ -161,7 +162,7 @@ def _rebuild(
     recorded covariance gets ``default_covariance`` (9,) T^2."""
     if key == MAG:
         covariance = cv.magnetic_field_covariance(msg)
-        if not (np.all(np.isfinite(covariance)) and np.any(covariance)):
+        if not cv.known_covariance(covariance):
             covariance = default_covariance
         return cv.magnetic_field_msg(
             types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id, covariance

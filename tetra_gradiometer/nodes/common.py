@@ -244,9 +244,10 @@ def suite_parameter_names() -> frozenset[str]:
     """Every name a node of this package declares (``earth_field_enu``, which the offline tools
     also read, is the calibrator's)."""
     from . import calibrator, compensator, driver, tensor
+    from .managed import AUTOSTART_SPEC
 
     modules = (driver, tensor, calibrator, compensator)
-    return frozenset(s.name for m in modules for s in m.PARAMETERS)
+    return frozenset([AUTOSTART_SPEC.name, *(s.name for m in modules for s in m.PARAMETERS)])
 
 
 def command_line_parameters(args: list[str] | None, node_name: str) -> dict[str, str]:

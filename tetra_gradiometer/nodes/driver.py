@@ -11,7 +11,7 @@ JointState T/m) and ``/odom`` (nav_msgs/Odometry, body -> world ENU).
 ``mode: replay`` plays a rosbag2 folder (sqlite3 or mcap): the magnetometer topics, and
 ``/tetra/gradient/truth`` and ``/odom`` when recorded, with their recorded stamps. A
 magnetometer message keeps its recorded covariance; one recorded without (all zero) gets
-``diag(sensor_noise_t^2)``, or stays all zero (unknown, REP 145) with ``sensor_noise_t`` 0.
+``diag(sensor_noise_t^2)``, or REP 145's unknown (-1 first) with ``sensor_noise_t`` 0.
 
 Pacing: ``rate`` times real time (by sample time in sim, by log time in replay), or with
 ``rate: 0`` as fast as the graph takes it: at most ``max_in_flight`` sets are published
@@ -132,7 +132,7 @@ PARAMETERS = [
         'sensor_noise_t',
         0.0,
         'replay: white noise per axis of each magnetometer, tesla RMS (0 to 1e-6), for the '
-        'covariance of readings recorded without one; 0 = unknown (zeros, REP 145). sim: the '
+        'covariance of readings recorded without one; 0 = unknown (-1 first, REP 145). sim: the '
         "scenario's noise is used. (The compensator and calibrator read the same value.)",
         non_negative,
         float_range=(0.0, 1e-6),

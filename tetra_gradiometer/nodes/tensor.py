@@ -14,7 +14,7 @@ sensor), and publishes, for every good set, with its reference stamp:
 * ``reference_field`` (sensor_msgs/MagneticField, T, reliable): ``B_1'``, the reference
   reading of the same set (the calibrator and compensator pair it with ``gradient/raw``
   by identical stamp), with that ``mag1`` message's ``magnetic_field_covariance`` (T^2;
-  a non-finite one is published as all zeros, unknown).
+  an unknown or non-finite one is published as REP 145's unknown, -1 first).
 
 ``/diagnostics``: per sensor rate (Hz), staleness (s since its last message; both on the
 node's clock, so ``/clock`` under ``use_sim_time``: a replay at any rate gives the bag's), invalid
@@ -305,8 +305,8 @@ class TensorNode(ManagedNode):
             self.sets_invalid += 1
             return
         self._raw_pub.publish(cv.tensor_msg(self._types, g, stamp_ns, self._array_frame))
-        if not np.all(np.isfinite(covariance)):  # never publish non-finite: unknown instead
-            covariance = np.zeros(9)
+        if not cv.known_covariance(covariance):  # also never publish a non-finite one
+            covariance = cv.UNKNOWN_COVARIANCE
         self._ref_pub.publish(
             cv.magnetic_field_msg(self._types, fields[0], stamp_ns, self._mag1_frame, covariance)
         )
