@@ -227,7 +227,7 @@ class DriverNode(ManagedNode):
         """The frames to play (io/replay.py), their description and the tick period, s."""
         types = self._types = cv.rclpy_types()
         if self._mode == 'sim':
-            start_ns = self.get_clock().now().nanoseconds
+            start_ns = time.time_ns()  # system time even under use_sim_time: the driver is /clock
             frames, info = replay.simulate(
                 p['scenario'],
                 p['seed'],
