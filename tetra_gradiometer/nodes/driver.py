@@ -183,6 +183,7 @@ class DriverNode(ManagedNode):
         self._mode = p['mode']
         self._min_subscribers = int(p['min_subscribers'])
         self._matched_since: float | None = None
+        self._types = cv.rclpy_types()
         self._frames, self.info, period = self._open_source(p)
         self._next: Frame | None = next(self._frames, None)
         self.state = 'paused' if p['start_paused'] else 'playing'
@@ -225,7 +226,7 @@ class DriverNode(ManagedNode):
         self, p: dict[str, Any]
     ) -> tuple[Generator[Frame, None, None], dict[str, Any], float]:
         """The frames to play (io/replay.py), their description and the tick period, s."""
-        types = self._types = cv.rclpy_types()
+        types = self._types
         if self._mode == 'sim':
             start_ns = time.time_ns()  # system time even under use_sim_time: the driver is /clock
             frames, info = replay.simulate(
