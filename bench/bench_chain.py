@@ -100,18 +100,18 @@ class Driver:
         from tetra_gradiometer.io import conversions as cv
         from tetra_gradiometer.nodes.common import derived_qos
 
-        self.cv, self.fields, self.types = cv, fields, cv.rclpy_types()
+        self.cv, self.fields = cv, fields
         self.node = Node('bench', namespace='/tetra')
         self.mags = [self.node.create_publisher(MagneticField, t, 200) for t in cv.MAG_TOPICS]
         self.received: dict[int, int] = {}
         self.lock = threading.Lock()
         self.node.create_subscription(JointState, 'gradient/compensated', self._on_compensated,
-                                      derived_qos())
+                                      derived_qos(), raw=True)
 
-    def _on_compensated(self, msg: Any) -> None:
+    def _on_compensated(self, data: bytes) -> None:
         now = time.time_ns()
         with self.lock:
-            self.received[self.cv.stamp_to_ns(msg.header.stamp)] = now
+            self.received[self.cv.stamp_from_cdr(data)] = now
 
     def wait_for_chain(self) -> None:
         for publisher in self.mags:
@@ -120,11 +120,11 @@ class Driver:
                  'the compensator')
 
     def publish(self, sensors: tuple[int, ...]) -> int:
-        """Publish the readings of ``sensors`` now, stamped now; return the stamp (ns)."""
+        """Publish the readings of ``sensors`` now, stamped now; return the stamp (ns).
+        Serialized as the driver node does (io/conversions)."""
         cv, stamp = self.cv, time.time_ns()
         for s in sensors:
-            self.mags[s].publish(cv.magnetic_field_msg(self.types, self.fields[s], stamp,
-                                                       cv.MAG_FRAMES[s]))
+            self.mags[s].publish(cv.magnetic_field_cdr(self.fields[s], stamp, cv.MAG_FRAMES[s]))
         return stamp
 
     def run_step(self, rate: float, seconds: float, offsets_ms: list[float]) -> tuple:
@@ -175,7 +175,8 @@ def print_result(results: list[tuple]) -> None:
 def main() -> int:
     args = parse_args()
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+
+    from tetra_gradiometer.nodes.process import events_executor, spin
 
     domain = unique_domain()
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
@@ -184,8 +185,8 @@ def main() -> int:
                  NodeProcess('compensator', domain, {'calibration_file': str(calibration)})]
     rclpy.init(domain_id=domain)
     driver = Driver(fields)
-    executor = SingleThreadedExecutor()
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    executor = events_executor()  # as the nodes (nodes/process.spin_node)
+    spinner = threading.Thread(target=spin, args=(executor,), daemon=True)
     executor.add_node(driver.node)
     spinner.start()
     try:

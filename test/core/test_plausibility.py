@@ -8,6 +8,7 @@ from tetra_gradiometer.core.plausibility import (
     MAX_FIELD_T,
     check_parameters,
     check_positions_match,
+    plausible_reading,
     plausible_readings,
     plausible_sets,
 )
@@ -71,3 +72,16 @@ def test_positions_must_be_finite_and_match_to_a_millimetre():
     nan[4] = np.nan  # NaN compares false: the check must not pass it
     with pytest.raises(InputError, match=r'sensor_positions\[4\] = nan is not finite'):
         check_positions_match(nan, geometry.positions)
+
+
+def test_plausible_reading_is_plausible_readings_of_one_reading():
+    rng = np.random.default_rng(3)
+    readings = rng.normal(0, 6e-4, (2000, 3))
+    readings[rng.random((2000, 3)) < 0.01] = np.nan
+    readings[rng.random((2000, 3)) < 0.01] = -np.inf
+    readings[:5] = [[1e-3, 0, 0], [0, -1e-3, 0], [6e-4, 8e-4, 0], [1e300, 1e300, 0], [0, 0, 0]]
+    for bound in (1e-4, 5e-4, 1e-3, 1.0):
+        vector = plausible_readings(readings, bound)
+        scalar = [plausible_reading(*r, max_field_t=bound) for r in readings.tolist()]
+        np.testing.assert_array_equal(scalar, vector)
+    assert 0 < vector.sum() < len(readings)

@@ -113,6 +113,30 @@ def test_message_by_message_gives_the_same_sets_as_batches():
     np.testing.assert_allclose(np.concatenate(got_v), batch[1], rtol=0, atol=1e-20)
 
 
+@pytest.mark.parametrize('reference_rate_hz', [0.0, 20.0])
+def test_add_one_gives_the_same_sets_and_counts_as_add(reference_rate_hz):
+    """The live path (Python scalars) against the array path, with a spike, an implausible
+    reading, a repeated stamp and a lost message in the stream."""
+    streams = _streams(np.random.default_rng(9), duration=5.0)
+    fields = streams[1][1].copy()
+    fields[40], fields[90] = [np.inf, 0.0, 0.0], [2e-3, 0.0, 0.0]
+    streams[1] = (streams[1][0], fields)
+    events = sorted((int(t), s, i) for s, (ts, _) in enumerate(streams) for i, t in enumerate(ts))
+    events.insert(300, events[299])  # the same message again: out of order
+    base = TimeBase(reference_rate_hz=reference_rate_hz)
+    array_path, scalar_path = Resampler(base, max_field_t=1e-4), Resampler(base, max_field_t=1e-4)
+    got: list[list] = [[], []]
+    for _, s, i in events:
+        stamps, values = streams[s][0][i:i + 1], streams[s][1][i:i + 1]
+        got[0].append(array_path.add(s, stamps, values))
+        got[1].append(scalar_path.add_one(s, int(stamps[0]), values[0]))
+    for k in (0, 1):  # stamps, then values
+        np.testing.assert_array_equal(np.concatenate([g[k] for g in got[1]]),
+                                      np.concatenate([g[k] for g in got[0]]))
+    assert scalar_path.counters == array_path.counters
+    assert scalar_path.counters.out_of_order == 1
+
+
 def test_live_latency_is_one_sample_of_the_latest_sensor():
     """An instant is emitted by the first message of every sensor at or after it."""
     streams = _streams(np.random.default_rng(5), duration=5.0, loss=0.0, jitter_s=0.0)

@@ -32,12 +32,12 @@ def init_local_ros(params: str) -> int:
     on this host unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` says otherwise; ``params`` is a
     ROS 2 parameter file ('' for none); the nodes log warnings and errors only. Ctrl-C and
     SIGTERM raise KeyboardInterrupt (rclpy's own handler is off), so the caller stops its
-    executor before the context goes (``nodes.common.stop_graph``).
+    executor before the context goes (``nodes.process.stop_graph``).
     """
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from ..nodes.common import interrupt_on_signals
+    from ..nodes.process import interrupt_on_signals
     from .node import ros_arguments
 
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from ..nodes.common import interrupt_on_signals
+    from ..nodes.process import interrupt_on_signals
 
     # Our own Ctrl-C handling (KeyboardInterrupt), so callbacks stop before the context goes.
     interrupt_on_signals()

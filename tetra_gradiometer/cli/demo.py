@@ -75,7 +75,7 @@ def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
     """The demo, writing into ``out`` (the temporary folder that becomes ``final``)."""
     from rclpy.executors import SingleThreadedExecutor
 
-    from ..nodes.common import stop_graph
+    from ..nodes.process import stop_graph
     from ._probe import Probe, init_local_ros
 
     calibration_file = (out / 'calibration.yaml').resolve()

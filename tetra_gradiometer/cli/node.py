@@ -4,7 +4,7 @@
 Parameters come from the nodes' declared defaults, ``--params FILE``
 and any further ``--ros-args`` (e.g. ``-p rate:=10.0``, ``-r __ns:=/other``). A missing
 params file is one ``error:`` line (exit 1); a refused parameter, an undeclared one or
-unparsable ROS arguments are one ``cannot start:`` log line, exit 1 (nodes/common.spin_node).
+unparsable ROS arguments are one ``cannot start:`` log line, exit 1 (nodes/process.spin_node).
 """
 
 from __future__ import annotations

@@ -130,7 +130,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..io.bag import BagWriter
     from ..io.outputs import BAG, check_output
-    from ..nodes.common import stop_graph
+    from ..nodes.process import stop_graph
     from ._probe import Probe, init_local_ros
 
     if not args.duration > 0:

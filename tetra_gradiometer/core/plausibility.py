@@ -20,6 +20,7 @@ integer nanoseconds.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,7 @@ __all__ = [
     'check_geometry',
     'check_parameters',
     'check_positions_match',
+    'plausible_reading',
     'plausible_readings',
     'plausible_sets',
 ]
@@ -128,6 +130,15 @@ def plausible_readings(fields: ArrayLike, max_field_t: float = MAX_FIELD_T) -> n
     ndarray of bool, shape (...)
     """
     return _reading_checks(np.asarray(fields, dtype=float), max_field_t)[1]
+
+
+def plausible_reading(x: float, y: float, z: float, max_field_t: float = MAX_FIELD_T) -> bool:
+    """:func:`plausible_readings` of one reading given as three floats (tesla), in Python
+    scalars: the live path (one message at a time), where numpy's per-call overhead is most of
+    the cost. Same rule, same result."""
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return False
+    return math.sqrt(x * x + y * y + z * z) <= min(max_field_t, MAX_FIELD_T)
 
 
 def plausible_sets(fields: ArrayLike) -> tuple[np.ndarray, DroppedSets]:

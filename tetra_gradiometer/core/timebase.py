@@ -37,7 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
-from .plausibility import MAX_FIELD_T, plausible_readings
+from .plausibility import MAX_FIELD_T, plausible_reading, plausible_readings
 from .units import NS_PER_S, S_PER_NS
 
 IntArray = npt.NDArray[np.int64]
@@ -299,16 +299,37 @@ class Resampler:
         self._v[sensor] = np.concatenate([self._v[sensor], values[good]])
         return self._resolve()
 
+    def add_one(
+        self, sensor: int, stamp_ns: int, value: np.ndarray
+    ) -> tuple[IntArray, FloatArray]:
+        """:meth:`add` of one reading ``value`` (width,) at ``stamp_ns``: the live path (one
+        message at a time), the same bookkeeping with Python scalars where numpy's per-call
+        overhead made most of the tensor node's time; the same sets."""
+        stamp_ns, last = int(stamp_ns), self._last[sensor]
+        if last is not None and stamp_ns <= last:
+            self.counters.out_of_order += 1
+            return self._resolve()
+        if last is not None:
+            self._sums[sensor].add_intervals([stamp_ns - last])
+        self._last[sensor] = stamp_ns
+        stamp = np.array([stamp_ns], np.int64)
+        if sensor == 0 and not self.timebase.reference_rate_hz:
+            self._pending = np.concatenate([self._pending, stamp])
+        row = np.asarray(value, dtype=float).reshape(1, self.width)
+        x, y, z = row[0, :3].tolist()
+        if plausible_reading(x, y, z, self.max_field_t):
+            self._t[sensor] = np.concatenate([self._t[sensor], stamp])
+            self._v[sensor] = np.concatenate([self._v[sensor], row])
+        else:
+            self._bad_t[sensor] = np.concatenate([self._bad_t[sensor], stamp])
+            self._bad_v[sensor] = np.concatenate([self._bad_v[sensor], row])
+        return self._resolve()
+
     def _in_order(
         self, sensor: int, stamps: IntArray, values: FloatArray
     ) -> tuple[IntArray, FloatArray]:
         """Drop readings whose stamp does not increase on their sensor (counted)."""
         last = self._last[sensor]
-        if len(stamps) == 1:  # the live path: one message
-            if last is None or int(stamps[0]) > last:
-                return stamps, values
-            self.counters.out_of_order += 1
-            return stamps[:0], values[:0]
         previous = np.maximum.accumulate(
             np.concatenate([[np.iinfo(np.int64).min if last is None else last], stamps[:-1]])
         )
@@ -318,9 +339,6 @@ class Resampler:
 
     def _remember_intervals(self, sensor: int, stamps: IntArray) -> None:
         last = self._last[sensor]
-        if len(stamps) == 1 and last is not None:  # the live path: one message
-            self._sums[sensor].add_intervals([int(stamps[0]) - last])
-            return
         joined = stamps if last is None else np.concatenate([[last], stamps])
         self._sums[sensor].add_intervals(np.diff(joined)[-PERIOD_HISTORY:].tolist())
 
@@ -354,6 +372,11 @@ class Resampler:
             self._bound_pending()
             return np.zeros(0, np.int64), np.zeros((0, N_SENSORS, self.width))
         horizon = min(int(t[-1]) for t in self._t)  # every sensor has a good sample at or after
+        if not self.timebase.reference_rate_hz and (
+            not len(self._pending) or int(self._pending[0]) > horizon
+        ):  # no instant ready (the live path's usual case): as below with n_ready 0
+            self._bound_pending()
+            return np.zeros(0, np.int64), np.zeros((0, N_SENSORS, self.width))
         if self.timebase.reference_rate_hz:
             self._pending = np.concatenate([self._pending, self._grid_instants(horizon)])
         n_ready = int(np.searchsorted(self._pending, horizon, side='right'))
@@ -369,8 +392,8 @@ class Resampler:
             has_before, ok = interpolate(sensor, instants, out[:, sensor])
             started &= has_before
             valid &= ok
-        self.counters.skipped_start += int(np.sum(~started))
-        self.counters.skipped_gap += int(np.sum(started & ~valid))
+        self.counters.skipped_start += int((~started).sum())
+        self.counters.skipped_gap += int((started & ~valid).sum())
         self.counters.sets += int(valid.sum())
         self._prune()
         return instants[valid], out[valid]
@@ -464,11 +487,13 @@ class Resampler:
             earliest = int(self._last[0] or 0) + 1
         for sensor in range(N_SENSORS):
             t = self._t[sensor]
-            keep_from = max(int(np.searchsorted(t, earliest, side='left')) - 2, 0)
+            keep_from = max(int(t.searchsorted(earliest, side='left')) - 2, 0)
             if keep_from:
                 self._t[sensor], self._v[sensor] = t[keep_from:], self._v[sensor][keep_from:]
+            if not len(self._bad_t[sensor]):
+                continue
             # A refused reading older than every good sample kept can be no instant's nearest.
-            bad_from = int(np.searchsorted(self._bad_t[sensor], self._t[sensor][0]))
+            bad_from = int(self._bad_t[sensor].searchsorted(self._t[sensor][0]))
             if bad_from:
                 self._bad_t[sensor] = self._bad_t[sensor][bad_from:]
                 self._bad_v[sensor] = self._bad_v[sensor][bad_from:]

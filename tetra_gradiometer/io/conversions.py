@@ -16,11 +16,18 @@ Contract (README, "Topics"):
 * ``/odom``: ``nav_msgs/Odometry``, orientation rotates body vectors into ENU.
 * ``/tetra/temperature``: ``sensor_msgs/Temperature`` (degC);
   ``/battery_state``: ``sensor_msgs/BatteryState`` (``current`` in A).
+
+The nodes' per-message paths (tensor, compensator, driver) read and write serialized
+messages (CDR bytes) with the functions at the end of this module: rclpy's conversion between
+Python message objects and C structs costs 10-15 us per message, a tenth of the budget per set
+at 1000 sets/s (bench/bench_chain.py).
 """
 
 from __future__ import annotations
 
 import array
+import functools
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -63,8 +70,9 @@ class MessageTypes:
         return self.classes[name]
 
 
+@functools.cache
 def rclpy_types() -> MessageTypes:
-    """Message classes of the rclpy wheels (imports them on first use)."""
+    """Message classes of the rclpy wheels (imports them on first use; built once)."""
     from builtin_interfaces.msg import Time
     from geometry_msgs.msg import (
         Point,
@@ -78,12 +86,13 @@ def rclpy_types() -> MessageTypes:
     from nav_msgs.msg import Odometry
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import BatteryState, JointState, MagneticField, Temperature
-    from std_msgs.msg import Header
+    from std_msgs.msg import Float64, Header
 
     classes = {
         'builtin_interfaces/msg/Time': Time,
         'rosgraph_msgs/msg/Clock': Clock,
         'std_msgs/msg/Header': Header,
+        'std_msgs/msg/Float64': Float64,
         'geometry_msgs/msg/Vector3': Vector3,
         'geometry_msgs/msg/Point': Point,
         'geometry_msgs/msg/Quaternion': Quaternion,
@@ -294,3 +303,203 @@ def battery_msg(types: MessageTypes, current_a: float, stamp_ns: int) -> Any:
         location='',
         serial_number='',
     )
+
+
+# --------------------------------------------------------------------------- serialized (CDR)
+# Hand-written, not rosbags' CDR codec (pure Python: slower than rclpy's objects) nor rclpy's
+# serialize_message (it takes the message objects whose cost this avoids). Layout: XCDR1
+# little endian (encapsulation 00 01, two option bytes), each primitive aligned to its size
+# from the start of the payload (after the 4-byte encapsulation). A subscription created with
+# ``raw=True`` hands its callback these bytes and ``Publisher.publish`` takes them. The writers
+# are checked once per process against the RMW's own serialization (:func:`cdr_agrees`); where
+# it differs they serialize rclpy's message objects instead, and the readers fall back to
+# rclpy's deserialization for anything they do not recognise: one path for the nodes either way.
+
+_CDR_LE = b'\x00\x01\x00\x00'
+_STAMP = struct.Struct('<iI')
+_U32 = struct.Struct('<I')
+_F64 = struct.Struct('<d')
+
+
+def _cdr_pad(payload: bytearray, size: int) -> None:
+    payload.extend(bytes(-len(payload) % size))
+
+
+def _cdr_string(payload: bytearray, text: str) -> None:
+    data = text.encode()
+    _cdr_pad(payload, 4)
+    payload += _U32.pack(len(data) + 1) + data + b'\x00'
+
+
+def _cdr_stamp(stamp_ns: int) -> bytes:
+    return _STAMP.pack(*divmod(int(stamp_ns), NS_PER_S))
+
+
+class TensorCdr:
+    """Writer and reader of serialized tensor ``JointState`` messages (names ``gxx..gzz``,
+    positions = the 9 values in T/m, no velocity or effort) in ``frame_id``: everything but
+    the stamp and the values is built once."""
+
+    def __init__(self, frame_id: str) -> None:
+        self.frame_id = frame_id
+        payload = bytearray(8)  # the stamp
+        _cdr_string(payload, frame_id)
+        _cdr_pad(payload, 4)
+        names = len(payload)
+        payload += _U32.pack(len(TENSOR_NAMES))
+        for name in TENSOR_NAMES:
+            _cdr_string(payload, name)  # 8 bytes each: no padding between them
+        self._names = bytes(payload[names:])  # what the reader compares
+        payload += _U32.pack(9)
+        _cdr_pad(payload, 8)
+        self._middle = bytes(payload[8:])
+        self._tail = _U32.pack(0) + _U32.pack(0)  # after 9 doubles: aligned to 4 already
+
+    def write(self, g: np.ndarray, stamp_ns: int) -> bytes:
+        """The serialized message of the tensor ``g`` (3, 3) (or (9,) row-major) T/m at
+        ``stamp_ns`` (integer ns)."""
+        if not cdr_agrees():
+            return _serialize(tensor_msg(rclpy_types(), g, stamp_ns, self.frame_id))
+        data = np.ascontiguousarray(g, dtype='<f8').tobytes()
+        return b''.join((_CDR_LE, _cdr_stamp(stamp_ns), self._middle, data, self._tail))
+
+    def read(self, data: bytes) -> tuple[int, np.ndarray]:
+        """``(stamp_ns, tensor (3, 3) T/m)`` of a serialized tensor ``JointState`` (any frame,
+        any name order).
+
+        Raises
+        ------
+        MessageError
+            Not a tensor JointState (names, counts: :func:`tensor_from_msg`'s rule).
+        """
+        try:
+            stamp_ns, _, start = _cdr_header(data)
+            start += -(start - 4) % 4
+            names = self._names
+            if data[start : start + len(names) + 4] == names + _U32.pack(9):
+                start += len(names) + 4
+                start += -(start - 4) % 8
+                if start + 72 <= len(data):
+                    g = np.frombuffer(data, '<f8', 9, start).reshape(3, 3).astype(float)
+                    return stamp_ns, g
+        except MessageError:
+            pass
+        msg = _deserialize(data, JOINT_STATE)  # another order or encoding: the object rule
+        return stamp_to_ns(msg.header.stamp), tensor_from_msg(msg)
+
+
+def magnetic_field_cdr(
+    field_t: np.ndarray, stamp_ns: int, frame_id: str, covariance_t2: np.ndarray | None = None
+) -> bytes:
+    """Serialized :func:`magnetic_field_msg`: field (3,) T, covariance (9,) T^2 (None:
+    REP 145 unknown)."""
+    covariance = UNKNOWN_COVARIANCE if covariance_t2 is None else covariance_t2
+    if not cdr_agrees():
+        return _serialize(
+            magnetic_field_msg(rclpy_types(), field_t, stamp_ns, frame_id, covariance)
+        )
+    payload = bytearray(_cdr_stamp(stamp_ns))
+    _cdr_string(payload, frame_id)
+    _cdr_pad(payload, 8)
+    values = np.concatenate((np.ravel(field_t), np.ravel(covariance))).astype('<f8')
+    return _CDR_LE + bytes(payload) + values.tobytes()
+
+
+def magnetic_field_from_cdr(data: bytes) -> tuple[int, str, np.ndarray]:
+    """``(stamp_ns, frame_id, reading (12,))`` of a serialized ``sensor_msgs/MagneticField``:
+    the reading as :func:`magnetic_field_reading`, field (3,) T then covariance (9,) T^2."""
+    try:
+        stamp_ns, frame_id, end = _cdr_header(data)
+        start = end + (-(end - 4) % 8)
+        if start + 96 <= len(data):
+            return stamp_ns, frame_id, np.frombuffer(data, '<f8', 12, start).astype(float)
+    except MessageError:
+        pass
+    msg = _deserialize(data, MAGNETIC_FIELD)
+    return stamp_to_ns(msg.header.stamp), msg.header.frame_id, magnetic_field_reading(msg)
+
+
+def float64_cdr(value: float) -> bytes:
+    """Serialized ``std_msgs/Float64``."""
+    return _CDR_LE + _F64.pack(value)
+
+
+def stamp_from_cdr(data: bytes) -> int:
+    """``header.stamp`` (integer ns) of a serialized message that begins with a header."""
+    return _cdr_header(data)[0]
+
+
+def _cdr_header(data: bytes) -> tuple[int, str, int]:
+    """``(stamp_ns, frame_id, offset after the header)`` of a serialized message beginning
+    with a ``std_msgs/Header``; MessageError unless little-endian XCDR1 and long enough."""
+    if len(data) < 16 or data[:2] != b'\x00\x01':
+        raise MessageError('not little-endian CDR')
+    sec, nanosec = _STAMP.unpack_from(data, 4)
+    (length,) = _U32.unpack_from(data, 12)
+    end = 16 + length
+    if length < 1 or end > len(data):
+        raise MessageError('truncated CDR header')
+    return sec * NS_PER_S + nanosec, data[16 : end - 1].decode(errors='replace'), end
+
+
+def _serialize(msg: Any) -> bytes:
+    from rclpy.serialization import serialize_message
+
+    return bytes(serialize_message(msg))
+
+
+def _deserialize(data: bytes, type_name: str) -> Any:
+    """rclpy's deserialization of ``data`` as ``type_name``; MessageError when it fails."""
+    from rclpy.serialization import deserialize_message
+
+    try:
+        return deserialize_message(data, rclpy_types()[type_name])
+    except Exception as error:  # rclpy raises its C layer's errors
+        raise MessageError(f'cannot deserialize a {type_name}: {error}') from None
+
+
+_AGREES: list[bool] = []
+
+
+def cdr_agrees() -> bool:
+    """Whether the RMW serializes as the writers here do (checked once per process against
+    rclpy's serialize_message, on several frame-id lengths: every alignment)."""
+    if not _AGREES:
+        _AGREES.append(_writers_agree())
+    return _AGREES[0]
+
+
+def _writers_agree() -> bool:
+    """Round trips both ways: what the writers write, rclpy reads back equal; what rclpy
+    writes, the readers read equal (its padding bytes are not zeroed: no byte comparison)."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    types = rclpy_types()
+    stamp, g = 1_234_567_890_123_456_789, np.arange(1.0, 10.0).reshape(3, 3)
+    reading = np.r_[1e-5, -2e-5, 3e-5, np.arange(9.0) * 1e-20]
+    _AGREES.append(True)  # the writers below write CDR while checked
+    try:
+        for frame in ('', 'a', 'ab', 'abc', 'abcd', ARRAY_FRAME):
+            layout = TensorCdr(frame)
+            msg = deserialize_message(layout.write(g, stamp), types[JOINT_STATE])
+            if (stamp_to_ns(msg.header.stamp), msg.header.frame_id) != (stamp, frame):
+                return False
+            if not np.array_equal(tensor_from_msg(msg), g) or len(msg.velocity) + len(msg.effort):
+                return False
+            read = layout.read(serialize_message(tensor_msg(types, g, stamp, frame)))
+            if read[0] != stamp or not np.array_equal(read[1], g):
+                return False
+            data = magnetic_field_cdr(reading[:3], stamp, frame, reading[3:])
+            msg = deserialize_message(data, types[MAGNETIC_FIELD])
+            if not np.array_equal(magnetic_field_reading(msg), reading):
+                return False
+            original = magnetic_field_msg(types, reading[:3], stamp, frame, reading[3:])
+            stamp_read, frame_read, values = magnetic_field_from_cdr(serialize_message(original))
+            if (stamp_read, frame_read) != (stamp, frame) or not np.array_equal(values, reading):
+                return False
+        float64 = deserialize_message(float64_cdr(2.5), types['std_msgs/msg/Float64'])
+        return bool(float64.data == 2.5)
+    except Exception:  # noqa: BLE001 - any disagreement (rclpy raises its C layer's errors)
+        return False
+    finally:
+        _AGREES.clear()

@@ -109,11 +109,11 @@ from .common import (
     one_of,
     positive,
     resolve_node_path,
-    spin_node,
     status,
     tensor_or_nan,
 )
 from .managed import ManagedNode
+from .process import spin_node
 from .solve_worker import SolveWorker
 
 #: Bounds of ``max_samples`` and ``ga_generations`` (see their descriptions).

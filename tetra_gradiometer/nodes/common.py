@@ -1,7 +1,6 @@
 """The one module of shared ROS helpers (no Node class here): QoS profiles, declared and
-validated parameters, throttled warnings, diagnostics helpers, stamp pairing, and the
-start/stop of nodes (``spin_node``) and of in-process graphs (``interrupt_on_signals``,
-``stop_graph``, used by the commands in ``cli/``).
+validated parameters, throttled warnings, diagnostics helpers (starting and stopping nodes:
+nodes/process.py).
 
 QoS (docs/ros.md has the full table):
 
@@ -10,12 +9,6 @@ QoS (docs/ros.md has the full table):
 * derived topics (tensors, reference field, metrics): reliable, volatile, keep last
   ``DERIVED_DEPTH`` (1000);
 * ``calibration``: reliable, transient local, keep last 1 (latched).
-
-Start-up refusals (``spin_node``): a parameter value outside its declared range, of the
-wrong type (also an integer for a double parameter, as ROS refuses it: write ``10.0``) or
-refused by its validator, an override naming a parameter the node does not declare (see
-:func:`unknown_overrides`), unparsable ROS arguments, and any ``TetraError`` of the node's
-constructor end the process with exit status 1 and one log line, never a traceback.
 """
 
 from __future__ import annotations
@@ -31,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ParamsError, TetraError
+from ..errors import ParamsError
 from ..io import conversions as cv
 
 NAMESPACE = '/tetra'
@@ -464,19 +457,6 @@ def status(name: str, level: int, message: str, hardware_id: str, values: dict[s
 OK, WARN, ERROR = 0, 1, 2
 
 
-def interrupt_on_signals() -> None:
-    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread (also when the shell
-    started us with SIGINT ignored), for processes that stop their executors themselves
-    instead of letting rclpy's handler invalidate the context under running callbacks."""
-    import signal
-
-    def interrupt(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGINT, interrupt)
-    signal.signal(signal.SIGTERM, interrupt)
-
-
 def tensor_or_nan(msg: Any) -> np.ndarray:
     """A tensor JointState as (3, 3) T/m; a malformed one (wrong names or count) as NaN, which
     the callers' non-finite checks drop and count, so one bad message cannot stop a node."""
@@ -484,92 +464,3 @@ def tensor_or_nan(msg: Any) -> np.ndarray:
         return cv.tensor_from_msg(msg)
     except cv.MessageError:
         return np.full((3, 3), np.nan)
-
-
-def _start_refusal(node: Any, args: list[str] | None) -> str | None:
-    """Why the overrides of a constructed node are refused (an undeclared name, a ``-p``
-    value rcl dropped), or None."""
-    rules = command_line_parameters(args, node.get_name())
-    unknown = unknown_overrides(node, rules)
-    if unknown:
-        declared = ', '.join(node.list_parameters([], 0).names)
-        word = 'parameter' if len(unknown) == 1 else 'parameters'
-        return f'unknown {word} {", ".join(map(repr, unknown))} (declared: {declared})'
-    return dropped_command_line_value(node, rules)
-
-
-def _rcl_reason(error: Exception) -> str:
-    """rcl's message without its source locations (``, at /project/src/...``)."""
-    return str(error).split(', at /')[0]
-
-
-def spin_node(
-    factory: Callable[[], Any], name: str, args: list[str] | None, threads: int = 1
-) -> int:
-    """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
-    Ctrl-C or an external shutdown, then stop its long work (``stop_work()``:
-    nodes/managed.py), the executor, the node and ``rclpy.try_shutdown()``.
-
-    ``threads`` > 1 spins a MultiThreadedExecutor of that many threads (the calibrator: its
-    callback groups let diagnostics and ``~/cancel`` run while a solve runs); else the
-    single-threaded one.
-
-    Returns 1, after one ``cannot start:`` log line and no traceback, when the ROS arguments
-    cannot be parsed, a parameter is refused (range, type, validator: ``ParamsError``; rclpy's
-    ``ParameterException``), an override names an undeclared parameter
-    (:func:`unknown_overrides`) or the node's constructor raises a ``TetraError``; else 0.
-    """
-    import rclpy
-    from rclpy.exceptions import ParameterException
-    from rclpy.executors import (
-        Executor,
-        ExternalShutdownException,
-        MultiThreadedExecutor,
-        SingleThreadedExecutor,
-    )
-
-    logger = rclpy.logging.get_logger(name)
-    try:
-        rclpy.init(args=args)
-    except RuntimeError as error:  # rclpy's RCLError: unparsable arguments or params file
-        logger.error(f'cannot start: {_rcl_reason(error)}')
-        return 1
-    try:
-        node = factory()
-    except (TetraError, ParameterException) as error:
-        logger.error(f'cannot start: {error}')
-        rclpy.try_shutdown()
-        return 1
-    refusal = _start_refusal(node, args)
-    if refusal:
-        logger.error(f'cannot start: {refusal}')
-        node.destroy_node()
-        rclpy.try_shutdown()
-        return 1
-    executor: Executor = (
-        MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
-    )
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.stop_work()
-        executor.shutdown(timeout_sec=5)
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
-
-
-def stop_graph(executor: Any, spinner: Any, nodes: list[Any]) -> None:
-    """Stop an in-process graph (demo, record): the executor, then its spin thread, then the
-    nodes and the context, in that order (joining the thread first avoids a crash at exit)."""
-    import rclpy
-
-    executor.shutdown(timeout_sec=2)
-    if spinner.is_alive():
-        spinner.join(timeout=5)
-    for node in nodes:
-        node.destroy_node()
-    rclpy.try_shutdown()

@@ -41,7 +41,7 @@ from ..core.metrics import epsilon_terms
 from ..core.plausibility import plausible_readings
 from ..core.uncertainty import SigmaModel
 from ..core.units import NT_PER_T, S_PER_NS
-from ..errors import InputError
+from ..errors import InputError, MessageError
 from ..io import conversions as cv
 from ..io.calibration import (
     CalibrationFile,
@@ -64,11 +64,10 @@ from .common import (
     latched_qos,
     non_negative,
     resolve_node_path,
-    spin_node,
     status,
-    tensor_or_nan,
 )
 from .managed import ManagedNode
+from .process import spin_node
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -128,7 +127,6 @@ class CompensatorNode(ManagedNode):
         another array, refuses the configuration; a missing one: uncompensated until the
         ``calibration`` topic brings one)."""
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
-        self._types = cv.rclpy_types()
         self._array_frame = p['array_frame_id']
         self._inputs = StampPairer(2, p['max_pending'])  # raw, reference
         self._truth = StampPairer(2, p['max_pending'])  # (raw, compensated), truth
@@ -153,6 +151,8 @@ class CompensatorNode(ManagedNode):
         self.dropped_non_finite = 0
         self._reset_metrics()
 
+        # The per-sample path reads and writes serialized messages (io/conversions).
+        self._cdr = cv.TensorCdr(self._array_frame)
         self._comp_pub = self.create_publisher(JointState, 'gradient/compensated', derived_qos())
         self._norm_pub = self.create_publisher(Float64, 'gradient/norm', derived_qos())
         self._sigma_pub = self.create_publisher(JointState, 'gradient/sigma', derived_qos())
@@ -165,12 +165,14 @@ class CompensatorNode(ManagedNode):
         self.create_subscription(
             String, 'calibration', gated(self._on_calibration), latched_qos()
         )
-        self.create_subscription(JointState, 'gradient/raw', gated(self._on_raw), derived_qos())
         self.create_subscription(
-            MagneticField, 'reference_field', gated(self._on_reference), derived_qos()
+            JointState, 'gradient/raw', gated(self._on_raw), derived_qos(), raw=True
         )
         self.create_subscription(
-            JointState, 'gradient/truth', gated(self._on_truth), derived_qos()
+            MagneticField, 'reference_field', gated(self._on_reference), derived_qos(), raw=True
+        )
+        self.create_subscription(
+            JointState, 'gradient/truth', gated(self._on_truth), derived_qos(), raw=True
         )
         self.create_service(Trigger, '~/reset_metrics', gated(self._on_reset))
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
@@ -287,11 +289,23 @@ class CompensatorNode(ManagedNode):
 
     # ----------------------------------------------------------------- samples
 
-    def _on_raw(self, msg: JointState) -> None:
-        self._pair(0, cv.stamp_to_ns(msg.header.stamp), tensor_or_nan(msg))
+    def _on_raw(self, data: bytes) -> None:
+        """A serialized tensor JointState; a malformed one is dropped and counted."""
+        try:
+            stamp_ns, g_raw = self._cdr.read(data)
+        except MessageError as error:
+            self._drop(None, f'a malformed gradient/raw ({error})')
+            return
+        self._pair(0, stamp_ns, g_raw)
 
-    def _on_reference(self, msg: MagneticField) -> None:
-        self._pair(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
+    def _on_reference(self, data: bytes) -> None:
+        """A serialized MagneticField (``B_1'``); a malformed one is dropped and counted."""
+        try:
+            stamp_ns, _, reading = cv.magnetic_field_from_cdr(data)
+        except MessageError as error:
+            self._drop(None, f'a malformed reference_field ({error})')
+            return
+        self._pair(1, stamp_ns, reading[:3])
 
     def _pair(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
         pair = self._inputs.add(stream, stamp_ns, value)
@@ -311,26 +325,31 @@ class CompensatorNode(ManagedNode):
         if not (np.all(np.isfinite(g)) and np.isfinite(norm_nt)):  # never publish inf or NaN
             self._drop(stamp_ns, 'a non-finite compensated tensor')
             return
-        self._comp_pub.publish(cv.tensor_msg(self._types, g, stamp_ns, self._array_frame))
-        self._norm_pub.publish(Float64(data=norm_nt))
+        self._comp_pub.publish(self._cdr.write(g, stamp_ns))
+        self._norm_pub.publish(cv.float64_cdr(norm_nt))
         if self._health is not None:
             self._health_buffer.append((stamp_ns * S_PER_NS, g, b_reference))
         if self._sigma is not None:
             sigma = self._sigma.one(b_reference)
             if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
-                sigma_msg = cv.tensor_msg(self._types, sigma, stamp_ns, self._array_frame)
-                self._sigma_pub.publish(sigma_msg)
+                self._sigma_pub.publish(self._cdr.write(sigma, stamp_ns))
         self.published += 1
         self._pair_truth(0, stamp_ns, (g_raw, g))
 
-    def _drop(self, stamp_ns: int, what: str) -> None:
+    def _drop(self, stamp_ns: int | None, what: str) -> None:
         self.dropped_non_finite += 1
         if self._warn():
-            self.get_logger().warning(f'dropped {what} at stamp {stamp_ns} ns')
+            where = '' if stamp_ns is None else f' at stamp {stamp_ns} ns'
+            self.get_logger().warning(f'dropped {what}{where}')
 
-    def _on_truth(self, msg: JointState) -> None:
-        g_true = tensor_or_nan(msg)
-        self._pair_truth(1, cv.stamp_to_ns(msg.header.stamp), g_true)
+    def _on_truth(self, data: bytes) -> None:
+        """A serialized ``gradient/truth``; a malformed one cannot be scored: its sample stays
+        unscored (evicted, counted as ``unscored_evicted``)."""
+        try:
+            stamp_ns, g_true = self._cdr.read(data)
+        except MessageError:
+            return
+        self._pair_truth(1, stamp_ns, g_true)
 
     def _pair_truth(self, stream: int, stamp_ns: int, value: Any) -> None:
         """Join ``(G_m, G)`` (stream 0) with ``gradient/truth`` (stream 1) and score the pair."""

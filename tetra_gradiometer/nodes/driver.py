@@ -57,10 +57,10 @@ from .common import (
     non_negative,
     one_of,
     positive,
-    spin_node,
     status,
 )
 from .managed import ManagedNode
+from .process import spin_node
 
 PARAMETERS = [
     ParamSpec(

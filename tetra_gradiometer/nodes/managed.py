@@ -3,7 +3,7 @@
 States and what each node does in them (docs/ros.md, *Lifecycle*):
 
 * constructed (``unconfigured``): the parameters are declared (a refused start-up value ends
-  the process, see ``common.spin_node``); nothing else exists, nothing is published;
+  the process, see ``process.spin_node``); nothing else exists, nothing is published;
 * ``on_configure``: :meth:`ManagedNode.configure` reads the parameters, checks what spans
   several of them and the files they name (calibration file, bag, scenario), and creates
   publishers, subscriptions, services and timers. A refusal (any ``TetraError``) fails the
@@ -204,7 +204,7 @@ class ManagedNode(LifecycleNode):
 
     def stop_work(self) -> None:
         """Stop the node's long work (a solve, an open bag) when it is configured: before its
-        executor stops (``common.spin_node``), so no callback waits on it."""
+        executor stops (``process.spin_node``), so no callback waits on it."""
         if self._configured:
             self.active = False
             self._configured = False

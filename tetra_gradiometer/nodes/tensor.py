@@ -37,6 +37,7 @@ from ..core import TetraGeometry, difference_tensor
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..core.timebase import SYNC_METHODS, Resampler, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
+from ..errors import MessageError
 from ..io import conversions as cv
 from ..io.matching import StampMatcher
 from .common import (
@@ -53,10 +54,10 @@ from .common import (
     one_of,
     positive,
     sensor_qos,
-    spin_node,
     status,
 )
 from .managed import ManagedNode
+from .process import spin_node
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -180,7 +181,6 @@ class TensorNode(ManagedNode):
         self._earlier: dict[str, int] = {}  # counts of the matchers reset before
         self._last_stamp: list[int | None] = [None] * 4
         self.resets = 0
-        self._types = cv.rclpy_types()
         self._warn = Throttle(p['warn_throttle_s'])
         self._stale_warn = Throttle(p['warn_throttle_s'])
 
@@ -195,13 +195,14 @@ class TensorNode(ManagedNode):
         self.sets_invalid = 0
         self.sets_stale = 0
 
+        self._raw_cdr = cv.TensorCdr(self._array_frame)
         self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
         self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         qos = sensor_qos(p['sensor_queue_depth'])
         self._subs = [
             self.create_subscription(
-                MagneticField, topic, self.when_active(partial(self._on_mag, i)), qos
+                MagneticField, topic, self.when_active(partial(self._on_mag, i)), qos, raw=True
             )
             for i, topic in enumerate(cv.MAG_TOPICS)
         ]
@@ -230,24 +231,30 @@ class TensorNode(ManagedNode):
             elif parameter.name == 'stale_timeout_s':
                 self._stale_timeout = float(parameter.value)
 
-    def _on_mag(self, sensor: int, msg: MagneticField) -> None:
-        """One reading (T): queue it; publish every set it completes."""
+    def _on_mag(self, sensor: int, data: bytes) -> None:
+        """One serialized MagneticField (T): queue its reading; publish every set it completes.
+        (Serialized: io/conversions reads the bytes, no message object per reading.)"""
         self._received[sensor] += 1
         self._last_arrival[sensor] = self._now_s()
         self._ever[sensor] = True
-        stamp = cv.stamp_to_ns(msg.header.stamp)
+        try:
+            # Each reading's covariance travels with its field (12 values): the reference_field
+            # of a set gets that of its own mag1 message (interpolated on a grid reference).
+            stamp, frame_id, reading = cv.magnetic_field_from_cdr(data)
+        except MessageError as error:
+            self._invalid[sensor] += 1
+            if self._warn():
+                self.get_logger().warning(f'dropped a malformed {cv.MAG_TOPICS[sensor]}: {error}')
+            return
         last = self._last_stamp[sensor]
         if last is not None and stamp < last - self._jump_back_ns:
             self._reset_matcher(sensor, last - stamp)
         self._last_stamp[sensor] = stamp
         if sensor == 0:
-            self._mag1_frame = msg.header.frame_id
-        # Each reading's covariance travels with its field (12 values): the reference_field
-        # of a set gets that of its own mag1 message (interpolated on a grid reference).
-        reading = cv.magnetic_field_reading(msg)
+            self._mag1_frame = frame_id
         sets: Iterable[tuple[int, np.ndarray]]
         if isinstance(self._matcher, Resampler):
-            stamps, values = self._matcher.add(sensor, [stamp], reading[None])
+            stamps, values = self._matcher.add_one(sensor, stamp, reading)
             sets = zip(stamps.tolist(), values, strict=True)
         else:
             sets = self._matcher.add(sensor, stamp, reading)
@@ -304,11 +311,11 @@ class TensorNode(ManagedNode):
         if not np.all(np.isfinite(g)):  # cannot happen for finite fields; never publish non-finite
             self.sets_invalid += 1
             return
-        self._raw_pub.publish(cv.tensor_msg(self._types, g, stamp_ns, self._array_frame))
+        self._raw_pub.publish(self._raw_cdr.write(g, stamp_ns))
         if not cv.known_covariance(covariance):  # also never publish a non-finite one
             covariance = cv.UNKNOWN_COVARIANCE
         self._ref_pub.publish(
-            cv.magnetic_field_msg(self._types, fields[0], stamp_ns, self._mag1_frame, covariance)
+            cv.magnetic_field_cdr(fields[0], stamp_ns, self._mag1_frame, covariance)
         )
         self.sets_published += 1
 
@@ -321,14 +328,18 @@ class TensorNode(ManagedNode):
         now = self._now_s()
         return [s for s in range(4) if now - self._last_arrival[s] > self._stale_timeout]
 
-    def _publish_diagnostics(self) -> None:
-        """Per-sensor rate, staleness and drops; the matching counters."""
-        now = self._now_s()
+    def _update_rates(self, now: float) -> None:
+        """Each sensor's message rate (Hz, node clock) since the previous diagnostics."""
         mark_time, mark_counts = self._rate_mark
         if now - mark_time > 0:
             pairs = zip(self._received, mark_counts, strict=True)
             self._rate = [(c - m) / (now - mark_time) for c, m in pairs]
         self._rate_mark = (now, list(self._received))
+
+    def _publish_diagnostics(self) -> None:
+        """Per-sensor rate, staleness and drops; the matching counters."""
+        now = self._now_s()
+        self._update_rates(now)
         stale = self._stale_sensors()
         clocks: list[dict[str, float]] = [{} for _ in range(4)]
         if isinstance(self._matcher, Resampler):
@@ -351,7 +362,8 @@ class TensorNode(ManagedNode):
                     ),
                 )
             elif invalid[s]:
-                level, text = WARN, f'{invalid[s]} non-finite or implausible readings'
+                level = WARN
+                text = f'{invalid[s]} non-finite, implausible or malformed readings'
             else:
                 level, text = OK, 'ok'
             array.status.append(
