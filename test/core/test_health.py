@@ -149,3 +149,22 @@ def test_bad_settings_are_named():
     data, calibration = _mission(3)
     with pytest.raises(InputError, match='sensor_noise_t'):
         HealthMonitor(GEOMETRY, calibration.parameters, 0.0)
+
+
+def test_history_window_sums_equal_a_plain_cumsum_across_compactions():
+    """The monitor's running history (prefix sums, re-based when compacted) against numpy's
+    cumsum over the rows it reports holding."""
+    from tetra_gradiometer.core.health import N_FEATURES, _History
+
+    rng = np.random.default_rng(11)
+    history, everything = _History(keep=50), []
+    for size in rng.integers(1, 40, 200):
+        rows = rng.normal(1e-9, 1e-9, (size, N_FEATURES))
+        held = history.append(rows)
+        everything.append(rows)
+        seen = np.concatenate(everything)[-len(history):]
+        assert held == len(history) - size and len(history) >= min(50, len(seen))
+        np.testing.assert_array_equal(history.rows, seen)
+        expected = np.vstack([np.zeros((1, N_FEATURES)), np.cumsum(seen, axis=0)])
+        np.testing.assert_allclose(history.sums, expected, rtol=0, atol=1e-20)
+    assert len(history) < 200 * 40 / 2  # compacted, not grown without bound
