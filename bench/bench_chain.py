@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import sys
 import tempfile
 import threading
@@ -153,6 +154,26 @@ class Driver:
         return rate, achieved, n, len(latencies), drops, p50, p99, worst
 
 
+def session_cpu_s(session: int) -> float:
+    """CPU time (user + system, s) of every process of a session (a node process and the
+    Python it re-executes: ros_wheels_bootstrapper), from /proc (Linux)."""
+    total, tick = 0, os.sysconf('SC_CLK_TCK')
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            fields = stat.read_text().rsplit(')', 1)[1].split()
+        except OSError:  # exited meanwhile
+            continue
+        if int(fields[3]) == session:  # field 6 of stat: the session id
+            total += int(fields[11]) + int(fields[12])  # utime, stime
+    return total / tick
+
+
+def own_cpu_s() -> float:
+    """CPU time (s) of this process, all its threads (the bench driver and its DDS)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def print_step(result: tuple) -> None:
     rate, achieved, n, count, drops, p50, p99, worst = result
     short = '' if achieved > 0.98 * rate else f'  (publisher reached only {achieved:.0f}/s)'
@@ -198,11 +219,18 @@ def main() -> int:
               f'load average {os.getloadavg()[0]:.2f}', flush=True)
         print(f'{"rate/s":>8} {"sent":>6} {"recv":>6} {"drops":>6} {"p50 ms":>8} {"p99 ms":>8} '
               f'{"max ms":>8}')
-        results = []
+        results, cpu = [], []
         for rate in args.rates:
+            before = [session_cpu_s(p.process.pid) for p in processes] + [own_cpu_s()]
             results.append(driver.run_step(rate, args.seconds, args.offsets_ms))
+            after = [session_cpu_s(p.process.pid) for p in processes] + [own_cpu_s()]
+            cpu.append([(b - a) / results[-1][3] * 1000 for a, b in zip(before, after)])
             print_step(results[-1])
         print_result(results)
+        for (rate, *_), (tensor, compensator, bench) in zip(results, cpu):
+            print(f'CPU per 1000 sets at {rate:.0f}/s: tensor {tensor:.2f} s, compensator '
+                  f'{compensator:.2f} s, bench driver {bench:.2f} s (total '
+                  f'{tensor + compensator + bench:.2f} s)')
     finally:
         executor.shutdown(timeout_sec=2)
         if spinner.is_alive():

@@ -13,6 +13,7 @@ never a traceback.
 
 from __future__ import annotations
 
+import gc
 from collections.abc import Callable
 from typing import Any
 
@@ -50,7 +51,7 @@ def _rcl_reason(error: Exception) -> str:
     return str(error).split(', at /')[0]
 
 
-_EVENTS_WAIT_S = 0.5  # longest wait of one spin_once: bounds the reaction to a shutdown
+_EVENTS_WAIT_S = 0.5  # longest wait of one spin call: bounds the reaction to a shutdown
 
 
 def events_executor() -> Any:
@@ -66,19 +67,23 @@ def events_executor() -> Any:
 
 def spin(executor: Any, context: Any = None) -> None:
     """Spin ``executor`` until ``context`` (default: rclpy's) shuts down (rclpy's SIGINT
-    handler, an external shutdown) or Ctrl-C raises. The events executor is spun by
-    ``spin_once`` in a loop: its own ``spin()`` in rclpy 7.1 neither returns on SIGINT nor
-    dispatches reliably."""
+    handler, an external shutdown) or Ctrl-C raises. The events executor is spun in a loop
+    of ``spin_until_future_complete`` on a future that never completes, with a timeout: its
+    own ``spin()`` in rclpy 7.1.6 busy-waits without dispatching and ignores SIGINT, and
+    ``spin_once`` returns to Python after every callback (a tenth of the tensor node's time
+    at 1000 sets/s went to that loop)."""
     import rclpy
     from rclpy.executors import Executor, ExternalShutdownException
+    from rclpy.task import Future
 
     if isinstance(executor, Executor):
         executor.spin()
         return
     context = context or rclpy.get_default_context()
+    never = Future()  # dispatch events until the timeout, not one per Python loop
     try:
         while context.ok():
-            executor.spin_once(timeout_sec=_EVENTS_WAIT_S)
+            executor.spin_until_future_complete(never, timeout_sec=_EVENTS_WAIT_S)
     except ExternalShutdownException:  # the context shut down while waiting: done
         pass
 
@@ -129,6 +134,11 @@ def spin_node(
         MultiThreadedExecutor(num_threads=threads) if threads > 1 else events_executor()
     )
     executor.add_node(node)
+    # The objects of start-up (rclpy, numpy, scipy, the node) will live as long as the
+    # process: moved out of the collector's reach, a full collection no longer walks them
+    # (a pause of several ms in the middle of the message stream: bench/bench_chain.py p99).
+    gc.collect()
+    gc.freeze()
     try:
         spin(executor)
     except (KeyboardInterrupt, ExternalShutdownException):
