@@ -1,5 +1,6 @@
 """``python -m tetra_gradiometer bringup [--params FILE] [--mode sim|replay] [--bag PATH]
-[--unconfigured]``: the four nodes in one process on a MultiThreadedExecutor until Ctrl-C.
+[--unconfigured]``: the four nodes in one process until Ctrl-C (the data path on rclpy's
+EventsExecutor, the calibrator on a MultiThreadedExecutor of its own).
 
 The nodes are lifecycle nodes (nodes/managed.py): bringup creates them unconfigured and
 then configures and activates each in the order tensor, calibrator, compensator, driver (the
@@ -98,32 +99,46 @@ def create_nodes(args: argparse.Namespace, driver_extra: Sequence[Any] = ()) -> 
 
 
 def run(args: argparse.Namespace) -> int:
+    import threading
+
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from ..nodes.process import interrupt_on_signals
+    from ..nodes.calibrator import CalibratorNode
+    from ..nodes.process import events_executor, spin, stop_on_signals
 
-    # Our own Ctrl-C handling (KeyboardInterrupt), so callbacks stop before the context goes.
-    interrupt_on_signals()
+    # Our own Ctrl-C handling (a flag the spin loop reads), so callbacks stop before the
+    # context goes.
+    stop = stop_on_signals()
     rclpy.init(
         args=ros_arguments(args.params, args.ros_args),
         signal_handler_options=SignalHandlerOptions.NO,
     )
     nodes: list[Any] = []
-    executor = MultiThreadedExecutor(num_threads=4)
+    # The data path (driver, tensor, compensator) on the events executor in this thread, as
+    # each runs alone (nodes/process.spin_node); the calibrator on its own multithreaded one
+    # (a waiting ~/calibrate must not block its diagnostics and ~/cancel), in another thread.
+    data_path, calibrator = events_executor(), MultiThreadedExecutor(num_threads=4)
+    worker = threading.Thread(target=calibrator.spin, daemon=True)
     try:
         nodes = create_nodes(args)
         for node in nodes:
-            executor.add_node(node)
+            (calibrator if isinstance(node, CalibratorNode) else data_path).add_node(node)
+        worker.start()
         if not args.unconfigured:
             for node in nodes:
                 node.bring_up()
-        executor.spin()
+        spin(data_path, stop=stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        executor.shutdown(timeout_sec=2)  # let running callbacks finish before the nodes go
+        for node in nodes:
+            node.stop_work()
+        for executor in (data_path, calibrator):  # running callbacks finish before the nodes go
+            executor.shutdown(timeout_sec=2)
+        if worker.is_alive():
+            worker.join(timeout=5)
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()

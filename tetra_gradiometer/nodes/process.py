@@ -14,6 +14,7 @@ never a traceback.
 from __future__ import annotations
 
 import gc
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -32,6 +33,22 @@ def interrupt_on_signals() -> None:
 
     signal.signal(signal.SIGINT, interrupt)
     signal.signal(signal.SIGTERM, interrupt)
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (also when the shell started us with SIGINT
+    ignored), for :func:`spin` of the events executor: a KeyboardInterrupt raised inside one
+    of its callbacks would be logged as the callback's failure instead of stopping it."""
+    import signal
+
+    stop = threading.Event()
+
+    def request_stop(signum: int, frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    return stop
 
 
 def _start_refusal(node: Any, args: list[str] | None) -> str | None:
@@ -65,9 +82,10 @@ def events_executor() -> Any:
     return EventsExecutor()
 
 
-def spin(executor: Any, context: Any = None) -> None:
+def spin(executor: Any, context: Any = None, stop: threading.Event | None = None) -> None:
     """Spin ``executor`` until ``context`` (default: rclpy's) shuts down (rclpy's SIGINT
-    handler, an external shutdown) or Ctrl-C raises. The events executor is spun in a loop
+    handler, an external shutdown), ``stop`` is set (:func:`stop_on_signals`) or Ctrl-C
+    raises. The events executor is spun in a loop
     of ``spin_until_future_complete`` on a future that never completes, with a timeout: its
     own ``spin()`` in rclpy 7.1.6 busy-waits without dispatching and ignores SIGINT, and
     ``spin_once`` returns to Python after every callback (a tenth of the tensor node's time
@@ -82,7 +100,7 @@ def spin(executor: Any, context: Any = None) -> None:
     context = context or rclpy.get_default_context()
     never = Future()  # dispatch events until the timeout, not one per Python loop
     try:
-        while context.ok():
+        while context.ok() and not (stop and stop.is_set()):
             executor.spin_until_future_complete(never, timeout_sec=_EVENTS_WAIT_S)
     except ExternalShutdownException:  # the context shut down while waiting: done
         pass
