@@ -7,9 +7,10 @@ import pytest
 from tetra_gradiometer.core.timebase import TimeBase
 
 from tetra_gradiometer.io import conversions as cv
+from tetra_gradiometer.errors import InputError
 from tetra_gradiometer.io import matching
 from tetra_gradiometer.io.bag import (BagError, BagWriter, MagneticBag, _UnsupportedEncoding, decode_magnetic_field,
-                                      encode_magnetic_field, encode_tensor, typestore)
+                                      typestore)
 
 START = 1_767_225_600 * 10**9
 
@@ -25,7 +26,7 @@ def test_encoder_is_byte_identical_to_rosbags(store, frame):
     field = np.array([1.25e-5, -2.5e-5, 4.75e-5])
     for stamp in (0, START + 123_456_789, 2**31 * 10**9 - 1):
         msg = cv.magnetic_field_msg(types, field, stamp, frame)
-        assert encode_magnetic_field(stamp, field, frame) == bytes(store.serialize_cdr(msg, cv.MAGNETIC_FIELD))
+        assert cv.magnetic_field_cdr(field, stamp, frame) == bytes(store.serialize_cdr(msg, cv.MAGNETIC_FIELD))
 
 
 @pytest.mark.parametrize('frame', ['tetra_array', '', 'a', 'ab', 'abc', 'abcd', 'abcde'])
@@ -34,7 +35,7 @@ def test_tensor_encoder_is_byte_identical_to_rosbags(store, frame):
     g = np.random.default_rng(2).normal(0.0, 1e-7, (3, 3))
     stamp = START + 987_654_321
     msg = cv.tensor_msg(types, g, stamp, frame)
-    raw = encode_tensor(stamp, g, frame)
+    raw = cv.TensorCdr(frame).write(g, stamp)
     assert raw == bytes(store.serialize_cdr(msg, cv.JOINT_STATE))
     back = store.deserialize_cdr(raw, cv.JOINT_STATE)
     assert np.array_equal(cv.tensor_from_msg(back), g) and cv.stamp_to_ns(back.header.stamp) == stamp
@@ -92,7 +93,7 @@ def _write_streams(path, streams, storage):
                         for i, s in enumerate(stamps))
         for stamp, sensor, i in events:
             writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD,
-                             encode_magnetic_field(stamp, streams[sensor][1][i], cv.MAG_FRAMES[sensor]), stamp)
+                             cv.magnetic_field_cdr(streams[sensor][1][i], stamp, cv.MAG_FRAMES[sensor]), stamp)
 
 
 def _read(path, **options):
@@ -155,3 +156,42 @@ def test_bag_without_magnetometers_is_refused(tmp_path):
         bag.check_contract()
     with pytest.raises(BagError, match='not found'):
         MagneticBag(tmp_path / 'nothing')
+
+
+def test_a_bag_recorded_under_a_vehicle_namespace_is_read_through_a_topic_map(tmp_path):
+    """A topic map (``FROM:=TO``, as ``ros2 bag play --remap``) reads the bag's own names as
+    the contract's: the sets equal the fields written; without it the bag is refused with a
+    hint; replay frames carry the contract's keys."""
+    from tetra_gradiometer.io import replay
+
+    stamps = START + np.arange(200) * 20_000_000
+    fields = np.random.default_rng(5).normal(0.0, 3e-5, (200, 4, 3))
+    path = tmp_path / 'vehicle'
+    recorded = [f'/auv1{topic}' for topic in cv.BAG_MAG_TOPICS]
+    with BagWriter(path) as writer:
+        for i, stamp in enumerate(stamps.tolist()):
+            for sensor, topic in enumerate(recorded):
+                writer.write_raw(topic, cv.MAGNETIC_FIELD,
+                                 cv.magnetic_field_cdr(fields[i, sensor], stamp, cv.MAG_FRAMES[sensor]), stamp)
+    with MagneticBag(path) as bag, pytest.raises(BagError, match='remap'):
+        bag.check_contract()
+    rules = ' '.join(f'{a}:={b}' for a, b in zip(recorded, cv.BAG_MAG_TOPICS))
+    with MagneticBag(path, remap=cv.parse_remap(rules)) as bag:
+        got_stamps, got = bag.read_sets(timebase=TimeBase(sync='nearest'))
+    np.testing.assert_array_equal(got_stamps, stamps)
+    np.testing.assert_array_equal(got, fields)
+    frames = list(replay.iter_frames(path, cv.rosbags_types(typestore()), remap=cv.parse_remap(rules)))
+    assert len(frames) == 800 and {f.items[0][:2] for f in frames} == {('mag', s) for s in range(4)}
+
+
+@pytest.mark.parametrize('rules, message', [
+    ('/a/mag1=/tetra/mag1', 'expected'),
+    ('a/mag1:=/tetra/mag1', 'expected'),
+    ('/a/mag1:=/tetra/mag9', 'not a topic of the bag contract'),
+    ('/a/x:=/tetra/mag1 /a/x:=/tetra/mag2', 'twice'),
+    ('/a/x:=/tetra/mag1, /a/y:=/tetra/mag1', 'twice'),
+])
+def test_bad_topic_map_rules_are_refused_with_the_rule(rules, message):
+    with pytest.raises(InputError, match=message):
+        cv.parse_remap(rules)
+    assert cv.parse_remap('') == {}

@@ -18,8 +18,7 @@ from tetra_gradiometer.core.timebase import TimeBase
 from tetra_gradiometer.core import TetraGeometry
 from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io import replay
-from tetra_gradiometer.io.bag import BagError, BagWriter, MagneticBag, decode_magnetic_field, encode_magnetic_field, \
-    typestore
+from tetra_gradiometer.io.bag import BagError, BagWriter, MagneticBag, decode_magnetic_field, typestore
 from tetra_gradiometer.io.bag_skips import SkippedMessage
 from tetra_gradiometer.io.params import params_document
 
@@ -38,7 +37,7 @@ def _write(path, storage, stamps, fields, damage=None):
     with BagWriter(path, storage=storage) as writer:
         for i, stamp in enumerate(stamps):
             for sensor in range(4):
-                raw = encode_magnetic_field(int(stamp), fields[i, sensor], cv.MAG_FRAMES[sensor])
+                raw = cv.magnetic_field_cdr(fields[i, sensor], int(stamp), cv.MAG_FRAMES[sensor])
                 if (i, sensor) in damage:
                     raw = damage[(i, sensor)](raw)
                 writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD, raw, int(stamp))
@@ -200,7 +199,7 @@ def test_a_corrupt_compressed_chunk_is_skipped(tmp_path):
         for i, stamp in enumerate(stamps):
             for sensor in range(4):
                 writer.write(connections[sensor], int(stamp),
-                             encode_magnetic_field(int(stamp), fields[i, sensor], cv.MAG_FRAMES[sensor]))
+                             cv.magnetic_field_cdr(fields[i, sensor], int(stamp), cv.MAG_FRAMES[sensor]))
     mcap, chunks = _mcap_chunks(tmp_path / 'bag')
     assert len(chunks) >= 3 and chunks[1].compression == 'zstd'
     chunk = chunks[1]
@@ -242,7 +241,7 @@ def test_a_corrupt_sqlite_page_costs_only_its_rows(tmp_path):
             for sensor in range(4):
                 frame = cv.MAG_FRAMES[sensor] + ('x' * 10_000 if sensor == 1 else '')
                 writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD,
-                                 encode_magnetic_field(int(stamp), fields[i, sensor], frame), int(stamp))
+                                 cv.magnetic_field_cdr(fields[i, sensor], int(stamp), frame), int(stamp))
     (db3,) = (tmp_path / 'bag').glob('*.db3')
     with sqlite3.connect(db3) as db:
         page_size = db.execute('PRAGMA page_size').fetchone()[0]
@@ -275,12 +274,12 @@ def test_negative_and_pre_1970_stamps_round_trip_exactly(tmp_path, storage):
         for i, stamp in enumerate(stamps):
             for sensor in range(4):
                 writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD,
-                                 encode_magnetic_field(int(stamp), fields[i, sensor], cv.MAG_FRAMES[sensor]), START + i)
+                                 cv.magnetic_field_cdr(fields[i, sensor], int(stamp), cv.MAG_FRAMES[sensor]), START + i)
     for fast in (True, False):
         got_stamps, got_fields, skipped, _ = _read(tmp_path / 'bag', fast=fast)
         assert got_stamps.tolist() == stamps.tolist() and skipped == []
         assert np.array_equal(got_fields, fields)
-    raws = [encode_magnetic_field(int(s), fields[0, 0], 'tetra_mag1') for s in stamps]
+    raws = [cv.magnetic_field_cdr(fields[0, 0], int(s), 'tetra_mag1') for s in stamps]
     store = typestore()
     truth = [cv.stamp_to_ns(store.deserialize_cdr(r, cv.MAGNETIC_FIELD).header.stamp) for r in raws]
     assert decode_magnetic_field(raws)[0].tolist() == truth == stamps.tolist()

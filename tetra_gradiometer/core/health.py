@@ -528,11 +528,9 @@ class HealthMonitor:
 
 class _History:
     """The feature rows of at least the last ``keep`` samples and their prefix sums (a zero
-    row first), appended in place: the window means cost O(1) per sample instead of a cumsum
-    over the whole history per update (at 1000 samples/s, 2 x 64 s of rows: 19 ms per update
-    of the compensator node's 0.1 s batches). When the buffer is full it keeps the last
-    ``keep`` rows and re-bases their sums, so the sums stay as small as the windows' (the
-    precision of the differences)."""
+    row first), appended in place: O(1) per sample, not a cumsum of the whole history per
+    update (at 1000 samples/s: 19 ms per 0.1 s batch of the compensator node). When full it
+    keeps the last ``keep`` rows and re-bases their sums (as small as the windows')."""
 
     def __init__(self, keep: int) -> None:
         self.keep = keep

@@ -19,8 +19,8 @@ Fast paths (the generic ones stay, and a test checks both agree):
   operations; otherwise it goes message by message through
   :class:`~tetra_gradiometer.matching.StampMatcher`.
 * :meth:`BagWriter.write_fields` and :meth:`BagWriter.write_tensors` encode MagneticField
-  and the tensor JointState directly (:func:`encode_magnetic_field`,
-  :func:`encode_tensor`), byte-identical to rosbags' serializer.
+  and the tensor JointState directly (``conversions.magnetic_field_cdr``,
+  ``conversions.TensorCdr``: the nodes' writers), byte-identical to rosbags' serializer.
 
 Damage (issue 13): a message that does not decode (cut short, absurd frame_id length,
 unknown encapsulation, header nanosec >= 1e9) and an unreadable storage chunk
@@ -31,8 +31,7 @@ only when more than ``max_skipped_fraction`` (default 1 %) of a topic's messages
 from __future__ import annotations
 
 import os
-import struct
-from collections.abc import Callable, Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,46 +68,6 @@ IntArray = npt.NDArray[np.int64]
 SetCounters = MatchCounters | ResampleCounters
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
-
-
-def encode_magnetic_field(
-    stamp_ns: int, field_t: np.ndarray, frame_id: str, covariance_t2: np.ndarray | None = None
-) -> bytes:
-    """Little-endian CDR of a ``sensor_msgs/MagneticField``: field (3,) T, covariance (9,)
-    T^2 (None: REP 145's unknown, ``conversions.UNKNOWN_COVARIANCE``)."""
-    covariance = cv.UNKNOWN_COVARIANCE if covariance_t2 is None else covariance_t2
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
-    frame = frame_id.encode('utf-8') + b'\x00'
-    head = _CDR_LE + b'\x00\x00' + struct.pack('<iII', sec, nanosec, len(frame)) + frame
-    pad = -(len(head) - 4) % 8
-    values = [*(float(v) for v in field_t), *np.asarray(covariance, dtype=float).reshape(9)]
-    return head + b'\x00' * pad + struct.pack('<12d', *values)
-
-
-def _cdr_string(text: str, length_so_far: int) -> bytes:
-    """A CDR string (uint32 length incl. NUL, bytes, NUL) after ``length_so_far`` payload
-    bytes, with the padding that aligns its length field to 4."""
-    data = text.encode('utf-8') + b'\x00'
-    return b'\x00' * (-length_so_far % 4) + struct.pack('<I', len(data)) + data
-
-
-def encode_tensor(stamp_ns: int, g: np.ndarray, frame_id: str = cv.ARRAY_FRAME) -> bytes:
-    """Little-endian CDR of the tensor ``sensor_msgs/JointState`` (``conversions.tensor_msg``):
-    names ``gxx..gzz``, positions ``g`` (3, 3) T/m row-major, empty velocity and effort."""
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
-    body = struct.pack('<iI', sec, nanosec)
-    body += _cdr_string(frame_id, len(body))
-    body += b'\x00' * (-len(body) % 4) + struct.pack('<I', len(cv.TENSOR_NAMES))
-    for name in cv.TENSOR_NAMES:
-        body += _cdr_string(name, len(body))
-    body += b'\x00' * (-len(body) % 4) + struct.pack('<I', 9)
-    body += b'\x00' * (-len(body) % 8) + struct.pack(
-        '<9d', *np.asarray(g, dtype=float).reshape(9).tolist()
-    )
-    body += struct.pack(
-        '<II', 0, 0
-    )  # velocity[], effort[]: empty (offset is 4-aligned after doubles)
-    return _CDR_LE + b'\x00\x00' + body
 
 
 class _BatchMatcher:
@@ -231,6 +190,8 @@ class MagneticBag:
     max_skipped_fraction : largest fraction of a topic's messages (the magnetometers
         together in :meth:`iter_sets`) that may be skipped as undecodable or unreadable
         before a read raises :class:`BagError`; default 0.01 (1 %)
+    remap : the bag's topic -> the contract's (``conversions.parse_remap``), for a bag recorded
+        under other names (e.g. a vehicle namespace: ``/auv1/tetra/mag1`` -> ``/tetra/mag1``)
 
     Attributes
     ----------
@@ -244,9 +205,14 @@ class MagneticBag:
     """
 
     def __init__(
-        self, path: str | os.PathLike, *, max_skipped_fraction: float = MAX_SKIPPED_FRACTION
+        self,
+        path: str | os.PathLike,
+        *,
+        max_skipped_fraction: float = MAX_SKIPPED_FRACTION,
+        remap: Mapping[str, str] | None = None,
     ) -> None:
         self.path = Path(path)
+        self.remap = dict(remap or {})
         if not self.path.exists():
             raise BagError(f'bag not found: {self.path}')
         if not 0.0 <= max_skipped_fraction <= 1.0:
@@ -306,8 +272,12 @@ class MagneticBag:
                 f'{self.max_skipped_fraction:.2%}): {self.skipped_summary()}'
             )
 
+    def topic_of(self, recorded: str) -> str:
+        """The contract topic a recorded topic name stands for (``remap``)."""
+        return self.remap.get(recorded, recorded)
+
     def _connections(self, topic: str) -> list:
-        return [c for c in self.reader.connections if c.topic == topic]
+        return [c for c in self.reader.connections if self.topic_of(c.topic) == topic]
 
     def has_topic(self, topic: str) -> bool:
         return bool(self._connections(topic))
@@ -318,7 +288,10 @@ class MagneticBag:
         missing = [t for t in cv.BAG_MAG_TOPICS if not self.has_topic(t)]
         if missing:
             present = sorted({c.topic for c in self.reader.connections})
-            raise BagError(f'{self.path}: missing topic(s) {missing} (present: {present})')
+            hint = f'; remapped: {self.remap}' if self.remap else ' (a topic map: remap)'
+            raise BagError(
+                f'{self.path}: missing topic(s) {missing} (present: {present}){hint}'
+            )
         for topic in cv.BAG_MAG_TOPICS:
             wrong = [c.msgtype for c in self._connections(topic) if c.msgtype != cv.MAGNETIC_FIELD]
             if wrong:
@@ -361,9 +334,9 @@ class MagneticBag:
         form = _set_former(timebase)
         self.counters, self.clocks = form.counters, None
         index = {
-            c.id: cv.BAG_MAG_TOPICS.index(c.topic)
+            c.id: cv.BAG_MAG_TOPICS.index(self.topic_of(c.topic))
             for c in self.reader.connections
-            if c.topic in cv.BAG_MAG_TOPICS
+            if self.topic_of(c.topic) in cv.BAG_MAG_TOPICS
         }
         connections = [c for c in self.reader.connections if c.id in index]
         first: list[int] = []
@@ -374,7 +347,7 @@ class MagneticBag:
 
         def on_skip(record: SkippedMessage) -> None:
             n = self.record_skip(record)  # recorded whatever the topic ('': a storage range)
-            lost[0] += n if record.topic in cv.BAG_MAG_TOPICS else 0
+            lost[0] += n if self.topic_of(record.topic) in cv.BAG_MAG_TOPICS else 0
 
         def flush(final: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
             batches = [self._decode(raws[sensor], fast, on_skip) for sensor in range(4)]
@@ -469,7 +442,7 @@ class MagneticBag:
 
         def on_skip(record: SkippedMessage) -> None:
             n = self.record_skip(record)
-            lost[0] += n if record.topic == topic else 0
+            lost[0] += n if self.topic_of(record.topic) == topic else 0
 
         for connection, log_ns, raw in guarded_messages(self.reader, connections, on_skip):
             try:
@@ -574,11 +547,12 @@ class BagWriter:
             self.write_raw(
                 topic,
                 cv.MAGNETIC_FIELD,
-                encode_magnetic_field(stamp_ns, sample[sensor], frame),
+                cv.magnetic_field_cdr(sample[sensor], stamp_ns, frame),
                 stamp_ns,
             )
 
     def write_tensors(self, topic: str, stamps_ns: np.ndarray, tensors: np.ndarray) -> None:
         """A tensor topic from tensors (N, 3, 3) T/m (JointState CDR encoded directly)."""
+        writer = cv.TensorCdr(cv.ARRAY_FRAME)
         for stamp, g in zip(stamps_ns, np.asarray(tensors, dtype=float), strict=True):
-            self.write_raw(topic, cv.JOINT_STATE, encode_tensor(int(stamp), g), int(stamp))
+            self.write_raw(topic, cv.JOINT_STATE, writer.write(g, int(stamp)), int(stamp))

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from ..core.units import NS_PER_S
-from ..errors import MessageError
+from ..errors import InputError, MessageError
 
 NAMESPACE = '/tetra'
 MAG_TOPICS = ('mag1', 'mag2', 'mag3', 'mag4')
@@ -51,6 +51,44 @@ ODOM_TOPIC = '/odom'
 TEMPERATURE_TOPIC = '/tetra/temperature'
 BATTERY_TOPIC = '/battery_state'
 BAG_MAG_TOPICS = tuple(f'{NAMESPACE}/{name}' for name in MAG_TOPICS)
+
+#: The topics of the bag contract (README, "Topics"): what ``remap`` may map to.
+CONTRACT_TOPICS = (
+    *BAG_MAG_TOPICS,
+    f'{NAMESPACE}/gradient/truth',
+    ODOM_TOPIC,
+    TEMPERATURE_TOPIC,
+    BATTERY_TOPIC,
+)
+
+
+def parse_remap(text: str) -> dict[str, str]:
+    """A topic map from ``FROM:=TO`` rules separated by spaces or commas (the form of
+    ``ros2 bag play --remap``): the bag's topic ``FROM`` is read as the contract's ``TO``.
+
+    Raises
+    ------
+    InputError
+        A rule without ``:=``, a name that is not absolute, a ``FROM`` given twice, a ``TO``
+        that is not a contract topic (:data:`CONTRACT_TOPICS`) or given twice.
+    """
+    rules: dict[str, str] = {}
+    for rule in text.replace(',', ' ').split():
+        recorded, sep, contract = rule.partition(':=')
+        if not sep or not recorded.startswith('/') or not contract.startswith('/'):
+            raise InputError(
+                f'topic map rule {rule!r}: expected /RECORDED_TOPIC:=/CONTRACT_TOPIC'
+            )
+        if contract not in CONTRACT_TOPICS:
+            raise InputError(
+                f'topic map rule {rule!r}: {contract} is not a topic of the bag contract '
+                f'({", ".join(CONTRACT_TOPICS)})'
+            )
+        if recorded in rules or contract in rules.values():
+            raise InputError(f'topic map rule {rule!r}: {recorded} or {contract} mapped twice')
+        rules[recorded] = contract
+    return rules
+
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -309,11 +347,12 @@ def battery_msg(types: MessageTypes, current_a: float, stamp_ns: int) -> Any:
 # Hand-written, not rosbags' CDR codec (pure Python: slower than rclpy's objects) nor rclpy's
 # serialize_message (it takes the message objects whose cost this avoids). Layout: XCDR1
 # little endian (encapsulation 00 01, two option bytes), each primitive aligned to its size
-# from the start of the payload (after the 4-byte encapsulation). A subscription created with
-# ``raw=True`` hands its callback these bytes and ``Publisher.publish`` takes them. The writers
-# are checked once per process against the RMW's own serialization (:func:`cdr_agrees`); where
-# it differs they serialize rclpy's message objects instead, and the readers fall back to
-# rclpy's deserialization for anything they do not recognise: one path for the nodes either way.
+# from the start of the payload (after the 4-byte encapsulation): what rosbags writes in a bag
+# (the bag writer uses these too) and what the RMWs of ROS 2 put on the wire. A subscription
+# created with ``raw=True`` hands its callback these bytes and ``Publisher.publish`` takes
+# them. The nodes check once that their RMW agrees (:func:`cdr_agrees`) and refuse to
+# configure otherwise; the readers fall back to rclpy's deserialization for any encoding or
+# layout they do not recognise.
 
 _CDR_LE = b'\x00\x01\x00\x00'
 _STAMP = struct.Struct('<iI')
@@ -358,8 +397,6 @@ class TensorCdr:
     def write(self, g: np.ndarray, stamp_ns: int) -> bytes:
         """The serialized message of the tensor ``g`` (3, 3) (or (9,) row-major) T/m at
         ``stamp_ns`` (integer ns)."""
-        if not cdr_agrees():
-            return _serialize(tensor_msg(rclpy_types(), g, stamp_ns, self.frame_id))
         data = np.ascontiguousarray(g, dtype='<f8').tobytes()
         return b''.join((_CDR_LE, _cdr_stamp(stamp_ns), self._middle, data, self._tail))
 
@@ -394,10 +431,6 @@ def magnetic_field_cdr(
     """Serialized :func:`magnetic_field_msg`: field (3,) T, covariance (9,) T^2 (None:
     REP 145 unknown)."""
     covariance = UNKNOWN_COVARIANCE if covariance_t2 is None else covariance_t2
-    if not cdr_agrees():
-        return _serialize(
-            magnetic_field_msg(rclpy_types(), field_t, stamp_ns, frame_id, covariance)
-        )
     payload = bytearray(_cdr_stamp(stamp_ns))
     _cdr_string(payload, frame_id)
     _cdr_pad(payload, 8)
@@ -442,12 +475,6 @@ def _cdr_header(data: bytes) -> tuple[int, str, int]:
     return sec * NS_PER_S + nanosec, data[16 : end - 1].decode(errors='replace'), end
 
 
-def _serialize(msg: Any) -> bytes:
-    from rclpy.serialization import serialize_message
-
-    return bytes(serialize_message(msg))
-
-
 def _deserialize(data: bytes, type_name: str) -> Any:
     """rclpy's deserialization of ``data`` as ``type_name``; MessageError when it fails."""
     from rclpy.serialization import deserialize_message
@@ -458,15 +485,11 @@ def _deserialize(data: bytes, type_name: str) -> Any:
         raise MessageError(f'cannot deserialize a {type_name}: {error}') from None
 
 
-_AGREES: list[bool] = []
-
-
+@functools.cache
 def cdr_agrees() -> bool:
     """Whether the RMW serializes as the writers here do (checked once per process against
-    rclpy's serialize_message, on several frame-id lengths: every alignment)."""
-    if not _AGREES:
-        _AGREES.append(_writers_agree())
-    return _AGREES[0]
+    rclpy's serialize_message and deserialize_message, on frame ids of every alignment)."""
+    return _writers_agree()
 
 
 def _writers_agree() -> bool:
@@ -477,7 +500,6 @@ def _writers_agree() -> bool:
     types = rclpy_types()
     stamp, g = 1_234_567_890_123_456_789, np.arange(1.0, 10.0).reshape(3, 3)
     reading = np.r_[1e-5, -2e-5, 3e-5, np.arange(9.0) * 1e-20]
-    _AGREES.append(True)  # the writers below write CDR while checked
     try:
         for frame in ('', 'a', 'ab', 'abc', 'abcd', ARRAY_FRAME):
             layout = TensorCdr(frame)
@@ -501,5 +523,3 @@ def _writers_agree() -> bool:
         return bool(float64.data == 2.5)
     except Exception:  # noqa: BLE001 - any disagreement (rclpy raises its C layer's errors)
         return False
-    finally:
-        _AGREES.clear()

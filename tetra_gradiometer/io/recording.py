@@ -22,7 +22,7 @@ from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
-from .bag import BagWriter, MagneticBag, encode_magnetic_field
+from .bag import BagWriter, MagneticBag
 from .progress import progress_bar
 
 
@@ -159,7 +159,7 @@ def _write_streams(
             extras.write(writer, i, stamp)
             continue
         field_t = streams[sensor].fields[i]
-        message = encode_magnetic_field(stamp, field_t, cv.MAG_FRAMES[sensor])
+        message = cv.magnetic_field_cdr(field_t, stamp, cv.MAG_FRAMES[sensor])
         writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD, message, stamp)
     return bar
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Generator
+from collections.abc import Generator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,18 +77,24 @@ class Frame:
 # --------------------------------------------------------------------------- replay
 
 
-def describe_bag(path: str | os.PathLike) -> dict[str, Any]:
+def describe_bag(
+    path: str | os.PathLike, remap: Mapping[str, str] | None = None
+) -> dict[str, Any]:
     """Check a bag's contract and describe it: ``messages`` (magnetometer messages) and
-    ``topics`` (the replayed topics present, comma separated).
+    ``topics`` (the replayed topics present, comma separated, as recorded).
+
+    ``remap``: the bag's topic -> the contract's (``conversions.parse_remap``).
 
     Raises
     ------
     BagError
         The bag cannot be opened, lacks a magnetometer topic or holds no messages.
     """
-    with MagneticBag(path) as bag:
+    with MagneticBag(path, remap=remap) as bag:
         count = bag.check_contract()
-        topics = sorted({c.topic for c in bag.reader.connections if c.topic in REPLAY_TOPICS})
+        topics = sorted(
+            {c.topic for c in bag.reader.connections if bag.topic_of(c.topic) in REPLAY_TOPICS}
+        )
     return {'messages': count, 'topics': ', '.join(topics)}
 
 
@@ -99,6 +105,7 @@ def iter_frames(
     max_duration_s: float = 0.0,
     sensor_noise_t: float = 0.0,
     skipped: list[SkippedMessage] | None = None,
+    remap: Mapping[str, str] | None = None,
 ) -> Generator[Frame, None, None]:
     """Yield one frame per recorded message of :data:`REPLAY_TOPICS`, in log-time order.
 
@@ -111,16 +118,17 @@ def iter_frames(
         without a covariance (unknown, all zero or non-finite); 0 marks them unknown (-1)
     skipped : if given, receives the skipped messages and chunks as they happen (they are
         also logged: the first few one by one, the count when the replay ends)
+    remap : the bag's topic -> the contract's, for a bag recorded under other names
 
     Raises
     ------
     BagError
         As :func:`describe_bag`, on the first ``next()``.
     """
-    with MagneticBag(path) as bag:
+    with MagneticBag(path, remap=remap) as bag:
         bag.check_contract()
         reader = bag.reader
-        connections = [c for c in reader.connections if c.topic in REPLAY_TOPICS]
+        connections = [c for c in reader.connections if bag.topic_of(c.topic) in REPLAY_TOPICS]
 
         def on_skip(record: SkippedMessage) -> None:
             bag.record_skip(record)
@@ -138,7 +146,7 @@ def iter_frames(
             for connection, log_ns, raw in guarded_messages(reader, connections, on_skip):
                 try:
                     msg: Any = reader.deserialize(raw, connection.msgtype)
-                    key, sensor = REPLAY_TOPICS[connection.topic]
+                    key, sensor = REPLAY_TOPICS[bag.topic_of(connection.topic)]
                     stamp = checked_stamp_ns(msg.header.stamp)
                     frame_msg = _rebuild(types, key, msg, stamp, default_covariance)
                     log_ns = int(log_ns)

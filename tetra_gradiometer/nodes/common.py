@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ParamsError
+from ..errors import ParamsError, TetraError
 from ..io import conversions as cv
 
 NAMESPACE = '/tetra'
@@ -464,3 +464,23 @@ def tensor_or_nan(msg: Any) -> np.ndarray:
         return cv.tensor_from_msg(msg)
     except cv.MessageError:
         return np.full((3, 3), np.nan)
+
+
+def check_serialization() -> None:
+    """Refuse to configure a node whose per-message path reads and writes serialized messages
+    (io/conversions) when the RMW serializes otherwise (never seen: Fast DDS, Cyclone DDS and
+    Connext all use XCDR1 little endian for these types).
+
+    Raises
+    ------
+    TetraError
+        The RMW's serialization differs from io/conversions' CDR layout.
+    """
+    if not cv.cdr_agrees():
+        rmw = os.environ.get('RMW_IMPLEMENTATION', 'the default RMW')
+        raise TetraError(
+            f'{rmw} does not serialize sensor_msgs/MagneticField and JointState as plain CDR '
+            '(XCDR1, little endian), which this node reads and writes directly '
+            '(io/conversions.py); use rmw_fastrtps_cpp or rmw_cyclonedds_cpp'
+        )
+

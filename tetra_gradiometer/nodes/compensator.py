@@ -59,6 +59,7 @@ from .common import (
     WARN_THROTTLE_SPEC,
     ParamSpec,
     Throttle,
+    check_serialization,
     derived_qos,
     diagnostics_period_spec,
     latched_qos,
@@ -152,6 +153,7 @@ class CompensatorNode(ManagedNode):
         self._reset_metrics()
 
         # The per-sample path reads and writes serialized messages (io/conversions).
+        check_serialization()
         self._cdr = cv.TensorCdr(self._array_frame)
         self._comp_pub = self.create_publisher(JointState, 'gradient/compensated', derived_qos())
         self._norm_pub = self.create_publisher(Float64, 'gradient/norm', derived_qos())

@@ -62,6 +62,16 @@ from .common import (
 from .managed import ManagedNode
 from .process import spin_node
 
+
+def _remap_error(value: str) -> str | None:
+    """Why ``replay_remap`` is refused (io/conversions.parse_remap), or None."""
+    try:
+        cv.parse_remap(value)
+    except InputError as error:
+        return str(error)
+    return None
+
+
 PARAMETERS = [
     ParamSpec(
         'mode',
@@ -79,6 +89,14 @@ PARAMETERS = [
         'seed', -1, "sim: noise seed; -1 uses the scenario's own seed.", int_range=(-1, 2**31 - 1)
     ),
     ParamSpec('bag', '', 'replay: rosbag2 folder (sqlite3 or mcap).'),
+    ParamSpec(
+        'replay_remap',
+        '',
+        'replay: topic map of a bag recorded under other names, FROM:=TO rules separated by '
+        'spaces (as ros2 bag play --remap), e.g. "/auv1/tetra/mag1:=/tetra/mag1 '
+        '/auv1/odom:=/odom"; TO is a topic of the bag contract (README, Topics).',
+        _remap_error,
+    ),
     ParamSpec(
         'rate',
         1.0,
@@ -249,7 +267,8 @@ class DriverNode(ManagedNode):
         if not p['bag']:
             raise InputError('mode replay needs the parameter "bag" (a rosbag2 folder)')
         path = os.path.expanduser(p['bag'])
-        info = replay.describe_bag(path)
+        remap = cv.parse_remap(p['replay_remap'])
+        info = replay.describe_bag(path, remap)
         self.get_logger().info(
             f'replay: {path}: {info["messages"]} magnetometer messages; topics {info["topics"]}'
         )
@@ -258,6 +277,7 @@ class DriverNode(ManagedNode):
             types,
             max_duration_s=p['max_duration_s'],
             sensor_noise_t=p['sensor_noise_t'],
+            remap=remap,
         )
         return frames, info, 0.005 if self._rate > 0 else 0.01
 

@@ -49,6 +49,7 @@ from .common import (
     WARN_THROTTLE_SPEC,
     ParamSpec,
     Throttle,
+    check_serialization,
     derived_qos,
     diagnostics_period_spec,
     one_of,
@@ -195,6 +196,7 @@ class TensorNode(ManagedNode):
         self.sets_invalid = 0
         self.sets_stale = 0
 
+        check_serialization()
         self._raw_cdr = cv.TensorCdr(self._array_frame)
         self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
         self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
