@@ -2,8 +2,8 @@
 
 ``ros2 launch tetra_gradiometer tetra_gradiometer.launch.py [mode:=sim|replay] [bag:=PATH]
 [params_file:=FILE] [namespace:=NS] [use_sim_time:=true|false] [nodes:=a,b,...]
-[autostart:=true|false] [rate:=R] [scenario:=YAML] [calibration_file:=FILE]``
-(``--show-args`` lists them with their defaults).
+[autostart:=true|false] [static_transforms:=true|false] [rate:=R] [scenario:=YAML]
+[calibration_file:=FILE]`` (``--show-args`` lists them with their defaults).
 
 Nodes. The four managed (lifecycle) nodes ``tensor``, ``calibrator``, ``compensator`` and
 ``driver`` (the console scripts of the same names), or the subset named by ``nodes``, in the
@@ -26,18 +26,39 @@ logs the failure) and the nodes after it stay unconfigured. With ``autostart`` f
 node is left unconfigured for an external lifecycle manager. A node process that exits
 ends the whole launch, as one failing node ends ``bringup``.
 
-Static transforms: NOT YET (issue 14 continues). The intended design was the tensor node
-publishing ``base_link`` -> ``tetra_mag1`` .. ``tetra_mag4`` on ``/tf_static`` from its
-``sensor_positions``, but ``tf2_msgs`` has no wheel here (the node could not be tested);
-the next step is one ``tf2_ros static_transform_publisher`` per sensor, its offset read
-from the params file's ``sensor_positions``.
+Static transforms (REP 105). With ``static_transforms`` true (the default) one
+``tf2_ros static_transform_publisher`` per child of the body frame publishes on the absolute
+``/tf_static``: ``base_frame_id`` -> ``sensor_frame_ids[i]`` at sensor i's position
+(``sensor_positions[3i:3i+3]``, metres, REP 103 body axes) and ``base_frame_id`` ->
+``array_frame_id`` (the gradient tensors' frame) at the centroid of the four positions, all
+with the identity rotation (the sensors' and the tensor's axes are the body axes). Their
+names are ``tetra_tf_mag1`` .. ``tetra_tf_mag4`` and ``tetra_tf_array``, in the nodes'
+namespace. They are plain nodes: started whatever ``nodes`` names, outside the lifecycle
+sequence, and one that exits does not end the launch. The values are those of
+``params_file``, read as the nodes read it: the ``ros__parameters`` of every section whose
+node name matches the node's fully qualified name ``/<namespace>/<node>`` (``/**``,
+``/**/tensor``, ``/tetra/tensor``, nested ``tetra: tensor:``; ``/*`` is one name, ``/**``
+any number; a later section overrides an earlier one), ``sensor_positions`` and
+``array_frame_id`` as the tensor node reads them, ``base_frame_id`` and
+``sensor_frame_ids`` as the driver does. A section naming the full path of a namespace
+pushed from outside this file (``/robot1/tetra/tensor`` under ``PushROSNamespace('robot1')``)
+is not seen: use ``/**`` or ``/**/tensor`` there. A key no section sets, or ``params_file``
+``''``, takes the package's declared default. A file that is not a ROS 2 parameter file,
+positions that are not 12 finite numbers, or frame ids that are not non-empty strings
+without a leading ``/`` are refused (the message names the file and the key). With
+``static_transforms`` false nothing is published: the vehicle's URDF
+(robot_state_publisher) provides these frames. ``odom`` -> ``base_link`` is the vehicle
+navigation's; the driver only publishes ``/odom`` messages, no transform.
 
 The launch arguments are read when the launch runs (an ``OpaqueFunction``), so a bad value is
 refused with one message naming the argument before any node starts.
 """
 
+import math
 import os
+import re
 
+import yaml
 from launch.actions import (
     DeclareLaunchArgument,
     EmitEvent,
@@ -49,11 +70,14 @@ from launch.actions import (
 from launch.events import matches_action
 from launch.launch_description import LaunchDescription
 from launch.substitutions import PathJoinSubstitution
-from launch_ros.actions import LifecycleNode
+from launch_ros.actions import LifecycleNode, Node
 from launch_ros.event_handlers import OnStateTransition
 from launch_ros.events.lifecycle import ChangeState
 from launch_ros.substitutions import FindPackageShare
 from lifecycle_msgs.msg import Transition
+
+from tetra_gradiometer.io.conversions import ARRAY_FRAME, BASE_FRAME, MAG_FRAMES
+from tetra_gradiometer.nodes.common import DEFAULT_POSITIONS, frame_ids
 
 PACKAGE = 'tetra_gradiometer'
 
@@ -62,6 +86,9 @@ PACKAGE = 'tetra_gradiometer'
 NODES = ('tensor', 'calibrator', 'compensator', 'driver')
 
 MODES = ('sim', 'replay')
+
+#: The static transform publishers: node name suffix of each child of the body frame.
+TRANSFORMS = ('mag1', 'mag2', 'mag3', 'mag4', 'array')
 
 #: Boolean words, as launch's own conditions read them.
 _TRUE = ('true', '1')
@@ -84,6 +111,12 @@ ARGUMENTS = (
         'true',
         'true: configure and activate the nodes in order; false: leave them unconfigured '
         'for an external lifecycle manager',
+    ),
+    (
+        'static_transforms',
+        'true',
+        'true: publish base_link -> tetra_mag1..4 and tetra_array on /tf_static from the params '
+        "file (tf2_ros static_transform_publisher); false: leave them to the vehicle's URDF",
     ),
     ('rate', '', 'driver speed, multiple of real time (0: as fast as the graph takes it)'),
     ('scenario', '', 'sim: scenario YAML, relative to the working directory'),
@@ -111,12 +144,20 @@ def launch_setup(context, *args, **kwargs):
     values = context.launch_configurations
     names = selected_nodes(values['nodes'])
     autostart = as_bool('autostart', values['autostart'])
+    use_sim_time = as_bool('use_sim_time', values['use_sim_time'])
     # The nodes never configure themselves here: the sequence below (or a manager) does.
-    common = {'use_sim_time': as_bool('use_sim_time', values['use_sim_time']), 'autostart': False}
+    common = {'use_sim_time': use_sim_time, 'autostart': False}
     params_file = values['params_file']
     if params_file and not os.path.isfile(params_file):
         raise ValueError(f'params_file {params_file!r}: no such file')
     files = [params_file] if params_file else []
+    publishers = []
+    if as_bool('static_transforms', values['static_transforms']):
+        frames = static_frames(params_file, values['namespace'])
+        publishers = [
+            _transform_publisher(suffix, frame, values['namespace'], use_sim_time)
+            for suffix, frame in zip(TRANSFORMS, frames, strict=True)
+        ]
     nodes = {
         name: LifecycleNode(
             package=PACKAGE,
@@ -130,9 +171,14 @@ def launch_setup(context, *args, **kwargs):
         for name in names
     }
     if not autostart:
-        return list(nodes.values())
+        return [*publishers, *nodes.values()]
     first = nodes[names[0]]
-    return [*lifecycle_sequence(nodes), *nodes.values(), _change_state(first, 'configure')]
+    return [
+        *publishers,
+        *lifecycle_sequence(nodes),
+        *nodes.values(),
+        _change_state(first, 'configure'),
+    ]
 
 
 def selected_nodes(text):
@@ -187,6 +233,125 @@ def _float(argument, text):
         return float(text)  # a double parameter: the node refuses an integer
     except ValueError:
         raise ValueError(f'{argument} {text!r}: must be a number') from None
+
+
+def static_frames(params_file, namespace):
+    """``(parent, child, (x, y, z))`` of each static transform, in :data:`TRANSFORMS` order:
+    the body frame -> each sensor at its position, and -> the array frame at the centroid.
+
+    The array frame's origin: the tensor (``core.geometry.difference_tensor``, eq. 7:
+    ``(B_2 - B_1, B_3 - B_1, B_4 - B_1) a^-1``) is exact for a uniform gradient and otherwise
+    refers to no single point (to second order, ``B_i - B_1`` is the derivative along
+    ``r_i - r_1`` at the midpoint of the two sensors). The package takes the centroid of the
+    four sensors as the tensor's point (``TetraGeometry.centroid``; the simulator's
+    ``g_analytic`` is the gradient there and differs from eq. 7 by its truncation, ~d/R), so
+    the array frame sits at the centroid.
+    """
+    sections = parameter_sections(params_file)
+    tensor = _node_parameters(sections, namespace, 'tensor')
+    driver = _node_parameters(sections, namespace, 'driver')
+    positions = _positions(params_file, tensor.get('sensor_positions', DEFAULT_POSITIONS))
+    base = _frame_id(params_file, 'base_frame_id', driver.get('base_frame_id', BASE_FRAME))
+    array = _frame_id(params_file, 'array_frame_id', tensor.get('array_frame_id', ARRAY_FRAME))
+    sensors = driver.get('sensor_frame_ids', list(MAG_FRAMES))
+    if not isinstance(sensors, list) or len(sensors) != 4:
+        raise ValueError(
+            f'params_file {params_file!r}: sensor_frame_ids must be a list of 4 frame ids, '
+            f'got {sensors!r}'
+        )
+    sensors = [_frame_id(params_file, 'sensor_frame_ids', sensor) for sensor in sensors]
+    offsets = [tuple(positions[3 * i : 3 * i + 3]) for i in range(4)]
+    centroid = tuple(sum(offset[axis] for offset in offsets) / 4 for axis in range(3))
+    frames = [(base, sensor, offset) for sensor, offset in zip(sensors, offsets, strict=True)]
+    return [*frames, (base, array, centroid)]
+
+
+def parameter_sections(params_file):
+    """``(node name, parameters)`` of each ``ros__parameters`` section of ``params_file`` in
+    file order, the name as rcl's parser makes it (nested keys joined by ``/``, a leading
+    ``/``); none for ``''``."""
+    if not params_file:
+        return []
+    try:
+        with open(params_file, encoding='utf-8') as stream:
+            data = yaml.safe_load(stream)
+    except (OSError, yaml.YAMLError) as error:
+        raise ValueError(f'params_file {params_file!r}: cannot read it: {error}') from None
+    sections = []
+
+    def walk(mapping, path):
+        if not isinstance(mapping, dict) or not mapping:
+            where = '/' + '/'.join(path) if path else 'the top level'
+            raise ValueError(
+                f'params_file {params_file!r}: {where}: not a ROS 2 parameter file '
+                '(node name: ros__parameters: name: value)'
+            )
+        for key, item in mapping.items():
+            if key != 'ros__parameters':
+                walk(item, [*path, str(key).strip('/')])
+            elif isinstance(item, dict):
+                sections.append(('/' + '/'.join(path), item))
+            else:
+                raise ValueError(
+                    f'params_file {params_file!r}: /{"/".join(path)}: ros__parameters must '
+                    f'map parameter names to values, got {item!r}'
+                )
+
+    walk(data, [])
+    return sections
+
+
+def _node_parameters(sections, namespace, node):
+    """The parameters the sections give node ``node`` in ``namespace``, as rclpy matches
+    them: ``/*`` one name, ``/**`` any number, a later section over an earlier one."""
+    prefix = namespace.strip('/')
+    name = f'/{prefix}/{node}' if prefix else f'/{node}'
+    out = {}
+    for section, parameters in sections:
+        pattern = re.escape(section).replace(r'/\*\*', r'(/\w+)*').replace(r'/\*', r'(/\w+)')
+        if re.fullmatch(pattern, name, re.ASCII):
+            out.update(parameters)
+    return out
+
+
+def _positions(params_file, value):
+    numbers = isinstance(value, (list, tuple)) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
+    )
+    if not numbers or len(value) != 12:
+        raise ValueError(
+            f'params_file {params_file!r}: sensor_positions must be 12 finite numbers '
+            f'(x1 y1 z1 x2 .. z4, metres), got {value!r}'
+        )
+    return [float(v) for v in value]
+
+
+def _frame_id(params_file, key, value):
+    """``value`` if it is a frame id as the nodes take it (``nodes.common.frame_ids``): a
+    non-empty string without a leading ``/``."""
+    problem = frame_ids(value) if isinstance(value, str) else 'a frame id must be a string'
+    if problem:
+        raise ValueError(f'params_file {params_file!r}: {key}: {problem} (got {value!r})')
+    return value
+
+
+def _transform_publisher(suffix, frame, namespace, use_sim_time):
+    """A tf2_ros static_transform_publisher of ``frame`` (identity rotation), not managed:
+    no lifecycle, and its exit leaves the launch running (default ``on_exit``)."""
+    parent, child, (x, y, z) = frame
+    return Node(
+        package='tf2_ros',
+        executable='static_transform_publisher',
+        name=f'tetra_tf_{suffix}',
+        namespace=namespace,
+        arguments=[
+            *('--x', repr(x), '--y', repr(y), '--z', repr(z)),
+            *('--roll', '0', '--pitch', '0', '--yaw', '0'),
+            *('--frame-id', parent, '--child-frame-id', child),
+        ],
+        parameters=[{'use_sim_time': use_sim_time}],
+        output='screen',
+    )
 
 
 def lifecycle_sequence(nodes):

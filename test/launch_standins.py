@@ -9,10 +9,11 @@ modules in ``sys.modules`` for one test (through pytest's ``monkeypatch``).
 
 :class:`Launch` runs a launch description the way ``launch`` does, for these actions only:
 declared arguments take their default unless given, an ``OpaqueFunction`` runs with the
-context and its actions run in turn, a ``LifecycleNode`` starts unconfigured, and a
-``ChangeState`` event moves the matching nodes through the lifecycle state machine, which
-emits a ``StateTransition`` event per step (state labels as rcl_lifecycle's) to the
-registered handlers, as launch_ros's ``LifecycleNode`` does on ``transition_event``.
+context and its actions run in turn, a ``LifecycleNode`` starts unconfigured, a plain
+``Node`` starts (no lifecycle: it is only recorded), and a ``ChangeState`` event moves the
+matching lifecycle nodes through the lifecycle state machine, which emits a
+``StateTransition`` event per step (state labels as rcl_lifecycle's) to the registered
+handlers, as launch_ros's ``LifecycleNode`` does on ``transition_event``.
 """
 
 from __future__ import annotations
@@ -121,6 +122,34 @@ class LifecycleNode:
         self.on_exit = on_exit
 
 
+class Node:
+    """launch_ros's plain ``Node``: its own keyword-only arguments (Jazzy) and, of those it
+    passes on to ``ExecuteProcess``, ``output`` and ``on_exit``."""
+
+    def __init__(
+        self,
+        *,
+        executable: str,
+        package: str | None = None,
+        name: str | None = None,
+        namespace: str | None = None,
+        parameters: list[Any] | None = None,
+        remappings: list[tuple[str, str]] | None = None,
+        arguments: list[str] | None = None,
+        output: str = 'log',
+        on_exit: Any = None,
+    ) -> None:
+        self.executable = executable
+        self.package = package
+        self.name = name
+        self.namespace = namespace
+        self.parameters = parameters
+        self.remappings = remappings
+        self.arguments = arguments
+        self.output = output
+        self.on_exit = on_exit
+
+
 class ChangeState:
     def __init__(
         self, *, lifecycle_node_matcher: Callable[[Any], bool], transition_id: int
@@ -191,7 +220,7 @@ MODULES: dict[str, dict[str, Any]] = {
     'launch.events': {'matches_action': matches_action},
     'launch.substitutions': {'PathJoinSubstitution': PathJoinSubstitution},
     'launch_ros': {},
-    'launch_ros.actions': {'LifecycleNode': LifecycleNode},
+    'launch_ros.actions': {'LifecycleNode': LifecycleNode, 'Node': Node},
     'launch_ros.event_handlers': {'OnStateTransition': OnStateTransition},
     'launch_ros.events': {},
     'launch_ros.events.lifecycle': {
@@ -255,7 +284,8 @@ class Launch:
     """Runs launch descriptions with the stand-ins (see the module docstring).
 
     Attributes: ``declared`` (argument names), ``nodes`` (LifecycleNode, in start order),
-    ``state`` (node name -> lifecycle state), ``requests`` ((node name, transition label)
+    ``plain_nodes`` (Node, not managed, in start order), ``state`` (lifecycle node name ->
+    lifecycle state), ``requests`` ((node name, transition label)
     in the order requested), ``refused`` (requests not valid in the node's state, which the
     real node answers with success false), ``log`` (LogInfo messages), ``actions`` (every
     action run).
@@ -265,6 +295,7 @@ class Launch:
         self.context = LaunchContext(dict(arguments), share_directories)
         self.declared: list[str] = []
         self.nodes: list[LifecycleNode] = []
+        self.plain_nodes: list[Node] = []
         self.state: dict[str, str] = {}
         self.requests: list[tuple[str, str]] = []
         self.refused: list[tuple[str, str]] = []
@@ -295,6 +326,8 @@ class Launch:
         elif isinstance(action, LifecycleNode):
             self.nodes.append(action)
             self.state[action.name] = 'unconfigured'
+        elif isinstance(action, Node):
+            self.plain_nodes.append(action)
         elif isinstance(action, EmitEvent):
             self.emit(action.event)
         elif isinstance(action, LogInfo):

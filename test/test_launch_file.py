@@ -4,8 +4,10 @@ files, read with ast, never run), setup.cfg and package.xml.
 
 Truth from outside the launch file: the console scripts and data files of setup.py, the
 repository's files installed into a temporary share directory as setup.py lists them, the
-imports of the package's source, the lifecycle state machine (launch_standins.Launch), and
-bringup's start order (tensor, calibrator, compensator, driver: cli/bringup.create_nodes).
+imports of the package's source, the lifecycle state machine (launch_standins.Launch),
+bringup's start order (tensor, calibrator, compensator, driver: cli/bringup.create_nodes),
+the params files read here with yaml (the static transforms' values and their mean) and
+the params-file matching rules of rclpy (``/*`` one name, ``/**`` any number).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO / 'launch' / 'tetra_gradiometer.launch.py'
@@ -144,6 +147,7 @@ def launch(monkeypatch: pytest.MonkeyPatch, share: Path):
     def run(**arguments: str) -> Any:
         module = _load(LAUNCH_FILE, 'tetra_gradiometer_launch')
         runner = standins.Launch(arguments, {PACKAGE: str(share)})
+        run.last = runner  # type: ignore[attr-defined]  # what had started when it raised
         return runner.run(module.generate_launch_description())
 
     return run
@@ -224,6 +228,7 @@ def test_a_later_manual_deactivate_and_activate_restarts_nothing(launch):
 def test_use_sim_time_reaches_every_node(launch, word, value):
     run = launch(use_sim_time=word)
     assert [node.parameters[-1]['use_sim_time'] for node in run.nodes] == [value] * 4
+    assert [node.parameters[-1]['use_sim_time'] for node in run.plain_nodes] == [value] * 5
 
 
 @pytest.mark.parametrize(
@@ -261,6 +266,7 @@ def test_calibration_file_goes_to_calibrator_and_compensator_only(launch):
 def test_namespace_and_an_empty_params_file(launch):
     run = launch(namespace='robot1/tetra', params_file='')
     assert {node.namespace for node in run.nodes} == {'robot1/tetra'}
+    assert {node.namespace for node in run.plain_nodes} == {'robot1/tetra'}
     assert [len(node.parameters) for node in run.nodes] == [1] * 4  # only the overrides
 
 
@@ -281,12 +287,235 @@ def test_a_bad_argument_is_refused_before_any_node_starts(launch, arguments, mes
         launch(**arguments)
 
 
+# --------------------------------------------------------------------------- static transforms
+
+#: tf2_ros static_transform_publisher's flags (Jazzy), the value each takes.
+TRANSFORM_FLAGS = (
+    '--x', '--y', '--z', '--roll', '--pitch', '--yaw', '--frame-id', '--child-frame-id',
+)  # fmt: skip
+#: The publishers' names, sensors 1..4 then the array frame.
+PUBLISHERS = ('tetra_tf_mag1', 'tetra_tf_mag2', 'tetra_tf_mag3', 'tetra_tf_mag4', 'tetra_tf_array')
+
+
+#: (parent frame, child frame, translation x y z in metres) of a static transform.
+Transform = tuple[str, str, tuple[float, ...]]
+
+
+def _transforms(run: Any) -> list[Transform]:
+    """(parent, child, translation) of each static transform publisher launched, checking
+    that it is tf2_ros's, with the named-argument form and the identity rotation."""
+    out = []
+    for node in run.plain_nodes:
+        assert (node.package, node.executable) == ('tf2_ros', 'static_transform_publisher')
+        arguments = node.arguments
+        assert all(isinstance(argument, str) for argument in arguments)
+        flags = dict(zip(arguments[::2], arguments[1::2], strict=True))
+        assert tuple(flags) == TRANSFORM_FLAGS, arguments
+        assert [float(flags[f]) for f in ('--roll', '--pitch', '--yaw')] == [0.0] * 3
+        translation = tuple(float(flags[f]) for f in ('--x', '--y', '--z'))
+        out.append((flags['--frame-id'], flags['--child-frame-id'], translation))
+    return out
+
+
+def _expected(
+    positions: list[float], base: str, sensors: list[str], array: str
+) -> list[Transform]:
+    """Sensor i at positions[3i:3i+3], the array frame at the mean of the four."""
+    points = [tuple(float(v) for v in positions[3 * i : 3 * i + 3]) for i in range(4)]
+    mean = tuple(sum(point[axis] for point in points) / 4 for axis in range(3))
+    frames: list[Transform] = [(base, s, p) for s, p in zip(sensors, points, strict=True)]
+    return [*frames, (base, array, mean)]
+
+
+def _assert_transforms(run: Any, expected: list[Transform]) -> None:
+    """The frames exactly, the sensors' translations to the last bit (the arguments carry
+    the floats' repr), the array's (a mean) to rounding."""
+    got = _transforms(run)
+    assert [(parent, child) for parent, child, _ in got] == [(p, c) for p, c, _ in expected]
+    assert [t for _, _, t in got[:4]] == [t for _, _, t in expected[:4]]
+    assert got[4][2] == pytest.approx(expected[4][2], rel=1e-12, abs=1e-15)
+
+
+def _params_file(tmp_path: Path, text: str) -> str:
+    path = tmp_path / 'params.yaml'
+    path.write_text(text, encoding='utf-8')
+    return str(path)
+
+
+def test_static_transforms_are_the_default_params_file_sensors_and_their_centroid(launch, share):
+    run = launch()
+    data = yaml.safe_load((share / 'config' / 'tetra_gradiometer.yaml').read_text())
+    ros = data['/**']['ros__parameters']
+    expected = _expected(
+        ros['sensor_positions'], ros['base_frame_id'], ros['sensor_frame_ids'], 'tetra_array'
+    )
+    assert ros['array_frame_id'] == 'tetra_array'
+    _assert_transforms(run, expected)
+    assert [(parent, child) for parent, child, _ in _transforms(run)] == [
+        ('base_link', 'tetra_mag1'),
+        ('base_link', 'tetra_mag2'),
+        ('base_link', 'tetra_mag3'),
+        ('base_link', 'tetra_mag4'),
+        ('base_link', 'tetra_array'),
+    ]
+
+
+def test_static_transforms_follow_another_params_file(launch, tmp_path):
+    positions = [0.1234567891, -0.2, 0.05, 0.7, -0.2, 0.05, 0.4, 0.35, 0.05, 0.4, -0.05, 0.6]
+    params_file = _params_file(
+        tmp_path,
+        '/**:\n  ros__parameters:\n'
+        f'    sensor_positions: {positions}\n'
+        '    base_frame_id: auv7/base\n'
+        '    sensor_frame_ids: [auv7/m_a, auv7/m_b, auv7/m_c, auv7/m_d]\n'
+        '    array_frame_id: auv7/gradiometer\n',
+    )
+    run = launch(params_file=params_file)
+    ros = yaml.safe_load(Path(params_file).read_text())['/**']['ros__parameters']
+    assert ros['sensor_positions'] == positions
+    sensors = ['auv7/m_a', 'auv7/m_b', 'auv7/m_c', 'auv7/m_d']
+    expected = _expected(positions, 'auv7/base', sensors, 'auv7/gradiometer')
+    _assert_transforms(run, expected)
+    assert expected[4][2] == pytest.approx((0.405864197275, -0.025, 0.1875))  # by hand
+    assert [node.parameters[0] for node in run.nodes] == [params_file] * 4  # the same file
+
+
+def test_node_sections_count_as_the_nodes_read_them(launch, tmp_path):
+    """sensor_positions and array_frame_id as the tensor node reads them, base_frame_id
+    and sensor_frame_ids as the driver does; a later matching section wins."""
+    wild = [0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5]
+    tensor = [1.0, 0.0, 0.0, 1.5, 0.0, 0.0, 1.0, 0.5, 0.0, 1.0, 0.0, 0.5]
+    other = [9.0] * 12
+    params_file = _params_file(
+        tmp_path,
+        f"""
+/**:
+  ros__parameters:
+    sensor_positions: {wild}
+    base_frame_id: everyone_base
+    array_frame_id: everyone_array
+/tetra/calibrator:
+  ros__parameters:
+    sensor_positions: {other}
+/**/tensor:
+  ros__parameters:
+    sensor_positions: {tensor}
+    array_frame_id: tensor_array
+/other/driver:
+  ros__parameters:
+    base_frame_id: other_base
+tetra:
+  driver:
+    ros__parameters:
+      base_frame_id: driver_base
+      sensor_frame_ids: [d1, d2, d3, d4]
+/*:
+  ros__parameters:
+    sensor_frame_ids: [root1, root2, root3, root4]
+""",
+    )
+    run = launch(params_file=params_file)
+    expected = _expected(tensor, 'driver_base', ['d1', 'd2', 'd3', 'd4'], 'tensor_array')
+    _assert_transforms(run, expected)
+    # At the root namespace "/*" (one name) matches /driver and comes last; tetra: driver:
+    # (/tetra/driver) no longer matches.
+    run = launch(params_file=params_file, namespace='')
+    roots = ['root1', 'root2', 'root3', 'root4']
+    _assert_transforms(run, _expected(tensor, 'everyone_base', roots, 'tensor_array'))
+
+
+def test_missing_keys_and_no_params_file_take_the_declared_defaults(launch, tmp_path):
+    from tetra_gradiometer.io.conversions import ARRAY_FRAME, BASE_FRAME, MAG_FRAMES
+    from tetra_gradiometer.nodes.common import DEFAULT_POSITIONS
+
+    positions = list(DEFAULT_POSITIONS)
+    defaults = _expected(positions, BASE_FRAME, list(MAG_FRAMES), ARRAY_FRAME)
+    _assert_transforms(launch(params_file=''), defaults)
+    params_file = _params_file(
+        tmp_path, '/**:\n  ros__parameters:\n    sensor_frame_ids: [s1, s2, s3, s4]\n'
+    )
+    expected = _expected(positions, BASE_FRAME, ['s1', 's2', 's3', 's4'], ARRAY_FRAME)
+    _assert_transforms(launch(params_file=params_file), expected)
+
+
+def test_static_transform_publishers_are_plain_nodes_outside_the_lifecycle(launch):
+    for arguments in ({}, {'nodes': 'driver'}, {'autostart': 'false'}, {'namespace': 'r2'}):
+        run = launch(**arguments)
+        assert [node.name for node in run.plain_nodes] == list(PUBLISHERS)
+        namespace = arguments.get('namespace', 'tetra')
+        for node in run.plain_nodes:
+            assert node.namespace == namespace
+            assert node.on_exit is None  # its exit does not end the launch
+            assert node.remappings is None  # /tf_static, absolute
+        lifecycle = [node.name for node in run.nodes]
+        assert {name for name, _ in run.requests} <= set(lifecycle)
+        assert set(run.state) == set(lifecycle)
+    # The publishers start before the lifecycle nodes (the frames exist before any data).
+    run = launch()
+    first_lifecycle = min(run.actions.index(node) for node in run.nodes)
+    assert max(run.actions.index(node) for node in run.plain_nodes) < first_lifecycle
+
+
+@pytest.mark.parametrize('word', ['false', 'False', '0'])
+def test_static_transforms_false_starts_none(launch, word):
+    run = launch(static_transforms=word)
+    assert run.plain_nodes == []
+    assert [node.name for node in run.nodes] == list(ORDER)
+    assert run.state == dict.fromkeys(ORDER, 'active')
+
+
+@pytest.mark.parametrize(
+    'body, message',
+    [
+        ('sensor_positions: [0.0, 0.0, 0.0, 0.5]', 'sensor_positions must be 12 finite numbers'),
+        ('sensor_positions: [' + ', '.join(['0.1'] * 11) + ', .nan]', 'sensor_positions must'),
+        ('sensor_positions: [' + ', '.join(['0.1'] * 11) + ', x]', 'sensor_positions must'),
+        ('sensor_positions: [' + ', '.join(['0.1'] * 11) + ', true]', 'sensor_positions must'),
+        ('sensor_positions: 0.5', 'sensor_positions must be 12 finite numbers'),
+        ('sensor_frame_ids: [a, b, c]', 'sensor_frame_ids must be a list of 4 frame ids'),
+        ("sensor_frame_ids: [a, b, '', d]", 'sensor_frame_ids: frame ids must be non-empty'),
+        ('sensor_frame_ids: [a, b, 3, d]', 'sensor_frame_ids: a frame id must be a string'),
+        ('base_frame_id: /base_link', 'base_frame_id: frame ids must be non-empty without a'),
+        ('array_frame_id: 7', 'array_frame_id: a frame id must be a string'),
+    ],
+)
+def test_a_malformed_params_file_is_refused_before_any_node_starts(
+    launch, tmp_path, body, message
+):
+    params_file = _params_file(tmp_path, f'/**:\n  ros__parameters:\n    {body}\n')
+    with pytest.raises(ValueError, match=re.escape(f'params_file {params_file!r}: {message}')):
+        launch(params_file=params_file)
+    assert launch.last.nodes == [] and launch.last.plain_nodes == []
+
+
+@pytest.mark.parametrize(
+    'text, message',
+    [
+        ('/**:\n  ros__parameters: [1, 2]\n', '/**: ros__parameters must map parameter names'),
+        ('- sensor_positions\n', 'the top level: not a ROS 2 parameter file'),
+        ('/**:\n  sensor_positions: [1, 2]\n', '/**/sensor_positions: not a ROS 2 parameter'),
+        ('/**:\n  ros__parameters: {a: [1, 2}\n', 'cannot read it'),
+    ],
+)
+def test_a_file_that_is_not_a_ros2_params_file_is_refused(launch, tmp_path, text, message):
+    params_file = _params_file(tmp_path, text)
+    pattern = re.escape(f'params_file {params_file!r}: ') + '.*' + re.escape(message)
+    with pytest.raises(ValueError, match=pattern):
+        launch(params_file=params_file)
+    assert launch.last.nodes == [] and launch.last.plain_nodes == []
+
+
 # --------------------------------------------------------------------------- packaging
 
 
 def test_every_executable_launched_is_a_console_script_with_a_main(launch):
     scripts = console_scripts()
-    executables = {node.executable for node in launch().nodes}
+    run = launch()
+    executables = {node.executable for node in run.nodes}
+    assert {node.package for node in run.nodes} == {PACKAGE}
+    # The only other executable: tf2_ros's static_transform_publisher (not ours).
+    others = {(node.package, node.executable) for node in run.plain_nodes}
+    assert others == {('tf2_ros', 'static_transform_publisher')}
     assert executables == set(ORDER)
     assert sorted(executables - set(scripts)) == []
     for name in executables:
@@ -390,6 +619,15 @@ def test_package_xml_declares_every_import_of_the_package_and_the_launch_file():
             )
     assert missing == []
     assert {'launch', 'launch_ros', 'lifecycle_msgs'} <= run
+
+
+def test_package_xml_declares_every_package_the_launch_file_runs(launch):
+    depends, _ = _package_xml()
+    run = depends.get('exec_depend', set()) | depends.get('depend', set())
+    launched = launch()
+    packages = {node.package for node in [*launched.nodes, *launched.plain_nodes]}
+    assert packages == {PACKAGE, 'tf2_ros'}
+    assert sorted(packages - {PACKAGE} - run) == []
 
 
 def test_package_xml_test_depends_on_pytest_and_pytest_timeout():
