@@ -175,3 +175,39 @@ def test_every_node_configures_activates_and_cleans_up_in_process(name, tmp_path
             node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_diagnostics_are_named_after_the_node_so_two_suites_do_not_collide():
+    """A tensor node remapped into a vehicle namespace names its statuses after its fully
+    qualified name; the software check has no hardware id, a magnetometer has its frame."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from tetra_gradiometer.nodes.tensor import TensorNode
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=unique_domain(), args=['--ros-args', '-r', '__ns:=/auv2/tetra'])
+    executor = SingleThreadedExecutor(context=context)
+    nodes = []
+    try:
+        tensor = TensorNode(parameter_overrides=[Parameter('diagnostics_period_s', value=0.1)], context=context)
+        listener = rclpy.create_node('listener', context=context)
+        nodes = [tensor, listener]
+        seen: dict[str, str] = {}
+        listener.create_subscription(DiagnosticArray, '/diagnostics',
+                                     lambda msg: seen.update({s.name: s.hardware_id for s in msg.status}), 10)
+        for node in nodes:
+            executor.add_node(node)
+        deadline = time.monotonic() + 10
+        while 'auv2/tetra/tensor: matching' not in seen and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        assert seen.get('auv2/tetra/tensor: matching') == '', seen
+        assert seen.get('auv2/tetra/tensor: mag2') == 'tetra_mag2', seen
+        assert not any(name.startswith('tetra/') for name in seen), seen
+    finally:
+        executor.shutdown(timeout_sec=2)
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)

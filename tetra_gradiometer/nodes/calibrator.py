@@ -566,10 +566,11 @@ class CalibratorNode(ManagedNode):
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(
             status(
-                'tetra/calibrator: calibration',
+                self,
+                'calibration',
                 level,
                 message,
-                cv.ARRAY_FRAME,
+                '',
                 {
                     'state': state,
                     'solve_elapsed_s': float(elapsed),

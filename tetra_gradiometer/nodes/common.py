@@ -441,13 +441,19 @@ def key_values(values: dict[str, Any]) -> list:
     return out
 
 
-def status(name: str, level: int, message: str, hardware_id: str, values: dict[str, Any]) -> Any:
-    """A ``diagnostic_msgs/DiagnosticStatus``; ``level`` 0 OK, 1 WARN, 2 ERROR, 3 STALE."""
+def status(
+    node: Any, task: str, level: int, message: str, hardware_id: str, values: dict[str, Any]
+) -> Any:
+    """A ``diagnostic_msgs/DiagnosticStatus`` of ``node``'s check ``task``, named
+    ``<node's fully qualified name without the leading slash>: <task>`` (``tetra/tensor:
+    matching``: a second instance in another namespace does not collide in an aggregator);
+    ``hardware_id`` a device id, ``''`` for a software check; ``level`` 0 OK, 1 WARN, 2 ERROR,
+    3 STALE."""
     from diagnostic_msgs.msg import DiagnosticStatus
 
     return DiagnosticStatus(
         level=bytes([level]),
-        name=name,
+        name=f'{node.get_fully_qualified_name().lstrip("/")}: {task}',
         message=message,
         hardware_id=hardware_id,
         values=key_values(values),

@@ -392,10 +392,11 @@ class CompensatorNode(ManagedNode):
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(
             status(
-                'tetra/compensator: compensation',
+                self,
+                'compensation',
                 level,
                 text,
-                cv.ARRAY_FRAME,
+                '',
                 {
                     'compensating': self.compensating,
                     'sigma': self._sigma_text,
@@ -416,7 +417,7 @@ class CompensatorNode(ManagedNode):
         when the statistic passes half the threshold or the monitor is off, else OK."""
         monitor = self._health
         if monitor is None:
-            return status('tetra/compensator: health', WARN, self._health_text, cv.ARRAY_FRAME, {})
+            return status(self, 'health', WARN, self._health_text, '', {})
         values: dict[str, Any] = {
             'statistic': monitor.last_glr,
             'drift_statistic': monitor.last_drift,
@@ -432,11 +433,11 @@ class CompensatorNode(ManagedNode):
                 f'ALARM: {alarm.kind} at t={alarm.t_s:.1f} s, sensors {list(alarm.sensors)}: '
                 'the calibration no longer holds; recalibrate'
             )
-            return status('tetra/compensator: health', ERROR, text, cv.ARRAY_FRAME, values)
+            return status(self, 'health', ERROR, text, '', values)
         rising = max(monitor.last_glr, monitor.last_drift) > 0.5 * monitor.threshold
         level = WARN if rising else OK
         text = 'statistic above half the threshold' if rising else self._health_text
-        return status('tetra/compensator: health', level, text, cv.ARRAY_FRAME, values)
+        return status(self, 'health', level, text, '', values)
 
 
 def main(args: list[str] | None = None) -> int:

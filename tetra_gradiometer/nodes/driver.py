@@ -384,10 +384,11 @@ class DriverNode(ManagedNode):
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(
             status(
-                'tetra/driver: playback',
+                self,
+                'playback',
                 WARN if self.ack_timeouts else OK,
                 f'{self.state} ({self._mode}, segment {self.segment})',
-                cv.ARRAY_FRAME,
+                '',
                 {
                     'state': self.state,
                     'mode': self._mode,

@@ -370,7 +370,8 @@ class TensorNode(ManagedNode):
                 level, text = OK, 'ok'
             array.status.append(
                 status(
-                    f'tetra/tensor: {topic}',
+                    self,
+                    topic,
                     level,
                     text,
                     cv.MAG_FRAMES[s],
@@ -393,10 +394,11 @@ class TensorNode(ManagedNode):
         )
         array.status.append(
             status(
-                'tetra/tensor: matching',
+                self,
+                'matching',
                 level,
                 text,
-                cv.ARRAY_FRAME,
+                '',
                 {
                     'sets_published': self.sets_published,
                     'sets_dropped_invalid': self.sets_invalid,
