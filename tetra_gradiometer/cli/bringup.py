@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from ..nodes.calibrator import CalibratorNode
-    from ..nodes.process import events_executor, spin, stop_on_signals
+    from ..nodes.process import events_executor, spin, stop_graph, stop_on_signals
 
     # Our own Ctrl-C handling (a flag the spin loop reads), so callbacks stop before the
     # context goes.
@@ -135,11 +135,5 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for node in nodes:
             node.stop_work()
-        for executor in (data_path, calibrator):  # running callbacks finish before the nodes go
-            executor.shutdown(timeout_sec=2)
-        if worker.is_alive():
-            worker.join(timeout=5)
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        stop_graph([data_path, calibrator], worker, nodes)
     return 0

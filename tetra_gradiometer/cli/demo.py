@@ -120,7 +120,7 @@ def _fly(args: argparse.Namespace, out: Path, final: Path) -> int:
         print(f'error: {error}', file=sys.stderr)
         return 1
     finally:
-        stop_graph(executor, spinner, nodes)
+        stop_graph([executor], spinner, nodes)
 
 
 def _graph(method: str, rate: float, calibration_file: Path) -> list[Any]:

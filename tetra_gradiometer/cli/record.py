@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     except TimeoutError as error:
         raise OSError(str(error)) from None
     finally:
-        stop_graph(executor, spinner, nodes)
+        stop_graph([executor], spinner, nodes)
 
 
 def _executor() -> tuple[Any, threading.Thread]:

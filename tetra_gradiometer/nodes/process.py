@@ -169,12 +169,14 @@ def spin_node(
     return 0
 
 
-def stop_graph(executor: Any, spinner: Any, nodes: list[Any]) -> None:
-    """Stop an in-process graph (demo, record): the executor, then its spin thread, then the
-    nodes and the context, in that order (joining the thread first avoids a crash at exit)."""
+def stop_graph(executors: list[Any], spinner: Any, nodes: list[Any]) -> None:
+    """Stop an in-process graph (demo, record, bringup): the executors (running callbacks
+    finish), then the spin thread, then the nodes and the context, in that order (joining the
+    thread first avoids a crash at exit)."""
     import rclpy
 
-    executor.shutdown(timeout_sec=2)
+    for executor in executors:
+        executor.shutdown(timeout_sec=2)
     if spinner.is_alive():
         spinner.join(timeout=5)
     for node in nodes:
