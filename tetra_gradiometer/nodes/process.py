@@ -1,7 +1,8 @@
 """Starting and stopping nodes and in-process graphs: ``spin_node`` (every node's ``main()``),
 the executor of the single-threaded nodes (rclpy's EventsExecutor, :func:`events_executor`,
 :func:`spin`), and for the commands in ``cli/`` that run a graph in one process,
-``interrupt_on_signals`` and ``stop_graph``.
+``interrupt_on_signals``, ``stop_on_signals`` (bringup: the events executor) and
+``stop_graph``.
 
 Start-up refusals (``spin_node``): a parameter value outside its declared range, of the
 wrong type (also an integer for a double parameter, as ROS refuses it: write ``10.0``) or
@@ -85,11 +86,11 @@ def events_executor() -> Any:
 def spin(executor: Any, context: Any = None, stop: threading.Event | None = None) -> None:
     """Spin ``executor`` until ``context`` (default: rclpy's) shuts down (rclpy's SIGINT
     handler, an external shutdown), ``stop`` is set (:func:`stop_on_signals`) or Ctrl-C
-    raises. The events executor is spun in a loop
-    of ``spin_until_future_complete`` on a future that never completes, with a timeout: its
-    own ``spin()`` in rclpy 7.1.6 busy-waits without dispatching and ignores SIGINT, and
-    ``spin_once`` returns to Python after every callback (a tenth of the tensor node's time
-    at 1000 sets/s went to that loop)."""
+    raises. The events executor is spun in a loop of ``spin_until_future_complete`` on a
+    future that never completes, with a timeout: its own ``spin()`` in rclpy 7.1.6
+    busy-waits without dispatching and ignores SIGINT, and ``spin_once`` returns to Python
+    after every callback (a tenth of the tensor node's time at 1000 sets/s went to that
+    loop)."""
     import rclpy
     from rclpy.executors import Executor, ExternalShutdownException
     from rclpy.task import Future
