@@ -289,14 +289,7 @@ class Resampler:
             return self._resolve()
         self._remember_intervals(sensor, stamps)
         self._last[sensor] = int(stamps[-1])
-        if sensor == 0 and not self.timebase.reference_rate_hz:
-            self._pending = np.concatenate([self._pending, stamps])
-        good = plausible_readings(values[:, :3], self.max_field_t)
-        if not good.all():
-            self._bad_t[sensor] = np.concatenate([self._bad_t[sensor], stamps[~good]])
-            self._bad_v[sensor] = np.concatenate([self._bad_v[sensor], values[~good]])
-        self._t[sensor] = np.concatenate([self._t[sensor], stamps[good]])
-        self._v[sensor] = np.concatenate([self._v[sensor], values[good]])
+        self._store(sensor, stamps, values, plausible_readings(values[:, :3], self.max_field_t))
         return self._resolve()
 
     def add_one(
@@ -312,18 +305,26 @@ class Resampler:
         if last is not None:
             self._sums[sensor].add_intervals([stamp_ns - last])
         self._last[sensor] = stamp_ns
-        stamp = np.array([stamp_ns], np.int64)
-        if sensor == 0 and not self.timebase.reference_rate_hz:
-            self._pending = np.concatenate([self._pending, stamp])
         row = np.asarray(value, dtype=float).reshape(1, self.width)
         x, y, z = row[0, :3].tolist()
-        if plausible_reading(x, y, z, self.max_field_t):
-            self._t[sensor] = np.concatenate([self._t[sensor], stamp])
-            self._v[sensor] = np.concatenate([self._v[sensor], row])
-        else:
-            self._bad_t[sensor] = np.concatenate([self._bad_t[sensor], stamp])
-            self._bad_v[sensor] = np.concatenate([self._bad_v[sensor], row])
+        good = np.array([plausible_reading(x, y, z, self.max_field_t)])
+        self._store(sensor, np.array([stamp_ns], np.int64), row, good)
         return self._resolve()
+
+    def _store(
+        self, sensor: int, stamps: IntArray, values: FloatArray, good: npt.NDArray[np.bool_]
+    ) -> None:
+        """Keep in-order readings: the plausible ones (``good``) for interpolation, the others
+        apart (a set that would take one is dropped by the caller); sensor 1's stamps are the
+        reference instants unless on a grid."""
+        if sensor == 0 and not self.timebase.reference_rate_hz:
+            self._pending = np.concatenate([self._pending, stamps])
+        if not good.all():
+            self._bad_t[sensor] = np.concatenate([self._bad_t[sensor], stamps[~good]])
+            self._bad_v[sensor] = np.concatenate([self._bad_v[sensor], values[~good]])
+        if good.any():
+            self._t[sensor] = np.concatenate([self._t[sensor], stamps[good]])
+            self._v[sensor] = np.concatenate([self._v[sensor], values[good]])
 
     def _in_order(
         self, sensor: int, stamps: IntArray, values: FloatArray

@@ -48,7 +48,6 @@ from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
 from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEncoding: re-exported)
-    _CDR_LE,
     _UnsupportedEncoding,
     checked_stamp_ns,
     decode_checked,

@@ -142,12 +142,9 @@ class ManagedNode(LifecycleNode):
 
     def _release(self) -> None:
         """Destroy what ``configure`` created (after :meth:`released` when it completed)."""
-        completed = self._configured
         self.active = False
-        self._configured = False
         try:
-            if completed:
-                self.released()
+            self.stop_work()
         finally:
             for kind, entities in self._new_entities().items():
                 destroy = getattr(self, _ENTITIES[kind])
