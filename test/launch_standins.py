@@ -101,27 +101,6 @@ class FindPackageShare:
         return context.share_directories[self.package]
 
 
-class LifecycleNode:
-    def __init__(
-        self,
-        *,
-        name: str,
-        namespace: str,
-        executable: str,
-        package: str | None = None,
-        parameters: list[Any] | None = None,
-        output: str = 'log',
-        on_exit: Any = None,
-    ) -> None:
-        self.name = name
-        self.namespace = namespace
-        self.executable = executable
-        self.package = package
-        self.parameters = parameters
-        self.output = output
-        self.on_exit = on_exit
-
-
 class Node:
     """launch_ros's plain ``Node``: its own keyword-only arguments (Jazzy) and, of those it
     passes on to ``ExecuteProcess``, ``output`` and ``on_exit``."""
@@ -148,6 +127,13 @@ class Node:
         self.arguments = arguments
         self.output = output
         self.on_exit = on_exit
+
+
+class LifecycleNode(Node):
+    """launch_ros's ``LifecycleNode``, a ``Node`` whose name and namespace are required."""
+
+    def __init__(self, *, name: str, namespace: str, **kwargs: Any) -> None:
+        super().__init__(name=name, namespace=namespace, **kwargs)
 
 
 class ChangeState:
