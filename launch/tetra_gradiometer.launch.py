@@ -11,8 +11,9 @@ namespace ``namespace`` (default ``tetra``: ``/tetra``, or ``/<pushed>/tetra`` w
 file is included under a ``PushROSNamespace``). Every node reads ``params_file`` (default:
 the installed ``config/tetra_gradiometer.yaml``; ``''``: the declared defaults) and then
 ``use_sim_time``. As in ``bringup``, the driver takes ``mode``, ``bag`` (a bag without a
-mode means replay), ``rate`` and ``scenario``, the calibrator and compensator take
-``calibration_file``, relative paths are taken from the working directory, and the driver
+mode means replay; a driver with neither, here or in the params file, is refused: it
+fabricates no vehicle data by default), ``rate`` and ``scenario``, the calibrator and
+compensator take ``calibration_file``, relative paths are taken from the working directory, and the driver
 waits for the tensor node's subscriptions (``min_subscribers`` 1) when both are launched.
 An empty argument leaves the parameter to the params file.
 
@@ -96,7 +97,12 @@ _FALSE = ('false', '0')
 
 #: Launch arguments: name, default ('' = from the params file), description.
 ARGUMENTS = (
-    ('mode', '', 'driver mode: sim or replay ("": the params file\'s; a bag implies replay)'),
+    (
+        'mode',
+        '',
+        'driver source: sim or replay ("": the params file\'s, which has none; a bag implies '
+        'replay; a driver without a source is refused)',
+    ),
     ('bag', '', 'replay: rosbag2 folder, relative to the working directory'),
     (
         'params_file',
@@ -151,6 +157,8 @@ def launch_setup(context, *args, **kwargs):
     if params_file and not os.path.isfile(params_file):
         raise ValueError(f'params_file {params_file!r}: no such file')
     files = [params_file] if params_file else []
+    if 'driver' in names:
+        _require_source(values, params_file)
     publishers = []
     if as_bool('static_transforms', values['static_transforms']):
         frames = static_frames(params_file, values['namespace'])
@@ -206,6 +214,20 @@ def node_overrides(name, names, values):
     if name in ('calibrator', 'compensator') and values['calibration_file']:
         return {'calibration_file': _path(values['calibration_file'])}
     return {}
+
+
+def _require_source(values, params_file):
+    """Refuse a driver with no source: it fabricates no vehicle data by default
+    (nodes/driver.py), so ``mode`` comes from an argument, a ``bag`` or the params file."""
+    if values['mode'] or values['bag']:
+        return
+    driver = _node_parameters(parameter_sections(params_file), values['namespace'], 'driver')
+    if not driver.get('mode'):
+        raise ValueError(
+            'the driver needs a source: mode:=sim (simulated vehicle data) or bag:=PATH '
+            '(replay); on a vehicle, launch the others on the real magnetometer topics: '
+            'nodes:=tensor,calibrator,compensator'
+        )
 
 
 def _driver_overrides(names, values):

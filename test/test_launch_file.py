@@ -157,8 +157,8 @@ def _chain(names: list[str]) -> list[tuple[str, str]]:
     return [(name, step) for name in names for step in ('configure', 'activate')]
 
 
-def test_default_starts_the_four_nodes_and_activates_them_one_after_the_other(launch, share):
-    run = launch()
+def test_sim_starts_the_four_nodes_and_activates_them_one_after_the_other(launch, share):
+    run = launch(mode='sim')
     assert [node.name for node in run.nodes] == list(ORDER)
     for node in run.nodes:
         assert (node.package, node.executable, node.namespace) == (PACKAGE, node.name, 'tetra')
@@ -168,7 +168,7 @@ def test_default_starts_the_four_nodes_and_activates_them_one_after_the_other(la
         assert params_file == str(share / 'config' / 'tetra_gradiometer.yaml')
         expected = {'use_sim_time': False, 'autostart': False}  # the sequence configures them
         if node.name == 'driver':  # bringup: wait for the tensor node's subscriptions
-            expected['min_subscribers'] = 1
+            expected.update(min_subscribers=1, mode='sim')
         assert overrides == expected
     assert run.requests == _chain(list(ORDER))
     assert run.state == dict.fromkeys(ORDER, 'active')
@@ -176,7 +176,7 @@ def test_default_starts_the_four_nodes_and_activates_them_one_after_the_other(la
 
 
 def test_every_argument_read_is_declared_and_every_declared_one_is_read(launch):
-    run = launch()
+    run = launch(mode='sim')
     assert sorted(run.context.launch_configurations.read) == sorted(run.declared)
     assert len(set(run.declared)) == len(run.declared)
 
@@ -193,7 +193,7 @@ def test_every_argument_read_is_declared_and_every_declared_one_is_read(launch):
     ],
 )
 def test_a_subset_starts_only_its_nodes_in_bringup_order(launch, nodes, expected):
-    run = launch(nodes=nodes)
+    run = launch(mode='sim', nodes=nodes)
     assert [node.name for node in run.nodes] == expected
     assert run.requests == _chain(expected)
     assert run.state == dict.fromkeys(expected, 'active')
@@ -203,7 +203,7 @@ def test_a_subset_starts_only_its_nodes_in_bringup_order(launch, nodes, expected
 
 
 def test_autostart_false_leaves_every_node_unconfigured(launch):
-    run = launch(autostart='False')
+    run = launch(mode='sim', autostart='False')
     assert [node.name for node in run.nodes] == list(ORDER)
     assert run.requests == []
     assert run.state == dict.fromkeys(ORDER, 'unconfigured')
@@ -213,7 +213,7 @@ def test_autostart_false_leaves_every_node_unconfigured(launch):
 def test_a_later_manual_deactivate_and_activate_restarts_nothing(launch):
     from lifecycle_msgs.msg import Transition
 
-    run = launch()
+    run = launch(mode='sim')
     before = list(run.requests)
     run.change_state(run.node('tensor'), Transition.TRANSITION_DEACTIVATE)
     run.change_state(run.node('tensor'), Transition.TRANSITION_ACTIVATE)
@@ -226,7 +226,7 @@ def test_a_later_manual_deactivate_and_activate_restarts_nothing(launch):
     'word, value', [('true', True), ('True', True), ('1', True), ('0', False)]
 )
 def test_use_sim_time_reaches_every_node(launch, word, value):
-    run = launch(use_sim_time=word)
+    run = launch(mode='sim', use_sim_time=word)
     assert [node.parameters[-1]['use_sim_time'] for node in run.nodes] == [value] * 4
     assert [node.parameters[-1]['use_sim_time'] for node in run.plain_nodes] == [value] * 5
 
@@ -238,7 +238,10 @@ def test_use_sim_time_reaches_every_node(launch, word, value):
         ({'bag': 'bags/survey', 'mode': 'sim'}, {'mode': 'sim', 'bag': str(REPO / 'bags/survey')}),
         ({'mode': 'replay'}, {'mode': 'replay'}),
         ({'mode': 'sim', 'rate': '0'}, {'mode': 'sim', 'rate': 0.0}),
-        ({'scenario': 'scenarios/x.yaml'}, {'scenario': str(REPO / 'scenarios' / 'x.yaml')}),
+        (
+            {'mode': 'sim', 'scenario': 'scenarios/x.yaml'},
+            {'mode': 'sim', 'scenario': str(REPO / 'scenarios' / 'x.yaml')},
+        ),
     ],
 )
 def test_driver_arguments_become_its_parameters_as_bringup_passes_them(launch, arguments, driver):
@@ -264,7 +267,7 @@ def test_calibration_file_goes_to_calibrator_and_compensator_only(launch):
 
 
 def test_namespace_and_an_empty_params_file(launch):
-    run = launch(namespace='robot1/tetra', params_file='')
+    run = launch(mode='sim', namespace='robot1/tetra', params_file='')
     assert {node.namespace for node in run.nodes} == {'robot1/tetra'}
     assert {node.namespace for node in run.plain_nodes} == {'robot1/tetra'}
     assert [len(node.parameters) for node in run.nodes] == [1] * 4  # only the overrides
@@ -284,7 +287,33 @@ def test_namespace_and_an_empty_params_file(launch):
 )
 def test_a_bad_argument_is_refused_before_any_node_starts(launch, arguments, message):
     with pytest.raises(ValueError, match=message):
+        launch(**{'mode': 'sim', **arguments})
+
+
+@pytest.mark.parametrize('arguments', [{}, {'rate': '0'}, {'scenario': 'x.yaml'}])
+def test_a_driver_without_a_source_is_refused_before_any_node_starts(launch, arguments):
+    """The installed params file sets no mode: the driver fabricates nothing by default."""
+    with pytest.raises(ValueError, match=r'the driver needs a source: mode:=sim .* bag:=PATH'):
         launch(**arguments)
+    assert launch.last.nodes == []
+
+
+def test_without_the_driver_no_source_is_needed(launch):
+    run = launch(nodes='tensor,calibrator,compensator')
+    assert [node.name for node in run.nodes] == ['tensor', 'calibrator', 'compensator']
+    assert run.state == dict.fromkeys(['tensor', 'calibrator', 'compensator'], 'active')
+
+
+@pytest.mark.parametrize('section', ['/**', '/tetra/driver', '/**/driver'])
+def test_a_params_file_that_sets_the_mode_is_a_source(launch, tmp_path, section):
+    params_file = tmp_path / 'params.yaml'
+    params_file.write_text(f"{section}:\n  ros__parameters:\n    mode: sim\n")
+    run = launch(params_file=str(params_file))
+    assert run.state == dict.fromkeys(ORDER, 'active')
+    other = tmp_path / 'other.yaml'
+    other.write_text("/tetra/tensor:\n  ros__parameters:\n    mode: sim\n")
+    with pytest.raises(ValueError, match='the driver needs a source'):
+        launch(params_file=str(other))
 
 
 # --------------------------------------------------------------------------- static transforms
@@ -343,7 +372,7 @@ def _params_file(tmp_path: Path, text: str) -> str:
 
 
 def test_static_transforms_are_the_default_params_file_sensors_and_their_centroid(launch, share):
-    run = launch()
+    run = launch(mode='sim')
     data = yaml.safe_load((share / 'config' / 'tetra_gradiometer.yaml').read_text())
     ros = data['/**']['ros__parameters']
     expected = _expected(
@@ -370,7 +399,7 @@ def test_static_transforms_follow_another_params_file(launch, tmp_path):
         '    sensor_frame_ids: [auv7/m_a, auv7/m_b, auv7/m_c, auv7/m_d]\n'
         '    array_frame_id: auv7/gradiometer\n',
     )
-    run = launch(params_file=params_file)
+    run = launch(mode='sim', params_file=params_file)
     ros = yaml.safe_load(Path(params_file).read_text())['/**']['ros__parameters']
     assert ros['sensor_positions'] == positions
     sensors = ['auv7/m_a', 'auv7/m_b', 'auv7/m_c', 'auv7/m_d']
@@ -414,12 +443,12 @@ tetra:
     sensor_frame_ids: [root1, root2, root3, root4]
 """,
     )
-    run = launch(params_file=params_file)
+    run = launch(mode='sim', params_file=params_file)
     expected = _expected(tensor, 'driver_base', ['d1', 'd2', 'd3', 'd4'], 'tensor_array')
     _assert_transforms(run, expected)
     # At the root namespace "/*" (one name) matches /driver and comes last; tetra: driver:
     # (/tetra/driver) no longer matches.
-    run = launch(params_file=params_file, namespace='')
+    run = launch(mode='sim', params_file=params_file, namespace='')
     roots = ['root1', 'root2', 'root3', 'root4']
     _assert_transforms(run, _expected(tensor, 'everyone_base', roots, 'tensor_array'))
 
@@ -430,17 +459,17 @@ def test_missing_keys_and_no_params_file_take_the_declared_defaults(launch, tmp_
 
     positions = list(DEFAULT_POSITIONS)
     defaults = _expected(positions, BASE_FRAME, list(MAG_FRAMES), ARRAY_FRAME)
-    _assert_transforms(launch(params_file=''), defaults)
+    _assert_transforms(launch(mode='sim', params_file=''), defaults)
     params_file = _params_file(
         tmp_path, '/**:\n  ros__parameters:\n    sensor_frame_ids: [s1, s2, s3, s4]\n'
     )
     expected = _expected(positions, BASE_FRAME, ['s1', 's2', 's3', 's4'], ARRAY_FRAME)
-    _assert_transforms(launch(params_file=params_file), expected)
+    _assert_transforms(launch(mode='sim', params_file=params_file), expected)
 
 
 def test_static_transform_publishers_are_plain_nodes_outside_the_lifecycle(launch):
     for arguments in ({}, {'nodes': 'driver'}, {'autostart': 'false'}, {'namespace': 'r2'}):
-        run = launch(**arguments)
+        run = launch(**{'mode': 'sim', **arguments})
         assert [node.name for node in run.plain_nodes] == list(PUBLISHERS)
         namespace = arguments.get('namespace', 'tetra')
         for node in run.plain_nodes:
@@ -451,14 +480,14 @@ def test_static_transform_publishers_are_plain_nodes_outside_the_lifecycle(launc
         assert {name for name, _ in run.requests} <= set(lifecycle)
         assert set(run.state) == set(lifecycle)
     # The publishers start before the lifecycle nodes (the frames exist before any data).
-    run = launch()
+    run = launch(mode='sim')
     first_lifecycle = min(run.actions.index(node) for node in run.nodes)
     assert max(run.actions.index(node) for node in run.plain_nodes) < first_lifecycle
 
 
 @pytest.mark.parametrize('word', ['false', 'False', '0'])
 def test_static_transforms_false_starts_none(launch, word):
-    run = launch(static_transforms=word)
+    run = launch(mode='sim', static_transforms=word)
     assert run.plain_nodes == []
     assert [node.name for node in run.nodes] == list(ORDER)
     assert run.state == dict.fromkeys(ORDER, 'active')
@@ -484,7 +513,7 @@ def test_a_malformed_params_file_is_refused_before_any_node_starts(
 ):
     params_file = _params_file(tmp_path, f'/**:\n  ros__parameters:\n    {body}\n')
     with pytest.raises(ValueError, match=re.escape(f'params_file {params_file!r}: {message}')):
-        launch(params_file=params_file)
+        launch(mode='sim', params_file=params_file)
     assert launch.last.nodes == [] and launch.last.plain_nodes == []
 
 
@@ -501,7 +530,7 @@ def test_a_file_that_is_not_a_ros2_params_file_is_refused(launch, tmp_path, text
     params_file = _params_file(tmp_path, text)
     pattern = re.escape(f'params_file {params_file!r}: ') + '.*' + re.escape(message)
     with pytest.raises(ValueError, match=pattern):
-        launch(params_file=params_file)
+        launch(mode='sim', params_file=params_file)
     assert launch.last.nodes == [] and launch.last.plain_nodes == []
 
 
@@ -510,7 +539,7 @@ def test_a_file_that_is_not_a_ros2_params_file_is_refused(launch, tmp_path, text
 
 def test_every_executable_launched_is_a_console_script_with_a_main(launch):
     scripts = console_scripts()
-    run = launch()
+    run = launch(mode='sim')
     executables = {node.executable for node in run.nodes}
     assert {node.package for node in run.nodes} == {PACKAGE}
     # The only other executable: tf2_ros's static_transform_publisher (not ours).
@@ -532,7 +561,7 @@ def test_every_executable_launched_is_a_console_script_with_a_main(launch):
 def test_the_package_name_agrees_everywhere(launch):
     name = ElementTree.parse(REPO / 'package.xml').getroot().findtext('name')
     assert _setup_argument('name') == name == PACKAGE
-    assert {node.package for node in launch().nodes} == {PACKAGE}
+    assert {node.package for node in launch(mode='sim').nodes} == {PACKAGE}
     assert (REPO / 'resource' / PACKAGE).is_file()
     assert installed_files()[f'share/ament_index/resource_index/packages/{PACKAGE}']
 
@@ -624,7 +653,7 @@ def test_package_xml_declares_every_import_of_the_package_and_the_launch_file():
 def test_package_xml_declares_every_package_the_launch_file_runs(launch):
     depends, _ = _package_xml()
     run = depends.get('exec_depend', set()) | depends.get('depend', set())
-    launched = launch()
+    launched = launch(mode='sim')
     packages = {node.package for node in [*launched.nodes, *launched.plain_nodes]}
     assert packages == {PACKAGE, 'tf2_ros'}
     assert sorted(packages - {PACKAGE} - run) == []

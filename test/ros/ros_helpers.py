@@ -52,14 +52,16 @@ class NodeProcess:
     """One ``python -m tetra_gradiometer node NAME`` child; stderr kept in a file."""
 
     def __init__(self, name: str, domain: int, params: dict[str, Any] | None = None,
-                 params_file: Path = PARAMS) -> None:
+                 params_file: Path = PARAMS, remaps: dict[str, str] | None = None) -> None:
         self.name = name
         self.log = tempfile.NamedTemporaryFile('w+', prefix=f'tg_{name}_', suffix='.log', delete=False)
         command = [sys.executable, '-m', 'tetra_gradiometer', 'node', name, '--params', str(params_file)]
-        if params:
+        if params or remaps:
             command.append('--ros-args')
-            for key, value in params.items():
+            for key, value in (params or {}).items():
                 command += ['-p', f'{key}:={ros_value(value)}']
+            for source, target in (remaps or {}).items():
+                command += ['-r', f'{source}:={target}']
         self.process = subprocess.Popen(command, cwd=REPO, env=child_env(domain), stdout=self.log,
                                         stderr=subprocess.STDOUT, start_new_session=True)
 
@@ -99,8 +101,8 @@ class Graph:
         self.domain = domain
         self.processes: dict[str, NodeProcess] = {}
 
-    def start(self, name: str, **params: Any) -> NodeProcess:
-        process = NodeProcess(name, self.domain, params)
+    def start(self, name: str, remaps: dict[str, str] | None = None, **params: Any) -> NodeProcess:
+        process = NodeProcess(name, self.domain, params, remaps=remaps)
         self.processes[name] = process
         return process
 

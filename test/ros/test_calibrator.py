@@ -152,7 +152,7 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
 
 def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_from_odom(tmp_path):
     """~/guidance (about 1 Hz, latched JSON) and the key figures on /diagnostics: one field
-    direction, the vehicle level on heading north (its /odom), is not enough and gets advice;
+    direction, the vehicle level on heading north (its odom), is not enough and gets advice;
     after ~/start, rich directions are enough. Truth: the attitudes and directions fed."""
     import json
 
@@ -169,7 +169,7 @@ def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_f
         graph.start('calibrator', calibration_file=str(tmp_path / 'calibration.yaml'))
         probe.create_subscription(String, 'calibrator/guidance', lambda m: received.append(json.loads(m.data)),
                                   latched_qos())
-        odom = probe.create_publisher(Odometry, '/odom', derived_qos())
+        odom = probe.create_publisher(Odometry, '/tetra/odom', derived_qos())  # the driver's
         for publisher in (feeder.raw, feeder.reference, odom):
             wait_matched(publisher, 1)
         assert probe.call('calibrator/start').success
@@ -203,7 +203,7 @@ def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_f
         wait_for(lambda: received[-1]['samples'] == 300, 10, 'guidance on the 300 new samples', graph)
         document = received[-1]
         assert document['enough'] is True and document['advice'] is None, document['text']
-        assert document['coverage']['source'] == 'field direction'  # the last /odom is too old
+        assert document['coverage']['source'] == 'field direction'  # the last odom is too old
 
 
 def _set_vector(probe, graph, name, values):
@@ -259,10 +259,11 @@ def _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q) -> None:
 
 
 def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a_target(tmp_path):
-    """~/calibrate as `calibrate` does (issue 15): with /odom, the simulator's 4 nT/m regional
-    gradient is recovered within 3 sigma and stored; a trim over a magnetic target (its
-    gradient changes along the circle) is refused with the figures and nothing written,
-    and written with the warning only with force:=true."""
+    """~/calibrate as `calibrate` does (issue 15): with the vehicle's /odom (remapped to the
+    calibrator's odom), the simulator's 4 nT/m regional gradient is recovered within 3 sigma
+    and stored; a trim over a magnetic target (its gradient changes along the circle) is
+    refused with the figures and nothing written, and written with the warning only with
+    force:=true."""
     import yaml
     from nav_msgs.msg import Odometry
 
@@ -270,7 +271,8 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
 
     calibration_file = tmp_path / 'calibration.yaml'
     with ros_graph() as (graph, probe, feeder):
-        graph.start('calibrator', calibration_file=str(calibration_file))
+        # On a vehicle: the navigation's /odom, by remapping the calibrator's relative odom.
+        graph.start('calibrator', remaps={'odom': '/odom'}, calibration_file=str(calibration_file))
         odom = probe.create_publisher(Odometry, '/odom', derived_qos())
         for publisher in (feeder.raw, feeder.reference, odom):
             wait_matched(publisher, 1)

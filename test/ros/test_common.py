@@ -96,6 +96,7 @@ def _assert_one_line_refusal(code, output, *expected):
     ('tensor', {'stamp_tolerance_s': -1.0}, ["'stamp_tolerance_s' = -1.0", '[1e-06, 1]']),
     ('calibrator', {'method': 'simplex'}, ["'method' = 'simplex'", 'must be one of']),
     ('driver', {'mode': 'replay', 'bag': '/nonexistent/bag'}, ['bag not found']),
+    ('driver', {'mode': 'simulated'}, ["'mode' = 'simulated'", "must be 'sim' or 'replay'"]),
     # Out of the physical range (was accepted up to 1e6 generations: minutes of a blocked node).
     ('calibrator', {'ga_generations': 0}, ["'ga_generations' = 0", '[1, 20000]']),
     ('calibrator', {'ga_generations': 1_000_000}, ["'ga_generations' = 1000000", '[1, 20000]']),
@@ -112,8 +113,8 @@ def _assert_one_line_refusal(code, output, *expected):
     ('calibrator', {'ga_generations': '5.0'}, ["'ga_generations' = 5.0", 'a double', 'an integer']),
     ('driver', {'rate': 10}, ["'rate' = 10", 'an integer', 'a double', 'decimal point']),
     # A name the node does not declare (a typo), also one another node declares.
-    ('driver', {'rat': 10.0}, ["unknown parameter 'rat'", 'declared:', 'rate']),
-    ('driver', {'max_pending': 10}, ["unknown parameter 'max_pending'", 'declared:']),
+    ('driver', {'mode': 'sim', 'rat': 10.0}, ["unknown parameter 'rat'", 'declared:', 'rate']),
+    ('driver', {'mode': 'sim', 'max_pending': 10}, ["unknown parameter 'max_pending'", 'declared:']),
 ])
 def test_bad_parameters_are_refused_at_start_with_one_line(name, params, expected):
     code, output = NodeProcess(name, unique_domain(), params).refusal()
@@ -123,7 +124,7 @@ def test_bad_parameters_are_refused_at_start_with_one_line(name, params, expecte
 @pytest.mark.parametrize('name, document, expected', [
     ('calibrator', {'/**': {'ros__parameters': {'ga_generations': 1_000_000}}}, ["'ga_generations' = 1000000", '[1, 20000]']),
     ('tensor', {'/**': {'ros__parameters': {'max_pending': 'many'}}}, ["'max_pending' = 'many'", 'a string']),
-    ('driver', {'/**': {'ros__parameters': {'rat': 10.0, 'earth_field_enu': [0.0, 2e-5, -4.5e-5]}}},
+    ('driver', {'/**': {'ros__parameters': {'mode': 'sim', 'rat': 10.0, 'earth_field_enu': [0.0, 2e-5, -4.5e-5]}}},
      ["unknown parameter 'rat'"]),
     ('compensator', {'/tetra/compensator': {'ros__parameters': {'max_pendng': 10}}}, ["unknown parameter 'max_pendng'"]),
 ])

@@ -1,5 +1,5 @@
 """Frame ids (REP 103/105, issue 14) as a user sees them on the topics: the simulating
-driver's /odom is odom -> base_link and its magnetometers tetra_mag1..4 by default, every
+driver's odometry (/tetra/odom, never the vehicle's /odom) is odom -> base_link and its magnetometers tetra_mag1..4 by default, every
 frame id is a parameter, the tensor publishes its gradient in ``array_frame_id`` and
 reference_field in the frame of the mag1 message it came from; a frame id with a leading
 '/' (tf2 refuses those) is refused at start-up."""
@@ -21,7 +21,7 @@ def _frames(probe, graph, **driver_params) -> dict[str, tuple[str, ...]]:
     def keep(name, *ids):
         seen.setdefault(name, ids)
 
-    probe.create_subscription(Odometry, '/odom', lambda m: keep('odom', m.header.frame_id, m.child_frame_id),
+    probe.create_subscription(Odometry, '/tetra/odom', lambda m: keep('odom', m.header.frame_id, m.child_frame_id),
                               derived_qos())
     for s in range(4):
         probe.create_subscription(MagneticField, f'/tetra/mag{s + 1}',
@@ -32,13 +32,14 @@ def _frames(probe, graph, **driver_params) -> dict[str, tuple[str, ...]]:
                               lambda m: keep('reference', m.header.frame_id), derived_qos())
     # Real time for 10 s: a reader that matches the driver's writers late (discovery on a
     # loaded machine) still gets later messages; one per topic is all this test needs.
-    graph.start('driver', rate=1.0, min_subscribers=2, max_duration_s=10.0, start_paused=True, **driver_params)
+    graph.start('driver', mode='sim', rate=1.0, min_subscribers=2, max_duration_s=10.0, start_paused=True, **driver_params)
     # Volatile topics: the driver's writers known to every reader before it plays.
-    wait_for(lambda: probe.count_publishers('/odom') >= 1 and probe.count_publishers('/tetra/mag4') >= 2,
+    wait_for(lambda: probe.count_publishers('/tetra/odom') >= 1 and probe.count_publishers('/tetra/mag4') >= 2,
              30, 'the driver', graph)
     time.sleep(1.0)
     assert probe.call('driver/resume').success
     wait_for(lambda: len(seen) == 7, 30, 'a message on each topic', graph)
+    seen['absolute odom publishers'] = (str(probe.count_publishers('/odom')),)
     return seen
 
 
@@ -47,6 +48,7 @@ def test_default_frames_follow_rep_105():
         graph.start('tensor')
         seen = _frames(probe, graph)
     assert seen['odom'] == ('odom', 'base_link')
+    assert seen['absolute odom publishers'] == ('0',)  # the vehicle's /odom is not the driver's
     assert [seen[f'mag{s}'][0] for s in range(1, 5)] == ['tetra_mag1', 'tetra_mag2', 'tetra_mag3', 'tetra_mag4']
     assert seen['raw'] == ('tetra_array',) and seen['reference'] == ('tetra_mag1',)
 

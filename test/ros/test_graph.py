@@ -60,7 +60,7 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
         graph.start('tensor')
         graph.start('calibrator', calibration_file=str(calibration_file))
         graph.start('compensator', calibration_file=str(calibration_file))
-        graph.start('driver', rate=20.0, start_paused=True, hold_between_segments=True, min_subscribers=1)
+        graph.start('driver', mode='sim', rate=20.0, start_paused=True, hold_between_segments=True, min_subscribers=1)
         _wait_discovered(probe, graph)
         # A missing calibration file: the compensator runs, uncompensated, and says so.
         wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'False',

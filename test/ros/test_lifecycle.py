@@ -152,6 +152,8 @@ def test_every_node_configures_activates_and_cleans_up_in_process(name, tmp_path
         overrides = [Parameter('autostart', value=False)]
         if name in ('calibrator', 'compensator'):
             overrides.append(Parameter('calibration_file', value=str(tmp_path / 'calibration.yaml')))
+        if name == 'driver':
+            overrides.append(Parameter('mode', value='sim'))
         node = classes[name](parameter_overrides=overrides, context=context)
         try:
             own = len(list(node.publishers)), len(list(node.subscriptions)), len(list(node.timers))

@@ -22,7 +22,9 @@ from .node import PARAMS_HELP, ros_arguments
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--params', default='', help=PARAMS_HELP)
     parser.add_argument(
-        '--mode', choices=('sim', 'replay'), help='driver mode (default: from the params)'
+        '--mode',
+        choices=('sim', 'replay'),
+        help='driver source (no default: this, --bag or mode in the params file is needed)',
     )
     parser.add_argument('--bag', help='replay: rosbag2 folder')
     parser.add_argument(

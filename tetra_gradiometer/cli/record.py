@@ -1,6 +1,7 @@
 """``python -m tetra_gradiometer record --out BAG --duration S``: record the sim driver's
-topics (``/tetra/mag1..4``, ``/tetra/gradient/truth``, ``/odom``) over ROS 2 into a rosbag2
-folder (io/bag.py BagWriter, messages rebuilt with conversions.rosbags_types).
+topics (``/tetra/mag1..4``, ``/tetra/gradient/truth``, ``/tetra/odom``) over ROS 2 into a
+rosbag2 folder (io/bag.py BagWriter, messages rebuilt with conversions.rosbags_types), under
+the bag contract's names (README, "Topics": the odometry as ``/odom``).
 
 A driver node (sim mode, ``--scenario``, ``--rate`` times real time) and a recorder node run
 in this process; ``--duration`` is seconds of *sample* time (so a recording is the same
@@ -56,7 +57,7 @@ class Recorder(Node):
                 sensor_qos(1000),
             )
         self.create_subscription(JointState, 'gradient/truth', self._truth, derived_qos(1000))
-        self.create_subscription(Odometry, cv.ODOM_TOPIC, self._odom, derived_qos(1000))
+        self.create_subscription(Odometry, cv.ODOM_NODE_TOPIC, self._odom, derived_qos(1000))
 
     def _write(self, topic: str, msg: Any, stamp: int) -> None:
         self.queue.put((topic, msg, stamp))
@@ -151,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
             for node in nodes:
                 executor.add_node(node)
             spinner.start()
-            topics = [*cv.MAG_TOPICS, 'gradient/truth', cv.ODOM_TOPIC]
+            topics = [*cv.MAG_TOPICS, 'gradient/truth', cv.ODOM_NODE_TOPIC]
             operator.wait_for(
                 lambda: all(recorder.count_publishers(t) > 0 for t in topics), 20, 'the driver'
             )

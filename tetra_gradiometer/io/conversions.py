@@ -47,7 +47,13 @@ ARRAY_FRAME = 'tetra_array'
 ODOM_FRAME = 'odom'
 BASE_FRAME = 'base_link'
 TENSOR_NAMES = ('gxx', 'gxy', 'gxz', 'gyx', 'gyy', 'gyz', 'gzx', 'gzy', 'gzz')
+#: Odometry in a bag (the bag contract's name, README "Topics").
 ODOM_TOPIC = '/odom'
+#: Odometry between the nodes: relative, so in the suite's namespace (``/tetra/odom``) where
+#: the driver publishes its simulated or replayed vehicle and the calibrator listens. On a
+#: vehicle the calibrator is remapped to the navigation's topic (``-r odom:=/odom``); the
+#: driver never publishes on the vehicle's own ``/odom``.
+ODOM_NODE_TOPIC = 'odom'
 TEMPERATURE_TOPIC = '/tetra/temperature'
 BATTERY_TOPIC = '/battery_state'
 BAG_MAG_TOPICS = tuple(f'{NAMESPACE}/{name}' for name in MAG_TOPICS)

@@ -10,7 +10,7 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
   condition number is given), answer success=false with the reason. The known-gradient
   methods solve as ``calibrate`` does (:func:`~tetra_gradiometer.io.window_check.
   identify_checked`): a regional world-frame gradient jointly when every sample has an
-  ``/odom`` attitude (else it is assumed zero, as the reply and the file's ``notes`` say),
+  ``odom`` attitude (else it is assumed zero, as the reply and the file's ``notes`` say),
   then the test of the fit's assumption; samples that fail it (a target, a bad stretch),
   or whose last trim assessment predicts more than 2x the noise floor (too little
   attitude excitation), answer success=false with the figures (the failing part in s
@@ -50,7 +50,9 @@ number, the attitudes covered, whether that is *enough* (predicted sigma within 
 floor) and else the next manoeuvre ("roll ±15° on heading 120–180°"); the key figures also go
 on ``/diagnostics``. Per sample it only appends (the sums and the attitude bin of the
 samples since the last tick are added in the timer, in its own callback group); a sample's
-attitude is the nearest ``/odom`` (nav_msgs/Odometry) within 0.5 s
+attitude is the nearest ``odom`` message (nav_msgs/Odometry: the relative topic, the
+driver's ``/tetra/odom``; on a vehicle remap it to the navigation's, ``-r odom:=/odom``)
+within 0.5 s
 (:class:`~tetra_gradiometer.io.window_check.AttitudeHistory`), else unknown (then the
 coverage is that of the body-frame field direction). The survey and the candidate
 manoeuvres are flown in ``earth_field_enu``; the sensor noise is ``sensor_noise_t`` (or
@@ -258,7 +260,7 @@ class CalibratorNode(ManagedNode):
         self._calibrations = 0
         # The solve: off the executor, one at a time, cancellable.
         self._worker = SolveWorker('calibrator_solve', on_start=self._publish_diagnostics)
-        # Trim guidance: recent /odom (stamp ns, quaternion), samples not yet in the sums.
+        # Trim guidance: recent odom (stamp ns, quaternion), samples not yet in the sums.
         self._odom = AttitudeHistory()
         self._epoch = 0  # counts ~/start: a tick that straddles one discards its work
         self._added: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (g, b, q)
@@ -285,11 +287,11 @@ class CalibratorNode(ManagedNode):
         self.create_service(Trigger, '~/cancel', gated(self._on_cancel), callback_group=control)
         self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self._guidance_pub = self.create_publisher(String, '~/guidance', latched_qos())
-        # Each beside the samples: the guidance's work, and /odom never behind a burst.
+        # Each beside the samples: the guidance's work, and odom never behind a burst.
         guidance, odom = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         self.create_timer(GUIDANCE_PERIOD_S, self._publish_guidance, callback_group=guidance)
         self.create_subscription(
-            Odometry, cv.ODOM_TOPIC, gated(self._on_odom), derived_qos(), callback_group=odom
+            Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos(), callback_group=odom
         )
 
     # ----------------------------------------------------------------- samples

@@ -1,4 +1,9 @@
-"""``driver`` node: the magnetometer source, simulated or replayed.
+"""``driver`` node: a stand-in magnetometer source, simulated or replayed.
+
+It has no default source: ``mode`` must be chosen (``sim`` or ``replay``), else its
+configuration is refused, so that ``ros2 run tetra_gradiometer driver`` on a vehicle never
+fabricates vehicle data. On a vehicle the tensor node takes the real magnetometer driver's
+topics instead (docs/ros.md, "Another magnetometer driver").
 
 ``mode: sim`` flies the core mission simulator (``scenario``: a scenario YAML for
 io/scenario.py, or the built-in default ``io.scenario.DEFAULT_SCENARIO``: a trim manoeuvre
@@ -6,10 +11,12 @@ far from the target, then a survey line over a dipole). It publishes ``mag1``..`
 (sensor_msgs/MagneticField, T, frames tetra_mag1..4, header.stamp = sample time: the start
 time plus the simulated time of the sample; ``magnetic_field_covariance`` = ``diag(sigma^2)``
 T^2 of the scenario's sensor noise), ``gradient/truth`` (the simulator's ``g_true``,
-JointState T/m) and ``/odom`` (nav_msgs/Odometry, body -> world ENU).
+JointState T/m) and ``odom`` (nav_msgs/Odometry, body -> world ENU): every topic relative,
+so in the suite's namespace (``/tetra/odom``), never the vehicle's own ``/odom``.
 
 ``mode: replay`` plays a rosbag2 folder (sqlite3 or mcap): the magnetometer topics, and
-``/tetra/gradient/truth`` and ``/odom`` when recorded, with their recorded stamps. A
+``/tetra/gradient/truth`` and ``/odom`` when recorded (published as ``gradient/truth`` and
+``odom`` in the node's namespace), with their recorded stamps. A
 magnetometer message keeps its recorded covariance; one recorded without (all zero) gets
 ``diag(sensor_noise_t^2)``, or REP 145's unknown (-1 first) with ``sensor_noise_t`` 0.
 
@@ -42,7 +49,7 @@ from sensor_msgs.msg import JointState, MagneticField
 from std_srvs.srv import Trigger
 
 from ..core.units import NS_PER_S
-from ..errors import InputError
+from ..errors import InputError, ParamsError
 from ..io import conversions as cv
 from ..io import replay
 from ..io.replay import MAG, ODOM, TRUTH, Frame
@@ -55,12 +62,22 @@ from .common import (
     diagnostics_period_spec,
     frame_ids,
     non_negative,
-    one_of,
     positive,
     status,
 )
 from .managed import ManagedNode
 from .process import spin_node
+
+#: Why the driver refuses to configure without a ``mode``.
+MODE_UNSET = (
+    "parameter 'mode' is not set: choose 'sim' (simulated vehicle data from a scenario) or "
+    "'replay' (a recorded bag, with 'bag'); the driver fabricates no data by default"
+)
+
+
+def _mode_error(value: str) -> str | None:
+    """Why ``mode`` is refused, or None ('' is accepted here and refused at configure)."""
+    return None if value in ('', 'sim', 'replay') else f"must be 'sim' or 'replay', got {value!r}"
 
 
 def _remap_error(value: str) -> str | None:
@@ -75,9 +92,10 @@ def _remap_error(value: str) -> str | None:
 PARAMETERS = [
     ParamSpec(
         'mode',
-        'sim',
-        'Source: "sim" (core mission simulator) or "replay" (rosbag2 folder).',
-        one_of('sim', 'replay'),
+        '',
+        'Source, to be chosen (no default): "sim" (core mission simulator) or "replay" '
+        '(rosbag2 folder); unset, configuration is refused.',
+        _mode_error,
     ),
     ParamSpec(
         'scenario',
@@ -101,7 +119,7 @@ PARAMETERS = [
         'rate',
         1.0,
         'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by gradient/raw). '
-        'At most 1000: the chain sustains about 400 sets/s (docs/ros.md), faster only queues.',
+        'At most 1000.',
         non_negative,
         float_range=(0.0, 1000.0),
     ),
@@ -198,6 +216,8 @@ class DriverNode(ManagedNode):
         self._hold = bool(p['hold_between_segments'])
         self._window = int(p['max_in_flight'])
         self._ack_timeout = float(p['ack_timeout_s'])
+        if not p['mode']:
+            raise ParamsError(MODE_UNSET)
         self._mode = p['mode']
         self._min_subscribers = int(p['min_subscribers'])
         self._matched_since: float | None = None
@@ -221,7 +241,7 @@ class DriverNode(ManagedNode):
             for s, topic in enumerate(cv.MAG_TOPICS)
         }
         self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
-        self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_TOPIC, derived_qos())
+        self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._clock_pub = (
             self.create_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
