@@ -1,0 +1,119 @@
+"""What the array measures of a target: the differenced tensor of a point dipole (and of a
+uniform background gradient) along a track, and tensors between the body and odom frames.
+
+The tensor's reference point. Eq. 7 is exact for a uniform gradient and otherwise refers
+to no single point: ``B_i - B_1`` is, to second order, the derivative along ``r_i - r_1``
+at the midpoint of the pair. The package takes the array's centroid as the tensor's point
+(:func:`reference_points`, the ``tetra_array`` frame's origin); at distance ``R`` from a
+dipole the eq. 7 tensor differs from the gradient there by terms of order ``d/R`` (``d``
+the array size: 2.5 % of the tensor at 20 m for a 0.5 m array). The localizer therefore
+never compares the measurement with the dipole's gradient at a point: it compares it
+with eq. 7 applied to the dipole's field at the four sensors (:func:`array_tensor`), which
+is exact at any distance (the finite-size correction is the model itself).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..fields import MU0_OVER_4PI
+from ..geometry import TetraGeometry
+from ..types import FloatArray
+
+#: A basis of symmetric traceless 3x3 matrices (a curl- and divergence-free uniform
+#: gradient has five free components): xx-zz, yy-zz, xy, xz, yz.
+BACKGROUND_BASIS = np.array(
+    [
+        [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0]],
+        [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]],
+        [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+        [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
+        [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]],
+    ]
+)
+
+
+def to_world(tensors: FloatArray, rotations: FloatArray) -> FloatArray:
+    """Body-frame tensors (N, 3, 3) into the odom frame: ``R G R^T``.
+
+    ``rotations`` (N, 3, 3) rotate body vectors into the odom frame (the ``/odom``
+    orientation as a matrix). Units are kept (T/m in, T/m out).
+    """
+    return np.einsum('nij,njk,nlk->nil', rotations, tensors, rotations)
+
+
+def to_body(tensors: FloatArray, rotations: FloatArray) -> FloatArray:
+    """Odom-frame tensors (N, 3, 3) into the body frame: ``R^T G R`` (inverse of
+    :func:`to_world`)."""
+    return np.einsum('nji,njk,nkl->nil', rotations, tensors, rotations)
+
+
+def reference_points(
+    positions: FloatArray, rotations: FloatArray, geometry: TetraGeometry
+) -> FloatArray:
+    """The tensor's point (the array's centroid) in the odom frame, (N, 3) m, from the body
+    origin's ``positions`` (N, 3) m and ``rotations`` (N, 3, 3) body -> odom."""
+    return positions + rotations @ geometry.centroid
+
+
+def sensor_points(
+    positions: FloatArray, rotations: FloatArray, geometry: TetraGeometry
+) -> FloatArray:
+    """The four sensors in the odom frame, (N, 4, 3) m."""
+    return positions[:, None, :] + np.einsum('nij,sj->nsi', rotations, geometry.positions)
+
+
+def unit_moment_tensors(
+    points: FloatArray, rotations: FloatArray, geometry: TetraGeometry, source: FloatArray
+) -> FloatArray:
+    """Eq. 7 tensors, body frame, of a dipole at ``source`` (3,) m with unit moments along
+    the odom axes x, y, z: (3, N, 3, 3) T/m per A m^2. The tensor is linear in the moment,
+    so ``np.tensordot(moment, out, 1)`` is the tensor of ``moment``.
+
+    ``points`` (N, 4, 3) are the sensors in the odom frame (:func:`sensor_points`).
+    Raises nothing; a sensor on the source gives inf (the caller keeps sources away).
+    """
+    r = points - source  # (N, 4, 3)
+    distance2 = np.einsum('nsi,nsi->ns', r, r)
+    inv3 = distance2**-1.5
+    inv5 = inv3 / distance2
+    # B_k(r) for m = e_k: mu0/4pi (3 r r_k / r^5 - e_k / r^3), in the odom frame.
+    fields = 3.0 * r[None, :, :, :] * (np.moveaxis(r, 2, 0) * inv5[None])[..., None]
+    fields -= np.eye(3)[:, None, None, :] * inv3[None, :, :, None]
+    fields *= MU0_OVER_4PI
+    body = np.einsum('nji,knsj->knsi', rotations, fields)  # R^T B
+    differences = np.swapaxes(body[:, :, 1:, :] - body[:, :, :1, :], 2, 3)
+    return differences @ geometry.a_inv
+
+
+def array_tensor(
+    positions: FloatArray,
+    rotations: FloatArray,
+    geometry: TetraGeometry,
+    source: FloatArray,
+    moment: FloatArray,
+    background: FloatArray | None = None,
+) -> FloatArray:
+    """The eq. 7 tensor (N, 3, 3) T/m, body frame, that the array measures of a point dipole
+    at ``source`` (3,) m with ``moment`` (3,) A m^2 (both odom frame), plus a uniform
+    ``background`` gradient (3, 3) T/m in the odom frame (exact under differencing), with
+    the body origin at ``positions`` (N, 3) m and attitudes ``rotations`` (N, 3, 3)."""
+    points = sensor_points(positions, rotations, geometry)
+    out = np.tensordot(
+        np.asarray(moment, float),
+        unit_moment_tensors(points, rotations, geometry, np.asarray(source, float)),
+        1,
+    )
+    if background is not None:
+        out += to_body(np.broadcast_to(background, out.shape), rotations)
+    return out
+
+
+def normalized_source_strength(tensors: FloatArray) -> FloatArray:
+    """Normalized source strength (N,) T/m of tensors (N, 3, 3): ``sqrt(-l2^2 - l1 l3)`` of
+    the symmetric part's eigenvalues ``l1 >= l2 >= l3`` (Beiki et al. 2012). For a point
+    dipole it is ``3 mu0/4pi |m| / R^4`` whatever the moment's direction: one smooth peak
+    per target along a track, where the Frobenius norm has lobes."""
+    eigenvalues = np.linalg.eigvalsh(0.5 * (tensors + np.swapaxes(tensors, 1, 2)))
+    l3, l2, l1 = eigenvalues[:, 0], eigenvalues[:, 1], eigenvalues[:, 2]
+    return np.sqrt(np.maximum(-(l2**2) - l1 * l3, 0.0))

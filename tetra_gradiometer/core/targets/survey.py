@@ -1,0 +1,256 @@
+"""From a survey's tensors to targets: detect, fit the strongest detection, take it out,
+detect again (:func:`locate`); the passes of one target are fitted together.
+
+Association: a new detection's fit is a known target when their positions are closer than
+``associate_sigmas`` combined 1-sigma (root of the sum of the two position covariances'
+traces, at most ``associate_max_sigma_m``) plus ``associate_floor_m``. A target's passes
+are the windows of the legs where its predicted tensor exceeds ``footprint_sigmas`` noise
+sigma (:func:`footprint`). A target is reported with its joint fit, the passes it was
+seen on, and whether a point dipole explains it (``dipolar``: misfit fraction at most
+``max_misfit`` or a reduced chi-square at most ``max_chi2``; a close pair or an extended
+object fails both).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from ...errors import InputError
+from ..geometry import TetraGeometry
+from ..types import FloatArray
+from .detection import Detection, DetectionResult, DetectorSettings, _symmetric_components, detect
+from .forward import array_tensor, to_world
+from .localization import DipoleFit, Pass, fit_dipole
+
+
+@dataclass(frozen=True)
+class LocatorSettings:
+    """How detections become targets (units in the names)."""
+
+    detector: DetectorSettings = field(default_factory=DetectorSettings)
+    #: The fit window: the detection's span widened by this fraction of its length per side.
+    widen: float = 0.25
+    associate_sigmas: float = 3.0
+    associate_floor_m: float = 1.0
+    associate_max_sigma_m: float = 2.0
+    max_misfit: float = 0.05
+    max_chi2: float = 3.0
+    #: False-alarm probability of the test that a fit's moment is not zero.
+    significance: float = 1e-6
+    #: A target's passes: where its predicted tensor exceeds this many noise sigma.
+    footprint_sigmas: float = 3.0
+    #: At most this many targets (each one a round of fitting and detecting again).
+    max_targets: int = 50
+
+
+@dataclass(frozen=True)
+class Target:
+    """A located target: its joint ``fit`` and the ``detections`` it was seen in, with
+    ``first_seen_s`` and ``last_seen_s`` (the track's times of its first and last
+    detection sample) and whether it is ``dipolar``."""
+
+    fit: DipoleFit
+    detections: list[Detection]
+    first_seen_s: float
+    last_seen_s: float
+    dipolar: bool
+
+
+@dataclass(frozen=True)
+class Survey:
+    """A track: times ``t_s`` (N,) s, body origin ``positions`` (N, 3) m in the odom frame,
+    ``rotations`` (N, 3, 3) body -> odom, body-frame ``tensors`` (N, 3, 3) T/m."""
+
+    t_s: FloatArray
+    positions: FloatArray
+    rotations: FloatArray
+    tensors: FloatArray
+
+    def piece(self, start: int, stop: int) -> Pass:
+        return Pass(
+            self.positions[start:stop],
+            self.rotations[start:stop],
+            self.tensors[start:stop],
+            self.t_s[start:stop],
+        )
+
+
+def fit_window(detection: Detection, widen: float) -> tuple[int, int]:
+    """The samples a detection is fitted on: its span widened by ``widen`` of its length on
+    each side, within its leg."""
+    margin = int(np.ceil(widen * (detection.stop - detection.start)))
+    return max(detection.leg_start, detection.start - margin), min(
+        detection.leg_stop, detection.stop + margin
+    )
+
+
+def locate(
+    survey: Survey, geometry: TetraGeometry, settings: LocatorSettings | None = None
+) -> tuple[list[Target], DetectionResult]:
+    """Targets of ``survey`` (and the first detection result, on the survey's own tensors).
+
+    CLEAN-style (Hogbom 1974, for point sources on a sky): fit the strongest detection,
+    join it to a known target when the fit puts it there (then refit that target on all its
+    passes), take every target's tensors out of the survey, detect again on what is left;
+    until nothing is detected. A target's tensors are thus never found twice on the lines
+    beside it, and a weak target's pass is fitted without its neighbours' tails. Last, each
+    target is refitted on its passes with all the others taken out.
+
+    Raises
+    ------
+    InputError
+        Nothing to search (:func:`.detection.detect`).
+    """
+    settings = settings or LocatorSettings()
+    if len(survey.t_s) < 10:
+        raise InputError(f'a survey of {len(survey.t_s)} samples: too short to search')
+    first = detect(
+        survey.t_s, survey.tensors, survey.positions, survey.rotations, settings.detector
+    )
+    sigma = first.sigma
+    fits: list[DipoleFit] = []
+    passes: list[list[Detection]] = []
+    footprints: list[list[tuple[int, int]]] = []
+    rejected: list[tuple[int, int]] = []
+    found = first
+    for _ in range(settings.max_targets):
+        fresh = [d for d in found.detections if not any(a <= d.peak < b for a, b in rejected)]
+        if not fresh:
+            break
+        detection = max(fresh, key=lambda d: d.peak_statistic)
+        window = fit_window(detection, settings.widen)
+        fit = fit_dipole([_cleaned(survey, window, geometry, fits, -1)], geometry, sigma)
+        if not significant(fit, settings.significance):
+            rejected.append((detection.start, detection.stop))
+            continue
+        k = _nearest(fit, fits, settings)
+        if k is None:
+            fits.append(fit)
+            passes.append([detection])
+            k = len(fits) - 1
+        else:
+            passes[k].append(detection)
+        # The target's passes: wherever its predicted tensor stands out of the noise.
+        footprints[k:] = [
+            footprint(survey, geometry, fits[k], sigma, first.legs, settings.footprint_sigmas)
+        ]
+        fits[k] = _refit(survey, geometry, sigma, fits, footprints, k)
+        rejected.append((detection.start, detection.stop))  # fitted: not taken again
+        residual = survey.tensors - _predicted(survey, geometry, fits, -1)
+        found = detect(survey.t_s, residual, survey.positions, survey.rotations, settings.detector)
+    fits = [_refit(survey, geometry, sigma, fits, footprints, k) for k in range(len(fits))]
+    targets = []
+    for fit, detections in zip(fits, passes, strict=True):
+        dipolar = (
+            fit.misfit_fraction <= settings.max_misfit or fit.chi2_reduced <= settings.max_chi2
+        )
+        targets.append(
+            Target(
+                fit,
+                detections,
+                float(min(survey.t_s[d.start] for d in detections)),
+                float(max(survey.t_s[d.stop - 1] for d in detections)),
+                bool(dipolar),
+            )
+        )
+    targets.sort(key=lambda target: target.first_seen_s)
+    return targets, first
+
+
+def _refit(
+    survey: Survey,
+    geometry: TetraGeometry,
+    sigma: FloatArray,
+    fits: list[DipoleFit],
+    footprints: list[list[tuple[int, int]]],
+    k: int,
+) -> DipoleFit:
+    """Target ``k`` refitted on its footprint's windows, the other targets taken out."""
+    pieces = [_cleaned(survey, window, geometry, fits, k) for window in footprints[k]]
+    return fit_dipole(pieces, geometry, sigma, fits[k].position)
+
+
+def footprint(
+    survey: Survey,
+    geometry: TetraGeometry,
+    fit: DipoleFit,
+    sigma: FloatArray,
+    legs: list[tuple[int, int]],
+    level: float,
+) -> list[tuple[int, int]]:
+    """The windows (start, stop), one per leg at most, where the target's predicted tensor
+    exceeds ``level`` in noise units (root of the sum of its whitened five components
+    squared): the passes that see it."""
+    out = []
+    for start, stop in legs:
+        piece = survey.piece(start, stop)
+        predicted = array_tensor(
+            piece.positions, piece.rotations, geometry, fit.position, fit.moment
+        )
+        strength = np.sqrt(
+            np.sum(
+                (_symmetric_components(to_world(predicted, piece.rotations)) / sigma) ** 2, axis=1
+            )
+        )
+        seen = np.flatnonzero(strength > level)
+        if len(seen) >= 10:
+            out.append((start + int(seen[0]), start + int(seen[-1]) + 1))
+    return out
+
+
+def _predicted(
+    survey: Survey, geometry: TetraGeometry, fits: list[DipoleFit], own: int
+) -> FloatArray:
+    """The tensors (N, 3, 3) T/m of every fitted target but ``own`` along the survey."""
+    out = np.zeros_like(survey.tensors)
+    for k, fit in enumerate(fits):
+        if k != own:
+            out += array_tensor(
+                survey.positions, survey.rotations, geometry, fit.position, fit.moment
+            )
+    return out
+
+
+def _nearest(fit: DipoleFit, fits: list[DipoleFit], settings: LocatorSettings) -> int | None:
+    """The known target ``fit`` is one with (see the module docstring), or None."""
+    best, best_distance = None, np.inf
+    for k, other in enumerate(fits):
+        spread = np.sqrt(np.trace(fit.covariance[:3, :3]) + np.trace(other.covariance[:3, :3]))
+        limit = settings.associate_sigmas * min(spread, settings.associate_max_sigma_m)
+        distance = float(np.linalg.norm(fit.position - other.position))
+        if distance < limit + settings.associate_floor_m and distance < best_distance:
+            best, best_distance = k, distance
+    return best
+
+
+def significant(fit: DipoleFit, probability: float) -> bool:
+    """Whether the moment differs from zero at false-alarm ``probability`` (chi-square test
+    of ``m^T C_m^-1 m`` with 3 degrees of freedom): a detection that a background alone
+    explains (a blip of noise, a leg's end) is no target."""
+    covariance = fit.covariance[3:6, 3:6]
+    try:
+        value = float(fit.moment @ np.linalg.solve(covariance, fit.moment))
+    except np.linalg.LinAlgError:
+        return False
+    return value > stats.chi2.isf(probability, 3)
+
+
+def _cleaned(
+    survey: Survey,
+    window: tuple[int, int],
+    geometry: TetraGeometry,
+    fits: list[DipoleFit],
+    own: int,
+) -> Pass:
+    """The samples of ``window`` minus the tensors of every fitted target but ``own``."""
+    piece = survey.piece(*window)
+    others = np.zeros_like(piece.tensors)
+    for k, fit in enumerate(fits):
+        if k != own:
+            others += array_tensor(
+                piece.positions, piece.rotations, geometry, fit.position, fit.moment
+            )
+    return Pass(piece.positions, piece.rotations, piece.tensors - others, piece.t_s)
