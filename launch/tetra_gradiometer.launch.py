@@ -13,8 +13,9 @@ the installed ``config/tetra_gradiometer.yaml``; ``''``: the declared defaults) 
 ``use_sim_time``. As in ``bringup``, the driver takes ``mode``, ``bag`` (a bag without a
 mode means replay; a driver with neither, here or in the params file, is refused: it
 fabricates no vehicle data by default), ``rate`` and ``scenario``, the calibrator and
-compensator take ``calibration_file``, relative paths are taken from the working directory, and the driver
-waits for the tensor node's subscriptions (``min_subscribers`` 1) when both are launched.
+compensator take ``calibration_file``, relative paths are taken from the working directory,
+and the driver waits for the tensor node's subscriptions (``min_subscribers`` 1) when both
+are launched.
 An empty argument leaves the parameter to the params file.
 
 Lifecycle. With ``autostart`` true (the default) each node is configured and then

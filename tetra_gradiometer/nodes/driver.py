@@ -3,7 +3,7 @@
 It has no default source: ``mode`` must be chosen (``sim`` or ``replay``), else its
 configuration is refused, so that ``ros2 run tetra_gradiometer driver`` on a vehicle never
 fabricates vehicle data. On a vehicle the tensor node takes the real magnetometer driver's
-topics instead (docs/ros.md, "Another magnetometer driver").
+topics instead (docs/ros.md, "Your own magnetometer driver").
 
 ``mode: sim`` flies the core mission simulator (``scenario``: a scenario YAML for
 io/scenario.py, or the built-in default ``io.scenario.DEFAULT_SCENARIO``: a trim manoeuvre
