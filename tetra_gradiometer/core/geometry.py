@@ -149,3 +149,18 @@ def difference_tensor(fields: ArrayLike, geometry: TetraGeometry) -> FloatArray:
         ``G[n, i, j] = dB_i/dx_j``, T/m.
     """
     return sensor_differences(as_fields(fields)) @ geometry.a_inv
+
+
+def to_world(tensors: FloatArray, rotations: FloatArray) -> FloatArray:
+    """Body-frame tensors (N, 3, 3) into the odom frame: ``R G R^T``.
+
+    ``rotations`` (N, 3, 3) rotate body vectors into the odom frame (the ``/odom``
+    orientation as a matrix). Units are kept (T/m in, T/m out).
+    """
+    return np.einsum('nij,njk,nlk->nil', rotations, tensors, rotations)
+
+
+def to_body(tensors: FloatArray, rotations: FloatArray) -> FloatArray:
+    """Odom-frame tensors (N, 3, 3) into the body frame: ``R^T G R`` (inverse of
+    :func:`to_world`)."""
+    return np.einsum('nji,njk,nkl->nil', rotations, tensors, rotations)

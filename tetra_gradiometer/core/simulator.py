@@ -35,7 +35,7 @@ from ..errors import InputError
 from ._validate import frozen_array
 from .clocks import SensorClocks, SensorStream, kept_messages, sample_instants, select_streams
 from .fields import dipole_field, dipole_gradient, uniform_field
-from .geometry import TetraGeometry, difference_tensor
+from .geometry import TetraGeometry, difference_tensor, to_body
 from .model import SensorInterference
 from .types import ArrayLike, FloatArray
 from .units import T_PER_NT
@@ -573,7 +573,7 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
         fields_true=fields_true,
         fields_measured=measured,
         g_true=difference_tensor(fields_true, scenario.geometry),
-        g_analytic=np.einsum('nji,njk,nkl->nil', rot, g_world, rot),
+        g_analytic=to_body(g_world, rot),
         temperature_c=scenario.temperature(t, scenario.duration_s),
         current_a=current(t),
         streams=streams,

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from ...errors import IdentifiabilityError, InputError
 from .._validate import as_array, as_tensors, as_vectors, same_length
 from ..design import CONSTRAINT_ROWS, constraint_design, constraint_residual, interference_design
-from ..geometry import TetraGeometry
+from ..geometry import TetraGeometry, to_body
 from ..model import InterferenceParameters, interference_tensor, n_parameters
 from ..types import ArrayLike, FloatArray
 from ..units import NT_PER_T
@@ -305,7 +305,7 @@ def regional_body_tensor(orientation_xyzw: ArrayLike, g_world: ArrayLike) -> Flo
 def _body_tensor(quaternions: FloatArray, g_world: FloatArray) -> FloatArray:
     """:func:`regional_body_tensor` of validated (N, 4) quaternions and (3, 3) ``G_w``."""
     rotation = Rotation.from_quat(quaternions).as_matrix().reshape(-1, 3, 3)
-    return np.swapaxes(rotation, 1, 2) @ g_world @ rotation
+    return to_body(np.broadcast_to(g_world, rotation.shape), rotation)
 
 
 def _regional_columns(

@@ -1,8 +1,9 @@
 """Targets: the array's view of a point dipole, anomaly detection at a stated false-alarm
 rate, dipole localization with uncertainties, and the survey pipeline joining them."""
 
+from ..geometry import to_body, to_world
 from .detection import Detection, DetectionResult, DetectorSettings, detect, legs
-from .forward import array_tensor, reference_points, sensor_points, to_body, to_world
+from .forward import array_tensor, reference_points, sensor_points
 from .localization import DipoleFit, Pass, fit_dipole
 from .survey import LocatorSettings, Survey, Target, locate
 

@@ -32,8 +32,9 @@ import numpy.typing as npt
 from scipy import ndimage, signal, stats
 
 from ...errors import InputError
+from ..geometry import to_world
 from ..types import FloatArray, IntArray
-from .forward import normalized_source_strength, to_world
+from .forward import normalized_source_strength, symmetric_components
 
 #: Two peaks of the normalized source strength are two detections when each stands out of
 #: the dip between them by this factor (it falls as R^-4 away from a dipole).
@@ -117,24 +118,6 @@ def legs(
     return out
 
 
-def _symmetric_components(tensors: FloatArray) -> FloatArray:
-    """The five independent components (N, 5) of the symmetric traceless part, scaled so
-    their sum of squares is the squared Frobenius norm of that part (xx, yy and zz are not
-    independent: an orthonormal basis of the traceless diagonal is used)."""
-    sym = 0.5 * (tensors + np.swapaxes(tensors, 1, 2))
-    xx, yy, zz = sym[:, 0, 0], sym[:, 1, 1], sym[:, 2, 2]
-    root2 = np.sqrt(2.0)
-    return np.column_stack(
-        [
-            (xx - yy) / root2,
-            (xx + yy - 2.0 * zz) / np.sqrt(6.0),
-            root2 * sym[:, 0, 1],
-            root2 * sym[:, 0, 2],
-            root2 * sym[:, 1, 2],
-        ]
-    )
-
-
 def detect(
     t_s: FloatArray,
     tensors: FloatArray,
@@ -166,7 +149,7 @@ def detect(
     p_window = settings.false_alarms_per_hour * settings.window_s / 3600.0
     threshold = float(stats.chi2.isf(p_window, 5 * window) / window)
     low = float(stats.chi2.ppf(0.99, 5 * window) / window)
-    world = _symmetric_components(to_world(tensors, rotations))
+    world = symmetric_components(to_world(tensors, rotations))
     size = max(3, round(settings.background_s * rate_hz))
     # Two passes: the second background is the median of the samples the first found
     # quiet (anomalies cover much of a line over targets and would bias the median).
@@ -214,7 +197,7 @@ def _background_removed(
 
 def _tensors_from_components(components: FloatArray) -> FloatArray:
     """Symmetric traceless tensors (N, 3, 3) from their five components (inverse of
-    :func:`_symmetric_components`)."""
+    :func:`symmetric_components`)."""
     a, b, xy, xz, yz = (components / np.array([np.sqrt(2.0), np.sqrt(6.0), *[np.sqrt(2.0)] * 3])).T
     xx = a + b
     yy = -a + b

@@ -17,35 +17,26 @@ from __future__ import annotations
 import numpy as np
 
 from ..fields import MU0_OVER_4PI
-from ..geometry import TetraGeometry
+from ..geometry import TetraGeometry, to_body
 from ..types import FloatArray
 
-#: A basis of symmetric traceless 3x3 matrices (a curl- and divergence-free uniform
-#: gradient has five free components): xx-zz, yy-zz, xy, xz, yz.
-BACKGROUND_BASIS = np.array(
-    [
-        [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0]],
-        [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]],
-        [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
-        [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
-        [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]],
-    ]
-)
 
-
-def to_world(tensors: FloatArray, rotations: FloatArray) -> FloatArray:
-    """Body-frame tensors (N, 3, 3) into the odom frame: ``R G R^T``.
-
-    ``rotations`` (N, 3, 3) rotate body vectors into the odom frame (the ``/odom``
-    orientation as a matrix). Units are kept (T/m in, T/m out).
-    """
-    return np.einsum('nij,njk,nlk->nil', rotations, tensors, rotations)
-
-
-def to_body(tensors: FloatArray, rotations: FloatArray) -> FloatArray:
-    """Odom-frame tensors (N, 3, 3) into the body frame: ``R^T G R`` (inverse of
-    :func:`to_world`)."""
-    return np.einsum('nji,njk,nkl->nil', rotations, tensors, rotations)
+def symmetric_components(tensors: FloatArray) -> FloatArray:
+    """The five independent components (N, 5) of the symmetric traceless part, scaled so
+    their sum of squares is the squared Frobenius norm of that part (xx, yy and zz are not
+    independent: an orthonormal basis of the traceless diagonal is used)."""
+    sym = 0.5 * (tensors + np.swapaxes(tensors, 1, 2))
+    xx, yy, zz = sym[:, 0, 0], sym[:, 1, 1], sym[:, 2, 2]
+    root2 = np.sqrt(2.0)
+    return np.column_stack(
+        [
+            (xx - yy) / root2,
+            (xx + yy - 2.0 * zz) / np.sqrt(6.0),
+            root2 * sym[:, 0, 1],
+            root2 * sym[:, 0, 2],
+            root2 * sym[:, 1, 2],
+        ]
+    )
 
 
 def reference_points(

@@ -26,10 +26,10 @@ import numpy as np
 from scipy import optimize
 
 from ...errors import InputError
-from ..geometry import TetraGeometry
+from ..geometry import TetraGeometry, to_world
+from ..identification.lstsq import REGIONAL_BASIS
 from ..types import FloatArray
-from .detection import _symmetric_components
-from .forward import BACKGROUND_BASIS, sensor_points, to_world, unit_moment_tensors
+from .forward import sensor_points, symmetric_components, unit_moment_tensors
 
 #: Trial distances (m) of the initial grid, geometric.
 GRID_DISTANCES_M = np.geomspace(1.5, 150.0, 16)
@@ -93,12 +93,12 @@ class _Problem:
         self.points = [sensor_points(p.positions, p.rotations, geometry) for p in passes]
         self.data = np.concatenate(
             [
-                (_symmetric_components(to_world(p.tensors, p.rotations)) * self.weights).ravel()
+                (symmetric_components(to_world(p.tensors, p.rotations)) * self.weights).ravel()
                 for p in passes
             ]
         )
         # Background columns: constant per pass in the whitened five-component space.
-        basis = _symmetric_components(BACKGROUND_BASIS) * self.weights  # (5 basis, 5 comps)
+        basis = symmetric_components(REGIONAL_BASIS) * self.weights  # (5 basis, 5 comps)
         blocks = []
         for i, p in enumerate(passes):
             block = np.zeros((len(p.t_s), 5, 5 * len(passes)))
@@ -110,7 +110,7 @@ class _Problem:
         columns = []
         for p, points in zip(self.passes, self.points, strict=True):
             unit = unit_moment_tensors(points, p.rotations, self.geometry, source)  # (3, n, 3, 3)
-            world = np.stack([_symmetric_components(to_world(u, p.rotations)) for u in unit])
+            world = np.stack([symmetric_components(to_world(u, p.rotations)) for u in unit])
             columns.append((world * self.weights).reshape(3, -1).T)
         return np.concatenate(columns)
 
@@ -196,7 +196,7 @@ def fit_dipole(
     dof = max(len(residual) - (n_linear + 3), 1)
     chi2 = float(residual @ residual) / dof
     unwhitened = (residual.reshape(-1, 5) / problem.weights).ravel()
-    backgrounds = np.einsum('pb,bij->pij', linear[3:].reshape(-1, 5), BACKGROUND_BASIS)
+    backgrounds = np.einsum('pb,bij->pij', linear[3:].reshape(-1, 5), REGIONAL_BASIS)
     return DipoleFit(
         source,
         linear[:3],
@@ -212,7 +212,7 @@ def fit_dipole(
 def _strongest_point(passes: list[Pass], geometry: TetraGeometry) -> FloatArray:
     best, best_norm = passes[0].positions[0], -1.0
     for p in passes:
-        world = _symmetric_components(to_world(p.tensors, p.rotations))
+        world = symmetric_components(to_world(p.tensors, p.rotations))
         anomaly = np.linalg.norm(world - np.median(world, axis=0), axis=1)
         i = int(np.argmax(anomaly))
         if anomaly[i] > best_norm:

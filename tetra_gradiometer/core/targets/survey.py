@@ -19,10 +19,10 @@ import numpy as np
 from scipy import stats
 
 from ...errors import InputError
-from ..geometry import TetraGeometry
+from ..geometry import TetraGeometry, to_world
 from ..types import FloatArray
-from .detection import Detection, DetectionResult, DetectorSettings, _symmetric_components, detect
-from .forward import array_tensor, to_world
+from .detection import Detection, DetectionResult, DetectorSettings, detect
+from .forward import array_tensor, symmetric_components
 from .localization import DipoleFit, Pass, fit_dipole
 
 
@@ -192,7 +192,7 @@ def footprint(
         )
         strength = np.sqrt(
             np.sum(
-                (_symmetric_components(to_world(predicted, piece.rotations)) / sigma) ** 2, axis=1
+                (symmetric_components(to_world(predicted, piece.rotations)) / sigma) ** 2, axis=1
             )
         )
         seen = np.flatnonzero(strength > level)
