@@ -109,7 +109,36 @@ def test_every_target_is_found_and_located_and_nothing_else(seed):
         assert np.all(fit.position_sigma > 0)
 
 
-def test_a_target_free_survey_reports_no_target():
+def test_a_target_free_survey_reports_no_target_and_no_detection():
+    """At 0.1 false alarms per hour, 12 minutes of noise has a 2 % chance of one."""
     survey, geometry = _survey(13, [])
-    targets, _ = locate(survey, geometry)
+    targets, detected = locate(survey, geometry)
     assert targets == []
+    assert detected.detections == []
+    assert detected.noise.dof == pytest.approx(20, rel=0.1)  # white noise: the window's 20 samples
+
+
+def test_the_noise_models_effective_samples_match_an_ar1_process():
+    """Coloured noise (AR(1), coefficient phi): the window of w samples counts as
+    w^2 / sum_k (w - |k|) phi^(2|k|) independent ones, and the threshold keeps its rate."""
+    from scipy import stats
+
+    from tetra_gradiometer.core.targets.detection import NoiseModel, window_mean
+
+    rng = np.random.default_rng(7)
+    phi, w, n = 0.6, 20, 200_000
+    white = rng.normal(size=(n, 5)) * np.sqrt(1 - phi**2)
+    noise = np.empty_like(white)
+    noise[0] = rng.normal(size=5)
+    for i in range(1, n):
+        noise[i] = phi * noise[i - 1] + white[i]
+    mixing = np.array([[2, 0, 0, 0, 0], [1, 1, 0, 0, 0], [0, 0, 1, 0, 0], [0, 0, .5, 3, 0], [0, 0, 0, 0, 1]])
+    components = noise @ mixing.T * 1e-10
+    model = NoiseModel.fit(components, np.ones(n, bool), [(0, n)], w)
+    k = np.arange(-w + 1, w)
+    expected = w**2 / np.sum((w - np.abs(k)) * phi ** (2 * np.abs(k)))
+    assert model.dof == pytest.approx(expected, rel=0.05)
+    averaged = window_mean(model.statistic(components), w)[::w]
+    threshold, _ = model.limits(1e-2)
+    assert np.mean(averaged > threshold) == pytest.approx(1e-2, rel=0.3)
+    assert threshold > stats.chi2.isf(1e-2, 5 * w) / w  # the white-noise threshold would not hold

@@ -25,6 +25,7 @@ def test_mission_bag_round_trip(tmp_path, storage):
     np.testing.assert_allclose(recording.t_s, mission.t, atol=1e-9)
     np.testing.assert_allclose(np.abs(np.sum(recording.orientation_xyzw * mission.orientation_xyzw, axis=1)), 1.0,
                                atol=1e-12)
+    np.testing.assert_allclose(recording.position_m, mission.position_enu, atol=1e-9)
     np.testing.assert_allclose(recording.temperature_c, mission.temperature_c)
     assert recording.current_a is None and '/battery_state' in recording.missing
 

@@ -424,13 +424,13 @@ class MagneticBag:
         return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
 
     def read_series(self, topic: str) -> Series | None:
-        """``/odom`` (orientation x, y, z, w), ``/tetra/temperature`` (degC) or
+        """``/odom`` (the pose: ``conversions.odometry_pose``), ``/tetra/temperature`` (degC) or
         ``/battery_state`` (current, A) by header stamp; None when the topic is absent."""
         connections = self._connections(topic)
         if not connections:
             return None
         extract = {
-            cv.ODOMETRY: cv.odometry_orientation,
+            cv.ODOMETRY: cv.odometry_pose,
             cv.TEMPERATURE: lambda m: np.array([m.temperature]),
             cv.BATTERY_STATE: lambda m: np.array([m.current]),
         }.get(connections[0].msgtype)

@@ -439,7 +439,9 @@ def assess_window(
         with MagneticBag(bag_path) as bag:
             series = bag.read_series(cv.ODOM_TOPIC)
         if series is not None:
-            orientation = orientation_at(series.stamps_ns, series.values, stamps)
+            orientation = orientation_at(
+                series.stamps_ns, series.values[:, cv.POSE_ORIENTATION], stamps
+            )
     if orientation is None:
         notes.append(
             f'no {cv.ODOM_TOPIC} in the bag: coverage is of the body-frame field direction'

@@ -316,6 +316,18 @@ def odometry_orientation(msg: Any) -> np.ndarray:
     return np.array([q.x, q.y, q.z, q.w], dtype=float)
 
 
+#: The columns of :func:`odometry_pose`: position (m, ENU) and orientation (x, y, z, w).
+POSE_POSITION = slice(0, 3)
+POSE_ORIENTATION = slice(3, 7)
+
+
+def odometry_pose(msg: Any) -> np.ndarray:
+    """Pose (7,) from ``nav_msgs/Odometry``: position x, y, z (m, odom frame) then the
+    orientation x, y, z, w (:data:`POSE_POSITION`, :data:`POSE_ORIENTATION`)."""
+    p = msg.pose.pose.position
+    return np.concatenate([[p.x, p.y, p.z], odometry_orientation(msg)]).astype(float)
+
+
 def temperature_msg(
     types: MessageTypes, celsius: float, stamp_ns: int, frame_id: str = ARRAY_FRAME
 ) -> Any:

@@ -173,6 +173,7 @@ class Recording:
     stamps_ns : (N,) int64, header stamps of sensor 1
     fields : (N, 4, 3) tesla, body frame
     orientation_xyzw : (N, 4) body -> ENU, or None without ``/odom``
+    position_m : (N, 3) m, the body origin in the odom frame (ENU), or None without ``/odom``
     temperature_c : (N,) degC, or None without ``/tetra/temperature``
     current_a : (N,) A, or None without ``/battery_state``
     missing : topic -> why it is unavailable
@@ -183,6 +184,7 @@ class Recording:
     stamps_ns: np.ndarray
     fields: np.ndarray
     orientation_xyzw: np.ndarray | None = None
+    position_m: np.ndarray | None = None
     temperature_c: np.ndarray | None = None
     current_a: np.ndarray | None = None
     missing: dict[str, str] = field(default_factory=dict)
@@ -225,7 +227,7 @@ def read_recording(
     """Read a bag per the data contract into a :class:`Recording` (whole, in memory).
 
     Optional topics are interpolated onto the set stamps (slerp for orientation, linear for
-    scalars, held at the ends); an absent topic is named in ``missing``. Sets with an
+    positions and scalars, held at the ends); an absent topic is named in ``missing``. Sets with an
     implausible reading are dropped and counted in ``dropped``.
     """
     with MagneticBag(path) as bag:
@@ -248,7 +250,14 @@ def read_recording(
                 extras[name] = None
                 missing[topic] = f'{topic} is not in the bag'
             elif name == 'orientation_xyzw':
-                extras[name] = interp_orientation(series.stamps_ns, series.values, stamps)
+                pose = series.values
+                extras[name] = interp_orientation(
+                    series.stamps_ns, pose[:, cv.POSE_ORIENTATION], stamps
+                )
+                extras['position_m'] = np.stack(
+                    [np.interp(stamps, series.stamps_ns, c) for c in pose[:, cv.POSE_POSITION].T],
+                    axis=1,
+                )
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
         skipped = bag.skipped_messages

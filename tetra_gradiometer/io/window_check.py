@@ -68,7 +68,8 @@ def odom_orientation(
             f'no {cv.ODOM_TOPIC} in the bag: a regional gradient cannot be told from the '
             'interference without the attitude, and is assumed zero'
         )
-    return joint_attitude(orientation_at(series.stamps_ns, series.values, stamps_ns))
+    orientation = series.values[:, cv.POSE_ORIENTATION]
+    return joint_attitude(orientation_at(series.stamps_ns, orientation, stamps_ns))
 
 
 def orientation_at(

@@ -7,20 +7,24 @@ Choices (the literature gives the invariants, not a detector; these are ours):
   ``max_step_m``) or where samples are missing (a gap over ``max_gap_s``); legs shorter
   than ``min_leg_s`` (manoeuvres, turns: a compensation residual that changes with the
   attitude) are not searched.
-* What: the tensor in the odom frame minus its background (the running median over
-  ``background_s`` within the leg: the regional gradient and a compensation residual that
-  is constant while the attitude is), symmetric traceless part (a source-free field's
-  tensor: the antisymmetric part and the trace are noise), its five components whitened by
-  their robust spread over all searched legs (1.4826 MAD: the output's sigma as it is,
-  sensor noise and residual alike). The statistic ``q`` is the sum of the five squared
-  whitened components: rotation-invariant (its value is the squared Frobenius norm in
-  sigma units), chi-square with 5 degrees of freedom on Gaussian noise.
-* Rate: ``q`` averaged over ``window_s`` is compared with the chi-square threshold of
-  ``5 w`` degrees of freedom (``w`` samples) whose tail probability is
+* What: the tensor in the odom frame minus its background on the leg (the regional
+  gradient and a compensation residual that is constant while the attitude is), symmetric
+  traceless part (a source-free field's tensor: the antisymmetric part and the trace are
+  noise), five components. The statistic ``q`` is their squared Mahalanobis norm under the
+  noise covariance (:class:`NoiseModel`, estimated on the quiet samples: the output's
+  sigma as it is, sensor noise and residual alike): rotation-invariant, chi-square with 5
+  degrees of freedom on Gaussian noise.
+* Two passes: the first (running median background, sigma from first differences: robust
+  to the anomalies, which cover much of a line over targets) only marks the quiet samples;
+  the second takes the background (running mean) and the noise model from them.
+* Rate: ``q`` averaged over ``window_s`` is compared with the scaled chi-square threshold
+  (``5 nu`` degrees of freedom, ``nu`` the window's effective number of independent
+  samples: its length on white noise, fewer on coloured) whose tail probability is
   ``false_alarms_per_hour * window_s / 3600`` (one test per window length: the stated
-  rate). A detection is a run of samples whose averaged ``q`` exceeds the chi-square
-  99 % point, containing at least one sample over the threshold (hysteresis: the span
-  covers the whole anomaly, not only its peak).
+  rate). A detection is a run of samples whose averaged ``q`` exceeds the scaled
+  chi-square 99 % point, containing at least one sample over the threshold (hysteresis:
+  the span covers the whole anomaly, not only its peak). Checked on simulated target-free
+  surveys by ``bench/bench_targets.py`` (README).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage, signal, stats
+from scipy import linalg, ndimage, signal, stats
 
 from ...errors import InputError
 from ..geometry import to_world
@@ -41,6 +45,10 @@ from .forward import normalized_source_strength, symmetric_components
 PEAK_PROMINENCE = 2.0
 #: 1.4826 MAD: the standard deviation of Gaussian data.
 MAD_TO_SIGMA = 1.482602218505602
+#: A sample is quiet (noise only: the noise model's and the background's samples) unless a
+#: window of the first pass's statistic within two windows of it exceeds its chi-square tail
+#: of this probability: rare enough on noise that the quiet noise is not the low part of it.
+QUIET_TAIL = 1e-4
 
 
 @dataclass(frozen=True)
@@ -78,17 +86,22 @@ class Detection:
 
 @dataclass(frozen=True)
 class DetectionResult:
-    """Detections plus what they were made from: the statistic (N,) (NaN outside the
-    searched legs), the threshold, the whitened residual's ``sigma`` (5,) T/m, the
-    residual ``anomaly`` (N, 3, 3) T/m in the odom frame (zero outside legs), and the legs
-    as (start, stop) index pairs."""
+    """Detections plus what they were made from: the window-averaged statistic (N,) (NaN
+    outside the searched legs), the threshold, the ``noise`` model, the residual
+    ``anomaly`` (N, 3, 3) T/m in the odom frame (zero outside legs), and the legs as
+    (start, stop) index pairs."""
 
     detections: list[Detection]
     statistic: FloatArray
     threshold: float
-    sigma: FloatArray
+    noise: NoiseModel
     anomaly: FloatArray
     legs: list[tuple[int, int]]
+
+    @property
+    def sigma(self) -> FloatArray:
+        """The five components' 1-sigma (5,) T/m."""
+        return self.noise.sigma
 
 
 def legs(
@@ -146,53 +159,170 @@ def detect(
         )
     rate_hz = (len(t_s) - 1) / max(t_s[-1] - t_s[0], 1e-9)
     window = max(1, int(round(settings.window_s * rate_hz)))
-    p_window = settings.false_alarms_per_hour * settings.window_s / 3600.0
-    threshold = float(stats.chi2.isf(p_window, 5 * window) / window)
-    low = float(stats.chi2.ppf(0.99, 5 * window) / window)
     world = symmetric_components(to_world(tensors, rotations))
     size = max(3, round(settings.background_s * rate_hz))
-    # Two passes: the second background is the median of the samples the first found
-    # quiet (anomalies cover much of a line over targets and would bias the median).
-    quiet = np.ones(len(t_s), bool)
-    for _ in range(2):
-        components = _background_removed(world, quiet, found, size)
-        sigma = noise_sigma(components, found)
-        q = np.sum((components / sigma) ** 2, axis=1)
-        averaged = ndimage.uniform_filter1d(q, window, mode='nearest')
-        quiet = ndimage.binary_erosion(
-            averaged < low, np.ones(4 * window + 1, bool), border_value=1
-        )
+    # Pass 1: a background over all samples, sigma from first differences (an anomaly is
+    # smooth over one sample period); it only marks the quiet samples.
+    components = _background_removed(world, None, found, size)
+    sigma = noise_sigma(components, found)
+    q = np.sum((components / sigma) ** 2, axis=1)
+    low = float(stats.chi2.isf(QUIET_TAIL, 5 * window) / window)
+    averaged = ndimage.uniform_filter1d(q, window, mode='nearest')  # marks only
+    quiet = ndimage.binary_erosion(averaged < low, np.ones(4 * window + 1, bool), border_value=1)
+    # Pass 2: background and noise model from the quiet samples (anomalies cover much of a
+    # line over targets and would bias both).
+    components = _background_removed(world, quiet, found, size)
+    noise = NoiseModel.fit(components, quiet, found, window)
+    q = noise.statistic(components)
+    threshold, low = noise.limits(settings.false_alarms_per_hour * settings.window_s / 3600.0)
     anomaly = _tensors_from_components(components)
     statistic = np.full(len(t_s), np.nan)
     detections: list[Detection] = []
     for start, stop in found:
-        averaged = ndimage.uniform_filter1d(q[start:stop], window, mode='nearest')
+        averaged = window_mean(q[start:stop], window)
         statistic[start:stop] = averaged
         smooth = ndimage.uniform_filter1d(anomaly[start:stop], window, axis=0, mode='nearest')
         strength = normalized_source_strength(smooth)
         detections += _runs(averaged, strength, (threshold, low, window), start, stop)
-    return DetectionResult(detections, statistic, threshold, sigma, anomaly, found)
+    return DetectionResult(detections, statistic, threshold, noise, anomaly, found)
+
+
+def window_mean(values: FloatArray, window: int) -> FloatArray:
+    """The mean (n,) of ``values`` (n,) over ``window`` samples centred on each sample; near
+    the ends, that of the first (last) whole window. Every value is a mean of ``window``
+    samples, so one null distribution holds everywhere (a window padded by repeating the
+    end sample weighs it up to half: a much heavier tail at the ends of every leg)."""
+    n = len(values)
+    if n <= window:
+        return np.full(n, float(np.mean(values)))
+    total = np.concatenate([[0.0], np.cumsum(values)])
+    whole = (total[window:] - total[:-window]) / window  # whole[j]: values[j : j + window]
+    return whole[np.clip(np.arange(n) - window // 2, 0, n - window)]
 
 
 def _background_removed(
-    world: FloatArray, quiet: npt.NDArray[np.bool_], found: list[tuple[int, int]], size: int
+    world: FloatArray, quiet: npt.NDArray[np.bool_] | None, found: list[tuple[int, int]], size: int
 ) -> FloatArray:
-    """``world`` (N, 5) minus, on each leg, the running median over ``size`` samples of its
-    ``quiet`` samples (interpolated across the others); zero off the legs."""
+    """``world`` (N, 5) minus its background on each leg; zero off the legs.
+
+    Without ``quiet`` (nothing known yet) the background is the running median over
+    ``size`` samples (robust to the anomalies), thinned to ~100 samples per window: the
+    background is slow, and a median over thousands of samples at every sample would cost
+    more than the whole detector. With ``quiet`` it is the running mean of the quiet samples
+    over ``size`` samples (the anomalies are out; a mean of ``size`` samples adds a
+    ``1 / size`` of the noise's variance, a thinned median ``pi / 200``: enough to double
+    the false alarms at the threshold's tail)."""
     out = np.zeros_like(world)
     for start, stop in found:
         index = np.arange(start, stop)
-        keep = index[quiet[start:stop]]
-        if len(keep) < max(10, (stop - start) // 4):
-            keep = index  # too little quiet: the plain median
-        # Thinned to ~100 samples per median window: the background is slow, and a median
-        # over thousands of samples at every sample is the cost of the whole detector.
-        keep = keep[:: max(1, size // 100)]
+        piece = world[start:stop]
+        if quiet is not None and np.count_nonzero(quiet[start:stop]) >= max(
+            10, (stop - start) // 4
+        ):
+            weight = quiet[start:stop].astype(float)
+            window = min(size, stop - start)
+            total = ndimage.uniform_filter1d(
+                piece * weight[:, None], window, axis=0, mode='mirror'
+            )
+            count = ndimage.uniform_filter1d(weight, window, mode='mirror')
+            out[start:stop] = piece - total / np.maximum(count, 1e-12)[:, None]
+            continue
+        keep = index[:: max(1, size // 100)]
         window = min(max(3, size * len(keep) // max(stop - start, 1)), len(keep))
-        background = ndimage.median_filter(world[keep], size=(window, 1), mode='nearest')
+        background = ndimage.median_filter(world[keep], size=(window, 1), mode='mirror')
         for c in range(world.shape[1]):
-            out[start:stop, c] = world[start:stop, c] - np.interp(index, keep, background[:, c])
+            out[start:stop, c] = piece[:, c] - np.interp(index, keep, background[:, c])
     return out
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """The background-removed components' noise on the quiet samples: their covariance
+    ``covariance`` (5, 5) (T/m)^2, and ``eigenvalues`` (w,) of the whitened components'
+    autocorrelation over a window of ``w`` samples (all ones on white noise; coloured noise,
+    a compensation residual or a sensor's 1/f, has fewer independent samples per window).
+
+    The window's sum of ``q`` is then ``sum_i lambda_i chi2_5`` (each eigenvalue five times,
+    one per component): its tail is taken from the chi-square with the same mean, variance
+    and skewness (Pearson 1959; exact on white noise)."""
+
+    covariance: FloatArray
+    eigenvalues: FloatArray
+
+    @property
+    def sigma(self) -> FloatArray:
+        """Per-component 1-sigma (5,) T/m."""
+        return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def window(self) -> int:
+        return len(self.eigenvalues)
+
+    @property
+    def dof(self) -> float:
+        """The window's effective number of independent samples (``w`` on white noise)."""
+        return float(np.sum(self.eigenvalues) ** 2 / np.sum(self.eigenvalues**2))
+
+    @classmethod
+    def fit(
+        cls,
+        components: FloatArray,
+        quiet: npt.NDArray[np.bool_],
+        found: list[tuple[int, int]],
+        window: int,
+    ) -> NoiseModel:
+        """From ``components`` (N, 5) at the ``quiet`` samples of the legs ``found``: the
+        autocorrelation at lags below ``window``, averaged over the whitened components and
+        over the pairs of quiet samples of one leg."""
+        mask = np.zeros(len(components), bool)
+        for start, stop in found:
+            mask[start:stop] = quiet[start:stop]
+        if np.count_nonzero(mask) < 20 * window:  # too little quiet: every leg sample
+            for start, stop in found:
+                mask[start:stop] = True
+        covariance = np.cov(components[mask], rowvar=False)
+        covariance += np.eye(5) * np.finfo(float).tiny
+        whiten = np.linalg.inv(np.linalg.cholesky(covariance))
+        # Legs laid end to end with ``window`` empty samples between: no lag crosses legs.
+        gap = np.zeros((window, 5))
+        z = np.concatenate(
+            [
+                part
+                for a, b in found
+                for part in (np.where(mask[a:b, None], components[a:b] @ whiten.T, 0.0), gap)
+            ]
+        )
+        valid = np.concatenate(
+            [part for a, b in found for part in (mask[a:b], np.zeros(window, bool))]
+        )
+        correlation = np.zeros(window)
+        correlation[0] = 1.0
+        for lag in range(1, window):
+            pairs = np.count_nonzero(valid[:-lag] & valid[lag:])
+            if pairs < 10:
+                break
+            correlation[lag] = np.sum(z[:-lag] * z[lag:]) / (5.0 * pairs)
+        eigenvalues = np.maximum(linalg.eigvalsh(linalg.toeplitz(correlation)), 0.0)
+        return cls(covariance, eigenvalues)
+
+    def statistic(self, components: FloatArray) -> FloatArray:
+        """Squared Mahalanobis norm (N,) of ``components`` (N, 5): chi-square with 5
+        degrees of freedom on the noise, rotation-invariant once whitened."""
+        z = np.linalg.solve(np.linalg.cholesky(self.covariance), components.T)
+        return np.asarray(np.sum(z**2, axis=0))
+
+    def limits(self, probability: float) -> tuple[float, float]:
+        """The window-averaged statistic's threshold at tail ``probability`` and its 99 %
+        point (the hysteresis level)."""
+        power = [5.0 * float(np.sum(self.eigenvalues**r)) for r in (1, 2, 3)]
+        mean, variance = power[0], 2.0 * power[1]
+        nu = power[1] ** 3 / power[2] ** 2  # the skewness sqrt(8 / nu) of 8 p3 / (2 p2)^1.5
+        scale = np.sqrt(variance / (2.0 * nu))
+
+        def point(tail: float) -> float:
+            return float((mean + scale * (stats.chi2.isf(tail, nu) - nu)) / self.window)
+
+        return point(probability), point(0.01)
 
 
 def _tensors_from_components(components: FloatArray) -> FloatArray:
