@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'calibrate': ('tetra_gradiometer.cli.calibrate', 'identify the interference from a bag'),
     'compensate': ('tetra_gradiometer.cli.compensate', 'compensate a bag into CSV (and a bag)'),
     'discrepancy': ('tetra_gradiometer.cli.discrepancy', 'find the physics the model is missing'),
+    'locate': ('tetra_gradiometer.cli.locate', 'detect and locate magnetic targets along a bag'),
     'batch': (
         'tetra_gradiometer.cli.batch',
         'calibrate, compensate and analyse a folder of bags on a Dask cluster',

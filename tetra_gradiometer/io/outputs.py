@@ -51,6 +51,7 @@ __all__ = [
     'PAPER',
     'PARAMS',
     'REPORT',
+    'TARGETS',
     'TRUTH',
     'atomic_output',
     'atomic_write_text',
@@ -123,6 +124,8 @@ HEALTH_REPORT = OutputKind('health report folder', folder=True)
 CALIBRATION_REPORT = OutputKind('calibration report folder', folder=True)
 PAPER = OutputKind('paper reproduction folder', folder=True)
 DEMO = OutputKind('demo folder', folder=True)
+#: ``locate --out``: targets.json, the raw comparison, the map and report.md.
+TARGETS = OutputKind('targets folder', folder=True)
 #: ``batch --out``: the fleet's folder (``summary.csv`` and one :data:`BATCH_BAG` per bag).
 BATCH = OutputKind('batch folder', folder=True)
 #: ``batch``: one bag's outputs (calibration, CSV, report, ``row.json``), written as a whole.

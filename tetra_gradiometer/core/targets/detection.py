@@ -49,6 +49,9 @@ MAD_TO_SIGMA = 1.482602218505602
 #: window of the first pass's statistic within two windows of it exceeds its chi-square tail
 #: of this probability: rare enough on noise that the quiet noise is not the low part of it.
 QUIET_TAIL = 1e-4
+#: Fewer quiet samples than this share of the legs (anomalies everywhere, as over a field
+#: of targets before any is taken out): the noise is taken as white (``NoiseModel.white``).
+QUIET_SHARE = 0.2
 
 
 @dataclass(frozen=True)
@@ -88,8 +91,8 @@ class Detection:
 class DetectionResult:
     """Detections plus what they were made from: the window-averaged statistic (N,) (NaN
     outside the searched legs), the threshold, the ``noise`` model, the residual
-    ``anomaly`` (N, 3, 3) T/m in the odom frame (zero outside legs), and the legs as
-    (start, stop) index pairs."""
+    ``anomaly`` (N, 3, 3) T/m in the odom frame (zero outside legs), the legs as
+    (start, stop) index pairs, and the settings used."""
 
     detections: list[Detection]
     statistic: FloatArray
@@ -97,6 +100,7 @@ class DetectionResult:
     noise: NoiseModel
     anomaly: FloatArray
     legs: list[tuple[int, int]]
+    settings: DetectorSettings
 
     @property
     def sigma(self) -> FloatArray:
@@ -184,7 +188,7 @@ def detect(
         smooth = ndimage.uniform_filter1d(anomaly[start:stop], window, axis=0, mode='nearest')
         strength = normalized_source_strength(smooth)
         detections += _runs(averaged, strength, (threshold, low, window), start, stop)
-    return DetectionResult(detections, statistic, threshold, noise, anomaly, found)
+    return DetectionResult(detections, statistic, threshold, noise, anomaly, found, settings)
 
 
 def window_mean(values: FloatArray, window: int) -> FloatArray:
@@ -277,9 +281,9 @@ class NoiseModel:
         mask = np.zeros(len(components), bool)
         for start, stop in found:
             mask[start:stop] = quiet[start:stop]
-        if np.count_nonzero(mask) < 20 * window:  # too little quiet: every leg sample
-            for start, stop in found:
-                mask[start:stop] = True
+        searched = sum(stop - start for start, stop in found)
+        if np.count_nonzero(mask) < max(20 * window, QUIET_SHARE * searched):
+            return cls.white(components, found, window)
         covariance = np.cov(components[mask], rowvar=False)
         covariance += np.eye(5) * np.finfo(float).tiny
         whiten = np.linalg.inv(np.linalg.cholesky(covariance))
@@ -304,6 +308,18 @@ class NoiseModel:
             correlation[lag] = np.sum(z[:-lag] * z[lag:]) / (5.0 * pairs)
         eigenvalues = np.maximum(linalg.eigvalsh(linalg.toeplitz(correlation)), 0.0)
         return cls(covariance, eigenvalues)
+
+    @classmethod
+    def white(
+        cls, components: FloatArray, found: list[tuple[int, int]], window: int
+    ) -> NoiseModel:
+        """White noise whose covariance is that of the legs' second differences over 6 (an
+        anomaly's curvature over one sample period is far below the noise): for surveys
+        whose anomalies leave too few quiet samples, where nothing tells the noise's colour.
+        """
+        steps = np.concatenate([np.diff(components[a:b], n=2, axis=0) for a, b in found])
+        covariance = np.cov(steps, rowvar=False) / 6.0 + np.eye(5) * np.finfo(float).tiny
+        return cls(covariance, np.ones(window))
 
     def statistic(self, components: FloatArray) -> FloatArray:
         """Squared Mahalanobis norm (N,) of ``components`` (N, 5): chi-square with 5

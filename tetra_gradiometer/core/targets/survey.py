@@ -25,6 +25,9 @@ from .detection import Detection, DetectionResult, DetectorSettings, detect
 from .forward import array_tensor, symmetric_components
 from .localization import DipoleFit, Pass, fit_dipole
 
+#: Refits of every target after the last one is found (each moves the footprints).
+FINAL_SWEEPS = 2
+
 
 @dataclass(frozen=True)
 class LocatorSettings:
@@ -111,9 +114,7 @@ def locate(
         survey.t_s, survey.tensors, survey.positions, survey.rotations, settings.detector
     )
     sigma = first.sigma
-    fits: list[DipoleFit] = []
-    passes: list[list[Detection]] = []
-    footprints: list[list[tuple[int, int]]] = []
+    catalogue = _Catalogue(survey, geometry, settings, first.legs)
     rejected: list[tuple[int, int]] = []
     found = first
     for _ in range(settings.max_targets):
@@ -121,27 +122,19 @@ def locate(
         if not fresh:
             break
         detection = max(fresh, key=lambda d: d.peak_statistic)
+        rejected.append((detection.start, detection.stop))  # fitted or refused: not again
         window = fit_window(detection, settings.widen)
-        fit = fit_dipole([_cleaned(survey, window, geometry, fits, -1)], geometry, sigma)
+        fit = fit_dipole([catalogue.cleaned(window, -1)], geometry, sigma)
         if not significant(fit, settings.significance):
-            rejected.append((detection.start, detection.stop))
             continue
-        k = _nearest(fit, fits, settings)
-        if k is None:
-            fits.append(fit)
-            passes.append([detection])
-            k = len(fits) - 1
-        else:
-            passes[k].append(detection)
-        # The target's passes: wherever its predicted tensor stands out of the noise.
-        footprints[k:] = [
-            footprint(survey, geometry, fits[k], sigma, first.legs, settings.footprint_sigmas)
-        ]
-        fits[k] = _refit(survey, geometry, sigma, fits, footprints, k)
-        rejected.append((detection.start, detection.stop))  # fitted: not taken again
-        residual = survey.tensors - _predicted(survey, geometry, fits, -1)
+        catalogue.add(fit, detection)
+        catalogue.sweep(sigma)
+        residual = survey.tensors - catalogue.predicted(-1)
         found = detect(survey.t_s, residual, survey.positions, survey.rotations, settings.detector)
-    fits = [_refit(survey, geometry, sigma, fits, footprints, k) for k in range(len(fits))]
+        sigma = found.sigma  # with the targets out, more of the survey is quiet
+    for _ in range(FINAL_SWEEPS):
+        catalogue.sweep(sigma)
+    fits, passes = catalogue.fits, catalogue.passes
     targets = []
     for fit, detections in zip(fits, passes, strict=True):
         dipolar = (
@@ -160,17 +153,60 @@ def locate(
     return targets, first
 
 
-def _refit(
-    survey: Survey,
-    geometry: TetraGeometry,
-    sigma: FloatArray,
-    fits: list[DipoleFit],
-    footprints: list[list[tuple[int, int]]],
-    k: int,
-) -> DipoleFit:
-    """Target ``k`` refitted on its footprint's windows, the other targets taken out."""
-    pieces = [_cleaned(survey, window, geometry, fits, k) for window in footprints[k]]
-    return fit_dipole(pieces, geometry, sigma, fits[k].position)
+class _Catalogue:
+    """The targets found so far: their fits, detections (``passes``) and footprints."""
+
+    def __init__(
+        self,
+        survey: Survey,
+        geometry: TetraGeometry,
+        settings: LocatorSettings,
+        legs: list[tuple[int, int]],
+    ) -> None:
+        self.survey, self.geometry, self.settings, self.legs = survey, geometry, settings, legs
+        self.fits: list[DipoleFit] = []
+        self.passes: list[list[Detection]] = []
+        self.footprints: list[list[tuple[int, int]]] = []
+
+    def add(self, fit: DipoleFit, detection: Detection) -> None:
+        """A new target, or a new pass of the known target ``fit`` puts it at."""
+        k = _nearest(fit, self.fits, self.settings)
+        if k is None:
+            self.fits.append(fit)
+            self.passes.append([detection])
+            self.footprints.append([fit_window(detection, self.settings.widen)])
+        else:
+            self.passes[k].append(detection)
+            self.footprints[k].append(fit_window(detection, self.settings.widen))
+
+    def sweep(self, sigma: FloatArray) -> None:
+        """Every target refitted on its footprint with the others taken out (Gauss-Seidel:
+        a target found later corrects the fits of those whose windows it reaches)."""
+        for k, fit in enumerate(self.fits):
+            # The target's passes: wherever its predicted tensor stands out of the noise
+            # (none when the noise is far above it: then the windows it was found in).
+            self.footprints[k] = footprint(
+                self.survey, self.geometry, fit, sigma, self.legs, self.settings.footprint_sigmas
+            ) or [fit_window(d, self.settings.widen) for d in self.passes[k]]
+            pieces = [self.cleaned(window, k) for window in self.footprints[k]]
+            self.fits[k] = fit_dipole(pieces, self.geometry, sigma, fit.position)
+
+    def predicted(self, own: int) -> FloatArray:
+        """The tensors (N, 3, 3) T/m of every target but ``own`` along the survey."""
+        return self._tensors(self.survey.positions, self.survey.rotations, own)
+
+    def cleaned(self, window: tuple[int, int], own: int) -> Pass:
+        """The samples of ``window`` minus the tensors of every target but ``own``."""
+        piece = self.survey.piece(*window)
+        others = self._tensors(piece.positions, piece.rotations, own)
+        return Pass(piece.positions, piece.rotations, piece.tensors - others, piece.t_s)
+
+    def _tensors(self, positions: FloatArray, rotations: FloatArray, own: int) -> FloatArray:
+        out = np.zeros((len(positions), 3, 3))
+        for k, fit in enumerate(self.fits):
+            if k != own:
+                out += array_tensor(positions, rotations, self.geometry, fit.position, fit.moment)
+        return out
 
 
 def footprint(
@@ -201,19 +237,6 @@ def footprint(
     return out
 
 
-def _predicted(
-    survey: Survey, geometry: TetraGeometry, fits: list[DipoleFit], own: int
-) -> FloatArray:
-    """The tensors (N, 3, 3) T/m of every fitted target but ``own`` along the survey."""
-    out = np.zeros_like(survey.tensors)
-    for k, fit in enumerate(fits):
-        if k != own:
-            out += array_tensor(
-                survey.positions, survey.rotations, geometry, fit.position, fit.moment
-            )
-    return out
-
-
 def _nearest(fit: DipoleFit, fits: list[DipoleFit], settings: LocatorSettings) -> int | None:
     """The known target ``fit`` is one with (see the module docstring), or None."""
     best, best_distance = None, np.inf
@@ -236,21 +259,3 @@ def significant(fit: DipoleFit, probability: float) -> bool:
     except np.linalg.LinAlgError:
         return False
     return value > stats.chi2.isf(probability, 3)
-
-
-def _cleaned(
-    survey: Survey,
-    window: tuple[int, int],
-    geometry: TetraGeometry,
-    fits: list[DipoleFit],
-    own: int,
-) -> Pass:
-    """The samples of ``window`` minus the tensors of every fitted target but ``own``."""
-    piece = survey.piece(*window)
-    others = np.zeros_like(piece.tensors)
-    for k, fit in enumerate(fits):
-        if k != own:
-            others += array_tensor(
-                piece.positions, piece.rotations, geometry, fit.position, fit.moment
-            )
-    return Pass(piece.positions, piece.rotations, piece.tensors - others, piece.t_s)

@@ -1,0 +1,123 @@
+"""``python -m tetra_gradiometer locate BAG --params FILE --calibration CALIB.yaml --out DIR
+[--raw] [--no-comparison] [--false-alarms-per-hour F] [--no-plots] [--force]``.
+
+Finds and locates magnetic targets along a recorded survey: the bag's tensor, compensated
+with the calibration (eq. 19), is searched for anomalies at the stated false-alarm rate on
+the straight legs of the ``/odom`` track, and each is fitted with a point dipole plus a
+background per pass (:func:`tetra_gradiometer.core.targets.locate`). ``--raw`` searches the
+uncompensated tensor instead (no calibration needed).
+
+``DIR`` (written as one atomic folder; :mod:`tetra_gradiometer.io.targets_report`)::
+
+    targets.json       {"targets": [{"position_m", "position_sigma_m", "moment_Am2",
+                        "moment_sigma_Am2", "first_seen_s", "last_seen_s",
+                        "fit_rms_nT_per_m", ...}], "frame": "odom", ...}
+    targets_raw.json   the same search on the uncompensated tensor, for comparison
+                       (left out by --no-comparison)
+    map.png            track, detections, targets with 3-sigma ellipses; the statistic
+    report.md          both tables
+
+Positions in the odom frame (ENU, m), moments A m^2, 1-sigma from the fit; times in seconds
+from the first sample (``t0_stamp_s`` is its absolute stamp).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from ..core.targets import DetectorSettings, LocatorSettings
+from ..errors import InputError
+from ..io.bag_compensation import load_compensation
+from ..io.bag_targets import locate_bag
+from ..io.outputs import TARGETS, check_output
+from ..io.params import geometry_from_params, load_params
+from ..io.targets_report import write_locate_report
+from ._args import (
+    add_bag_arguments,
+    add_force_argument,
+    add_progress_arguments,
+    positive_float,
+    timebase_from_args,
+)
+
+#: ``--false-alarms-per-hour``: at most one a minute.
+MAX_FALSE_ALARMS_PER_HOUR = 60.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_bag_arguments(parser)
+    parser.add_argument(
+        '--calibration',
+        default=None,
+        help='calibration YAML (from "calibrate"); required unless --raw',
+    )
+    parser.add_argument(
+        '--out',
+        required=True,
+        help='output folder: targets.json, targets_raw.json, map.png, report.md',
+    )
+    parser.add_argument(
+        '--raw', action='store_true', help='search the uncompensated tensor only (no calibration)'
+    )
+    parser.add_argument(
+        '--no-comparison',
+        action='store_true',
+        help='skip the search of the uncompensated tensor (half the time)',
+    )
+    parser.add_argument(
+        '--false-alarms-per-hour',
+        type=positive_float(MAX_FALSE_ALARMS_PER_HOUR, '/h'),
+        default=DetectorSettings.false_alarms_per_hour,
+        help="the detector's false-alarm rate on noise, per hour of straight legs, 0 < F <= "
+        f'{MAX_FALSE_ALARMS_PER_HOUR:g} (default {DetectorSettings.false_alarms_per_hour:g})',
+    )
+    parser.add_argument('--no-plots', action='store_true', help='no map.png')
+    add_force_argument(parser, 'a previous targets folder at --out')
+    add_progress_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
+    if args.raw == (args.calibration is not None):
+        raise InputError(
+            'give --calibration (the compensated tensor is searched) or --raw (the raw one), '
+            'not both'
+            if args.raw
+            else 'give --calibration CALIB.yaml (from "calibrate"), or --raw to search the '
+            'uncompensated tensor'
+        )
+    inputs = [args.bag, args.params] + ([args.calibration] if args.calibration else [])
+    check_output(args.out, TARGETS, force=args.force, inputs=inputs)  # refuse before the work
+    params = load_params(args.params)
+    geometry = geometry_from_params(params, str(args.params))
+    parameters = None
+    if args.calibration is not None:
+        parameters = load_compensation(
+            args.calibration, geometry, target=str(args.params)
+        ).parameters
+    settings = LocatorSettings(DetectorSettings(false_alarms_per_hour=args.false_alarms_per_hour))
+    result = locate_bag(
+        args.bag,
+        geometry,
+        parameters,
+        settings=settings,
+        comparison=not args.no_comparison,
+        timebase=timebase_from_args(args),
+        progress=args.progress,
+        on_stage=lambda text: print(f'{text} ...', file=sys.stderr, flush=True),
+    )
+    out = write_locate_report(
+        result, args.out, plots=not args.no_plots, force=args.force, inputs=inputs
+    )
+    for search in (result.main, result.comparison):
+        if search is None:
+            continue
+        print(
+            f'{search.tensor}: {len(search.detected.detections)} detections, '
+            f'{len(search.targets)} targets '
+            f'({sum(not t.dipolar for t in search.targets)} not dipolar)'
+        )
+    print(f'{time.perf_counter() - started:.1f} s; targets in {out}')
+    return 0

@@ -1,0 +1,103 @@
+"""Targets of a recorded survey: the bag's tensor (compensated with a calibration, and raw
+for comparison) searched and located by :func:`tetra_gradiometer.core.targets.locate`.
+
+The track is ``/odom``'s pose (position and attitude, interpolated onto the sets' stamps):
+a bag without it cannot place anything and is refused.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..core import InterferenceParameters, TetraGeometry, compensate, difference_tensor
+from ..core.targets import DetectionResult, LocatorSettings, Survey, Target, locate
+from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
+from ..core.units import S_PER_NS
+from ..errors import BagError
+from . import conversions as cv
+from .recording import Recording, read_recording
+
+
+@dataclass(frozen=True)
+class Search:
+    """One tensor's search: what was searched (``tensor``: 'compensated' or 'raw'), the
+    survey, the targets and the first detection pass."""
+
+    tensor: str
+    survey: Survey
+    targets: list[Target]
+    detected: DetectionResult
+
+
+@dataclass(frozen=True)
+class BagTargets:
+    """:func:`locate_bag`'s result: the compensated search (``main``; the raw one when no
+    calibration was given), the raw comparison (None when not asked for or when ``main``
+    is raw), the absolute stamp of the first sample ``t0_stamp_s`` (Unix s), and the
+    recording's input counts (sets dropped, messages skipped)."""
+
+    main: Search
+    comparison: Search | None
+    t0_stamp_s: float
+    input_counts: dict[str, int]
+
+
+def survey_of(recording: Recording, tensors: np.ndarray, where: str) -> Survey:
+    """The :class:`Survey` of a recording's samples with ``tensors`` (N, 3, 3) T/m."""
+    if recording.position_m is None or recording.orientation_xyzw is None:
+        raise BagError(
+            f'{where}: no {cv.ODOM_TOPIC} in the bag: targets are located on the track, which '
+            'needs the pose (record the navigation odometry with the magnetometers)'
+        )
+    rotations = Rotation.from_quat(recording.orientation_xyzw).as_matrix()
+    return Survey(recording.t_s, recording.position_m, rotations, tensors)
+
+
+def locate_bag(
+    bag: str | os.PathLike[str],
+    geometry: TetraGeometry,
+    parameters: InterferenceParameters | None,
+    *,
+    settings: LocatorSettings | None = None,
+    comparison: bool = True,
+    timebase: TimeBase = DEFAULT_TIMEBASE,
+    progress: bool | None = None,
+    on_stage: Callable[[str], None] | None = None,
+) -> BagTargets:
+    """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
+    7, when None) and, with ``comparison``, the raw one too.
+
+    Raises
+    ------
+    BagError
+        The bag breaks the data contract or has no ``/odom``.
+    InputError
+        No straight leg to search (:func:`~tetra_gradiometer.core.targets.detect`).
+    """
+    recording = read_recording(bag, timebase=timebase, progress=progress)
+    raw = difference_tensor(recording.fields, geometry)
+    searches: list[Search] = []
+    kinds: list[tuple[str, np.ndarray]] = []
+    if parameters is not None:
+        kinds.append(
+            ('compensated', compensate(raw, recording.fields[:, 0, :], parameters, geometry))
+        )
+    if parameters is None or comparison:
+        kinds.append(('raw', raw))
+    for tensor, tensors in kinds:
+        if on_stage is not None:
+            on_stage(f'locating on the {tensor} tensor')
+        survey = survey_of(recording, tensors, str(bag))
+        targets, detected = locate(survey, geometry, settings)
+        searches.append(Search(tensor, survey, targets, detected))
+    return BagTargets(
+        searches[0],
+        searches[1] if len(searches) > 1 else None,
+        float(recording.stamps_ns[0] * S_PER_NS),
+        recording.input_counts(),
+    )
