@@ -32,9 +32,9 @@ from ..types import FloatArray
 from .forward import sensor_points, symmetric_components, unit_moment_tensors
 
 #: Trial distances (m) of the initial grid, geometric.
-GRID_DISTANCES_M = np.geomspace(1.5, 150.0, 16)
+GRID_DISTANCES_M = np.geomspace(1.5, 150.0, 12)
 #: Trial directions of the initial grid.
-GRID_DIRECTIONS = 128
+GRID_DIRECTIONS = 64
 #: At most this many samples per pass in the grid search (every k-th sample).
 GRID_SAMPLES = 60
 

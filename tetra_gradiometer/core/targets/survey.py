@@ -27,6 +27,8 @@ from .localization import DipoleFit, Pass, fit_dipole
 
 #: Refits of every target after the last one is found (each moves the footprints).
 FINAL_SWEEPS = 2
+#: While targets are being found, their fits take at most this many samples per pass.
+SWEEP_SAMPLES = 300
 
 
 @dataclass(frozen=True)
@@ -127,8 +129,9 @@ def locate(
         fit = fit_dipole([catalogue.cleaned(window, -1)], geometry, sigma)
         if not significant(fit, settings.significance):
             continue
-        catalogue.add(fit, detection)
-        catalogue.sweep(sigma)
+        k = catalogue.add(fit, detection)
+        catalogue.sweep(sigma, [k], thin=True)  # its footprint, then who shares it
+        catalogue.sweep(sigma, catalogue.neighbours(k), thin=True)
         residual = survey.tensors - catalogue.predicted(-1)
         found = detect(survey.t_s, residual, survey.positions, survey.rotations, settings.detector)
         sigma = found.sigma  # with the targets out, more of the survey is quiet
@@ -168,27 +171,41 @@ class _Catalogue:
         self.passes: list[list[Detection]] = []
         self.footprints: list[list[tuple[int, int]]] = []
 
-    def add(self, fit: DipoleFit, detection: Detection) -> None:
-        """A new target, or a new pass of the known target ``fit`` puts it at."""
+    def add(self, fit: DipoleFit, detection: Detection) -> int:
+        """A new target, or a new pass of the known target ``fit`` puts it at: its index."""
         k = _nearest(fit, self.fits, self.settings)
         if k is None:
             self.fits.append(fit)
-            self.passes.append([detection])
-            self.footprints.append([fit_window(detection, self.settings.widen)])
-        else:
-            self.passes[k].append(detection)
-            self.footprints[k].append(fit_window(detection, self.settings.widen))
+            self.passes.append([])
+            self.footprints.append([])
+            k = len(self.fits) - 1
+        self.passes[k].append(detection)
+        self.footprints[k].append(fit_window(detection, self.settings.widen))
+        return k
 
-    def sweep(self, sigma: FloatArray) -> None:
-        """Every target refitted on its footprint with the others taken out (Gauss-Seidel:
-        a target found later corrects the fits of those whose windows it reaches)."""
-        for k, fit in enumerate(self.fits):
+    def neighbours(self, k: int) -> list[int]:
+        """Target ``k`` and those whose footprints share samples with its own."""
+        return [
+            j
+            for j, windows in enumerate(self.footprints)
+            if j == k or any(a < d and c < b for a, b in windows for c, d in self.footprints[k])
+        ]
+
+    def sweep(self, sigma: FloatArray, which: list[int] | None = None, thin: bool = False) -> None:
+        """Targets ``which`` (default all) refitted on their footprints with the others
+        taken out (Gauss-Seidel: a target found later corrects the fits of those whose
+        windows it reaches). ``thin``: at most :data:`SWEEP_SAMPLES` samples per pass (the
+        fits while targets are still being found; the last sweeps take every sample)."""
+        for k in range(len(self.fits)) if which is None else which:
+            fit = self.fits[k]
             # The target's passes: wherever its predicted tensor stands out of the noise
             # (none when the noise is far above it: then the windows it was found in).
             self.footprints[k] = footprint(
                 self.survey, self.geometry, fit, sigma, self.legs, self.settings.footprint_sigmas
             ) or [fit_window(d, self.settings.widen) for d in self.passes[k]]
             pieces = [self.cleaned(window, k) for window in self.footprints[k]]
+            if thin:
+                pieces = [piece.thinned(SWEEP_SAMPLES) for piece in pieces]
             self.fits[k] = fit_dipole(pieces, self.geometry, sigma, fit.position)
 
     def predicted(self, own: int) -> FloatArray:
