@@ -30,6 +30,7 @@ setup(
             'tensor = tetra_gradiometer.nodes.tensor:main',
             'calibrator = tetra_gradiometer.nodes.calibrator:main',
             'compensator = tetra_gradiometer.nodes.compensator:main',
+            'target = tetra_gradiometer.nodes.target:main',
         ],
     },
 )

@@ -6,27 +6,28 @@
 [calibration_file:=FILE]`` (``--show-args`` lists them with their defaults).
 
 Nodes. The four managed (lifecycle) nodes ``tensor``, ``calibrator``, ``compensator`` and
-``driver`` (the console scripts of the same names), or the subset named by ``nodes``, in the
-namespace ``namespace`` (default ``tetra``: ``/tetra``, or ``/<pushed>/tetra`` when this
-file is included under a ``PushROSNamespace``). Every node reads ``params_file`` (default:
-the installed ``config/tetra_gradiometer.yaml``; ``''``: the declared defaults) and then
-``use_sim_time``. As in ``bringup``, the driver takes ``mode``, ``bag`` (a bag without a
-mode means replay; a driver with neither, here or in the params file, is refused: it
-fabricates no vehicle data by default), ``rate`` and ``scenario``, the calibrator and
-compensator take ``calibration_file``, relative paths are taken from the working directory,
-and the driver waits for the tensor node's subscriptions (``min_subscribers`` 1) when both
-are launched.
+``driver`` (the console scripts of the same names), or the subset named by ``nodes``, which
+may also name the ``target`` node (not started by default: a search takes a core for tens of
+seconds on an hour of survey), in the namespace ``namespace`` (default ``tetra``:
+``/tetra``, or ``/<pushed>/tetra`` when this file is included under a ``PushROSNamespace``).
+Every node reads ``params_file`` (default: the installed ``config/tetra_gradiometer.yaml``;
+``''``: the declared defaults) and then ``use_sim_time``. As in ``bringup``, the driver
+takes ``mode``, ``bag`` (a bag without a mode means replay; a driver with neither, here or
+in the params file, is refused: it fabricates no vehicle data by default), ``rate`` and
+``scenario``, the calibrator and compensator take ``calibration_file``, relative paths are
+taken from the working directory, and the driver waits for the tensor node's subscriptions
+(``min_subscribers`` 1) when both are launched.
 An empty argument leaves the parameter to the params file.
 
-Lifecycle. With ``autostart`` true (the default) each node is configured and then
-activated, one after the other in ``bringup``'s order (tensor, calibrator, compensator,
-driver): the next node is configured once the previous one is active, so the chain listens
-before the driver publishes. This uses the standard launch_ros lifecycle events
-(``ChangeState`` with ``lifecycle_msgs/Transition`` configure and activate, triggered by
-``OnStateTransition``). A node that fails a transition stops the sequence there (launch_ros
-logs the failure) and the nodes after it stay unconfigured. With ``autostart`` false every
-node is left unconfigured for an external lifecycle manager. A node process that exits
-ends the whole launch, as one failing node ends ``bringup``.
+Lifecycle. With ``autostart`` true (the default) each node is configured and then activated,
+one after the other in ``bringup``'s order (tensor, calibrator, compensator, the target node
+when named, driver): the next node is configured once the previous one is active, so the
+chain listens before the driver publishes. This uses the standard launch_ros lifecycle
+events (``ChangeState`` with ``lifecycle_msgs/Transition`` configure and activate, triggered
+by ``OnStateTransition``). A node that fails a transition stops the sequence there
+(launch_ros logs the failure) and the nodes after it stay unconfigured. With ``autostart``
+false every node is left unconfigured for an external lifecycle manager. A node process that
+exits ends the whole launch, as one failing node ends ``bringup``.
 
 Static transforms (REP 105). With ``static_transforms`` true (the default) one
 ``tf2_ros static_transform_publisher`` per child of the body frame publishes on the absolute
@@ -83,9 +84,12 @@ from tetra_gradiometer.nodes.common import DEFAULT_POSITIONS, frame_ids
 
 PACKAGE = 'tetra_gradiometer'
 
-#: The nodes (executable = node name), in bringup's start order (cli/bringup.create_nodes):
-#: the driver last, so the chain is active before the first set is published.
-NODES = ('tensor', 'calibrator', 'compensator', 'driver')
+#: The nodes (executable = node name), in bringup's start order (cli/bringup.create_nodes;
+#: the target node, which bringup does not start, before the driver): the driver last, so the
+#: chain is active before the first set is published.
+NODES = ('tensor', 'calibrator', 'compensator', 'target', 'driver')
+#: The nodes started when ``nodes`` is not given: bringup's four.
+DEFAULT_NODES = ('tensor', 'calibrator', 'compensator', 'driver')
 
 MODES = ('sim', 'replay')
 
@@ -112,7 +116,7 @@ ARGUMENTS = (
     ),
     ('namespace', 'tetra', 'namespace of the nodes and their topics'),
     ('use_sim_time', 'false', 'true or false, passed to every node'),
-    ('nodes', ','.join(NODES), f'comma-separated subset of {", ".join(NODES)}'),
+    ('nodes', ','.join(DEFAULT_NODES), f'comma-separated subset of {", ".join(NODES)}'),
     (
         'autostart',
         'true',

@@ -202,6 +202,18 @@ def test_a_subset_starts_only_its_nodes_in_bringup_order(launch, nodes, expected
         assert waits == (1 if 'tensor' in expected else None)
 
 
+def test_the_target_node_starts_only_when_named_and_before_the_driver(launch):
+    run = launch(mode='sim', nodes='driver,target,tensor,calibrator,compensator')
+    expected = ['tensor', 'calibrator', 'compensator', 'target', 'driver']
+    assert [node.name for node in run.nodes] == expected
+    assert run.requests == _chain(expected)
+    target = run.node('target')
+    assert (target.package, target.executable) == (PACKAGE, 'target')
+    assert console_scripts()['target'] == 'tetra_gradiometer.nodes.target:main'
+    assert target.parameters[-1] == {'use_sim_time': False, 'autostart': False}
+    assert 'target' not in [node.name for node in launch(mode='sim').nodes]
+
+
 def test_autostart_false_leaves_every_node_unconfigured(launch):
     run = launch(mode='sim', autostart='False')
     assert [node.name for node in run.nodes] == list(ORDER)

@@ -30,7 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     'node': (
         'tetra_gradiometer.cli.node',
-        'run one ROS 2 node (driver|tensor|calibrator|compensator)',
+        'run one ROS 2 node (driver|tensor|calibrator|compensator|target)',
     ),
     'bringup': ('tetra_gradiometer.cli.bringup', 'run the four nodes together'),
     'record': ('tetra_gradiometer.cli.record', "record the sim driver's topics to a bag"),

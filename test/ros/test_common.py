@@ -19,12 +19,12 @@ from ros_helpers import REPO, NodeProcess, unique_domain
 def _declared() -> dict[str, dict[str, object]]:
     """``{node: {parameter: default}}`` from the nodes' PARAMETERS lists and the lifecycle
     base's ``autostart`` (every node declares it)."""
-    from tetra_gradiometer.nodes import calibrator, compensator, driver, tensor
+    from tetra_gradiometer.nodes import calibrator, compensator, driver, target, tensor
     from tetra_gradiometer.nodes.managed import AUTOSTART_SPEC
 
     return {module.__name__.rsplit('.', 1)[1]:
             {spec.name: spec.default for spec in [*module.PARAMETERS, AUTOSTART_SPEC]}
-            for module in (driver, tensor, calibrator, compensator)}
+            for module in (driver, tensor, calibrator, compensator, target)}
 
 
 def _same(value: object, default: object) -> bool:
@@ -103,6 +103,7 @@ def _assert_one_line_refusal(code, output, *expected):
     ('tensor', {'max_field_t': 0.01}, ["'max_field_t' = 0.01", '[0.0001, 0.001]']),
     ('compensator', {'max_pending': 0}, ["'max_pending' = 0", '[1, 100000]']),
     ('compensator', {'sensor_noise_t': 1e-3}, ["'sensor_noise_t' = 0.001", '[0, 1e-06]']),
+    ('target', {'history_s': 10.0}, ["'history_s' = 10.0", '[60, 14400]']),
     ('driver', {'sensor_noise_t': -1e-10}, ["'sensor_noise_t' = -1e-10", '[0, 1e-06]']),
     ('driver', {'rate': 5000.0}, ["'rate' = 5000.0", '[0, 1000]']),
     ('calibrator', {'max_solve_s': 0.0}, ["'max_solve_s' = 0.0", '[0.1, 600]']),

@@ -134,7 +134,7 @@ def test_compensator_transitions_through_the_lifecycle_services(tmp_path):
         assert process.alive()  # a finalized node waits to be stopped; it does not crash
 
 
-@pytest.mark.parametrize('name', ['tensor', 'calibrator', 'compensator', 'driver'])
+@pytest.mark.parametrize('name', ['tensor', 'calibrator', 'compensator', 'driver', 'target'])
 def test_every_node_configures_activates_and_cleans_up_in_process(name, tmp_path):
     import rclpy
     from rclpy.parameter import Parameter
@@ -142,10 +142,11 @@ def test_every_node_configures_activates_and_cleans_up_in_process(name, tmp_path
     from tetra_gradiometer.nodes.calibrator import CalibratorNode
     from tetra_gradiometer.nodes.compensator import CompensatorNode
     from tetra_gradiometer.nodes.driver import DriverNode
+    from tetra_gradiometer.nodes.target import TargetNode
     from tetra_gradiometer.nodes.tensor import TensorNode
 
     classes = {'tensor': TensorNode, 'calibrator': CalibratorNode,
-               'compensator': CompensatorNode, 'driver': DriverNode}
+               'compensator': CompensatorNode, 'driver': DriverNode, 'target': TargetNode}
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=unique_domain(), args=['--ros-args', '-r', '__ns:=/lifecycle_test'])
     try:

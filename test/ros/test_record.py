@@ -8,6 +8,7 @@ import numpy as np
 from ros_helpers import REPO, child_env, unique_domain
 
 from tetra_gradiometer import core
+from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io.bag import MagneticBag
 from tetra_gradiometer.io.scenario import load_scenario_or_default
 
@@ -30,6 +31,8 @@ def test_record_writes_the_sim_driver_topics_as_simulated(tmp_path):
     assert len(stamps) == 50
     np.testing.assert_allclose(np.diff(stamps), 1e8, atol=2)
     np.testing.assert_array_equal(fields, mission.fields_measured[:50])
-    np.testing.assert_allclose(np.abs(np.sum(odom.values * mission.orientation_xyzw[:50], axis=1)), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(odom.values[:, cv.POSE_ORIENTATION] * mission.orientation_xyzw[:50], axis=1)),
+                               1.0, atol=1e-12)
+    np.testing.assert_allclose(odom.values[:, cv.POSE_POSITION], mission.position_enu[:50], atol=1e-9)
     assert truth_topic
     assert not list(tmp_path.glob('.*partial*'))

@@ -1,5 +1,6 @@
-"""``python -m tetra_gradiometer node <driver|tensor|calibrator|compensator> [--params FILE]
-[--ros-args ...]``: one node in this process, as ``ros2 run tetra_gradiometer <name>`` would.
+"""``python -m tetra_gradiometer node <driver|tensor|calibrator|compensator|target>
+[--params FILE] [--ros-args ...]``: one node in this process, as ``ros2 run
+tetra_gradiometer <name>`` would.
 
 Parameters come from the nodes' declared defaults, ``--params FILE``
 and any further ``--ros-args`` (e.g. ``-p rate:=10.0``, ``-r __ns:=/other``). A missing
@@ -15,7 +16,7 @@ from pathlib import Path
 
 from ..errors import ParamsError
 
-NODES = ('driver', 'tensor', 'calibrator', 'compensator')
+NODES = ('driver', 'tensor', 'calibrator', 'compensator', 'target')
 PARAMS_HELP = (
     'ROS 2 parameter file (/**: ros__parameters:); default: none, every parameter at its '
     "declared default (config/tetra_gradiometer.yaml lists them, installed to the package's "

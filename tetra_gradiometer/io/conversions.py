@@ -14,6 +14,8 @@ Contract (README, "Topics"):
   ``sensor_msgs/JointState`` with ``name = gxx, gxy, gxz, gyx, gyy, gyz, gzx, gzy, gzz``,
   ``position`` = ``G_ij = dB_i/dx_j`` in T/m, frame ``tetra_array``.
 * ``/odom``: ``nav_msgs/Odometry``, orientation rotates body vectors into ENU.
+* the target node's outputs: ``geometry_msgs/PoseArray`` (m, odom frame) and
+  ``visualization_msgs/MarkerArray``, built by io/target_messages.py from the classes here.
 * ``/tetra/temperature``: ``sensor_msgs/Temperature`` (degC);
   ``/battery_state``: ``sensor_msgs/BatteryState`` (``current`` in A).
 
@@ -54,6 +56,8 @@ ODOM_TOPIC = '/odom'
 #: vehicle the calibrator is remapped to the navigation's topic (``-r odom:=/odom``); the
 #: driver never publishes on the vehicle's own ``/odom``.
 ODOM_NODE_TOPIC = 'odom'
+#: The compensator's output, relative (``/tetra/gradient/compensated``); the target node's input.
+COMPENSATED_NODE_TOPIC = 'gradient/compensated'
 TEMPERATURE_TOPIC = '/tetra/temperature'
 BATTERY_TOPIC = '/battery_state'
 BAG_MAG_TOPICS = tuple(f'{NAMESPACE}/{name}' for name in MAG_TOPICS)
@@ -101,6 +105,10 @@ JOINT_STATE = 'sensor_msgs/msg/JointState'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 TEMPERATURE = 'sensor_msgs/msg/Temperature'
 BATTERY_STATE = 'sensor_msgs/msg/BatteryState'
+POSE_ARRAY = 'geometry_msgs/msg/PoseArray'
+MARKER = 'visualization_msgs/msg/Marker'
+MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
+COLOR_RGBA = 'std_msgs/msg/ColorRGBA'
 
 
 @dataclass(frozen=True)
@@ -121,6 +129,7 @@ def rclpy_types() -> MessageTypes:
     from geometry_msgs.msg import (
         Point,
         Pose,
+        PoseArray,
         PoseWithCovariance,
         Quaternion,
         Twist,
@@ -130,7 +139,8 @@ def rclpy_types() -> MessageTypes:
     from nav_msgs.msg import Odometry
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import BatteryState, JointState, MagneticField, Temperature
-    from std_msgs.msg import Float64, Header
+    from std_msgs.msg import ColorRGBA, Float64, Header
+    from visualization_msgs.msg import Marker, MarkerArray
 
     classes = {
         'builtin_interfaces/msg/Time': Time,
@@ -149,6 +159,10 @@ def rclpy_types() -> MessageTypes:
         ODOMETRY: Odometry,
         TEMPERATURE: Temperature,
         BATTERY_STATE: BatteryState,
+        POSE_ARRAY: PoseArray,
+        COLOR_RGBA: ColorRGBA,
+        MARKER: Marker,
+        MARKER_ARRAY: MarkerArray,
     }
     return MessageTypes(
         classes, lambda values: array.array('d', np.asarray(values, float).tolist())
@@ -279,6 +293,17 @@ def tensor_from_msg(msg: Any) -> np.ndarray:
     return values[[names.index(n) for n in TENSOR_NAMES]].reshape(3, 3)
 
 
+def pose_msg(types: MessageTypes, position: np.ndarray, orientation_xyzw: np.ndarray) -> Any:
+    """``geometry_msgs/Pose``: position (3,) m, orientation (4,) x, y, z, w."""
+    p, q = np.asarray(position, dtype=float), np.asarray(orientation_xyzw, dtype=float)
+    return types['geometry_msgs/msg/Pose'](
+        position=types['geometry_msgs/msg/Point'](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+        orientation=types['geometry_msgs/msg/Quaternion'](
+            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+        ),
+    )
+
+
 def odometry_msg(
     types: MessageTypes,
     position_enu: np.ndarray,
@@ -289,15 +314,7 @@ def odometry_msg(
     child_frame_id: str = BASE_FRAME,
 ) -> Any:
     """``nav_msgs/Odometry``: position (3,) m ENU, orientation (4,) x, y, z, w (body -> ENU)."""
-    q = np.asarray(orientation_xyzw, dtype=float)
-    pose = types['geometry_msgs/msg/Pose'](
-        position=types['geometry_msgs/msg/Point'](
-            x=float(position_enu[0]), y=float(position_enu[1]), z=float(position_enu[2])
-        ),
-        orientation=types['geometry_msgs/msg/Quaternion'](
-            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
-        ),
-    )
+    pose = pose_msg(types, position_enu, orientation_xyzw)
     zero = np.zeros(3)
     twist = types['geometry_msgs/msg/Twist'](
         linear=_vector3(types, zero), angular=_vector3(types, zero)

@@ -1,2 +1,2 @@
-"""ROS 2 nodes: driver, tensor, calibrator, compensator (thin: message -> array -> core ->
-message), and their shared helpers (``common``)."""
+"""ROS 2 nodes: driver, tensor, calibrator, compensator, target (thin: message -> array ->
+core -> message), and their shared helpers (``common``)."""

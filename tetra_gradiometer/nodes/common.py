@@ -236,10 +236,10 @@ def _refusal(node: Any, spec: ParamSpec, error: Exception) -> str:
 def suite_parameter_names() -> frozenset[str]:
     """Every name a node of this package declares (``earth_field_enu``, which the offline tools
     also read, is the calibrator's)."""
-    from . import calibrator, compensator, driver, tensor
+    from . import calibrator, compensator, driver, target, tensor
     from .managed import AUTOSTART_SPEC
 
-    modules = (driver, tensor, calibrator, compensator)
+    modules = (driver, tensor, calibrator, compensator, target)
     return frozenset([AUTOSTART_SPEC.name, *(s.name for m in modules for s in m.PARAMETERS)])
 
 

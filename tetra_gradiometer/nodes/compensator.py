@@ -155,7 +155,9 @@ class CompensatorNode(ManagedNode):
         # The per-sample path reads and writes serialized messages (io/conversions).
         check_serialization()
         self._cdr = cv.TensorCdr(self._array_frame)
-        self._comp_pub = self.create_publisher(JointState, 'gradient/compensated', derived_qos())
+        self._comp_pub = self.create_publisher(
+            JointState, cv.COMPENSATED_NODE_TOPIC, derived_qos()
+        )
         self._norm_pub = self.create_publisher(Float64, 'gradient/norm', derived_qos())
         self._sigma_pub = self.create_publisher(JointState, 'gradient/sigma', derived_qos())
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
