@@ -57,6 +57,8 @@ bench: setup
 	$(PY) bench/bench_scale.py
 	$(PY) bench/bench_chain.py
 	$(PY) bench/bench_discrepancy.py
+	$(PY) bench/bench_health.py
+	$(PY) bench/bench_targets.py --speed
 
 clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants

@@ -38,7 +38,7 @@ def located(tmp_path_factory):
     params = tmp / 'mission.params.yaml'
     cli('calibrate', tmp / 'mission', '--params', params, '--window', '0:119.95', '--out', tmp / 'calib.yaml')
     out = cli('locate', tmp / 'mission', '--params', params, '--calibration', tmp / 'calib.yaml', '--out',
-              tmp / 'targets')
+              tmp / 'targets', '--comparison')
     return tmp, out
 
 

@@ -64,7 +64,7 @@ def locate_bag(
     parameters: InterferenceParameters | None,
     *,
     settings: LocatorSettings | None = None,
-    comparison: bool = True,
+    comparison: bool = False,
     timebase: TimeBase = DEFAULT_TIMEBASE,
     progress: bool | None = None,
     on_stage: Callable[[str], None] | None = None,

@@ -1,6 +1,6 @@
 """The ``locate`` output folder: ``targets.json`` (the compensated tensor's targets, the
-contract of :mod:`.targets`), ``targets_raw.json`` (the same search on the uncompensated
-tensor, for comparison), ``map.png`` (track, detections, targets with their 3-sigma
+contract of :mod:`.targets`), ``targets_raw.json`` (when asked for: the same search on the
+uncompensated tensor, for comparison), ``map.png`` (track, detections, targets with their 3-sigma
 horizontal error ellipses, and the detection statistic against its threshold) and
 ``report.md`` (both target tables side by side). Written as one atomic folder.
 """
