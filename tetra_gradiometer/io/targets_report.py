@@ -122,11 +122,20 @@ def _map_panel(ax: Axes, search: Search) -> None:
     from matplotlib.patches import Ellipse
 
     xy = search.survey.positions[:, :2]
-    ax.plot(xy[:, 0], xy[:, 1], color='0.7', lw=0.6, label='track')
+    # The searched legs only: a transit or a trim kilometres away would shrink the survey
+    # to a dot.
+    for i, (start, stop) in enumerate(search.detected.legs):
+        ax.plot(
+            *xy[start:stop].T,
+            color='0.6',
+            lw=0.6,
+            label='track (searched legs)' if i == 0 else None,
+        )
     for i, detection in enumerate(search.detected.detections):
         span = xy[detection.start : detection.stop]
-        ax.plot(span[:, 0], span[:, 1], color='tab:orange', lw=2.5,
-                label='detections' if i == 0 else None)  # fmt: skip
+        ax.plot(span[:, 0], span[:, 1], color='tab:orange', lw=1.5,
+                label='detections (peak: dot)' if i == 0 else None)  # fmt: skip
+        ax.plot(*xy[detection.peak], '.', color='tab:orange', ms=6)
     for i, target in enumerate(search.targets):
         fit = target.fit
         values, vectors = np.linalg.eigh(fit.covariance[:2, :2])
