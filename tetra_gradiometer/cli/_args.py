@@ -18,6 +18,7 @@ from ..core.units import S_PER_MS
 from ..errors import InputError
 
 __all__ = [
+    'MAX_FALSE_ALARMS_PER_HOUR',
     'MAX_RATE',
     'MAX_SEED',
     'MAX_TOLERANCE_MS',
@@ -40,6 +41,9 @@ MAX_SEED = 2**31 - 1
 #: ``--rate`` (bringup, record, demo): the driver node's ``rate`` parameter range, x real time.
 MAX_RATE = 1_000.0
 
+#: ``--false-alarms-per-hour`` range (``compensate --report``, ``locate``): above 0, at most one a
+#: minute (a detector that cries wolf is off).
+MAX_FALSE_ALARMS_PER_HOUR = 60.0
 #: ``--tolerance-ms`` range: above 0; at most 1 s (a set spread over more is not a set).
 MAX_TOLERANCE_MS = 1000.0
 #: ``--reference-rate-hz`` range: 0 (sensor 1's stamps) to 10 kHz.
@@ -183,7 +187,7 @@ def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
         choices=SYNC_METHODS,
         default='interpolate',
         help="how the four sensors' readings become sets: 'interpolate' (default) resamples "
-        "each sensor to the reference instants (sensors on their own clocks, stamps = sample "
+        'each sensor to the reference instants (sensors on their own clocks, stamps = sample '
         "times); 'nearest' pairs stamps within --tolerance-ms (sensors sampled together whose "
         'stamps are arrival times)',
     )

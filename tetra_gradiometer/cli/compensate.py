@@ -53,6 +53,7 @@ from ..io.health_report import HealthRecorder
 from ..io.outputs import HEALTH_REPORT, check_output
 from ..io.params import geometry_from_params, load_params
 from ._args import (
+    MAX_FALSE_ALARMS_PER_HOUR,
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
@@ -62,8 +63,6 @@ from ._args import (
 
 #: ``--sensor-noise-nt`` range: the calibration file's bound on ``sensor_noise_T`` (1e-6 T).
 MAX_SENSOR_NOISE_NT = 1000.0
-#: ``--false-alarms-per-hour``: at most one a minute (a monitor that cries wolf is off).
-MAX_FALSE_ALARMS_PER_HOUR = 60.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

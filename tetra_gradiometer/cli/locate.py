@@ -30,21 +30,19 @@ import time
 
 from ..core.targets import DetectorSettings, LocatorSettings
 from ..errors import InputError
-from ..io.bag_compensation import load_compensation
 from ..io.bag_targets import locate_bag
+from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import TARGETS, check_output
 from ..io.params import geometry_from_params, load_params
 from ..io.targets_report import write_locate_report
 from ._args import (
+    MAX_FALSE_ALARMS_PER_HOUR,
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
     positive_float,
     timebase_from_args,
 )
-
-#: ``--false-alarms-per-hour``: at most one a minute.
-MAX_FALSE_ALARMS_PER_HOUR = 60.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -95,10 +93,12 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     geometry = geometry_from_params(params, str(args.params))
     parameters = None
-    if args.calibration is not None:
-        parameters = load_compensation(
-            args.calibration, geometry, target=str(args.params)
-        ).parameters
+    if args.calibration is not None:  # k, b only: locate needs no noise figure
+        calibration = load_calibration(args.calibration)
+        check_positions(
+            calibration, geometry, source=str(args.calibration), target=str(args.params)
+        )
+        parameters = calibration.parameters
     settings = LocatorSettings(DetectorSettings(false_alarms_per_hour=args.false_alarms_per_hour))
     result = locate_bag(
         args.bag,

@@ -61,3 +61,10 @@ def same_length(**arrays: np.ndarray) -> int:
     if len(set(lengths.values())) > 1:
         raise InputError(f'sample counts differ: {lengths}')
     return next(iter(lengths.values()))
+
+
+def require_positive(owner: str, **values: float) -> None:
+    """Raise InputError naming the first value that is not a positive finite number."""
+    for name, value in values.items():
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(f'{owner}.{name} must be positive, got {value}')

@@ -32,7 +32,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
-from ._validate import frozen_array
+from ._validate import frozen_array, require_positive
 from .clocks import SensorClocks, SensorStream, kept_messages, sample_instants, select_streams
 from .fields import dipole_field, dipole_gradient, uniform_field
 from .geometry import TetraGeometry, difference_tensor, to_body
@@ -43,13 +43,6 @@ from .units import T_PER_NT
 _DERIVATIVE_STEP_S = 1.0e-3
 #: Relative tolerance (of the tensor's norm) of the regional gradient's symmetry and trace.
 GRADIENT_TOLERANCE = 1e-9
-
-
-def _require_positive(owner: str, **values: float) -> None:
-    """Raise ValueError naming the first value that is not a positive finite number."""
-    for name, value in values.items():
-        if not (np.isfinite(value) and value > 0):
-            raise InputError(f'{owner}.{name} must be positive, got {value}')
 
 
 def check_gradient_tensor(value: ArrayLike, name: str = 'regional_gradient_enu') -> FloatArray:
@@ -115,7 +108,7 @@ class TrimManoeuvre:
     speed_m_s: float = 1.0
 
     def __post_init__(self) -> None:
-        _require_positive(
+        require_positive(
             'TrimManoeuvre',
             duration_s=self.duration_s,
             roll_period_s=self.roll_period_s,
@@ -151,7 +144,7 @@ class SurveyLine:
     sway_period_s: float = 9.0
 
     def __post_init__(self) -> None:
-        _require_positive(
+        require_positive(
             'SurveyLine',
             speed_m_s=self.speed_m_s,
             sway_period_s=self.sway_period_s,

@@ -7,6 +7,7 @@ a bag without it cannot place anything and is refused.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -81,6 +82,7 @@ def locate_bag(
     """
     recording = read_recording(bag, timebase=timebase, progress=progress)
     raw = difference_tensor(recording.fields, geometry)
+    track = survey_of(recording, raw, str(bag))  # the pose once; each search its tensor
     searches: list[Search] = []
     kinds: list[tuple[str, np.ndarray]] = []
     if parameters is not None:
@@ -92,7 +94,7 @@ def locate_bag(
     for tensor, tensors in kinds:
         if on_stage is not None:
             on_stage(f'locating on the {tensor} tensor')
-        survey = survey_of(recording, tensors, str(bag))
+        survey = dataclasses.replace(track, tensors=tensors)
         targets, detected = locate(survey, geometry, settings)
         searches.append(Search(tensor, survey, targets, detected))
     return BagTargets(

@@ -36,8 +36,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..core.targets import DetectorSettings, Survey
+from ..core.targets.detection import ends_leg, headings
 from ..core.types import FloatArray, IntArray
 from ..core.units import NS_PER_S, S_PER_NS
+from . import conversions as cv
 from .window_check import orientation_at
 
 #: A tensor or odometry stamp this far before the previous one starts a new track, s.
@@ -88,7 +90,6 @@ class SurveyTrack:
         self._period_ns = max(1, round(NS_PER_S / sample_rate_hz))
         self._history_ns = round(history_s * NS_PER_S)
         self._legs = legs
-        self._cos_turn = math.cos(math.radians(legs.max_turn_deg))
         self.counts = TrackCounts()
         #: Samples added since construction (a restart does not reset it).
         self.added = 0
@@ -149,7 +150,8 @@ class SurveyTrack:
         """One odometry pose (7,): position (3,) m, orientation (4,) x, y, z, w (body ->
         odom) at ``stamp_ns``; the reason it is dropped (counted), or None."""
         pose = np.asarray(pose, dtype=float)
-        norm = float(np.linalg.norm(pose[3:7])) if np.all(np.isfinite(pose)) else math.nan
+        finite = np.all(np.isfinite(pose))
+        norm = float(np.linalg.norm(pose[cv.POSE_ORIENTATION])) if finite else math.nan
         if not abs(norm - 1.0) <= MAX_QUATERNION_ERROR:
             self.counts.odom_dropped += 1
             return 'an odometry pose that is not finite or not a unit quaternion'
@@ -195,13 +197,13 @@ class SurveyTrack:
         odom_t = np.array(self._odom_t, dtype=np.int64)
         pose = np.array(self._odom_pose)
         since = ((t - odom_t[0]) * S_PER_NS, (odom_t - odom_t[0]) * S_PER_NS)
-        positions = np.column_stack([np.interp(*since, pose[:, i]) for i in range(3)])
-        return positions, orientation_at(odom_t, pose[:, 3:7], t)
+        positions = np.column_stack([np.interp(*since, c) for c in pose[:, cv.POSE_POSITION].T])
+        return positions, orientation_at(odom_t, pose[:, cv.POSE_ORIENTATION], t)
 
     def _append(
         self, stamp_ns: int, p: FloatArray, q: FloatArray, r: FloatArray, g: FloatArray
     ) -> None:
-        self._end_of_leg(stamp_ns, p, math.atan2(r[1, 0], r[0, 0]))
+        self._end_of_leg(stamp_ns, p, float(headings(r[None])[0]))
         self._t.append(stamp_ns)
         self._p.append(p)
         self._q.append(q)
@@ -214,10 +216,11 @@ class SurveyTrack:
         legs, leg = self._legs, self._leg
         if leg is not None:
             start, first_heading, last, last_p = leg
-            cut = (
-                math.cos(heading - first_heading) < self._cos_turn
-                or float(np.linalg.norm(p - last_p)) > legs.max_step_m
-                or (stamp_ns - last) * S_PER_NS > legs.max_gap_s
+            cut = ends_leg(
+                legs,
+                heading - first_heading,
+                float(np.linalg.norm(p - last_p)),
+                (stamp_ns - last) * S_PER_NS,
             )
             if cut and (last - start) * S_PER_NS >= legs.min_leg_s:
                 self.counts.passes += 1

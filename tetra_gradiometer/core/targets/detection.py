@@ -36,6 +36,7 @@ import numpy.typing as npt
 from scipy import linalg, ndimage, signal, stats
 
 from ...errors import InputError
+from .._validate import require_positive
 from ..geometry import to_world
 from ..types import FloatArray, IntArray
 from .forward import normalized_source_strength, symmetric_components
@@ -67,10 +68,8 @@ class DetectorSettings:
     max_gap_s: float = 2.0
 
     def __post_init__(self) -> None:
-        for name in ('false_alarms_per_hour', 'window_s', 'background_s', 'min_leg_s'):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise InputError(f'detector setting {name} must be > 0, got {value}')
+        names = ('false_alarms_per_hour', 'window_s', 'background_s', 'min_leg_s')
+        require_positive('DetectorSettings', **{name: getattr(self, name) for name in names})
 
 
 @dataclass(frozen=True)
@@ -114,25 +113,40 @@ def legs(
     """Straight legs (start, stop) of at least ``min_leg_s`` (see the module docstring).
 
     ``t_s`` (N,) s, ``positions`` (N, 3) m, ``rotations`` (N, 3, 3) body -> odom."""
-    forward = rotations[:, :, 0]
-    heading = np.arctan2(forward[:, 1], forward[:, 0])
+    heading = headings(rotations)
     out: list[tuple[int, int]] = []
     start = 0
     n = len(t_s)
-    cos_turn = np.cos(np.radians(settings.max_turn_deg))
     for i in range(1, n + 1):
-        cut = i == n
-        if not cut:
-            step = np.linalg.norm(positions[i] - positions[i - 1])
-            turned = np.cos(heading[i] - heading[start]) < cos_turn
-            cut = bool(
-                turned or step > settings.max_step_m or t_s[i] - t_s[i - 1] > settings.max_gap_s
-            )
+        cut = i == n or ends_leg(
+            settings,
+            float(heading[i] - heading[start]),
+            float(np.linalg.norm(positions[i] - positions[i - 1])),
+            float(t_s[i] - t_s[i - 1]),
+        )
         if cut:
             if t_s[i - 1] - t_s[start] >= settings.min_leg_s:
                 out.append((start, i))
             start = i
     return out
+
+
+def headings(rotations: FloatArray) -> FloatArray:
+    """Heading (N,) rad of the body x axis in the odom frame, from east towards north;
+    ``rotations`` (N, 3, 3) body -> odom."""
+    return np.asarray(np.arctan2(rotations[:, 1, 0], rotations[:, 0, 0]))
+
+
+def ends_leg(settings: DetectorSettings, turned_rad: float, step_m: float, gap_s: float) -> bool:
+    """Whether a sample ends the straight leg: its heading ``turned_rad`` off the leg's first
+    one by more than ``max_turn_deg``, a step of ``step_m`` from the previous sample over
+    ``max_step_m`` or a gap ``gap_s`` over ``max_gap_s`` (:func:`legs`, and the target
+    node's live track)."""
+    return bool(
+        np.cos(turned_rad) < np.cos(np.radians(settings.max_turn_deg))
+        or step_m > settings.max_step_m
+        or gap_s > settings.max_gap_s
+    )
 
 
 def detect(
