@@ -109,6 +109,30 @@ def test_every_target_is_found_and_located_and_nothing_else(seed):
         assert np.all(fit.position_sigma > 0)
 
 
+PAIR = [-10000.0, 20000.0, -15000.0]
+
+
+@pytest.mark.parametrize('separation_m, ratio, seed', [(2.0, 1.0, 32), (5.0, 0.1, 33), (20.0, 1.0, 35)])
+def test_a_close_pair_is_resolved_into_two_targets_fitted_together(separation_m, ratio, seed):
+    """Two dipoles 2-20 m apart, 22 m under the lines, equal or 10:1 in moment: both found
+    (each error within 4 of its sigma, which the joint fit makes larger than alone), nothing
+    else, and each says it was fitted with the other."""
+    truth = [{'position_m': [10.0, 0.0, -47.0], 'moment_Am2': [15000.0, 5000.0, -8000.0]},
+             {'position_m': [10.0 + 0.8 * separation_m, 0.6 * separation_m, -47.0],
+              'moment_Am2': [ratio * m for m in PAIR]}]
+    survey, geometry = _survey(seed, truth)
+    targets, _ = locate(survey, geometry)
+    assert len(targets) == 2, [t.fit.position for t in targets]
+    assert sorted(t.fitted_with for t in targets) == [(0,), (1,)]
+    for dipole in truth:
+        fit = min(targets, key=lambda t: np.linalg.norm(t.fit.position - dipole['position_m'])).fit
+        error = fit.position - dipole['position_m']
+        assert np.linalg.norm(error) <= 0.3
+        assert np.all(np.abs(error) <= 4 * fit.position_sigma)
+        moment_error = fit.moment - np.array(dipole['moment_Am2'])
+        assert np.all(np.abs(moment_error) <= 4 * fit.moment_sigma)
+
+
 def test_a_target_free_survey_reports_no_target_and_no_detection():
     """At 0.1 false alarms per hour, 12 minutes of noise has a 2 % chance of one."""
     survey, geometry = _survey(13, [])

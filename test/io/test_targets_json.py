@@ -10,17 +10,17 @@ from tetra_gradiometer.errors import InputError
 from tetra_gradiometer.io.targets import TARGET_KEYS, dumps, read_targets, targets_document
 
 
-def _target(rng: np.random.Generator) -> Target:
+def _target(rng: np.random.Generator, fitted_with: tuple[int, ...] = ()) -> Target:
     a = rng.normal(size=(6, 6))
     fit = DipoleFit(rng.normal(size=3) * 50, rng.normal(size=3) * 1e4, a @ a.T, np.zeros((1, 3, 3)),
                     1.4e-10, 1.02, 0.01, 1234)
     detection = Detection(100, 200, 150, 40.0, 0, 1000)
-    return Target(fit, [detection], 110.0, 190.0, True)
+    return Target(fit, [detection], 110.0, 190.0, True, fitted_with)
 
 
 def test_targets_json_round_trips(tmp_path):
     rng = np.random.default_rng(3)
-    targets = [_target(rng) for _ in range(3)]
+    targets = [_target(rng, (1,)), _target(rng, (0,)), _target(rng)]
     document = targets_document(targets, tensor='compensated', t0_stamp_s=1.7e9, false_alarms_per_hour=0.1,
                                 detections=4, t0_s=100.0)
     (tmp_path / 'targets.json').write_text(dumps(document))
@@ -34,6 +34,7 @@ def test_targets_json_round_trips(tmp_path):
         assert entry['first_seen_s'] == 10.0 and entry['last_seen_s'] == 90.0
         assert entry['fit_rms_nT_per_m'] == pytest.approx(0.14)
         assert set(TARGET_KEYS) <= set(entry)
+        assert entry['fitted_with'] == list(target.fitted_with)
 
 
 @pytest.mark.parametrize('damage, message', [

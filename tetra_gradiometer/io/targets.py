@@ -5,7 +5,8 @@
     {"targets": [{"position_m": [x, y, z], "position_sigma_m": [sx, sy, sz],
                   "moment_Am2": [mx, my, mz], "moment_sigma_Am2": [...],
                   "first_seen_s": t0, "last_seen_s": t1, "fit_rms_nT_per_m": r,
-                  "chi2_reduced": c, "dipolar": true, "passes": k, "samples": n}, ...],
+                  "chi2_reduced": c, "dipolar": true, "passes": k, "samples": n,
+                  "fitted_with": [j, ...]}, ...],
      "frame": "odom", "tensor": "compensated", "t0_stamp_s": s,
      "false_alarms_per_hour": f, "detections": d}
 
@@ -14,6 +15,8 @@ covariance; ``first_seen_s`` / ``last_seen_s`` are seconds from the first tensor
 whose absolute header stamp (Unix seconds) is ``t0_stamp_s``. ``fit_rms_nT_per_m`` is the
 fit's RMS residual per tensor component; ``dipolar`` false flags a target a point dipole
 does not explain (a close pair, an extended object): its position is then only indicative.
+``fitted_with`` lists the (0-based) indices of the targets fitted jointly with this one
+(their tensors overlap along the track: a close pair or group, with correlated estimates).
 ``tensor`` says which tensor was searched (``compensated`` or ``raw``).
 """
 
@@ -59,6 +62,7 @@ def target_record(target: Target, t0_s: float = 0.0) -> dict[str, Any]:
         'dipolar': bool(target.dipolar),
         'passes': len(target.detections),
         'samples': int(fit.n_samples),
+        'fitted_with': [int(j) for j in target.fitted_with],
     }
 
 

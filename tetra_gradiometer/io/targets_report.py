@@ -82,8 +82,8 @@ def report_markdown(result: BagTargets) -> str:
             f'{len(search.targets)} targets.',
             '',
             '| # | position (m, odom) | sigma (m) | moment (A m^2) | sigma (A m^2) | seen (s) '
-            '| fit RMS (nT/m) | chi2 | dipolar |',
-            '|---|---|---|---|---|---|---|---|---|',
+            '| fit RMS (nT/m) | chi2 | dipolar | fitted with |',
+            '|---|---|---|---|---|---|---|---|---|---|',
         ]
         for i, target in enumerate(search.targets, 1):
             fit = target.fit
@@ -92,7 +92,8 @@ def report_markdown(result: BagTargets) -> str:
                 f'| {_vector(fit.moment, ".4g")} | {_vector(fit.moment_sigma, ".2g")} '
                 f'| {target.first_seen_s:.1f}-{target.last_seen_s:.1f} '
                 f'| {fit.rms * NT_PER_T:.3g} | {fit.chi2_reduced:.2f} '
-                f'| {"yes" if target.dipolar else "no"} |'
+                f'| {"yes" if target.dipolar else "no"} '
+                f'| {", ".join(f"#{j + 1}" for j in target.fitted_with) or "-"} |'
             )
         lines.append('')
     if any(result.input_counts.values()):

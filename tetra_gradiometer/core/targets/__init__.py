@@ -4,7 +4,7 @@ rate, dipole localization with uncertainties, and the survey pipeline joining th
 from ..geometry import to_body, to_world
 from .detection import Detection, DetectionResult, DetectorSettings, detect, legs
 from .forward import array_tensor, reference_points, sensor_points
-from .localization import DipoleFit, Pass, fit_dipole
+from .localization import DipoleFit, Pass, fit_dipole, fit_dipoles
 from .survey import LocatorSettings, Survey, Target, locate
 
 __all__ = [
@@ -19,6 +19,7 @@ __all__ = [
     'array_tensor',
     'detect',
     'fit_dipole',
+    'fit_dipoles',
     'legs',
     'locate',
     'reference_points',

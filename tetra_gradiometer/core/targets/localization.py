@@ -105,6 +105,21 @@ class _Problem:
             block[:, :, 5 * i : 5 * i + 5] = basis.T[None]
             blocks.append(block.reshape(-1, 5 * len(passes)))
         self.background_columns = np.concatenate(blocks)
+        self._background_basis = basis.T
+        self._columns: dict[bytes, FloatArray] = {}
+        self._data_demeaned = self._demeaned(self.data[:, None])[:, 0]
+
+    def _demeaned(self, columns: FloatArray) -> FloatArray:
+        """``columns`` (rows, c) less their mean per pass and component: the projection
+        off the background columns (the basis spans all five components, so a background
+        per pass is any constant five-vector)."""
+        out = []
+        start = 0
+        for p in self.passes:
+            block = columns[start : start + 5 * len(p.t_s)].reshape(len(p.t_s), 5, -1)
+            out.append((block - block.mean(axis=0)).reshape(5 * len(p.t_s), -1))
+            start += 5 * len(p.t_s)
+        return np.concatenate(out)
 
     def moment_columns(self, source: FloatArray) -> FloatArray:
         columns = []
@@ -114,19 +129,46 @@ class _Problem:
             columns.append((world * self.weights).reshape(3, -1).T)
         return np.concatenate(columns)
 
-    def design(self, source: FloatArray) -> FloatArray:
-        return np.hstack([self.moment_columns(source), self.background_columns])
+    def moments_design(self, sources: FloatArray) -> FloatArray:
+        """Whitened moment columns (rows, 3K) of each source (``sources`` (3K,) or (K, 3)
+        m), in order."""
+        positions = np.reshape(np.asarray(sources, float), (-1, 3))
+        per_source = []
+        for source in positions:
+            # A finite-difference Jacobian moves one source at a time: the others' columns
+            # are those of the last calls.
+            key = source.tobytes()
+            if key not in self._columns:
+                self._columns[key] = self.moment_columns(source)
+            per_source.append(self._columns[key])
+        while len(self._columns) > 4 * len(positions) + 4:
+            del self._columns[next(iter(self._columns))]
+        return np.hstack(per_source)
 
-    def solve(self, source: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Linear parameters and whitened residual at a trial source position."""
-        design = self.design(source)
-        # Columns scaled to unit norm: moment columns (per A m^2) and background columns
-        # (per T/m) differ by ~15 orders of magnitude, which lstsq's rcond would truncate.
-        scale = np.linalg.norm(design, axis=0)
+    def design(self, sources: FloatArray) -> FloatArray:
+        """Whitened columns: the moments of each source, then the backgrounds."""
+        return np.hstack([self.moments_design(sources), self.background_columns])
+
+    def solve(self, sources: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Linear parameters (moments, then backgrounds) and whitened residual at trial
+        source positions (3K,) m. The backgrounds are projected out first (variable
+        projection twice over): the solve is over the 3K moments only."""
+        moments = self.moments_design(sources)
+        demeaned = self._demeaned(moments)
+        # Columns scaled to unit norm (per A m^2 they are ~1e-10), which lstsq's rcond
+        # would otherwise truncate.
+        scale = np.linalg.norm(demeaned, axis=0)
         scale[scale == 0.0] = 1.0
-        scaled, *_ = np.linalg.lstsq(design / scale, self.data, rcond=None)
-        linear = scaled / scale
-        return linear, self.data - design @ linear
+        scaled, *_ = np.linalg.lstsq(demeaned / scale, self._data_demeaned, rcond=None)
+        moment = scaled / scale
+        residual = self._data_demeaned - demeaned @ moment
+        means = (self.data - moments @ moment) - residual  # per pass: its background
+        backgrounds = []
+        start = 0
+        for p in self.passes:
+            backgrounds.append(np.linalg.solve(self._background_basis, means[start : start + 5]))
+            start += 5 * len(p.t_s)
+        return np.concatenate([moment, *backgrounds]), residual
 
 
 def _fibonacci_sphere(n: int) -> FloatArray:
@@ -178,35 +220,62 @@ def fit_dipole(
     InputError
         Fewer samples than parameters.
     """
-    problem = _Problem(passes, geometry, sigma)
-    n_linear = 3 + 5 * len(passes)
-    if len(problem.data) <= n_linear + 3:
-        raise InputError(
-            f'a dipole fit needs more than {n_linear + 3} values, got {len(problem.data)}'
-        )
     if initial is None:
         initial = initial_position(passes, geometry, sigma, _strongest_point(passes, geometry))
+    return fit_dipoles(passes, geometry, sigma, [initial])[0]
+
+
+def fit_dipoles(
+    passes: list[Pass],
+    geometry: TetraGeometry,
+    sigma: FloatArray,
+    initials: list[FloatArray],
+) -> list[DipoleFit]:
+    """Fit K dipoles together (a cluster whose tensors overlap) to ``passes``, from the
+    start positions ``initials`` (K of (3,) m). Each fit carries its own block of the joint
+    covariance; the residual statistics (``rms``, ``chi2_reduced``, ``misfit_fraction``)
+    and the backgrounds are the cluster's.
+
+    Raises
+    ------
+    InputError
+        Fewer samples than parameters.
+    """
+    problem = _Problem(passes, geometry, sigma)
+    count = len(initials)
+    n_linear = 3 * count + 5 * len(passes)
+    if len(problem.data) <= n_linear + 3 * count:
+        raise InputError(
+            f'a fit of {count} dipole(s) needs more than {n_linear + 3 * count} values, '
+            f'got {len(problem.data)}'
+        )
     solution = optimize.least_squares(
-        lambda s: problem.solve(s)[1], initial, x_scale='jac', method='lm'
+        lambda s: problem.solve(s)[1], np.concatenate(initials), x_scale='jac', method='lm'
     )
-    source = solution.x
-    linear, residual = problem.solve(source)
-    covariance = _covariance(problem, source, linear, len(residual))
-    signal = problem.data - problem.background_columns @ linear[3:]
-    dof = max(len(residual) - (n_linear + 3), 1)
+    sources = solution.x.reshape(count, 3)
+    linear, residual = problem.solve(sources)
+    covariance = _covariance(problem, sources, linear, len(residual))
+    signal = problem.data - problem.background_columns @ linear[3 * count :]
+    dof = max(len(residual) - (n_linear + 3 * count), 1)
     chi2 = float(residual @ residual) / dof
     unwhitened = (residual.reshape(-1, 5) / problem.weights).ravel()
-    backgrounds = np.einsum('pb,bij->pij', linear[3:].reshape(-1, 5), REGIONAL_BASIS)
-    return DipoleFit(
-        source,
-        linear[:3],
-        covariance,
-        backgrounds,
-        float(np.sqrt(np.mean(unwhitened**2))),
-        chi2,
-        float(np.sqrt(float(residual @ residual) / max(float(signal @ signal), 1e-300))),
-        int(sum(len(p.t_s) for p in passes)),
-    )
+    backgrounds = np.einsum('pb,bij->pij', linear[3 * count :].reshape(-1, 5), REGIONAL_BASIS)
+    rms = float(np.sqrt(np.mean(unwhitened**2)))
+    misfit = float(np.sqrt(float(residual @ residual) / max(float(signal @ signal), 1e-300)))
+    n_samples = int(sum(len(p.t_s) for p in passes))
+    return [
+        DipoleFit(
+            sources[k],
+            linear[3 * k : 3 * k + 3],
+            covariance[k],
+            backgrounds,
+            rms,
+            chi2,
+            misfit,
+            n_samples,
+        )
+        for k in range(count)
+    ]
 
 
 def _strongest_point(passes: list[Pass], geometry: TetraGeometry) -> FloatArray:
@@ -221,21 +290,25 @@ def _strongest_point(passes: list[Pass], geometry: TetraGeometry) -> FloatArray:
     return best
 
 
-def _covariance(problem: _Problem, source: FloatArray, linear: FloatArray, n: int) -> FloatArray:
-    """Covariance (6, 6) of position and moment: ``s^2 (J^T J)^-1`` over all parameters."""
-    step = 1e-4 * max(
-        1.0, float(np.min([np.min(np.linalg.norm(p - source, axis=2)) for p in problem.points]))
-    )
-    design = problem.design(source)
+def _covariance(
+    problem: _Problem, sources: FloatArray, linear: FloatArray, n: int
+) -> list[FloatArray]:
+    """Per source, the covariance (6, 6) of its position and moment: the blocks of
+    ``s^2 (J^T J)^-1`` over all parameters (positions, moments, backgrounds)."""
+    count = len(sources)
+    closest = min(np.min(np.linalg.norm(p[:, :, None] - sources, axis=3)) for p in problem.points)
+    step = 1e-4 * max(1.0, float(closest))
+    design = problem.design(sources)
     model = design @ linear
     position_columns = []
-    for k in range(3):
-        shifted = source.copy()
+    for k in range(3 * count):
+        shifted = sources.ravel().copy()
         shifted[k] += step
-        back = source.copy()
+        back = sources.ravel().copy()
         back[k] -= step
+        moments = linear[: 3 * count]  # the backgrounds do not move with a source
         position_columns.append(
-            (problem.design(shifted) @ linear - problem.design(back) @ linear) / (2 * step)
+            (problem.moments_design(shifted) - problem.moments_design(back)) @ moments / (2 * step)
         )
     jacobian = np.column_stack([*position_columns, design])
     residual = problem.data - model
@@ -245,4 +318,8 @@ def _covariance(problem: _Problem, source: FloatArray, linear: FloatArray, n: in
     norms[norms == 0.0] = 1.0
     normalized = jacobian / norms
     full = scale * np.linalg.pinv(normalized.T @ normalized) / np.outer(norms, norms)
-    return full[:6, :6]
+    out = []
+    for k in range(count):
+        index = np.r_[3 * k : 3 * k + 3, 3 * count + 3 * k : 3 * count + 3 * k + 3]
+        out.append(full[np.ix_(index, index)])
+    return out

@@ -23,12 +23,17 @@ from ..geometry import TetraGeometry, to_world
 from ..types import FloatArray
 from .detection import Detection, DetectionResult, DetectorSettings, detect
 from .forward import array_tensor, symmetric_components
-from .localization import DipoleFit, Pass, fit_dipole
+from .localization import DipoleFit, Pass, fit_dipole, fit_dipoles
 
-#: Refits of every target after the last one is found (each moves the footprints).
+#: Refits of every target after the last one is found (each moves the footprints), on
+#: thinned passes; then one fit on every sample, alone or jointly with its cluster.
 FINAL_SWEEPS = 2
 #: While targets are being found, their fits take at most this many samples per pass.
 SWEEP_SAMPLES = 300
+#: Clusters of at most this many targets are fitted jointly (a larger one keeps its sweeps).
+MAX_CLUSTER = 6
+#: Targets whose predicted tensors correlate beyond this are fitted jointly.
+COUPLING = 0.1
 
 
 @dataclass(frozen=True)
@@ -55,13 +60,16 @@ class LocatorSettings:
 class Target:
     """A located target: its joint ``fit`` and the ``detections`` it was seen in, with
     ``first_seen_s`` and ``last_seen_s`` (the track's times of its first and last
-    detection sample) and whether it is ``dipolar``."""
+    detection sample), whether it is ``dipolar``, and ``fitted_with``: the indices (in
+    :func:`locate`'s list) of the targets fitted jointly with it (their tensors overlap:
+    a close pair or group; their estimates are correlated)."""
 
     fit: DipoleFit
     detections: list[Detection]
     first_seen_s: float
     last_seen_s: float
     dipolar: bool
+    fitted_with: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -126,34 +134,58 @@ def locate(
         detection = max(fresh, key=lambda d: d.peak_statistic)
         rejected.append((detection.start, detection.stop))  # fitted or refused: not again
         window = fit_window(detection, settings.widen)
-        fit = fit_dipole([catalogue.cleaned(window, -1)], geometry, sigma)
+        fit = fit_dipole([catalogue.cleaned(window, ())], geometry, sigma)
         if not significant(fit, settings.significance):
             continue
         k = catalogue.add(fit, detection)
         catalogue.sweep(sigma, [k], thin=True)  # its footprint, then who shares it
         catalogue.sweep(sigma, catalogue.neighbours(k), thin=True)
-        residual = survey.tensors - catalogue.predicted(-1)
+        residual = survey.tensors - catalogue.predicted(())
         found = detect(survey.t_s, residual, survey.positions, survey.rotations, settings.detector)
         sigma = found.sigma  # with the targets out, more of the survey is quiet
     for _ in range(FINAL_SWEEPS):
-        catalogue.sweep(sigma)
-    fits, passes = catalogue.fits, catalogue.passes
+        catalogue.sweep(sigma, thin=True)
+    for cluster in catalogue.clusters(sigma):  # the last fits take every sample
+        if 2 <= len(cluster) <= MAX_CLUSTER:
+            catalogue.resolve(cluster, sigma)
+        else:
+            catalogue.sweep(sigma, cluster)
+    catalogue.drop_empty()
+    return _targets(catalogue, settings), first
+
+
+def _targets(catalogue: _Catalogue, settings: LocatorSettings) -> list[Target]:
+    """The catalogue's targets in the order they were first seen."""
+    t_s = catalogue.survey.t_s
+    order = sorted(
+        range(len(catalogue.fits)),
+        key=lambda k: min(t_s[d.start] for d in catalogue.passes[k]),
+    )
+    rank = {k: i for i, k in enumerate(order)}
     targets = []
-    for fit, detections in zip(fits, passes, strict=True):
+    for k in order:
+        fit, detections = catalogue.fits[k], catalogue.passes[k]
         dipolar = (
             fit.misfit_fraction <= settings.max_misfit or fit.chi2_reduced <= settings.max_chi2
         )
+        group = catalogue.groups[k]
         targets.append(
             Target(
                 fit,
                 detections,
-                float(min(survey.t_s[d.start] for d in detections)),
-                float(max(survey.t_s[d.stop - 1] for d in detections)),
+                float(min(t_s[d.start] for d in detections)),
+                float(max(t_s[d.stop - 1] for d in detections)),
                 bool(dipolar),
+                tuple(
+                    sorted(
+                        rank[j]
+                        for j, other in enumerate(catalogue.groups)
+                        if j != k and group >= 0 and other == group
+                    )
+                ),
             )
         )
-    targets.sort(key=lambda target: target.first_seen_s)
-    return targets, first
+    return targets
 
 
 class _Catalogue:
@@ -170,6 +202,8 @@ class _Catalogue:
         self.fits: list[DipoleFit] = []
         self.passes: list[list[Detection]] = []
         self.footprints: list[list[tuple[int, int]]] = []
+        #: The joint fit each target is in (-1: fitted alone).
+        self.groups: list[int] = []
 
     def add(self, fit: DipoleFit, detection: Detection) -> int:
         """A new target, or a new pass of the known target ``fit`` puts it at: its index."""
@@ -178,6 +212,7 @@ class _Catalogue:
             self.fits.append(fit)
             self.passes.append([])
             self.footprints.append([])
+            self.groups.append(-1)
             k = len(self.fits) - 1
         self.passes[k].append(detection)
         self.footprints[k].append(fit_window(detection, self.settings.widen))
@@ -203,27 +238,140 @@ class _Catalogue:
             self.footprints[k] = footprint(
                 self.survey, self.geometry, fit, sigma, self.legs, self.settings.footprint_sigmas
             ) or [fit_window(d, self.settings.widen) for d in self.passes[k]]
-            pieces = [self.cleaned(window, k) for window in self.footprints[k]]
+            pieces = [self.cleaned(window, (k,)) for window in self.footprints[k]]
             if thin:
                 pieces = [piece.thinned(SWEEP_SAMPLES) for piece in pieces]
             self.fits[k] = fit_dipole(pieces, self.geometry, sigma, fit.position)
 
-    def predicted(self, own: int) -> FloatArray:
-        """The tensors (N, 3, 3) T/m of every target but ``own`` along the survey."""
+    def clusters(self, sigma: FloatArray) -> list[list[int]]:
+        """The targets grouped by coupling (connected components): two targets are coupled
+        when the correlation of their predicted whitened tensors, demeaned per window as the
+        backgrounds demean them, exceeds :data:`COUPLING` where their footprints share
+        samples (then fitting each with the other taken out converges slowly, or a ghost
+        of one's misfit sits beside it)."""
+        signals = [
+            [self._signal(k, window, sigma) for window in self.footprints[k]]
+            for k in range(len(self.fits))
+        ]
+        energy = [sum(float(np.sum(w**2)) for w in windows) for windows in signals]
+        unseen = set(range(len(self.fits)))
+        out = []
+        while unseen:
+            stack, cluster = [min(unseen)], []
+            unseen.discard(stack[0])
+            while stack:
+                k = stack.pop()
+                cluster.append(k)
+                for j in self.neighbours(k):
+                    if j in unseen and self._coupling(j, k, sigma, energy) > COUPLING:
+                        unseen.discard(j)
+                        stack.append(j)
+            out.append(sorted(cluster))
+        return out
+
+    def _signal(self, k: int, window: tuple[int, int], sigma: FloatArray) -> FloatArray:
+        """Target ``k``'s whitened five components (n, 5) over ``window``, demeaned."""
+        piece = self.survey.piece(*window)
+        fit = self.fits[k]
+        tensors = array_tensor(
+            piece.positions, piece.rotations, self.geometry, fit.position, fit.moment
+        )
+        whitened = symmetric_components(to_world(tensors, piece.rotations)) / sigma
+        out: FloatArray = whitened - whitened.mean(axis=0)
+        return out
+
+    def _coupling(self, j: int, k: int, sigma: FloatArray, energy: list[float]) -> float:
+        """|<s_j, s_k>| / (|s_j| |s_k|) over the samples both footprints hold."""
+        cross = 0.0
+        for a, b in self.footprints[j]:
+            for c, d in self.footprints[k]:
+                if max(a, c) < min(b, d):
+                    shared = (max(a, c), min(b, d))
+                    cross += float(
+                        np.sum(self._signal(j, shared, sigma) * self._signal(k, shared, sigma))
+                    )
+        return abs(cross) / max(np.sqrt(energy[j] * energy[k]), 1e-300)
+
+    def resolve(self, cluster: list[int], sigma: FloatArray) -> None:
+        """The targets of ``cluster`` fitted jointly on their footprints (a pair's tensors
+        overlap, and fitting each with the other taken out converges slowly and leaves
+        ghosts of the misfit); then, while a member is one the joint fit does not need (an
+        F-test of the 6 parameters it adds at ``significance``), the least needed one is
+        dropped and its detections go to the nearest remaining member."""
+        windows = _merged([w for k in cluster for w in self.footprints[k]])
+        pieces = [self.cleaned(window, tuple(cluster)) for window in windows]
+        members = list(cluster)
+        # The pruning works on thinned passes (each trial is a joint fit); the members kept
+        # are fitted on every sample last.
+        full, pieces = pieces, [piece.thinned(SWEEP_SAMPLES) for piece in pieces]
+        fits = fit_dipoles(pieces, self.geometry, sigma, [self.fits[k].position for k in members])
+        while len(members) > 1:
+            rss, dof = _rss(fits[0], len(members), len(pieces))
+            j = min(range(len(members)), key=lambda i: _moment_chi2(fits[i]))  # the weakest
+            rest = [f.position for i, f in enumerate(fits) if i != j]
+            fewer = fit_dipoles(pieces, self.geometry, sigma, rest)
+            gain = (_rss(fewer[0], len(rest), len(pieces))[0] - rss) / 6 / (rss / dof)
+            if gain >= stats.f.isf(self.settings.significance, 6, dof):
+                break
+            dropped = members.pop(j)
+            fits = fewer
+            where = self.fits[dropped].position
+            heir = min(range(len(members)), key=lambda i: _distance(fits[i], where))
+            self.passes[members[heir]] += self.passes[dropped]
+            self.passes[dropped] = []
+        fits = fit_dipoles(full, self.geometry, sigma, [f.position for f in fits])
+        for k, fit in zip(members, fits, strict=True):
+            self.fits[k] = fit
+            self.groups[k] = members[0] if len(members) > 1 else -1
+
+    def drop_empty(self) -> None:
+        """Forget the targets :meth:`resolve` dropped (no detections left)."""
+        keep = [k for k, detections in enumerate(self.passes) if detections]
+        self.fits = [self.fits[k] for k in keep]
+        self.passes = [self.passes[k] for k in keep]
+        self.footprints = [self.footprints[k] for k in keep]
+        self.groups = [self.groups[k] for k in keep]
+
+    def predicted(self, own: tuple[int, ...]) -> FloatArray:
+        """The tensors (N, 3, 3) T/m of every target not in ``own`` along the survey."""
         return self._tensors(self.survey.positions, self.survey.rotations, own)
 
-    def cleaned(self, window: tuple[int, int], own: int) -> Pass:
-        """The samples of ``window`` minus the tensors of every target but ``own``."""
+    def cleaned(self, window: tuple[int, int], own: tuple[int, ...]) -> Pass:
+        """The samples of ``window`` minus the tensors of every target not in ``own``."""
         piece = self.survey.piece(*window)
         others = self._tensors(piece.positions, piece.rotations, own)
         return Pass(piece.positions, piece.rotations, piece.tensors - others, piece.t_s)
 
-    def _tensors(self, positions: FloatArray, rotations: FloatArray, own: int) -> FloatArray:
+    def _tensors(
+        self, positions: FloatArray, rotations: FloatArray, own: tuple[int, ...]
+    ) -> FloatArray:
         out = np.zeros((len(positions), 3, 3))
         for k, fit in enumerate(self.fits):
-            if k != own:
+            if k not in own and self.passes[k]:
                 out += array_tensor(positions, rotations, self.geometry, fit.position, fit.moment)
         return out
+
+
+def _merged(windows: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Windows (start, stop) with the overlapping ones joined."""
+    out: list[tuple[int, int]] = []
+    for start, stop in sorted(windows):
+        if out and start < out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], stop))
+        else:
+            out.append((start, stop))
+    return out
+
+
+def _distance(fit: DipoleFit, position: FloatArray) -> float:
+    return float(np.linalg.norm(fit.position - position))
+
+
+def _rss(fit: DipoleFit, count: int, n_passes: int) -> tuple[float, float]:
+    """Whitened residual sum of squares of a (joint) fit of ``count`` dipoles, and its
+    degrees of freedom."""
+    dof = max(5 * fit.n_samples - 6 * count - 5 * n_passes, 1)
+    return fit.chi2_reduced * dof, float(dof)
 
 
 def footprint(
@@ -270,9 +418,12 @@ def significant(fit: DipoleFit, probability: float) -> bool:
     """Whether the moment differs from zero at false-alarm ``probability`` (chi-square test
     of ``m^T C_m^-1 m`` with 3 degrees of freedom): a detection that a background alone
     explains (a blip of noise, a leg's end) is no target."""
-    covariance = fit.covariance[3:6, 3:6]
+    return _moment_chi2(fit) > stats.chi2.isf(probability, 3)
+
+
+def _moment_chi2(fit: DipoleFit) -> float:
+    """``m^T C_m^-1 m`` of a fit's moment (0 when its covariance is singular)."""
     try:
-        value = float(fit.moment @ np.linalg.solve(covariance, fit.moment))
+        return float(fit.moment @ np.linalg.solve(fit.covariance[3:6, 3:6], fit.moment))
     except np.linalg.LinAlgError:
-        return False
-    return value > stats.chi2.isf(probability, 3)
+        return 0.0
