@@ -111,6 +111,12 @@ class Report:
     data: dict[str, Any]
     runtime_s: float
     excluded_spans: list[dict[str, Any]] = field(default_factory=list)
+    #: Share (0-1) of the analysed samples left out of the fits and the gap.
+    excluded_fraction: float = 0.0
+    #: One entry per named effect: effect, sensors (1-based), confounded_with, evidence, and
+    #: t_s (steps) or frequency_hz (periodic terms).
+    findings: list[dict[str, Any]] = field(default_factory=list)
+    settings: Settings = field(default_factory=Settings)
     series: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -130,7 +136,9 @@ class Report:
             'base_parameters': self.base_parameters,
             'data': self.data,
             'excluded_spans': list(self.excluded_spans),
-            'criterion': criterion_text(),
+            'excluded_fraction': self.excluded_fraction,
+            'findings': list(self.findings),
+            'criterion': criterion_text(self.settings),
             'library': {c.name: c.physics for c in CANDIDATES},
             'runtime_s': self.runtime_s,
         }

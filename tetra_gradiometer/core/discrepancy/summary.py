@@ -140,6 +140,12 @@ def _closing_notes(search: SearchResult, info: RunInfo, adequate: bool) -> list[
     return notes
 
 
+def _excluded_fraction(prep: Prepared, info: RunInfo) -> float:
+    """The excluded samples' share of the analysed ones (kept + excluded)."""
+    excluded = sum(int(e['samples']) for e in info.targets.spans)
+    return float(excluded / max(excluded + len(prep.t), 1))
+
+
 def _series(prep: Prepared, search: SearchResult, fields: list[Array]) -> dict[str, Any]:
     """The arrays of the plots."""
     return {
@@ -193,5 +199,7 @@ def build_report(
         data=_data(search, info),
         runtime_s=runtime_s,
         excluded_spans=info.targets.spans,
+        excluded_fraction=_excluded_fraction(prep, info),
+        settings=info.settings,
         series=_series(prep, search, fields) if keep_series else {},
     )
