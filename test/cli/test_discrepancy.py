@@ -168,3 +168,29 @@ def test_noise_free_magnetometers_only_bag_still_gets_its_report(tmp_path, capsy
     assert report['data']['sets_dropped_non_finite'] == 1
     assert report['noise_floor_nT'] == 0.0
     assert 'ratio undefined: zero noise floor' in (out / 'report.md').read_text()
+
+
+def test_a_figure_that_raises_does_not_cost_the_report(tmp_path, capsys, monkeypatch):
+    """Drawing one figure raises (a plotting bug): report.json and report.md are written,
+    report.md names the figure, stderr has the warning and the traceback, exit status 0."""
+
+    def broken(report, path):
+        raise RuntimeError('plotting bug')
+
+    monkeypatch.setattr('tetra_gradiometer.io.report._plot_diagnostics', broken)
+    case, bag, params = _bag(tmp_path, 21, ('time_skew',))
+    out = tmp_path / 'out'
+    assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(out)]) == 0
+    report = json.loads((out / 'report.json').read_text())
+    assert report['named_effects'] == ['time_skew']
+    text = (out / 'report.md').read_text()
+    assert '## Figures not drawn' in text
+    assert '`diagnostics.png` (residual against the drivers): RuntimeError: plotting bug' in text
+    assert (out / 'gap.png').exists() and not (out / 'diagnostics.png').exists()
+    captured = capsys.readouterr()
+    assert (
+        'warning: figure diagnostics.png (residual against the drivers) not drawn: '
+        'RuntimeError: plotting bug\n' in captured.err
+    )
+    assert 'Traceback (most recent call last)' in captured.err
+    assert 'named effects: time_skew;' in captured.out

@@ -14,7 +14,7 @@ from ..core.discrepancy import CANDIDATES, LIBRARY, Settings
 from ..io.bag_discrepancy import analyze_bag
 from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
-from ..io.report import channel_warnings, write_report
+from ..io.report import channel_warnings, percent_text, write_report
 from ._args import add_bag_arguments, finite_float, int_range, timebase_from_args, window_arg
 
 #: ``--folds``: at least 2 (one to fit, one to test); the run is cut into ~40 blocks, so more
@@ -137,10 +137,13 @@ def run(args: argparse.Namespace) -> int:
     for warning in channel_warnings(report):
         print(f'not tested: {warning}')
     named = ', '.join(report.named_effects) or 'none'
+    excluded = ''
+    if report.excluded_fraction > 0:
+        excluded = f'excluded {percent_text(report.excluded_fraction)} % of the samples; '
     print(
         f'named effects: {named}; held-out gap {report.gap_initial_nT:.4g} -> '
         f'{report.gap_final_nT:.4g} nT, noise floor {report.noise_floor_nT:.4g} nT; '
-        f'adequate: {"yes" if report.adequate else "no"}; '
+        f'adequate: {"yes" if report.adequate else "no"}; {excluded}'
         f'{time.perf_counter() - started:.1f} s; report in {out}'
     )
     return 0

@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable
+import sys
+import traceback
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -48,10 +52,7 @@ def _blamed_channel(requires: tuple[str, ...], recorded: dict[str, bool]) -> str
     current (missing, or recorded without variation)."""
     if 'odom' in requires and not recorded['odom']:
         return 'odom'
-    for key in ('temperature', 'current'):
-        if key in requires:
-            return key
-    return None
+    return next((key for key in ('temperature', 'current') if key in requires), None)
 
 
 def channel_notes(report: Report) -> dict[str, dict[str, Any]]:
@@ -84,12 +85,9 @@ def channel_notes(report: Report) -> dict[str, dict[str, Any]]:
             note = f'{topic} recorded: {", ".join(needed_by)} testable'
         if key == 'odom' and not recorded[key]:
             note += "; residuals are pair differences against sensor 1 (B_i' - B_1')"
-        out[topic] = {
-            'recorded': recorded[key],
-            'needed_by': needed_by,
-            'untested': untested,
-            'note': note,
-        }
+        out[topic] = dict(
+            recorded=recorded[key], needed_by=needed_by, untested=untested, note=note
+        )
     return out
 
 
@@ -115,10 +113,6 @@ def _figure(figsize: tuple[float, float]) -> Figure:
     return Figure(figsize=figsize)
 
 
-def _save(fig: Figure, path: Path) -> None:
-    fig.savefig(path, format='png', dpi=90)
-
-
 def _thin(n: int) -> slice:
     return slice(None, None, max(1, int(np.ceil(n / _MAX_POINTS))))
 
@@ -131,6 +125,8 @@ def _plot_residuals(
     title: str,
     spans: list[dict[str, Any]],
 ) -> None:
+    """Panels of (N, 4, 3) fields in nT against time t (s), one row per sensor; ``spans``
+    (excluded, s) in grey."""
     fig = _figure((5.5 * len(panels), 1.9 * len(sensors) + 0.8))
     axes = fig.subplots(len(sensors), len(panels), sharex=True, squeeze=False)
     k = _thin(len(t))
@@ -150,48 +146,56 @@ def _plot_residuals(
     axes[0, 0].legend(fontsize=6, loc='upper right')
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    _save(fig, path)
+    fig.savefig(path, format='png', dpi=90)
 
 
-def _plot_gap(path: Path, report: Report) -> None:
+def _units_text(units: list[str]) -> list[str]:
+    """Round-record units (``family@sensor_2``) grouped per family: ``family (2, 3)``."""
+    groups: dict[str, list[str]] = {}
+    for unit in units:
+        family, _, where = unit.partition('@')
+        where = where.replace('all_sensors', 'all').replace('sensor_', '')
+        groups.setdefault(family, []).append(where)
+    return [f'{f} ({", ".join(w)})' if all(w) else f for f, w in groups.items()]
+
+
+def round_labels(report: Report, n: int) -> list[str]:
+    """``n`` tick labels, one per round (``Report.series['gaps']``, base model first): the
+    model's change from the round before (``base``, ``+ family (sensors)`` added, ``- family
+    (sensors)`` taken out by a revision). Built from ``Report.rounds`` (one per gap), not
+    from the steps: a step revised later is renamed, merged or dropped."""
+    labels: list[str] = []
+    before: list[str] = []
+    for i in range(n):
+        record = report.rounds[i] if i < len(report.rounds) else {'model': before}
+        model = [str(u) for u in record.get('model', [])]
+        parts = [f'+ {u}' for u in _units_text([u for u in model if u not in before])]
+        parts += [f'- {u}' for u in _units_text([u for u in before if u not in model])]
+        labels.append('\n'.join(parts) or ('base' if i == 0 else f'round {i + 1}'))
+        before = model
+    return labels
+
+
+def _plot_gap(report: Report, path: Path) -> None:
+    """Bars of the held-out gap (nT, RMS) per round against the noise floor (nT)."""
     gaps = report.series['gaps']
     floors = report.series['floors']
-    labels = ['base'] + [f'+ {s.effect}' for s in report.steps]
-    fig = _figure((1.6 + 1.3 * len(gaps), 3.2))
+    fig = _figure((1.6 + 1.3 * len(gaps), 3.4))
     ax = fig.subplots()
     x = np.arange(len(gaps))
     ax.bar(x, gaps, color='tab:blue', label='held-out gap')
     ax.plot(x, floors, 'k--', marker='o', label='noise floor')
     ax.set_yscale('log')
-    ax.set_xticks(x, labels, fontsize=7, rotation=15)
+    ax.set_xticks(x, round_labels(report, len(gaps)), fontsize=7, rotation=15)
     ax.set_ylabel('RMS, nT')
-    ax.set_title('Held-out gap (measured - simulated) per step', fontsize=9)
+    ax.set_title('Held-out gap (measured - simulated) per round', fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    _save(fig, path)
+    fig.savefig(path, format='png', dpi=90)
 
 
-def _plot_effect(path: Path, t: Array, sensors: tuple[int, ...], name: str, field: Array) -> None:
-    fig = _figure((7, 1.7 * len(sensors) + 0.8))
-    axes = fig.subplots(len(sensors), 1, sharex=True, squeeze=False)
-    k = _thin(len(t))
-    for row, s in enumerate(sensors):
-        ax = axes[row, 0]
-        for a in range(3):
-            ax.plot(t[k], field[k, s, a], lw=0.7, label=_AXES[a])
-        ax.set_title(
-            f'sensor {s + 1}: RMS {np.sqrt(np.mean(field[:, s] ** 2)):.3g} nT', fontsize=8
-        )
-        ax.set_ylabel('nT', fontsize=7)
-        ax.tick_params(labelsize=7)
-    axes[0, 0].legend(fontsize=6, loc='upper right')
-    axes[-1, 0].set_xlabel('time, s', fontsize=7)
-    fig.suptitle(f'Field attributed to {name} (final fit)', fontsize=9)
-    fig.tight_layout()
-    _save(fig, path)
-
-
-def _plot_diagnostics(path: Path, report: Report) -> None:
+def _plot_diagnostics(report: Report, path: Path) -> None:
+    """The base-model residual (nT) against field rate, attitude, temperature, current."""
     series = report.series
     residual = series['residuals'][0]
     sensors = series['sensors']
@@ -199,15 +203,11 @@ def _plot_diagnostics(path: Path, report: Report) -> None:
         ('|dB^b/dt|, nT/s', np.linalg.norm(series['b_rate'], axis=1))
     ]
     if series['attitude'] is not None:
-        drivers += [
-            ('heading, deg', series['attitude'][:, 0]),
-            ('pitch, deg', series['attitude'][:, 1]),
-            ('roll, deg', series['attitude'][:, 2]),
-        ]
-    if series['temperature_c'] is not None:
-        drivers.append(('temperature, degC', series['temperature_c']))
-    if series['current_a'] is not None:
-        drivers.append(('current, A', series['current_a']))
+        angles = ('heading', 'pitch', 'roll')
+        drivers += [(f'{a}, deg', series['attitude'][:, j]) for j, a in enumerate(angles)]
+    for label, key in (('temperature, degC', 'temperature_c'), ('current, A', 'current_a')):
+        if series[key] is not None:
+            drivers.append((label, series[key]))
     k = _thin(len(series['t']))
     fig = _figure((2.3 * len(drivers) + 0.5, 1.8 * len(sensors) + 0.8))
     axes = fig.subplots(len(sensors), len(drivers), squeeze=False)
@@ -221,13 +221,9 @@ def _plot_diagnostics(path: Path, report: Report) -> None:
                 ax.set_xlabel(label, fontsize=7)
             if col == 0:
                 ax.set_ylabel(f'sensor {s + 1}, nT', fontsize=7)
-    fig.suptitle(
-        'Base-model residual (measured - simulated) against attitude, field rate, '
-        'temperature, current',
-        fontsize=9,
-    )
+    fig.suptitle('Base-model residual (measured - simulated) against the drivers', fontsize=9)
     fig.tight_layout()
-    _save(fig, path)
+    fig.savefig(path, format='png', dpi=90)
 
 
 def _fmt_params(parameters: dict[str, Any]) -> str:
@@ -238,10 +234,15 @@ def _fmt_params(parameters: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
-def report_markdown(report: Report, figures: dict[str, str]) -> str:
-    """The text of ``report.md`` (``figures``: key -> file name)."""
+def report_markdown(
+    report: Report, figures: dict[str, str], failures: Iterable[FigureFailure] = ()
+) -> str:
+    """The text of ``report.md`` (``figures``: key -> file name of the figures drawn;
+    ``failures``: those that raised)."""
     lines = (
         _summary_section(report)
+        + _failures_section(list(failures))
+        + _findings_section(report)
         + _excluded_section(report)
         + _method_section(figures)
         + _steps_section(report, figures)
@@ -250,6 +251,44 @@ def report_markdown(report: Report, figures: dict[str, str]) -> str:
         + _disagreement_section(report, figures)
     )
     return '\n'.join(lines) + '\n'
+
+
+def percent_text(fraction: float) -> str:
+    """A share (0-1) in percent, without rounding a small nonzero share to 0."""
+    p = 100.0 * fraction
+    return f'{p:.2g}' if 0 < p < 0.1 else f'{p:.1f}'
+
+
+def _failures_section(failures: list[FigureFailure]) -> list[str]:
+    if not failures:
+        return []
+    lines = ['', '## Figures not drawn', '']
+    lines += [f'- `{f.figure}` ({f.what}): {f.error}' for f in failures]
+    return lines + ['', 'The rest of the report is complete; the tracebacks went to stderr.']
+
+
+def _cell(value: Any) -> str:
+    """A value for a markdown table cell (lists joined, numbers to 6 digits)."""
+    if isinstance(value, list | tuple):
+        return ', '.join(_cell(v) for v in value) or '-'
+    if isinstance(value, float | np.floating):
+        return f'{value:.6g}'
+    text = '' if value is None else ' '.join(str(value).split())
+    return text.replace('|', '\\|') or '-'
+
+
+def _findings_section(report: Report) -> list[str]:
+    """The table of findings: effect, sensors, when (s) or frequency (Hz), confounders."""
+    if not report.findings:
+        return []
+    head = '| effect | sensors | time, s / frequency, Hz | confounded with | evidence |'
+    lines = ['', '## Findings', '', head, '|---|---|---|---|---|']
+    for f in report.findings:
+        t_s, hz = f.get('t_s'), f.get('frequency_hz')
+        when = f'{_cell(t_s)} s' if t_s is not None else '-' if hz is None else f'{_cell(hz)} Hz'
+        cells = [f.get('effect'), f.get('sensors') or 'all', when, f.get('confounded_with')]
+        lines.append('| ' + ' | '.join(map(_cell, cells + [f.get('evidence')])) + ' |')
+    return lines
 
 
 def _ratio(value: float, floor: float) -> str:
@@ -269,11 +308,9 @@ def _summary_section(report: Report) -> list[str]:
             if report.adequate
             else 'No effect from the library explains the remaining gap.'
         )
-    view = (
-        'every sensor against R^T E'
-        if report.view == 'absolute'
-        else 'pair differences against sensor 1'
-    )
+    view = 'pair differences against sensor 1'
+    if report.view == 'absolute':
+        view = 'every sensor against R^T E'
     lines += [
         '',
         f'Held-out gap (RMS of measured - simulated over all sensors and axes): '
@@ -281,7 +318,8 @@ def _summary_section(report: Report) -> list[str]:
         f'**{report.gap_final_nT:.4g} nT** at the end; '
         f'noise floor {report.noise_floor_nT:.4g} nT '
         f'(ratio {_ratio(report.gap_final_nT, report.noise_floor_nT)}). '
-        f'Adequate: **{"yes" if report.adequate else "no"}**.',
+        f'Adequate: **{"yes" if report.adequate else "no"}**. Excluded from the fits and '
+        f'the gap: {percent_text(report.excluded_fraction)} % of the analysed samples.',
         '',
         f'- Base model: {report.base_model}',
         f'- Residual view: {report.view} ({view})',
@@ -315,6 +353,7 @@ def _excluded_section(report: Report) -> list[str]:
         'common, nT | attitude change, deg |',
         '|---|---|---|---|---|---|---|---|',
     ]
+    reasons = ['']
     for e in report.excluded_spans:
         common = '-' if e['peak_common_rms_nT'] is None else f'{e["peak_common_rms_nT"]:.3g}'
         turn = '-' if e['attitude_change_deg'] is None else f'{e["attitude_change_deg"]:.1f}'
@@ -323,14 +362,8 @@ def _excluded_section(report: Report) -> list[str]:
             f'{e["peak_residual_rms_nT"]:.3g} | {e["peak_over_noise"]:.0f} | '
             f'{e["peak_difference_rms_nT"]:.3g} | {common} | {turn} |'
         )
-    return (
-        lines
-        + ['']
-        + [
-            f'- {e["start_s"]:.1f}-{e["end_s"]:.1f} s: {e["reason"]}'
-            for e in report.excluded_spans
-        ]
-    )
+        reasons.append(f'- {e["start_s"]:.1f}-{e["end_s"]:.1f} s: {e["reason"]}')
+    return lines + reasons
 
 
 def _method_section(figures: dict[str, str]) -> list[str]:
@@ -351,7 +384,7 @@ def _method_section(figures: dict[str, str]) -> list[str]:
         '',
     ]
     if 'gap' in figures:
-        lines += [f'![gap per step]({figures["gap"]})', '']
+        lines += [f'![gap per round]({figures["gap"]})', '']
     return lines
 
 
@@ -397,10 +430,8 @@ def _steps_section(report: Report, figures: dict[str, str]) -> list[str]:
 def _untestable_section(report: Report) -> list[str]:
     if not report.untestable:
         return []
-    lines = ['## Candidates that could not be tested', '']
-    lines += [f'- **{name}**: {reason}' for name, reason in report.untestable.items()]
-    lines.append('')
-    return lines
+    lines = [f'- **{name}**: {reason}' for name, reason in report.untestable.items()]
+    return ['## Candidates that could not be tested', ''] + lines + ['']
 
 
 def _rounds_section(report: Report) -> list[str]:
@@ -444,6 +475,23 @@ def _disagreement_section(report: Report, figures: dict[str, str]) -> list[str]:
     return lines
 
 
+@dataclass(frozen=True)
+class FigureFailure:
+    """A figure that raised: file name, what it shows, ``Type: message``, the traceback."""
+
+    figure: str
+    what: str
+    error: str
+    traceback: str
+
+
+def warn_figure_failure(failure: FigureFailure) -> None:
+    """Write the warning line, then the traceback, on stderr (``write_report``'s default)."""
+    line = f'warning: figure {failure.figure} ({failure.what}) not drawn: {failure.error}'
+    print(line, file=sys.stderr)
+    print(failure.traceback, end='', file=sys.stderr)
+
+
 def write_report(
     report: Report,
     out_dir: str | os.PathLike,
@@ -451,55 +499,101 @@ def write_report(
     plots: bool = True,
     force: bool = False,
     inputs: Iterable[str | os.PathLike] = (),
+    on_figure_error: Callable[[FigureFailure], None] = warn_figure_failure,
 ) -> Path:
-    """Write ``report.json``, ``report.md`` and (with ``plots``) the PNGs into the folder
-    ``out_dir``, atomically (a previous report folder is replaced only with ``force``;
-    :func:`~tetra_gradiometer.io.outputs.atomic_output`)."""
+    """Write ``report.json``, then (with ``plots``) the PNGs, then ``report.md`` into the
+    folder ``out_dir``, atomically (a previous report folder is replaced only with ``force``;
+    :func:`~tetra_gradiometer.io.outputs.atomic_output`). A figure that raises is left out,
+    named in report.md and passed to ``on_figure_error`` (default: stderr)."""
     with atomic_output(out_dir, REPORT, force=force, inputs=inputs, command='discrepancy') as out:
         out.mkdir()
-        _write_report_files(report, out, plots=plots)
+        # report.json first: it never depends on the figures (nor on report.md).
+        (out / 'report.json').write_text(report_json(report), encoding='utf-8')
+        figures, failures = _write_plots(report, out) if plots and report.series else ({}, [])
+        for failure in failures:
+            on_figure_error(failure)
+        text = report_markdown(report, figures, failures)
+        (out / 'report.md').write_text(text, encoding='utf-8')
     return Path(out_dir)
 
 
-def _write_report_files(report: Report, out: Path, *, plots: bool) -> None:
-    figures = _write_plots(report, out) if plots and report.series else {}
-    (out / 'report.json').write_text(report_json(report), encoding='utf-8')
-    (out / 'report.md').write_text(report_markdown(report, figures), encoding='utf-8')
+#: A figure to draw: key in ``report.md``, file name, what it shows, ``draw(path)``.
+_Job = tuple[str, str, str, Callable[[Path], None]]
 
 
-def _write_plots(report: Report, out: Path) -> dict[str, str]:
-    """Every PNG of the report into ``out``; returns figure key -> file name."""
+def _write_plots(report: Report, out: Path) -> tuple[dict[str, str], list[FigureFailure]]:
+    """Every PNG of the report into ``out``: {key: file name} of those drawn, the failures."""
     figures: dict[str, str] = {}
-    s = report.series
-    t, sensors, residuals = s['t'], s['sensors'], s['residuals']
-    grey = ' (grey: excluded spans)' if report.excluded_spans else ''
-    figures['gap'] = 'gap.png'
-    _plot_gap(out / figures['gap'], report)
-    figures['diagnostics'] = 'diagnostics.png'
-    _plot_diagnostics(out / figures['diagnostics'], report)
+    failures: list[FigureFailure] = []
+    for key, name, what, draw in _figure_jobs(report):
+        try:
+            draw(out / name)
+        # Deliberately isolated: any other non-TetraError exception is a bug that keeps its
+        # traceback, but a figure that cannot be drawn must not cost the report (report.json
+        # is already written). The failure is named in report.md and, with its traceback, on
+        # stderr, so the bug stays visible.
+        except Exception as error:
+            (out / name).unlink(missing_ok=True)  # a half-written PNG
+            text = ' '.join(''.join(traceback.format_exception_only(error)).split())
+            trace = ''.join(traceback.format_exception(error))
+            failures.append(FigureFailure(name, what, text, trace))
+        else:
+            figures[key] = name
+    return figures, failures
+
+
+def _figure_jobs(report: Report) -> list[_Job]:
+    """The report's figures, drawn lazily (all their data is read inside ``draw``)."""
+    diagnostics = partial(_plot_diagnostics, report)
+    jobs: list[_Job] = [
+        ('gap', 'gap.png', 'held-out gap per round', partial(_plot_gap, report)),
+        ('diagnostics', 'diagnostics.png', 'residual against the drivers', diagnostics),
+    ]
     if not report.steps:
-        figures['step0'] = 'residual_base.png'
-        _plot_residuals(
-            out / figures['step0'],
-            t,
-            sensors,
-            [('base model', residuals[0])],
-            'Residual (measured - simulated) of the base model' + grey,
-            report.excluded_spans,
-        )
+        draw = partial(_plot_step, report, 0)
+        jobs.append(('step0', 'residual_base.png', 'base-model residual', draw))
+    fields = report.series.get('effect_fields') or ()
     for i, step in enumerate(report.steps, 1):
-        figures[f'step{i}'] = f'residual_step{i}_{step.effect}.png'
-        _plot_residuals(
-            out / figures[f'step{i}'],
-            t,
-            sensors,
-            [('before', residuals[i - 1]), (f'after + {step.effect}', residuals[i])],
-            f'Step {i}: residual before and after adding {step.effect}' + grey,
-            report.excluded_spans,
-        )
-        field = s['effect_fields'][i - 1] if i - 1 < len(s['effect_fields']) else None
-        if field is not None and f'effect_{step.effect}' not in figures:
-            figures[f'effect_{step.effect}'] = f'effect_{step.effect}.png'
-            shown = tuple(k for k in range(4) if np.any(field[:, k])) or sensors
-            _plot_effect(out / figures[f'effect_{step.effect}'], t, shown, step.effect, field)
-    return figures
+        name = step.effect
+        draw = partial(_plot_step, report, i)
+        jobs.append((f'step{i}', f'residual_step{i}_{name}.png', f'residual, step {i}', draw))
+        key = f'effect_{name}'
+        if i - 1 < len(fields) and fields[i - 1] is not None and all(j[0] != key for j in jobs):
+            draw = partial(_plot_step_effect, report, i)
+            jobs.append((key, f'{key}.png', f'field attributed to {name}', draw))
+    return jobs
+
+
+def _step_rounds(report: Report, i: int) -> tuple[int, int]:
+    """The rounds before and after step ``i`` (1-based) was added: the first round whose
+    model holds a unit of its family, and the round before (without such a round: i - 1, i)."""
+    effect = report.steps[i - 1].effect
+    for r, record in enumerate(report.rounds[1:], 1):
+        if any(str(u).partition('@')[0] == effect for u in record.get('model', [])):
+            return r - 1, r
+    return i - 1, i
+
+
+def _plot_step(report: Report, i: int, path: Path) -> None:
+    """The residual (nT) before and after step ``i``; ``i = 0``: the base model's."""
+    s = report.series
+    grey = ' (grey: excluded spans)' if report.excluded_spans else ''
+    residuals = s['residuals']
+    if i == 0:
+        panels = [('base model', residuals[0])]
+        title = 'Residual (measured - simulated) of the base model'
+    else:
+        name = report.steps[i - 1].effect
+        before, after = _step_rounds(report, i)
+        panels = [('before', residuals[before]), (f'after + {name}', residuals[after])]
+        title = f'Step {i}: residual before and after adding {name}'
+    _plot_residuals(path, s['t'], s['sensors'], panels, title + grey, report.excluded_spans)
+
+
+def _plot_step_effect(report: Report, i: int, path: Path) -> None:
+    """The field (nT) step ``i``'s effect contributes, in the sensors where it is not 0."""
+    s, name = report.series, report.steps[i - 1].effect
+    field = s['effect_fields'][i - 1]
+    shown = tuple(k for k in range(4) if np.any(field[:, k])) or s['sensors']
+    title = f'Field attributed to {name} (final fit)'
+    _plot_residuals(path, s['t'], shown, [(name, field)], title, [])

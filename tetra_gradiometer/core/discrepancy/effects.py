@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 from ...errors import InputError
 from ..model import SYMMETRIC_ENTRIES, SensorInterference
 from ..simulator import random_interference
+from .openworld import OpenWorld
 
 Array = NDArray[np.float64]
 #: Linearisation point of a nonlinear family: (sensor, parameter label) -> value.
@@ -52,6 +53,7 @@ class Context:
     piece : (N,) index of the continuous piece of the run, or None (one piece)
     rotation : (N, 3, 3) body -> ENU with /odom, or None
     knot_s : knot spacing of the ``external_field`` spline, s
+    open_world : the steps and spectral lines the scans found (:mod:`.openworld`)
     """
 
     t: Array
@@ -65,6 +67,7 @@ class Context:
     piece: NDArray[np.int_] | None = None
     rotation: Array | None = None
     knot_s: float = 30.0
+    open_world: OpenWorld = field(default_factory=OpenWorld)
 
 
 def _required(value: Array | None, what: str) -> Array:
@@ -155,6 +158,8 @@ class Candidate:
         not a special case of another's)
     simulated : how synthetic missions hide it, or None (not simulated that way)
     no_odom_reason : why it is untestable without /odom, when more than ``requires`` says
+    separated_by : the data that make its regressors differ from those of look-alikes (the
+        report's advice when it is confounded)
     """
 
     name: str
@@ -166,6 +171,7 @@ class Candidate:
     in_detector: bool = True
     simulated: Simulated | None = None
     no_odom_reason: str | None = None
+    separated_by: str = ''
 
 
 def _empty(n: int, p: int) -> Array:
@@ -294,6 +300,36 @@ def _external(ctx: Context, estimate: Estimate | None) -> Built:
     return cols, None, labels
 
 
+def _steps(ctx: Context, estimate: Estimate | None) -> Built:
+    steps = [st for st in ctx.open_world.steps if st.sensor in ctx.sensors]
+    cols = _empty(len(ctx.t), 3 * len(steps))
+    labels: list[tuple[int, str]] = []
+    for k, step in enumerate(steps):
+        after = (ctx.t >= step.t_s).astype(float)
+        for a in range(3):
+            cols[:, step.sensor, a, 3 * k + a] = after
+            labels.append((step.sensor, f'jump_{"xyz"[a]}_nT@{step.t_s:.3f}s'))
+    return cols, None, labels
+
+
+def _lines(ctx: Context, estimate: Estimate | None) -> Built:
+    terms = [
+        (line.frequency_hz, s)
+        for line in ctx.open_world.lines
+        for s in line.sensors
+        if s in ctx.sensors
+    ]
+    cols = _empty(len(ctx.t), 6 * len(terms))
+    labels: list[tuple[int, str]] = []
+    for k, (frequency, s) in enumerate(terms):
+        phase = 2 * np.pi * frequency * (ctx.t - ctx.t[0])
+        for j, (name, wave) in enumerate((('sin', np.sin(phase)), ('cos', np.cos(phase)))):
+            for a in range(3):
+                cols[:, s, a, 6 * k + 3 * j + a] = wave
+                labels.append((s, f'{name}_{"xyz"[a]}_nT@{frequency:.6f}Hz'))
+    return cols, None, labels
+
+
 # ---------------------------------------------------------------------------------------
 # Unit-size instances for the simulator (synthetic missions)
 
@@ -338,6 +374,11 @@ CANDIDATES: tuple[Candidate, ...] = (
         (),
         _eddy,
         simulated=Simulated(_draw_eddy),
+        separated_by=(
+            'turns about different axes at different rates (a general 3x3 response to the '
+            "field rate; a delay is isotropic and also follows the field's curvature, which "
+            'fast, short manoeuvres bring out)'
+        ),
     ),
     Candidate(
         'sensor_misalignment',
@@ -350,6 +391,10 @@ CANDIDATES: tuple[Candidate, ...] = (
         _misalignment,
         nonlinear=True,
         simulated=Simulated(_draw_misalignment),
+        separated_by=(
+            'manoeuvres that turn the field through all three body axes (a rotation of the '
+            'axes is skew-symmetric in the field, soft iron symmetric)'
+        ),
     ),
     Candidate(
         'reference_interference',
@@ -361,6 +406,9 @@ CANDIDATES: tuple[Candidate, ...] = (
         ('odom',),
         _reference,
         simulated=Simulated(_draw_reference, sensors=(0,)),
+        separated_by=(
+            'an absolute reference (/odom and the Earth field) over a wide range of headings'
+        ),
     ),
     Candidate(
         'time_skew',
@@ -375,6 +423,10 @@ CANDIDATES: tuple[Candidate, ...] = (
         # The isotropic part of eddy_current to first order: the detector fits that one.
         in_detector=False,
         simulated=Simulated(_draw_time_skew),
+        separated_by=(
+            'a manoeuvre with a different spectrum of field rates (fast, short turns, where a'
+            " delay's higher-order terms and its sameness on all three axes show)"
+        ),
     ),
     Candidate(
         'thermal_drift',
@@ -385,6 +437,10 @@ CANDIDATES: tuple[Candidate, ...] = (
         ('temperature',),
         _thermal,
         simulated=Simulated(_draw_thermal),
+        separated_by=(
+            'a temperature change while the attitude and the current stay steady (or a run '
+            'whose temperature does not follow its manoeuvres)'
+        ),
     ),
     Candidate(
         'vehicle_current',
@@ -395,6 +451,10 @@ CANDIDATES: tuple[Candidate, ...] = (
         ('current',),
         _current,
         simulated=Simulated(_draw_current),
+        separated_by=(
+            'current changes at steady attitude and temperature (thruster steps during a '
+            'straight leg)'
+        ),
     ),
     Candidate(
         'external_field',
@@ -408,12 +468,49 @@ CANDIDATES: tuple[Candidate, ...] = (
         _external,
         # Left out of the detector, so that a target's common part stays in its residual.
         in_detector=False,
+        separated_by=(
+            'headings that differ on the same stretch (a world-fixed field turns in the body '
+            'frame)'
+        ),
         no_odom_reason=(
             'no /odom in the bag: the world frame is unknown, and the pair differences '
             "B_i' - B_1' cancel a field that is the same at all sensors"
         ),
     ),
+    Candidate(
+        'hard_iron_step',
+        "A sensor's constant offset changes at a time t_s (a magnetized part picked up or "
+        'lost, a component switched for good): a jump vector from t_s on. Outside the '
+        'library: found by a change-point scan of the residual (binary segmentation, '
+        'likelihood-ratio statistic of a mean shift, Bonferroni over the possible times).',
+        'jump vector per step, nT, from t_s (s from the first sample) on',
+        (),
+        _steps,
+        in_detector=False,
+        separated_by=(
+            'a run long enough on each side of the change, at steady temperature and current'
+        ),
+    ),
+    Candidate(
+        'periodic_interference',
+        'A rotating magnet near some sensors (a shaft, a pump, a fan) adds a sinusoid at its '
+        'rotation frequency that no recorded channel carries. Outside the library: found as '
+        'a spectral line of the residual (periodogram over its local noise level, with a '
+        'false-alarm probability), its frequency refined by least squares; fitted as sine '
+        'and cosine terms per axis of the sensors that carry it.',
+        'sine and cosine amplitudes per axis, nT, at frequency_hz',
+        (),
+        _lines,
+        in_detector=False,
+        separated_by=(
+            'a record of the candidate source (shaft or pump speed), or a run with it stopped'
+        ),
+    ),
 )
+
+#: The open-world families: built from what the scans of the residual found
+#: (:mod:`.openworld`), offered when no library family explains the rest.
+OPEN_WORLD = ('hard_iron_step', 'periodic_interference')
 
 #: name -> candidate: the one registry of effect names.
 LIBRARY: dict[str, Candidate] = {c.name: c for c in CANDIDATES}

@@ -184,6 +184,7 @@ def _context(prep: Prepared, basis: Array, knot_s: float) -> Context:
         prep.piece,
         prep.rotation,
         knot_s,
+        prep.open_world,
     )
 
 

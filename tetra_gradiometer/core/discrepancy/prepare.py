@@ -20,6 +20,7 @@ from ...errors import InputError
 from ..model import SYMMETRIC_ENTRIES
 from ..units import NT_PER_T
 from .effects import Candidate, PiecewiseSpline
+from .openworld import OpenWorld
 
 Array = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -92,6 +93,7 @@ class Prepared:
     notes : what preparing the data decided
     piece : (N,) index of the continuous piece of the run
     rotation : (N, 3, 3) body -> ENU, or None
+    open_world : the steps and spectral lines the scans of the residual found
     """
 
     t: Array
@@ -110,6 +112,7 @@ class Prepared:
     notes: tuple[str, ...]
     piece: NDArray[np.int_]
     rotation: Array | None
+    open_world: OpenWorld = field(default_factory=OpenWorld)
 
 
 @dataclass(frozen=True)

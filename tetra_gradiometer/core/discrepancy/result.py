@@ -42,6 +42,10 @@ class Settings:
     target_max_fraction : spans are excluded only when they cover at most this share of the run
     target_confirm : a span is confirmed when, fitted with its samples in, its mean square
         residual stays at least this factor above the rest of the run's median
+    target_edge : a span is excluded only when its residual falls below this share of its
+        peak (mean square) at both ends (or to the noise): the evidence of a passage
+    max_excluded : a run with more than this share of its samples excluded is never
+        adequate (what was left out is not explained)
     """
 
     n_folds: int = 5
@@ -59,6 +63,8 @@ class Settings:
     target_margin: float = 0.5
     target_max_fraction: float = 0.6
     target_confirm: float = 2.0
+    target_edge: float = 0.5
+    max_excluded: float = 0.1
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from .cv import ALL_SENSORS, Fit, Gram, block_length, flat, noise_floor
+from .discovery import pruned_steps, scan_residual
 from .effects import Candidate
 from .fit import (
     CurrentFit,
@@ -32,6 +33,10 @@ from .result import Settings, Step, sensor_name
 Array = NDArray[np.float64]
 Index = NDArray[np.int_]
 
+#: A candidate that, in a named unit's place, explains at least this share of the held-out
+#: sum of squares the unit explains is confounded with it.
+CONFOUNDED_SHARE = 0.8
+
 
 @dataclass(frozen=True)
 class SearchResult:
@@ -47,6 +52,9 @@ class SearchResult:
     residuals, gaps, floors : per round (base model first), nT
     notes : the revisions made on the way
     block_s : cross-validation block length, s
+    confounded : per named unit, the candidates that explain the same part of the residual
+        in its place, with the share of the unit's held-out explained sum of squares they
+        explain (at least :data:`CONFOUNDED_SHARE`)
     """
 
     prep: Prepared
@@ -60,6 +68,7 @@ class SearchResult:
     floors: list[float]
     notes: list[str]
     block_s: float
+    confounded: list[list[tuple[str, float]]]
 
 
 @dataclass(frozen=True)
@@ -138,6 +147,7 @@ def search_effects(
     gaps: list[float] = []
     floors: list[float] = []
     notes: list[str] = []
+    scanned = False
     while True:
         fit = fit_current(prep, active, y, settings.knot_s)
         prep, active = fit.prep, fit.active
@@ -159,9 +169,26 @@ def search_effects(
         floors.append(floor)
         residuals.append(residual)
         chosen, after, table = _forward_step(rnd, cur, cands.units)
+        if not chosen and more and not scanned:
+            # Nothing in the library explains the rest: look for open-world structure in
+            # it (steps, spectral lines), and offer what is found as families.
+            scanned = True
+            found = scan_residual(prep, residual, active, testable, settings.alpha)
+            if found != prep.open_world:
+                prep = replace(prep, open_world=found)
+                gaps.pop(), floors.pop(), residuals.pop()
+                continue
+        if not chosen:
+            pruned = pruned_steps(prep, fit, active, settings.relevance * floor)
+            if pruned is not None:
+                prep, active = pruned
+                gaps.pop(), floors.pop(), residuals.pop()
+                continue
         rounds.append(_round_record(gap_cur, floor, active, table))
         if not chosen:
+            confounded = _confounding(rnd, cur, active, cands)
             break
+        scanned = False
         units = [cands.units[k] for k in chosen]
         steps.append(_step(units, chosen, rnd, gap_cur, after, floor, table))
         step_units.append(list(range(len(active), len(active) + len(chosen))))
@@ -179,6 +206,7 @@ def search_effects(
         floors,
         notes,
         block_s,
+        confounded,
     )
 
 
@@ -521,3 +549,33 @@ def _merge_steps(
         )
         del steps[j], step_units[j]
     return steps, step_units
+
+
+def _confounding(
+    rnd: _Round, cur: Fit, active: tuple[Family, ...], cands: _Candidates
+) -> list[list[tuple[str, float]]]:
+    """Per named unit, the units of other families in its sensor that explain at least
+    :data:`CONFOUNDED_SHARE` of what it explains (held out) when put in its place."""
+    out: list[list[tuple[str, float]]] = []
+    for k, f in enumerate(active):
+        rest = np.concatenate(
+            [rnd.base_idx] + [c for j, c in enumerate(rnd.active_cols) if j != k]
+        )
+        without = rnd.gram.evaluate(rest, rnd.ty, add_back=rnd.active_off[k])
+        explained = without.cv - cur.cv
+        found: dict[str, float] = {}
+        for j, u in enumerate(cands.units):
+            if explained <= 0 or u.sensor != f.sensor or u.candidate.name == f.candidate.name:
+                continue
+            jj = rnd.swap_index.get(j, j)
+            swapped = rnd.gram.evaluate(
+                np.concatenate([rest, rnd.unit_cols[jj]]),
+                rnd.ty,
+                rnd.unit_off[jj],
+                add_back=rnd.active_off[k],
+            )
+            share = float((without.cv - swapped.cv) / explained)
+            if share >= CONFOUNDED_SHARE:
+                found[u.candidate.name] = max(share, found.get(u.candidate.name, 0.0))
+        out.append(sorted(found.items(), key=lambda item: -item[1]))
+    return out

@@ -14,6 +14,7 @@ from ..geometry import TetraGeometry
 from .cv import ALL_SENSORS
 from .diagnostics import diagnostics, tensor_rms
 from .effects import LIBRARY
+from .findings import findings
 from .fit import effect_field
 from .prepare import Prepared
 from .result import BASE_MODEL, Report, Settings, Step, format_parameters
@@ -121,11 +122,18 @@ def _data(search: SearchResult, info: RunInfo) -> dict[str, Any]:
     return data
 
 
-def _closing_notes(search: SearchResult, info: RunInfo, adequate: bool) -> list[str]:
+def _closing_notes(search: SearchResult, info: RunInfo) -> list[str]:
     """The run's notes, the revisions, and what an inadequate model means."""
     notes = list(info.notes) + list(search.notes)
-    if not adequate:
-        ratio = info.settings.adequate_ratio
+    excluded = _excluded_fraction(search.prep, info)
+    if excluded > info.settings.max_excluded:
+        notes.append(
+            f'{100 * excluded:.1f} % of the samples were excluded as target passages, more '
+            f'than {100 * info.settings.max_excluded:g} %: the model cannot be called '
+            'adequate on what was left'
+        )
+    ratio = info.settings.adequate_ratio
+    if search.gaps[-1] > ratio * search.floors[-1]:
         notes.append(
             f'the final gap {search.gaps[-1]:.3g} nT exceeds {ratio} x the noise floor '
             f'({search.floors[-1]:.3g} nT) but no candidate in the library explains the rest: '
@@ -174,7 +182,11 @@ def build_report(
     prep = search.prep
     steps, fields = _final_steps(search)
     gap_final, floor_final = search.gaps[-1], search.floors[-1]
-    adequate = gap_final <= info.settings.adequate_ratio * floor_final
+    excluded = _excluded_fraction(prep, info)
+    adequate = (
+        gap_final <= info.settings.adequate_ratio * floor_final
+        and excluded <= info.settings.max_excluded
+    )
     diag: dict[str, Any] = {
         'base': diagnostics(prep, search.residuals[0]),
         'final': diagnostics(prep, search.residuals[-1]),
@@ -192,14 +204,15 @@ def build_report(
         adequate=bool(adequate),
         untestable=info.untestable,
         view='absolute' if prep.absolute else 'pair',
-        notes=_closing_notes(search, info, adequate),
+        notes=_closing_notes(search, info),
         rounds=search.rounds,
         diagnostics=diag,
         base_parameters=_base_parameters(search),
         data=_data(search, info),
         runtime_s=runtime_s,
         excluded_spans=info.targets.spans,
-        excluded_fraction=_excluded_fraction(prep, info),
+        excluded_fraction=excluded,
+        findings=findings(search, steps),
         settings=info.settings,
         series=_series(prep, search, fields) if keep_series else {},
     )

@@ -283,14 +283,35 @@ def _confirm(
     t = prep.t
     confirmed: list[Span] = []
     notes: list[str] = []
+    # The shape of what the model fitted outside the spans leaves in them (fitted with a
+    # span in, the model bends to its middle and the leftover peaks at its ends).
+    prep, outside = _score(prep, names, settings, width, ~mask)
     for i, j in settled.spans:
         inside = np.zeros(len(t), dtype=bool)
         inside[i : j + 1] = True
         with_it = ~mask | inside
         prep, score = _score(prep, names, settings, width, with_it)
         z_in = score.z
-        ratio = float(np.mean(z_in[inside]) / max(np.median(z_in[with_it & ~inside]), 1e-12))
-        if ratio >= settings.target_confirm:
+        level = max(np.median(z_in[with_it & ~inside]), 1e-12)
+        ratio = float(np.mean(z_in[inside]) / level)
+        # Positive evidence of a passage: the disagreement peaks inside the span and falls
+        # off (a dipole's mean square by (1 + x^2/d^2)^-3 along the track) to the noise or
+        # to target_edge of its peak on at least one side (a deep target on a short line
+        # may still be strong where the line ends). One that stays up at both ends, or
+        # peaks at one, is a change that persists (a step), not a source moving past.
+        z_out = outside.z
+        peak = i + int(np.argmax(z_out[i : j + 1]))
+        base = max(np.median(z_out[~mask]), 1.0)
+        floor = max(settings.target_low * base, settings.target_edge * z_out[peak])
+        edges = [k for k in (i, j) if z_out[k] > floor]
+        if len(edges) == 2 or min(peak - i, j - peak) < width:
+            notes.append(
+                f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the disagreement peaks at '
+                f'{t[peak]:.1f} s and does not fall below {settings.target_edge:g} x its peak '
+                'on either side, or peaks at an end: no evidence of a source passing by; a '
+                'lasting change is for the model to explain'
+            )
+        elif ratio >= settings.target_confirm:
             confirmed.append((i, j))
         else:
             notes.append(

@@ -32,8 +32,10 @@ FINAL_SWEEPS = 2
 SWEEP_SAMPLES = 300
 #: Clusters of at most this many targets are fitted jointly (a larger one keeps its sweeps).
 MAX_CLUSTER = 6
-#: Targets whose predicted tensors correlate beyond this are fitted jointly.
-COUPLING = 0.1
+#: Targets whose predicted tensors correlate beyond this are fitted jointly (fitting each
+#: with the other taken out leaves an error of about the square of it; a ghost of a
+#: strong target's misfit correlates with it by a few percent).
+COUPLING = 0.02
 
 
 @dataclass(frozen=True)
