@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from tetra_gradiometer.__main__ import COMMANDS, main
+from tetra_gradiometer.core.discrepancy import CANDIDATES
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -80,8 +81,8 @@ BAD = [
     # discrepancy
     ('discrepancy', '--folds', '1', ('2 <= n <= 20',)),
     ('discrepancy', '--folds', '21', ('2 <= n <= 20',)),
-    ('discrepancy', '--max-effects', '0', ('1 <= n <= 7',)),
-    ('discrepancy', '--max-effects', '8', ('1 <= n <= 7',)),
+    ('discrepancy', '--max-effects', '0', (f'1 <= n <= {len(CANDIDATES)}',)),
+    ('discrepancy', '--max-effects', str(len(CANDIDATES) + 1), (f'1 <= n <= {len(CANDIDATES)}',)),
     ('discrepancy', '--relevance', '-0.1', ('0 <= x <= 100',)),
     ('discrepancy', '--relevance', 'nan', ('0 <= x <= 100',)),
     ('discrepancy', '--relevance', '1e3', ('0 <= x <= 100',)),
