@@ -12,8 +12,30 @@ from .effects import Candidate
 from .fit import CurrentFit, Family, restrict
 from .openworld import OpenWorld, find_lines, find_steps
 from .prepare import Prepared
+from .result import Settings
 
 Array = NDArray[np.float64]
+
+
+def open_world_move(
+    prep: Prepared,
+    residual: Array,
+    fit: CurrentFit,
+    active: tuple[Family, ...],
+    testable: tuple[Candidate, ...],
+    settings: Settings,
+    floor: float,
+    *,
+    scan: bool,
+) -> tuple[Prepared, tuple[Family, ...]] | None:
+    """When no library family passes: new structure in ``residual`` (N, 4, 3) nT from the
+    scans (when ``scan``), offered as families; else the steps the fit no longer needs
+    (below ``relevance`` x ``floor`` nT) taken out. None: nothing changes."""
+    if scan:
+        found = scan_residual(prep, residual, active, testable, settings.alpha)
+        if found != prep.open_world:
+            return replace(prep, open_world=found), active
+    return pruned_steps(prep, fit, active, settings.relevance * floor)
 
 
 def scan_residual(

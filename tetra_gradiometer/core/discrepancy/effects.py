@@ -200,12 +200,15 @@ def _time_skew(ctx: Context, estimate: Estimate | None) -> Built:
     offset = np.zeros((n, 4, 3))
     labels: list[tuple[int, str]] = []
     for k, s in enumerate(ctx.sensors):
-        cols[:, s, :, k] = -rate[:, s]
         labels.append((s, 'tau_s'))
         tau = (estimate or {}).get((s, 'tau_s'), 0.0)
+        # Linearised at the estimate: d/dtau B(t - tau) = -dB/dt (t - tau). (The slope at
+        # tau = 0 makes the iteration a chord method, which diverges when another unit of the
+        # sensor, an eddy term, leaves the delay little of its own to fit.)
+        slope = spline(tau, 1)[:, s] if tau else rate[:, s]
+        cols[:, s, :, k] = -slope
         if tau:
-            shifted = spline(tau)[:, s]
-            offset[:, s] = shifted - ctx.prediction[:, s] + tau * rate[:, s]
+            offset[:, s] = spline(tau)[:, s] - ctx.prediction[:, s] + tau * slope
     return cols, offset, labels
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ...errors import IdentifiabilityError
 from .cv import ALL_SENSORS, flat, lstsq_full, solve_fast
 from .effects import Candidate, Context, Estimate
 from .prepare import Prepared, refresh_background, refresh_pair_background, smoothed
@@ -118,13 +119,17 @@ def build(
     The estimate for sensor ``s`` comes from the current model without its units in sensor
     ``s`` (``cur.sensor``: the sensor of each current column, -2 for the base model): a unit
     there that is nearly collinear with this family (an eddy term beside a delay) would make
-    a joint estimate wild, and leaving out the other sensors' units would bias it.
+    a joint estimate wild, and leaving out the other sensors' units would bias it. In the pair
+    view a unit of sensor 1 enters every pair difference, so it counts as a unit there too
+    (named in sensors 1, 3 and 4, an eddy term spans one in sensor 2), and for sensor 1's own
+    estimate every named unit does.
     """
     cols, offset, labels = candidate.build(ctx, None)
     if not candidate.nonlinear:
         return Family(candidate, cols, offset, labels)
     p_cur = len(cur.norm)
     fam_sensor = np.array([lab[0] for lab in labels])
+    pair = tuple(sensors) != ALL_SENSORS
     estimate: Estimate = {}
     for _ in range(3):
         f = flat(cols, sensors)
@@ -139,7 +144,10 @@ def build(
         coef = np.zeros(len(labels))
         for sensor in np.unique(fam_sensor):
             own = np.flatnonzero(fam_sensor == sensor)
-            sel = np.concatenate([np.flatnonzero(cur.sensor != sensor), p_cur + own])
+            there = cur.sensor == sensor
+            if pair:
+                there |= cur.sensor >= 0 if sensor == 0 else cur.sensor == 0
+            sel = np.concatenate([np.flatnonzero(~there), p_cur + own])
             theta = solve_fast(gram[np.ix_(sel, sel)], rhs[sel])
             coef[own] = theta[-len(own) :] / fnorm[own]
         estimate = {label: float(v) for label, v in zip(labels, coef, strict=True)}
@@ -226,6 +234,13 @@ def fit_current(prep: Prepared, active: tuple[Family, ...], y: Array, knot_s: fl
         cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
         coef = lstsq_full(prep.sensors, cur_cols, y - cur_off)
         prediction = prep.base_offset + np.einsum('nsap,p->nsa', cur_cols, coef) + cur_off
+        if not np.all(np.isfinite(prediction)):
+            raise IdentifiabilityError(
+                'the joint fit of the named effects '
+                f'({", ".join(f"{f.candidate.name}@{f.sensor + 1}" for f in active)}) diverged: '
+                'the run does not fix their nonlinear parameters; leave those effects out '
+                '(--candidates) or analyse another part of the run (--window)'
+            )
         moved = False
         if prep.absolute:
             prep, moved = refresh_background(prep, coef[:6])

@@ -44,6 +44,8 @@ class Settings:
         residual stays at least this factor above the rest of the run's median
     target_edge : a span is excluded only when its residual falls below this share of its
         peak (mean square) at both ends (or to the noise): the evidence of a passage
+    target_one_sensor : a span whose residual (sum of squares in noise sigmas) is at least
+        this share in one sensor is a change of that sensor, not a passage: not excluded
     max_excluded : a run with more than this share of its samples excluded is never
         adequate (what was left out is not explained)
     """
@@ -64,6 +66,7 @@ class Settings:
     target_max_fraction: float = 0.6
     target_confirm: float = 2.0
     target_edge: float = 0.5
+    target_one_sensor: float = 0.8
     max_excluded: float = 0.1
 
 

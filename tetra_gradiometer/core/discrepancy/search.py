@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from .cv import ALL_SENSORS, Fit, Gram, block_length, flat, noise_floor
-from .discovery import pruned_steps, scan_residual
+from .discovery import open_world_move
 from .effects import Candidate
 from .fit import (
     CurrentFit,
@@ -163,27 +163,24 @@ def search_effects(
         revised = _backward_check(rnd, cur, active, cands)
         if revised is not None and len(notes) < 4 * settings.max_effects:
             notes.append(revised[2])
-            steps, step_units, active = _revise(steps, step_units, active, *revised)
+            # What a revision brings in enters after the last recorded round.
+            steps, step_units, active = _revise(
+                steps, step_units, active, *revised[:3], gap_before=gaps[-1], gap_after=revised[3]
+            )
             continue
+        chosen, after, table = _forward_step(rnd, cur, cands.units)
+        if not chosen:
+            # Nothing in the library explains the rest: the open world (once per state).
+            moved = open_world_move(
+                prep, residual, fit, active, testable, settings, floor, scan=more and not scanned
+            )
+            scanned = scanned or more
+            if moved is not None:
+                prep, active = moved
+                continue
         gaps.append(gap_cur)
         floors.append(floor)
         residuals.append(residual)
-        chosen, after, table = _forward_step(rnd, cur, cands.units)
-        if not chosen and more and not scanned:
-            # Nothing in the library explains the rest: look for open-world structure in
-            # it (steps, spectral lines), and offer what is found as families.
-            scanned = True
-            found = scan_residual(prep, residual, active, testable, settings.alpha)
-            if found != prep.open_world:
-                prep = replace(prep, open_world=found)
-                gaps.pop(), floors.pop(), residuals.pop()
-                continue
-        if not chosen:
-            pruned = pruned_steps(prep, fit, active, settings.relevance * floor)
-            if pruned is not None:
-                prep, active = pruned
-                gaps.pop(), floors.pop(), residuals.pop()
-                continue
         rounds.append(_round_record(gap_cur, floor, active, table))
         if not chosen:
             confounded = _confounding(rnd, cur, active, cands)
@@ -309,10 +306,11 @@ def _round(
 
 def _backward_check(
     rnd: _Round, cur: Fit, active: tuple[Family, ...], cands: _Candidates
-) -> tuple[int, Family | None, str] | None:
+) -> tuple[int, Family | None, str, float] | None:
     """Is every unit in the model still needed, and does a unit with fewer parameters in the
     same sensor explain as much now that the others are in? The first unit that fails:
-    (its index, its replacement or None to remove it, why)."""
+    (its index, its replacement or None to remove it, why, the held-out gap of the revised
+    model, nT)."""
     for k, f in enumerate(active):
         rest = np.concatenate(
             [rnd.base_idx] + [c for j, c in enumerate(rnd.active_cols) if j != k]
@@ -324,25 +322,28 @@ def _backward_check(
                 None,
                 f'{f.candidate.name} at sensor {f.sensor + 1} is no longer needed '
                 f'once the other effects are in (removed)',
+                float(np.sqrt(without.cv / rnd.gram.n)),
             )
         best_alt = _best_replacement(rnd, cur, k, f, rest, cands.units)
         if best_alt is not None:
-            u = cands.plain.get(best_alt[0], cands.units[best_alt[0]])
+            j, swapped = best_alt
+            u = cands.plain.get(j, cands.units[j])
             return (
                 k,
                 u,
                 f'{f.candidate.name} at sensor {f.sensor + 1} replaced by the more '
-                f'parsimonious {u.candidate.name} (CV-BIC {best_alt[1] - rnd.bic(cur):+.4g}) '
+                f'parsimonious {u.candidate.name} (CV-BIC {rnd.bic(swapped) - rnd.bic(cur):+.4g}) '
                 'once the other effects are in',
+                float(np.sqrt(swapped.cv / rnd.gram.n)),
             )
     return None
 
 
 def _best_replacement(
     rnd: _Round, cur: Fit, k: int, f: Family, rest: Index, units: list[Family]
-) -> tuple[int, float] | None:
+) -> tuple[int, Fit] | None:
     """The unit of another family in ``f``'s sensor, with no more parameters, whose CV-BIC
-    in place of ``f`` is lowest and below the current model's: (its index, its CV-BIC)."""
+    in place of ``f`` is lowest and below the current model's: (its index, that fit)."""
     best_alt = None
     for j, u in enumerate(units):
         if (
@@ -358,8 +359,10 @@ def _best_replacement(
             rnd.unit_off[jj],
             add_back=rnd.active_off[k],
         )
-        if rnd.bic(res) < rnd.bic(cur) and (best_alt is None or rnd.bic(res) < best_alt[1]):
-            best_alt = (j, rnd.bic(res))
+        if rnd.bic(res) < rnd.bic(cur) and (
+            best_alt is None or rnd.bic(res) < rnd.bic(best_alt[1])
+        ):
+            best_alt = (j, res)
     return best_alt
 
 
@@ -466,63 +469,54 @@ def _revise(
     k: int,
     replacement: Family | None,
     message: str,
+    gap_after: float,
+    gap_before: float,
 ) -> tuple[list[Step], list[list[int]], tuple[Family, ...]]:
-    """Take unit ``k`` out of the model (and its step), or replace it; keep the steps
-    consistent (a step whose units all changed family is renamed, an empty one dropped).
-    Returns new steps, step units and units."""
+    """Take unit ``k`` out of the model (and its step), or replace it by a unit of another
+    family, which joins that family's step. A family the replacement brings in gets a step at
+    the end (the old step itself, renamed, when the unit was its last), with the gaps of the
+    model just before and after it entered: ``gap_before`` (the last recorded round's) and
+    ``gap_after`` (the revised model's). A step left empty is dropped. Returns new steps,
+    step units and units."""
     steps = list(steps)
     step_units = [list(members) for members in step_units]
     units = list(active)
     owner = next(i for i, members in enumerate(step_units) if k in members)
-    if replacement is None:
-        del units[k]
-        step_units[owner].remove(k)
-        step_units = [[m - 1 if m > k else m for m in members] for members in step_units]
-    else:
-        units[k] = replacement
     steps[owner] = replace(
         steps[owner], evidence=steps[owner].evidence + f'; revised later: {message}'
     )
-    for i in reversed(range(len(steps))):
-        names = {units[m].candidate.name for m in step_units[i]}
-        if not names:
-            del steps[i], step_units[i]
-        elif steps[i].effect not in names:
-            steps[i] = replace(steps[i], effect=sorted(names)[0])
-        if i < len(steps) and len(names) > 1:
-            _move_foreign_units(steps, step_units, units, i, message)
-    steps, step_units = _merge_steps(steps, step_units)
-    return steps, step_units, tuple(units)
-
-
-def _move_foreign_units(
-    steps: list[Step], step_units: list[list[int]], units: list[Family], i: int, message: str
-) -> None:
-    """The replaced unit now belongs to another family: move it from step ``i`` to that
-    family's step (or a new one at the end). Edits the caller's working lists."""
-    moved = [m for m in step_units[i] if units[m].candidate.name != steps[i].effect]
-    step_units[i] = [m for m in step_units[i] if m not in moved]
-    for m in moved:
-        target = next(
-            (j for j, st in enumerate(steps) if st.effect == units[m].candidate.name), None
-        )
-        if target is None:
-            steps.append(
-                Step(
-                    units[m].candidate.name,
-                    steps[i].gap_before_nT,
-                    steps[i].gap_after_nT,
+    step_units[owner].remove(k)
+    if replacement is None:
+        del units[k]
+        step_units = [[m - 1 if m > k else m for m in members] for members in step_units]
+    else:
+        units[k] = replacement
+        name = replacement.candidate.name
+        target = next((j for j, st in enumerate(steps) if st.effect == name), None)
+        if target is not None:
+            step_units[target].append(k)
+        else:
+            entered = (
+                steps[owner]
+                if not step_units[owner]
+                else Step(
+                    name,
+                    0.0,
+                    0.0,
                     {},
                     f'named when revising: {message}',
-                    units[m].cols.shape[-1],
+                    replacement.cols.shape[-1],
                     0.0,
                     0.0,
                     1.0,
                 )
             )
-            step_units.append([m])
-        else:
-            step_units[target].append(m)
+            steps.append(
+                replace(entered, effect=name, gap_before_nT=gap_before, gap_after_nT=gap_after)
+            )
+            step_units.append([k])
+    kept = [i for i, members in enumerate(step_units) if members]
+    return [steps[i] for i in kept], [step_units[i] for i in kept], tuple(units)
 
 
 def _merge_steps(

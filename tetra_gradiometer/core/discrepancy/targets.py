@@ -304,12 +304,19 @@ def _confirm(
         base = max(np.median(z_out[~mask]), 1.0)
         floor = max(settings.target_low * base, settings.target_edge * z_out[peak])
         edges = [k for k in (i, j) if z_out[k] > floor]
-        if len(edges) == 2 or min(peak - i, j - peak) < width:
+        # A source outside the vehicle reaches every sensor (at 20 m the four see nearly
+        # the same field); a change of one sensor (a step) sits in that sensor alone.
+        whitened = (outside.flat[i : j + 1] / outside.sigma) ** 2
+        per_sensor = whitened.reshape(len(whitened), -1, 3).sum(axis=(0, 2))
+        one_sensor = float(per_sensor.max() / max(per_sensor.sum(), 1e-300))
+        lasting = one_sensor >= settings.target_one_sensor
+        if lasting or len(edges) == 2 or min(peak - i, j - peak) < width:
             notes.append(
                 f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the disagreement peaks at '
                 f'{t[peak]:.1f} s and does not fall below {settings.target_edge:g} x its peak '
-                'on either side, or peaks at an end: no evidence of a source passing by; a '
-                'lasting change is for the model to explain'
+                f'on either side, or peaks at an end, or {100 * one_sensor:.0f} % of it is in '
+                'one sensor: no evidence of a source passing by; a change of the vehicle is '
+                'for the model to explain'
             )
         elif ratio >= settings.target_confirm:
             confirmed.append((i, j))
