@@ -102,3 +102,26 @@ def test_a_delay_beside_an_eddy_term_is_named_or_reported_as_confounded():
     if 'time_skew' in named:
         assert [f['sensors'] for f in report.findings if f['effect'] == 'time_skew'] == [skew]
     assert report.gap_final_nT <= 1.5 * report.noise_floor_nT
+
+
+def test_a_remainder_nothing_names_is_characterized_in_frequency_and_time():
+    """With the open-world families left out, the shaft's line stays in the residual: the
+    report is not adequate and its diagnostics point at 1.7 Hz in sensors 2 and 4."""
+    from tetra_gradiometer.core.discrepancy import LIBRARY, OPEN_WORLD, Settings
+
+    case = make_case(6, (), duration_s=300.0, far_target=False)
+    run = case.recording()
+    fields = run.fields.copy()
+    for s in (2, 4):
+        fields[:, s - 1, 0] += 10 * case.scenario.noise_t * np.sin(2 * np.pi * 1.7 * run.t_s)
+    library = tuple(name for name in LIBRARY if name not in OPEN_WORLD)
+    report = analyze(replace(run, fields=fields), case.scenario.geometry,
+                     settings=Settings(candidates=library))
+    assert not report.adequate and report.named_effects == []
+    spectrum = report.diagnostics['final']['spectrum']
+    for sensor in ('sensor_2', 'sensor_4'):
+        assert spectrum[sensor]['frequency_hz'] == pytest.approx(1.7, rel=0.01)
+        assert spectrum[sensor]['false_alarm'] < 1e-6
+    assert spectrum['sensor_3']['false_alarm'] > 1e-3
+    profile = report.diagnostics['final']['time_profile']
+    assert len(profile) == 10 and profile[0]['start_s'] == 0.0

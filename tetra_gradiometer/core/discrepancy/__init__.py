@@ -11,7 +11,7 @@ arrays) or anything with the same attributes.
 """
 
 from .analysis import analyze
-from .effects import CANDIDATES, LIBRARY, Candidate
+from .effects import CANDIDATES, LIBRARY, OPEN_WORLD, Candidate
 from .prepare import RecordedRun
 from .result import BASE_MODEL, Report, Settings, Step, criterion_text
 
@@ -20,6 +20,7 @@ __all__ = [
     'CANDIDATES',
     'Candidate',
     'LIBRARY',
+    'OPEN_WORLD',
     'RecordedRun',
     'Report',
     'Settings',

@@ -1,6 +1,7 @@
 """Diagnostics: where measurement and simulation disagree, as the residual's RMS per sensor,
-its largest correlation with each driver (time, attitude, field rate, temperature, current)
-and its RMS on the gradient tensor."""
+its largest correlation with each driver (time, attitude, field rate, temperature, current),
+its strongest spectral line per sensor, its RMS along the run, and its RMS on the gradient
+tensor: the characterization of what no candidate explains."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from numpy.typing import NDArray
 
 from ..geometry import TetraGeometry, difference_tensor
 from ..units import NT_PER_T
+from .openworld import false_alarm, line_power, periodogram
 from .prepare import Prepared
 
 Array = NDArray[np.float64]
@@ -67,6 +69,39 @@ def diagnostics(prep: Prepared, residual: Array) -> dict[str, Any]:
             d = np.cos(np.radians(d))
         out['correlation'][name] = _strongest_correlation(d, residual, prep.sensors)
     out['drivers'] = list(series)
+    out['spectrum'] = _strongest_lines(prep, residual)
+    tenths = np.array_split(np.arange(len(prep.t)), 10)
+    out['time_profile'] = [
+        {
+            'start_s': float(prep.t[idx[0]]),
+            'end_s': float(prep.t[idx[-1]]),
+            'rms_nT': float(np.sqrt(np.mean(residual[idx][:, list(prep.sensors)] ** 2))),
+        }
+        for idx in tenths
+        if len(idx)
+    ]
+    return out
+
+
+def _strongest_lines(prep: Prepared, residual: Array) -> dict[str, Any]:
+    """Per sensor, the periodogram bin with the most power over the local noise level of
+    ``residual`` (N, 4, 3) nT: its frequency (Hz), that ratio and its false-alarm
+    probability (a line too weak to name still shows where to look)."""
+    if len(prep.t) < 64:
+        return {}
+    frequencies, power = periodogram(
+        prep.t, residual[:, list(prep.sensors)].reshape(len(prep.t), -1)
+    )
+    usable = frequencies > 10.0 / max(float(prep.t[-1] - prep.t[0]), 1e-9)
+    z = line_power(power)[usable].reshape(int(usable.sum()), -1, 3).max(axis=2)
+    out = {}
+    for k, s in enumerate(prep.sensors):
+        i = int(np.argmax(z[:, k]))
+        out[f'sensor_{s + 1}'] = {
+            'frequency_hz': float(frequencies[usable][i]),
+            'power_over_noise': float(z[i, k]),
+            'false_alarm': float(false_alarm(z[i : i + 1, k], 3 * len(prep.t) // 2)[0]),
+        }
     return out
 
 
