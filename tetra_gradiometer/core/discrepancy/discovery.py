@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .effects import Candidate
-from .fit import CurrentFit, Family, restrict
+from .fit import CurrentFit, Family, column_bounds, restrict
 from .openworld import OpenWorld, find_lines, find_steps
 from .prepare import Prepared
 from .result import Settings
@@ -85,9 +85,7 @@ def pruned_steps(
     is below ``least_nT`` (a scan on the residual of a model that was still wrong splits
     at what that model left), taken out of the scans' record and of their units; None
     when every step is needed. A unit keeps its strongest step."""
-    bounds = [prep.base_cols.shape[-1]]
-    for f in active:
-        bounds.append(bounds[-1] + f.cols.shape[-1])
+    bounds = column_bounds(prep, active)
     weak: set[tuple[int, float]] = set()
     for k, f in enumerate(active):
         if f.candidate.name != 'hard_iron_step':

@@ -303,6 +303,16 @@ def _external(ctx: Context, estimate: Estimate | None) -> Built:
     return cols, None, labels
 
 
+def step_label(axis: int, t_s: float) -> str:
+    """The parameter name of a step's jump on ``axis`` (0-2) at ``t_s`` s."""
+    return f'jump_{"xyz"[axis]}_nT@{t_s:.3f}s'
+
+
+def line_label(wave: str, axis: int, frequency_hz: float) -> str:
+    """The parameter name of a line's ``wave`` ('sin' or 'cos') term on ``axis`` (0-2)."""
+    return f'{wave}_{"xyz"[axis]}_nT@{frequency_hz:.6f}Hz'
+
+
 def _steps(ctx: Context, estimate: Estimate | None) -> Built:
     steps = [st for st in ctx.open_world.steps if st.sensor in ctx.sensors]
     cols = _empty(len(ctx.t), 3 * len(steps))
@@ -311,7 +321,7 @@ def _steps(ctx: Context, estimate: Estimate | None) -> Built:
         after = (ctx.t >= step.t_s).astype(float)
         for a in range(3):
             cols[:, step.sensor, a, 3 * k + a] = after
-            labels.append((step.sensor, f'jump_{"xyz"[a]}_nT@{step.t_s:.3f}s'))
+            labels.append((step.sensor, step_label(a, step.t_s)))
     return cols, None, labels
 
 
@@ -329,7 +339,7 @@ def _lines(ctx: Context, estimate: Estimate | None) -> Built:
         for j, (name, wave) in enumerate((('sin', np.sin(phase)), ('cos', np.cos(phase)))):
             for a in range(3):
                 cols[:, s, a, 6 * k + 3 * j + a] = wave
-                labels.append((s, f'{name}_{"xyz"[a]}_nT@{frequency:.6f}Hz'))
+                labels.append((s, line_label(name, a, frequency)))
     return cols, None, labels
 
 

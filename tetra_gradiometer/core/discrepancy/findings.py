@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .effects import LIBRARY
+from .effects import LIBRARY, line_label, step_label
 from .result import Step
 from .search import CONFOUNDED_SHARE, SearchResult
 
@@ -68,7 +68,7 @@ def _step_findings(
     out = []
     for change in search.prep.open_world.steps:
         values = per_sensor.get(f'sensor_{change.sensor + 1}', {})
-        jump = [values.get(f'jump_{a}_nT@{change.t_s:.3f}s') for a in 'xyz']
+        jump = [values.get(step_label(a, change.t_s)) for a in range(3)]
         if any(v is None for v in jump):
             continue  # a step of a sensor whose unit was not named
         out.append(
@@ -97,7 +97,8 @@ def _line_findings(
         amplitude = {}
         for s in line.sensors:
             values = per_sensor.get(f'sensor_{s + 1}', {})
-            terms = [v for key, v in values.items() if key.endswith(f'@{line.frequency_hz:.6f}Hz')]
+            keys = [line_label(w, a, line.frequency_hz) for w in ('sin', 'cos') for a in range(3)]
+            terms = [values[key] for key in keys if key in values]
             if terms:
                 # sin and cos per axis: the amplitude vector's norm
                 amplitude[f'sensor_{s + 1}'] = float(np.sqrt(np.sum(np.square(terms))))

@@ -196,7 +196,7 @@ def _context(prep: Prepared, basis: Array, knot_s: float) -> Context:
     )
 
 
-def _bounds(prep: Prepared, active: tuple[Family, ...]) -> list[int]:
+def column_bounds(prep: Prepared, active: tuple[Family, ...]) -> list[int]:
     """Column bounds: unit ``k`` has columns ``bounds[k]:bounds[k + 1]`` of the design."""
     bounds = [prep.base_cols.shape[-1]]
     for f in active:
@@ -246,7 +246,7 @@ def fit_current(prep: Prepared, active: tuple[Family, ...], y: Array, knot_s: fl
             prep, moved = refresh_background(prep, coef[:6])
         # Candidates are built on each sensor's prediction without the effects already named
         # in that sensor (a delay of a reading that holds an eddy term would differentiate it).
-        bounds = _bounds(prep, active)
+        bounds = column_bounds(prep, active)
         own = np.zeros_like(y)
         for k, f in enumerate(active):
             if f.sensor >= 0:

@@ -99,6 +99,24 @@ class _Round:
     floor: float
     settings: Settings
 
+    def without(self, k: int) -> tuple[Index, Fit]:
+        """The current model less named unit ``k``: its columns and its fit."""
+        rest = np.concatenate(
+            [self.base_idx] + [c for j, c in enumerate(self.active_cols) if j != k]
+        )
+        return rest, self.gram.evaluate(rest, self.ty, add_back=self.active_off[k])
+
+    def swapped(self, rest: Index, j: int, k: int) -> Fit:
+        """The fit with candidate unit ``j`` in the place of named unit ``k`` (``rest``:
+        :meth:`without`'s columns)."""
+        jj = self.swap_index.get(j, j)
+        return self.gram.evaluate(
+            np.concatenate([rest, self.unit_cols[jj]]),
+            self.ty,
+            self.unit_off[jj],
+            add_back=self.active_off[k],
+        )
+
     def bic(self, res: Fit) -> float:
         """Cross-validated BIC, ``n ln(SS_cv/n) + p ln n``."""
         n_obs = self.gram.n
@@ -312,10 +330,7 @@ def _backward_check(
     (its index, its replacement or None to remove it, why, the held-out gap of the revised
     model, nT)."""
     for k, f in enumerate(active):
-        rest = np.concatenate(
-            [rnd.base_idx] + [c for j, c in enumerate(rnd.active_cols) if j != k]
-        )
-        without = rnd.gram.evaluate(rest, rnd.ty, add_back=rnd.active_off[k])
+        rest, without = rnd.without(k)
         if not rnd.compare(cur, without, f.sensor)['passes']:
             return (
                 k,
@@ -352,13 +367,7 @@ def _best_replacement(
             or len(rnd.unit_cols[j]) > len(rnd.active_cols[k])
         ):
             continue  # only a unit with no more parameters may replace one
-        jj = rnd.swap_index.get(j, j)
-        res = rnd.gram.evaluate(
-            np.concatenate([rest, rnd.unit_cols[jj]]),
-            rnd.ty,
-            rnd.unit_off[jj],
-            add_back=rnd.active_off[k],
-        )
+        res = rnd.swapped(rest, j, k)
         if rnd.bic(res) < rnd.bic(cur) and (
             best_alt is None or rnd.bic(res) < rnd.bic(best_alt[1])
         ):
@@ -552,23 +561,13 @@ def _confounding(
     :data:`CONFOUNDED_SHARE` of what it explains (held out) when put in its place."""
     out: list[list[tuple[str, float]]] = []
     for k, f in enumerate(active):
-        rest = np.concatenate(
-            [rnd.base_idx] + [c for j, c in enumerate(rnd.active_cols) if j != k]
-        )
-        without = rnd.gram.evaluate(rest, rnd.ty, add_back=rnd.active_off[k])
+        rest, without = rnd.without(k)
         explained = without.cv - cur.cv
         found: dict[str, float] = {}
         for j, u in enumerate(cands.units):
             if explained <= 0 or u.sensor != f.sensor or u.candidate.name == f.candidate.name:
                 continue
-            jj = rnd.swap_index.get(j, j)
-            swapped = rnd.gram.evaluate(
-                np.concatenate([rest, rnd.unit_cols[jj]]),
-                rnd.ty,
-                rnd.unit_off[jj],
-                add_back=rnd.active_off[k],
-            )
-            share = float((without.cv - swapped.cv) / explained)
+            share = float((without.cv - rnd.swapped(rest, j, k).cv) / explained)
             if share >= CONFOUNDED_SHARE:
                 found[u.candidate.name] = max(share, found.get(u.candidate.name, 0.0))
         out.append(sorted(found.items(), key=lambda item: -item[1]))

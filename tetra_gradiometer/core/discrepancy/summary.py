@@ -15,7 +15,7 @@ from .cv import ALL_SENSORS
 from .diagnostics import diagnostics, tensor_rms
 from .effects import LIBRARY
 from .findings import findings
-from .fit import effect_field
+from .fit import column_bounds, effect_field
 from .prepare import Prepared
 from .result import BASE_MODEL, Report, Settings, Step, format_parameters
 from .search import SearchResult
@@ -52,9 +52,7 @@ def _final_steps(search: SearchResult) -> tuple[list[Step], list[Array]]:
     """Every step with the parameters of its units from the final joint fit, and the field
     (N, 4, 3) nT each step's effect contributes."""
     prep, active, coef = search.prep, search.active, search.fit.coef
-    bounds = [prep.base_cols.shape[-1]]
-    for f in active:
-        bounds.append(bounds[-1] + f.cols.shape[-1])
+    bounds = column_bounds(prep, active)
     steps: list[Step] = []
     fields: list[Array] = []
     for step, members in zip(search.steps, search.step_units, strict=True):
