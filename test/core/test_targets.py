@@ -163,6 +163,27 @@ def test_the_noise_models_effective_samples_match_an_ar1_process():
     expected = w**2 / np.sum((w - np.abs(k)) * phi ** (2 * np.abs(k)))
     assert model.dof == pytest.approx(expected, rel=0.05)
     averaged = window_mean(model.statistic(components), w)[::w]
-    threshold, _ = model.limits(1e-2)
-    assert np.mean(averaged > threshold) == pytest.approx(1e-2, rel=0.3)
-    assert threshold > stats.chi2.isf(1e-2, 5 * w) / w  # the white-noise threshold would not hold
+    point = model.point(1e-2)
+    assert np.mean(averaged > point) == pytest.approx(1e-2, rel=0.3)
+    assert point > stats.chi2.isf(1e-2, 5 * w) / w  # the white-noise point would not hold
+
+
+@pytest.mark.parametrize('phi', [0.0, 0.3])
+def test_the_threshold_is_crossed_upwards_at_the_stated_rate(phi):
+    """The running mean of q crosses the threshold upwards as often per hour as stated, on
+    white and on AR(1) noise simulated for 10 hours at 10 Hz (a tail probability per window
+    length would be crossed several times as often: the bench's 0.33 per hour at 0.1)."""
+    from scipy import signal
+
+    from tetra_gradiometer.core.targets.detection import NoiseModel, window_mean
+
+    rng = np.random.default_rng([11, int(phi * 10)])
+    w, rate_hz, hours, stated = 20, 10.0, 10, 60.0
+    n = int(hours * 3600 * rate_hz)
+    white = rng.normal(size=(n, 5)) * np.sqrt(1 - phi**2)
+    components = signal.lfilter([1.0], [1.0, -phi], white, axis=0) * 1e-10
+    model = NoiseModel.fit(components, np.ones(n, bool), [(0, n)], w)
+    averaged = window_mean(model.statistic(components), w)
+    threshold = model.threshold(stated, rate_hz)
+    crossings = np.count_nonzero((averaged[1:] > threshold) & (averaged[:-1] <= threshold))
+    assert crossings / hours == pytest.approx(stated, rel=0.15)
