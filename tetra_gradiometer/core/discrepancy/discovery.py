@@ -58,17 +58,19 @@ def scan_residual(
                 steps = find_steps(prep.t, residual[:, s], alpha, s)
                 found = found.with_steps(tuple(steps))
     if 'periodic_interference' in names:
-        recorded = [prep.b_rate] + [
-            series[:, None]
-            for series in (prep.temperature_c, prep.current_a)
-            if series is not None
-        ]
+        recorded = [prep.b_rate]
+        channels = ['field_rate_x', 'field_rate_y', 'field_rate_z']
+        for name, series in (('temperature', prep.temperature_c), ('current', prep.current_a)):
+            if series is not None:
+                recorded.append(series[:, None])
+                channels.append(name)
         lines = find_lines(
             prep.t,
             residual[:, list(prep.sensors)],
             np.concatenate(recorded, axis=1),
             alpha,
             found.lines,
+            tuple(channels),
         )
         # The scan's sensors are positions in prep.sensors (pair view: sensors 2-4).
         lines = [

@@ -507,10 +507,10 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate(
         'periodic_interference',
         'A rotating magnet near some sensors (a shaft, a pump, a fan) adds a sinusoid at its '
-        'rotation frequency that no recorded channel carries. Outside the library: found as '
-        'a spectral line of the residual (periodogram over its local noise level, with a '
-        'false-alarm probability), its frequency refined by least squares; fitted as sine '
-        'and cosine terms per axis of the sensors that carry it.',
+        'rotation frequency. Outside the library: found as a spectral line of the residual '
+        '(periodogram over its local noise level, with a false-alarm probability), its '
+        'frequency refined by least squares; fitted as sine and cosine terms per axis of the '
+        'sensors that carry it; a recorded channel with a line there too is named with it.',
         'sine and cosine amplitudes per axis, nT, at frequency_hz',
         (),
         _lines,

@@ -111,11 +111,22 @@ def _line_findings(
                 'frequency_hz': line.frequency_hz,
                 'amplitude_nT': amplitude,
                 'confounded_with': confounded,
+                'recorded_with_line': list(line.recorded),
                 'evidence': (
                     f'spectral line at {line.frequency_hz:.5g} Hz: power {line.power:.3g} x '
                     f'the local noise level, false-alarm probability {line.false_alarm:.2g}; '
-                    f'no recorded channel has it; {text}'
+                    f'{_recorded_text(line.recorded)}; {text}'
                 ),
             }
         )
     return out
+
+
+def _recorded_text(recorded: tuple[str, ...]) -> str:
+    if not recorded:
+        return 'no recorded channel has it'
+    return (
+        f'{", ".join(recorded)} also has a line there: an effect of that channel the library '
+        'has no form for would look the same (a run whose manoeuvre or load has no power at '
+        'this frequency separates them)'
+    )

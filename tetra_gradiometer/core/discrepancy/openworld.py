@@ -14,9 +14,12 @@ of the current model's residual and then offered to the search like a library ef
   the local noise level (running median over neighbouring frequencies, so a coloured
   residual does not raise false lines); false-alarm probability ``1 - (1 - exp(-z))^M``
   with ``M`` the number of independent frequencies (Scargle 1982). A line is reported on
-  the sensors where some axis passes at ``alpha`` (at least ten periods in the run) and
-  no recorded channel (field rate, temperature, current) has a line there; its frequency
-  is refined by least squares on sine and cosine terms.
+  the sensors where some axis passes at ``alpha`` (at least ten periods in the run); its
+  frequency is refined by least squares on sine and cosine terms. A recorded channel
+  (field rate, temperature, current) with a line there too is named with it: the scans
+  run only once no library family passes, so the library has no form for it, but a
+  missing effect of that channel would look the same (a manoeuvre's band holds many such
+  lines; skipping them lost real lines below 0.22 Hz).
 
 Why not the packages the field uses: the core imports numpy and scipy only (``ruptures``,
 ``astropy.timeseries.LombScargle`` are outside it), and ``scipy.signal.lombscargle`` is
@@ -62,12 +65,14 @@ class StepChange:
 @dataclass(frozen=True)
 class SpectralLine:
     """A sinusoid at ``frequency_hz`` in ``sensors`` (0-based), with the false-alarm
-    probability of the strongest channel and its power over the local noise level."""
+    probability of the strongest channel, its power over the local noise level and the
+    ``recorded`` channels (names) that have a line there too."""
 
     frequency_hz: float
     sensors: tuple[int, ...]
     false_alarm: float
     power: float
+    recorded: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -184,11 +189,13 @@ def find_lines(
     recorded: Array,
     alpha: float,
     known: tuple[SpectralLine, ...] = (),
+    recorded_names: tuple[str, ...] = (),
 ) -> list[SpectralLine]:
-    """Lines in ``residual`` (N, s, 3) nT (sensor-major) that no ``recorded`` channel
-    (N, r) has (module docstring), strongest first; none within two independent
-    frequencies of a ``known`` one. Each line found is fitted and taken out of the channels
-    before the next search (its window's sidelobes are no lines)."""
+    """Lines in ``residual`` (N, s, 3) nT (sensor-major), strongest first, each with the
+    ``recorded`` channels (N, r), named by ``recorded_names``, that have a line there too
+    (module docstring); none within two independent frequencies of a ``known`` one. Each
+    line found is fitted and taken out of the channels before the next search (its
+    window's sidelobes are no lines)."""
     channels = residual.reshape(len(t), -1).copy()
     independent = len(t) // 2
     _, recorded_power = periodogram(t, recorded)
@@ -216,13 +223,18 @@ def find_lines(
         columns = np.concatenate([np.arange(3 * s, 3 * s + 3) for s in sensors])
         frequency = _refined_frequency(t, channels[:, columns], float(frequencies[i]), bin_hz)
         channels[:, columns] -= _sinusoid(t, channels[:, columns], frequency)
-        duplicate = any(abs(frequency - f) <= 2 * OVERSAMPLE * bin_hz for f in taken)
-        if duplicate or np.any(recorded_fap[near] < alpha):
-            continue  # known, or a recorded channel has it: the library's business
+        if any(abs(frequency - f) <= 2 * OVERSAMPLE * bin_hz for f in taken):
+            continue  # known
         taken.append(frequency)
+        shared = np.flatnonzero(recorded_fap[near].min(axis=0) < alpha)
+        names = recorded_names or tuple(f'recorded_{k}' for k in range(recorded.shape[1]))
         lines.append(
             SpectralLine(
-                frequency, tuple(int(s) for s in sensors), float(fap[i].min()), float(z[i].max())
+                frequency,
+                tuple(int(s) for s in sensors),
+                float(fap[i].min()),
+                float(z[i].max()),
+                tuple(names[k] for k in shared),
             )
         )
     return lines
