@@ -57,6 +57,7 @@ bench: setup
 	$(PY) bench/bench_scale.py
 	$(PY) bench/bench_chain.py
 	$(PY) bench/bench_discrepancy.py
+	$(PY) bench/bench_openworld.py
 	$(PY) bench/bench_health.py
 	$(PY) bench/bench_targets.py --speed
 
