@@ -18,7 +18,8 @@ def findings(search: SearchResult, steps: list[Step]) -> list[dict[str, Any]]:
 
     Each entry: ``effect``, ``sensors`` (1-based; ``[]`` for a term common to all sensors),
     ``confounded_with`` (names), ``evidence`` (text); steps add ``t_s`` (s from the first
-    sample) and ``jump_nT`` (3,), lines ``frequency_hz`` and ``amplitude_nT`` per sensor.
+    sample) and ``jump_nT`` (3,), lines ``frequency_hz``, ``amplitude_nT`` per sensor and
+    ``recorded_with_line`` (recorded channels with a line at that frequency too).
     """
     out: list[dict[str, Any]] = []
     for step, members in zip(steps, search.step_units, strict=True):
@@ -94,20 +95,21 @@ def _line_findings(
 ) -> list[dict[str, Any]]:
     out = []
     for line in search.prep.open_world.lines:
-        amplitude = {}
-        for s in line.sensors:
+        keys = [line_label(w, a, line.frequency_hz) for w in ('sin', 'cos') for a in range(3)]
+        amplitude, sensors = {}, []
+        for s in sorted(line.sensors):
             values = per_sensor.get(f'sensor_{s + 1}', {})
-            keys = [line_label(w, a, line.frequency_hz) for w in ('sin', 'cos') for a in range(3)]
             terms = [values[key] for key in keys if key in values]
             if terms:
                 # sin and cos per axis: the amplitude vector's norm
                 amplitude[f'sensor_{s + 1}'] = float(np.sqrt(np.sum(np.square(terms))))
+                sensors.append(s + 1)
         if not amplitude:
             continue
         out.append(
             {
                 'effect': 'periodic_interference',
-                'sensors': sorted(int(key.split('_')[1]) for key in amplitude),
+                'sensors': sensors,
                 'frequency_hz': line.frequency_hz,
                 'amplitude_nT': amplitude,
                 'confounded_with': confounded,

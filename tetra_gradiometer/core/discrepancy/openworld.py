@@ -200,16 +200,18 @@ def find_lines(
     independent = len(t) // 2
     _, recorded_power = periodogram(t, recorded)
     recorded_fap = false_alarm(line_power(recorded_power), independent)
+    names = recorded_names or tuple(f'recorded_{k}' for k in range(recorded.shape[1]))
     taken = [k.frequency_hz for k in known]
     lines: list[SpectralLine] = []
     for _ in range(2 * MAX_LINES):
         frequencies, power = periodogram(t, channels)
         bin_hz = float(frequencies[1] - frequencies[0])
-        duration = float(t[-1] - t[0])
         # Not the first bins (ten periods at least: the mean's leakage, and the slow misfit
         # the model's own terms leave) nor the last percent (Nyquist's power has one
         # degree of freedom, not two).
-        usable = (frequencies > 10.0 / duration) & (frequencies < 0.99 * frequencies[-1])
+        usable = (frequencies > 10.0 / float(t[-1] - t[0])) & (
+            frequencies < 0.99 * frequencies[-1]
+        )
         z = line_power(power)
         fap = false_alarm(z, independent * z.shape[1])  # Bonferroni over the channels too
         fap[~usable] = 1.0
@@ -227,7 +229,6 @@ def find_lines(
             continue  # known
         taken.append(frequency)
         shared = np.flatnonzero(recorded_fap[near].min(axis=0) < alpha)
-        names = recorded_names or tuple(f'recorded_{k}' for k in range(recorded.shape[1]))
         lines.append(
             SpectralLine(
                 frequency,

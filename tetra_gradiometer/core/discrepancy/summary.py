@@ -120,10 +120,9 @@ def _data(search: SearchResult, info: RunInfo) -> dict[str, Any]:
     return data
 
 
-def _closing_notes(search: SearchResult, info: RunInfo) -> list[str]:
+def _closing_notes(search: SearchResult, info: RunInfo, excluded: float) -> list[str]:
     """The run's notes, the revisions, and what an inadequate model means."""
     notes = list(info.notes) + list(search.notes)
-    excluded = _excluded_fraction(search.prep, info)
     if excluded > info.settings.max_excluded:
         notes.append(
             f'{100 * excluded:.1f} % of the samples were excluded as target passages, more '
@@ -202,7 +201,7 @@ def build_report(
         adequate=bool(adequate),
         untestable=info.untestable,
         view='absolute' if prep.absolute else 'pair',
-        notes=_closing_notes(search, info),
+        notes=_closing_notes(search, info, excluded),
         rounds=search.rounds,
         diagnostics=diag,
         base_parameters=_base_parameters(search),

@@ -310,13 +310,21 @@ def _confirm(
         per_sensor = whitened.reshape(len(whitened), -1, 3).sum(axis=(0, 2))
         one_sensor = float(per_sensor.max() / max(per_sensor.sum(), 1e-300))
         lasting = one_sensor >= settings.target_one_sensor
-        if lasting or len(edges) == 2 or min(peak - i, j - peak) < width:
+        failed = [
+            why
+            for why, fails in (
+                (f'{100 * one_sensor:.0f} % of it is in one sensor', lasting),
+                (f'it does not fall below {settings.target_edge:g} x its peak on either side',
+                 len(edges) == 2),
+                ('it peaks at an end of the span', min(peak - i, j - peak) < width),
+            )
+            if fails
+        ]  # fmt: skip
+        if failed:
             notes.append(
                 f'{t[i]:.1f}-{t[j]:.1f} s not excluded: the disagreement peaks at '
-                f'{t[peak]:.1f} s and does not fall below {settings.target_edge:g} x its peak '
-                f'on either side, or peaks at an end, or {100 * one_sensor:.0f} % of it is in '
-                'one sensor: no evidence of a source passing by; a change of the vehicle is '
-                'for the model to explain'
+                f'{t[peak]:.1f} s and {"; ".join(failed)}: no evidence of a source passing by; '
+                'a change of the vehicle is for the model to explain'
             )
         elif ratio >= settings.target_confirm:
             confirmed.append((i, j))
