@@ -11,6 +11,7 @@ from __future__ import annotations
 __all__ = [
     'BagError',
     'CalibrationFileError',
+    'DependencyError',
     'GeometryError',
     'IdentifiabilityError',
     'InputError',
@@ -61,6 +62,10 @@ class BagError(InputError):
 
 class ScenarioError(InputError):
     """A scenario file is missing or invalid."""
+
+
+class DependencyError(TetraError, ImportError):
+    """A package only the offline tools need (rosbags, ppigrf, dask) is not installed."""
 
 
 class OutputError(TetraError, ValueError):

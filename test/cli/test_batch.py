@@ -28,7 +28,7 @@ from tetra_gradiometer.cli import discrepancy as discrepancy_cli
 from tetra_gradiometer.cli._args import timebase_from_args
 from tetra_gradiometer.core.discrepancy import Settings
 from tetra_gradiometer.core.timebase import DEFAULT_TIMEBASE
-from tetra_gradiometer.io import fleet
+from tetra_gradiometer.cli import fleet
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
 from tetra_gradiometer.io.scenario import load_scenario
@@ -417,7 +417,7 @@ def test_the_batch_uses_the_single_bag_commands_defaults():
         if module is calibrate_cli:
             import inspect
 
-            from tetra_gradiometer.io.bag_calibration import calibrate_bag
+            from tetra_gradiometer.pipelines.calibration import calibrate_bag
             defaults = {k: p.default for k, p in inspect.signature(calibrate_bag).parameters.items()}
             for name in ('method', 'seed', 'generations', 'wide_bounds', 'max_coverage_condition',
                          'max_sets', 'force'):
@@ -429,7 +429,7 @@ def test_the_batch_uses_the_single_bag_commands_defaults():
 
 def test_only_the_command_imports_dask():
     """The per-bag task and everything below it run without Dask (core/, io/)."""
-    code = ('import sys, tetra_gradiometer.io.fleet, tetra_gradiometer.core; '
+    code = ('import sys, tetra_gradiometer.cli.fleet, tetra_gradiometer.core; '
             'print(sorted(m for m in sys.modules if m.split(".")[0] in ("dask", "distributed")))')
     result = subprocess.run([sys.executable, '-c', code], check=True, capture_output=True, text=True)
     assert result.stdout.strip() == '[]'

@@ -177,7 +177,7 @@ def test_a_figure_that_raises_does_not_cost_the_report(tmp_path, capsys, monkeyp
     def broken(report, path):
         raise RuntimeError('plotting bug')
 
-    monkeypatch.setattr('tetra_gradiometer.io.report._plot_diagnostics', broken)
+    monkeypatch.setattr('tetra_gradiometer.reports.discrepancy._plot_diagnostics', broken)
     case, bag, params = _bag(tmp_path, 21, ('time_skew',))
     out = tmp_path / 'out'
     assert main(['discrepancy', str(bag), '--params', str(params), '--out', str(out)]) == 0

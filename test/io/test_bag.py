@@ -162,7 +162,7 @@ def test_a_bag_recorded_under_a_vehicle_namespace_is_read_through_a_topic_map(tm
     """A topic map (``FROM:=TO``, as ``ros2 bag play --remap``) reads the bag's own names as
     the contract's: the sets equal the fields written; without it the bag is refused with a
     hint; replay frames carry the contract's keys."""
-    from tetra_gradiometer.io import replay
+    from tetra_gradiometer.nodes import replay
 
     stamps = START + np.arange(200) * 20_000_000
     fields = np.random.default_rng(5).normal(0.0, 3e-5, (200, 4, 3))

@@ -1,4 +1,4 @@
-"""``calibrate --report DIR`` (cli/calibrate.py, io/calibration_report.py, io/bag_calibration.
+"""``calibrate --report DIR`` (cli/calibrate.py, reports/calibration.py, pipelines/calibration.
 assess_window) through the CLI in-process: the printed trim assessment and the report folder,
 against the simulator's truth (the vehicle's exact parameters, the trim's attitudes), and the
 refusals that keep foreign files safe."""

@@ -17,7 +17,7 @@ from tetra_gradiometer.core.timebase import TimeBase
 
 from tetra_gradiometer.core import TetraGeometry
 from tetra_gradiometer.io import conversions as cv
-from tetra_gradiometer.io import replay
+from tetra_gradiometer.nodes import replay
 from tetra_gradiometer.io.bag import BagError, BagWriter, MagneticBag, decode_magnetic_field, typestore
 from tetra_gradiometer.io.bag_skips import SkippedMessage
 from tetra_gradiometer.io.params import params_document

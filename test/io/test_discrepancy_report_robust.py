@@ -14,9 +14,9 @@ from cli_helpers import run_cli
 
 from tetra_gradiometer.core.discrepancy import Report, Step
 from tetra_gradiometer.core.geometry import TetraGeometry
-from tetra_gradiometer.io import report as report_io
+from tetra_gradiometer.reports import discrepancy as report_io
 from tetra_gradiometer.io.params import params_document
-from tetra_gradiometer.io.report import (
+from tetra_gradiometer.reports.discrepancy import (
     percent_text,
     report_json,
     report_markdown,

@@ -1,4 +1,4 @@
-"""io/replay.py and io/conversions.py: the magnetometers' ``magnetic_field_covariance``
+"""nodes/replay.py and io/conversions.py: the magnetometers' ``magnetic_field_covariance``
 (REP 145) in the driver's frames. Simulated: ``diag(sigma^2)`` of the scenario's noise;
 replayed: the recorded covariance kept when it is usable, else ``diag(sensor_noise_t^2)``,
 else REP 145's unknown (-1 in the first element). Through rosbags' own CDR (no ROS graph)."""
@@ -10,7 +10,7 @@ import yaml
 from rosbags.typesys import Stores, get_typestore
 
 from tetra_gradiometer.io import conversions as cv
-from tetra_gradiometer.io import replay
+from tetra_gradiometer.nodes import replay
 from tetra_gradiometer.io.bag import BagWriter
 
 T0 = 1_767_225_600 * 10**9

@@ -1,4 +1,4 @@
-"""io/track.py: the target node's live track against a known trajectory (straight lines at
+"""nodes/track.py: the target node's live track against a known trajectory (straight lines at
 constant speed: linear interpolation is exact; a constant yaw rate: slerp is exact) and
 counts fixed by construction."""
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from tetra_gradiometer.core.targets import DetectorSettings
-from tetra_gradiometer.io.track import SurveyTrack
+from tetra_gradiometer.nodes.track import SurveyTrack
 
 T0 = 1_800_000_000 * 10**9
 MS = 1_000_000

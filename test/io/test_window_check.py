@@ -1,11 +1,11 @@
-"""io/window_check.py's attitude from /odom against scipy's rotations: a vehicle yawing at a
+"""pipelines/window_check.py's attitude from /odom against scipy's rotations: a vehicle yawing at a
 constant rate (slerp between messages is then exact), gaps in /odom, and the live history."""
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tetra_gradiometer.io.window_check import MAX_ODOM_GAP_S, AttitudeHistory, orientation_at
+from tetra_gradiometer.pipelines.window_check import MAX_ODOM_GAP_S, AttitudeHistory, orientation_at
 
 NS = 10**9
 T0 = 1_800_000_000 * NS

@@ -1,4 +1,4 @@
-"""nodes/target.py and its outputs (io/target_messages.py, io/track.py).
+"""nodes/target.py and its outputs (nodes/target_messages.py, nodes/track.py).
 
 Truth: hand-built fits and tracks for the messages (read back through rclpy's own
 serialization) and scipy's rotations for the pose orientation; the simulator's dipole for the
@@ -17,7 +17,7 @@ from ros_helpers import ros_graph, wait_for, wait_matched
 from scipy.spatial.transform import Rotation
 
 from tetra_gradiometer.io import conversions as cv
-from tetra_gradiometer.io import target_messages as tm
+from tetra_gradiometer.nodes import target_messages as tm
 
 T0 = 1_800_000_000 * 10**9
 PERIOD_NS = 10**8  # 10 Hz, the node's default sample rate: one sample per bin
@@ -54,7 +54,7 @@ def _target(position, sigma, moment, detection):
 def _located():
     """Two finite targets and one with a NaN covariance, on a 10-sample track."""
     from tetra_gradiometer.core.targets import Detection, DetectionResult, Survey
-    from tetra_gradiometer.io.track import TrackSnapshot
+    from tetra_gradiometer.nodes.track import TrackSnapshot
 
     n = 10
     t = np.arange(n) * 0.1

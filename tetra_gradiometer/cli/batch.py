@@ -2,7 +2,7 @@
 
 Every bag of the fleet folder ``DIR`` (a subfolder ``NAME/`` with its params YAML beside it
 as ``NAME.yaml``) is calibrated on the window, compensated and analysed for discrepancies,
-one Dask task per bag (:func:`tetra_gradiometer.io.fleet.process_bag`): on a
+one Dask task per bag (:func:`tetra_gradiometer.cli.fleet.process_bag`): on a
 ``dask.distributed.LocalCluster`` of this machine by default (one single-threaded worker
 process per core), on a running cluster with ``--scheduler tcp://HOST:PORT``. Each bag's
 outputs go to ``OUT/NAME/``; ``OUT/summary.csv`` has one row per bag (``ok``, ``refused`` or
@@ -23,8 +23,12 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from .._optional import require
 from ..errors import InputError
-from ..io.fleet import (
+from ..io.outputs import BATCH, output_folder
+from ..io.progress import progress_bar
+from ._args import add_force_argument, add_progress_arguments, int_range, window_arg
+from .fleet import (
     STATUSES,
     SUMMARY_FILE,
     BagJob,
@@ -35,9 +39,6 @@ from ..io.fleet import (
     task_error_row,
     write_summary,
 )
-from ..io.outputs import BATCH, output_folder
-from ..io.progress import progress_bar
-from ._args import add_force_argument, add_progress_arguments, int_range, window_arg
 
 #: ``--workers``: LocalCluster worker processes.
 MAX_WORKERS = 256
@@ -115,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
 def _client(scheduler: str | None, workers: int | None, n_jobs: int) -> Iterator[tuple[Any, str]]:
     """A ``distributed.Client`` of ``scheduler``, or of a LocalCluster started (and closed)
     here; with a description of where the tasks run."""
-    from dask.distributed import Client, LocalCluster
+    distributed = require('dask.distributed', 'batch (a fleet on Dask)')
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
 
     if scheduler is not None:
         try:

@@ -10,12 +10,12 @@ manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and ``pape
 do not use that assumption). ``--method`` is one of the registry's methods whose result is
 a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help`` describes them).
 
-The work is :func:`tetra_gradiometer.io.bag_calibration.calibrate_assessed` (``batch``
+The work is :func:`tetra_gradiometer.pipelines.calibration.calibrate_assessed` (``batch``
 calls it too): the window is read streaming, and thinned to at most ``--max-sets`` sets (the
 printed summary says so); the trim assessment of the sets used (predicted survey accuracy,
 coverage, enough or the next manoeuvre) refuses a window that does not excite the
 parameters. The assessment is printed, and ``--report DIR`` writes it with plots
-(:mod:`tetra_gradiometer.io.calibration_report`).
+(:mod:`tetra_gradiometer.reports.calibration`).
 """
 
 from __future__ import annotations
@@ -33,17 +33,17 @@ from ..core.identification import (
 )
 from ..core.timebase import clocks_text
 from ..core.units import NT_PER_T
-from ..io.bag_calibration import (
+from ..io.calibration import save_calibration
+from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
+from ..io.params import earth_field_from_params, geometry_from_params, load_params
+from ..pipelines.calibration import (
     DEFAULT_MAX_SETS,
     MIN_SETS,
     BagCalibration,
     WindowAssessment,
     calibrate_assessed,
 )
-from ..io.calibration import save_calibration
-from ..io.calibration_report import write_calibration_report
-from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
-from ..io.params import earth_field_from_params, geometry_from_params, load_params
+from ..reports.calibration import write_calibration_report
 from ._args import (
     add_bag_arguments,
     add_force_argument,

@@ -3,7 +3,7 @@
 
 Streams the bag's matched magnetometer sets, forms the tensor (eq. 7) and compensates it
 (eq. 19) with the calibration's ``k``, ``b``; ``--raw`` skips the compensation. The work is
-:func:`tetra_gradiometer.io.bag_compensation.compensate_bag`.
+:func:`tetra_gradiometer.pipelines.compensation.compensate_bag`.
 
 CSV (written to a temporary file, renamed into place at the end)::
 
@@ -27,7 +27,7 @@ the set's stamp (``conversions.tensor_msg``).
 
 ``--report DIR`` runs the health monitor (core/health.py) over the compensated sets and
 writes ``DIR/report.json`` (``alarms``: ``t_s`` seconds since the bag's first message,
-``kind``, ``sensors`` 1-based, ``statistic``, ``threshold``; io/health_report.py) and
+``kind``, ``sensors`` 1-based, ``statistic``, ``threshold``; reports/health.py) and
 ``DIR/health.png``; ``--false-alarms-per-hour`` sets its threshold.
 """
 
@@ -43,15 +43,16 @@ from ..core.timebase import clocks_text
 from ..core.units import NT_PER_T
 from ..errors import InputError
 from ..io.bag import STORAGES
-from ..io.bag_compensation import (
+from ..io.outputs import HEALTH_REPORT, check_output
+from ..io.params import geometry_from_params, load_params
+from ..pipelines.compensation import (
     Compensation,
     check_outputs,
     compensate_bag,
     load_compensation,
 )
-from ..io.health_report import HealthRecorder
-from ..io.outputs import HEALTH_REPORT, check_output
-from ..io.params import geometry_from_params, load_params
+from ..pipelines.health import HealthRecorder
+from ..reports.health import write_health_report
 from ._args import (
     MAX_FALSE_ALARMS_PER_HOUR,
     add_bag_arguments,
@@ -172,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out_bag is not None:
         print(f'bag: {args.out_bag} ({counts.topic}, T/m)')
     if health is not None:
-        health.write(args.report, force=args.force, inputs=inputs)
+        write_health_report(health, args.report, force=args.force, inputs=inputs)
         print(f'health: {health.document()["verdict"]}; report: {args.report}')
     return 0
 

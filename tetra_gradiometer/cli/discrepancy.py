@@ -1,7 +1,7 @@
 """``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR [--window T0:T1]``.
 
-The work is :func:`tetra_gradiometer.io.bag_discrepancy.analyze_bag` (``batch`` calls it
-too); the report folder is :func:`tetra_gradiometer.io.report.write_report`.
+The work is :func:`tetra_gradiometer.pipelines.discrepancy.analyze_bag` (``batch`` calls it
+too); the report folder is :func:`tetra_gradiometer.reports.discrepancy.write_report`.
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import sys
 import time
 
 from ..core.discrepancy import CANDIDATES, LIBRARY, Settings
-from ..io.bag_discrepancy import analyze_bag
 from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
-from ..io.report import channel_warnings, percent_text, write_report
+from ..pipelines.discrepancy import analyze_bag
+from ..reports.discrepancy import channel_warnings, percent_text, write_report
 from ._args import add_bag_arguments, finite_float, int_range, timebase_from_args, window_arg
 
 #: ``--folds``: at least 2 (one to fit, one to test); the run is cut into ~40 blocks, so more

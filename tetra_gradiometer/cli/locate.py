@@ -7,7 +7,7 @@ the straight legs of the ``/odom`` track, and each is fitted with a point dipole
 background per pass (:func:`tetra_gradiometer.core.targets.locate`). ``--raw`` searches the
 uncompensated tensor instead (no calibration needed).
 
-``DIR`` (written as one atomic folder; :mod:`tetra_gradiometer.io.targets_report`)::
+``DIR`` (written as one atomic folder; :mod:`tetra_gradiometer.reports.targets`)::
 
     targets.json       {"targets": [{"position_m", "position_sigma_m", "moment_Am2",
                         "moment_sigma_Am2", "first_seen_s", "last_seen_s",
@@ -30,11 +30,11 @@ import time
 
 from ..core.targets import DetectorSettings, LocatorSettings
 from ..errors import InputError
-from ..io.bag_targets import locate_bag
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import TARGETS, check_output
 from ..io.params import geometry_from_params, load_params
-from ..io.targets_report import write_locate_report
+from ..pipelines.targets import locate_bag
+from ..reports.targets import write_locate_report
 from ._args import (
     MAX_FALSE_ALARMS_PER_HOUR,
     add_bag_arguments,

@@ -2,7 +2,7 @@
 
 The numbers are :mod:`tetra_gradiometer.core.paper` (the scenario, both readings, every
 method); ``results.json``, the figures and the printed table are
-:mod:`tetra_gradiometer.io.paper_report`. Every choice the paper leaves open is written into
+:mod:`tetra_gradiometer.reports.paper`. Every choice the paper leaves open is written into
 ``results.json`` ("scenario") and docs/paper.md.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 from ..core.identification.paper_ga import GENERATIONS
 from ..core.paper import METHODS, Choices
 from ..errors import InputError
-from ..io.paper_report import FIGURES, format_table, reproduce
+from ..reports.paper import FIGURES, format_table, reproduce
 from ._args import add_force_argument, int_range, seed_arg
 
 #: ``--generations``: at least one, at most 100x the paper's 1000.

@@ -2,7 +2,7 @@
 
 Flies a scenario file (format: :mod:`tetra_gradiometer.io.scenario`) and writes the bag
 ``BAG/``, ``BAG.params.yaml`` and ``BAG.truth.npz`` beside it, each atomically; the work and
-the files' contents are :func:`tetra_gradiometer.io.simulation.simulate_to_bag`.
+the files' contents are :func:`tetra_gradiometer.pipelines.simulation.simulate_to_bag`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import numpy as np
 from ..core.units import NS_PER_S, NT_PER_T
 from ..errors import InputError
 from ..io.bag import STORAGES
-from ..io.simulation import SimulatedBag, simulate_to_bag
+from ..pipelines.simulation import SimulatedBag, simulate_to_bag
 from ._args import add_force_argument, add_progress_arguments, seed_arg
 
 DEFAULT_START = '2026-01-01T00:00:00Z'

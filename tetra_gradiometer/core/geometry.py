@@ -14,6 +14,7 @@ from ..errors import GeometryError
 from ._validate import as_fields, frozen_array
 from .plausibility import check_geometry
 from .types import ArrayLike, FloatArray
+from .units import S_PER_NS
 
 #: Largest condition number of ``a`` accepted by default. A regular tetrahedron has 2;
 #: noise on the tensor grows with cond(a), and past ~1e3 the array is nearly flat.
@@ -164,3 +165,20 @@ def to_body(tensors: FloatArray, rotations: FloatArray) -> FloatArray:
     """Odom-frame tensors (N, 3, 3) into the body frame: ``R^T G R`` (inverse of
     :func:`to_world`)."""
     return np.einsum('nji,njk,nkl->nil', rotations, tensors, rotations)
+
+
+def interp_orientation(
+    series_stamps: np.ndarray, quats: np.ndarray, stamps: np.ndarray
+) -> np.ndarray:
+    """Quaternions ``quats`` (m, 4) at ``series_stamps`` (m,) ns slerped onto ``stamps`` (n,)
+    ns, held at the ends: (n, 4)."""
+    # scipy.spatial is imported here, not with the module: only the attitude paths need it,
+    # and it costs an on-vehicle node that never reads /odom a noticeable start-up.
+    from scipy.spatial.transform import Rotation, Slerp
+
+    if len(series_stamps) == 1:
+        return np.repeat(quats, len(stamps), axis=0)
+    t0 = series_stamps[0]
+    slerp = Slerp((series_stamps - t0) * S_PER_NS, Rotation.from_quat(quats))
+    clipped = np.clip((stamps - t0) * S_PER_NS, 0.0, (series_stamps[-1] - t0) * S_PER_NS)
+    return slerp(clipped).as_quat()

@@ -14,7 +14,7 @@ objective solved exactly (``constraint_lstsq``), both on the 30 identification p
 ``known_gradient_lstsq`` with 27 (symmetric) and 36 (general) parameters on a trim manoeuvre
 flown before the pass; ``pei_yeo_2009`` (reference [8]) on the same 30 points as the paper's
 method, as the paper compared them. numpy and scipy only: files and figures are
-:mod:`tetra_gradiometer.io.paper_report`.
+:mod:`tetra_gradiometer.reports.paper`.
 """
 
 from __future__ import annotations

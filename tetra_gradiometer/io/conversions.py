@@ -15,7 +15,7 @@ Contract (README, "Topics"):
   ``position`` = ``G_ij = dB_i/dx_j`` in T/m, frame ``tetra_array``.
 * ``/odom``: ``nav_msgs/Odometry``, orientation rotates body vectors into ENU.
 * the target node's outputs: ``geometry_msgs/PoseArray`` (m, odom frame) and
-  ``visualization_msgs/MarkerArray``, built by io/target_messages.py from the classes here.
+  ``visualization_msgs/MarkerArray``, built by nodes/target_messages.py from the classes here.
 * ``/tetra/temperature``: ``sensor_msgs/Temperature`` (degC);
   ``/battery_state``: ``sensor_msgs/BatteryState`` (``current`` in A).
 

@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from ..core import MissionData, SensorStream
+from ..core.geometry import interp_orientation
 from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
@@ -202,19 +202,6 @@ class Recording:
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
-
-
-def interp_orientation(
-    series_stamps: np.ndarray, quats: np.ndarray, stamps: np.ndarray
-) -> np.ndarray:
-    """Quaternions ``quats`` (m, 4) at ``series_stamps`` (m,) ns slerped onto ``stamps`` (n,)
-    ns, held at the ends: (n, 4)."""
-    if len(series_stamps) == 1:
-        return np.repeat(quats, len(stamps), axis=0)
-    t0 = series_stamps[0]
-    slerp = Slerp((series_stamps - t0) * S_PER_NS, Rotation.from_quat(quats))
-    clipped = np.clip((stamps - t0) * S_PER_NS, 0.0, (series_stamps[-1] - t0) * S_PER_NS)
-    return slerp(clipped).as_quat()
 
 
 def read_recording(

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .._optional import require
 from ..core import (
     CurrentProfile,
     Dipole,
@@ -80,7 +81,7 @@ def igrf_field_enu(
     latitude_deg: float, longitude_deg: float, date: _dt.date | str, altitude_m: float = 0.0
 ) -> np.ndarray:
     """IGRF-14 main field (3,) in tesla, ENU, at a place and date (ppigrf)."""
-    import ppigrf
+    ppigrf = require('ppigrf', 'the IGRF field of a scenario (earth_field: igrf)')
 
     when = _dt.datetime.fromisoformat(str(date)) if not isinstance(date, _dt.date) else date
     if not isinstance(when, _dt.datetime):

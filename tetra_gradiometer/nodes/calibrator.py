@@ -8,7 +8,7 @@ stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
 * ``~/calibrate``: solve with ``method`` on a snapshot of the collected samples. Too few
   samples, or a body-frame field spanning too few directions (the attitude-coverage
   condition number is given), answer success=false with the reason. The known-gradient
-  methods solve as ``calibrate`` does (:func:`~tetra_gradiometer.io.window_check.
+  methods solve as ``calibrate`` does (:func:`~tetra_gradiometer.pipelines.window_check.
   identify_checked`): a regional world-frame gradient jointly when every sample has an
   ``odom`` attitude (else it is assumed zero, as the reply and the file's ``notes`` say),
   then the test of the fit's assumption; samples that fail it (a target, a bad stretch),
@@ -53,7 +53,7 @@ samples since the last tick are added in the timer, in its own callback group); 
 attitude is the nearest ``odom`` message (nav_msgs/Odometry: the relative topic, the
 driver's ``/tetra/odom``; on a vehicle remap it to the navigation's, ``-r odom:=/odom``)
 within 0.5 s
-(:class:`~tetra_gradiometer.io.window_check.AttitudeHistory`), else unknown (then the
+(:class:`~tetra_gradiometer.pipelines.window_check.AttitudeHistory`), else unknown (then the
 coverage is that of the body-frame field direction). The survey and the candidate
 manoeuvres are flown in ``earth_field_enu``; the sensor noise is ``sensor_noise_t`` (or
 0.1 nT) until the samples estimate their own.
@@ -92,7 +92,7 @@ from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, CalibrationFileError, save_calibration
 from ..io.matching import StampPairer
-from ..io.window_check import (
+from ..pipelines.window_check import (
     KNOWN_GRADIENT_METHODS,
     AttitudeHistory,
     CheckedCalibration,

@@ -27,7 +27,7 @@ driver moves on and counts a timeout).
 
 ``start_paused`` waits for ``~/resume``; ``hold_between_segments`` (sim) pauses after each
 scenario segment until ``~/resume`` (so a trim can be calibrated before the survey starts).
-State, segment and counts go to ``/diagnostics``. The frames come from io/replay.py
+State, segment and counts go to ``/diagnostics``. The frames come from nodes/replay.py
 (``simulate``, ``iter_frames``); this node only paces them and answers the services.
 """
 
@@ -51,8 +51,7 @@ from std_srvs.srv import Trigger
 from ..core.units import NS_PER_S
 from ..errors import InputError, ParamsError
 from ..io import conversions as cv
-from ..io import replay
-from ..io.replay import MAG, ODOM, TRUTH, Frame
+from . import replay
 from .common import (
     OK,
     POSITIONS_SPEC,
@@ -67,6 +66,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
+from .replay import MAG, ODOM, TRUTH, Frame
 
 #: Why the driver refuses to configure without a ``mode``.
 MODE_UNSET = (
@@ -263,7 +263,7 @@ class DriverNode(ManagedNode):
     def _open_source(
         self, p: dict[str, Any]
     ) -> tuple[Generator[Frame, None, None], dict[str, Any], float]:
-        """The frames to play (io/replay.py), their description and the tick period, s."""
+        """The frames to play (nodes/replay.py), their description and the tick period, s."""
         types = self._types
         if self._mode == 'sim':
             start_ns = time.time_ns()  # system time even under use_sim_time: the driver is /clock

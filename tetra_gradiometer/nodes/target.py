@@ -2,7 +2,7 @@
 
 Subscribes to ``gradient/compensated`` (the compensator's JointState, T/m, body frame) and
 ``odom`` (nav_msgs/Odometry: relative, the driver's ``/tetra/odom``; on a vehicle remap it to
-the navigation's, ``-r odom:=/odom``, as the calibrator). The track (io/track.py): tensors
+the navigation's, ``-r odom:=/odom``, as the calibrator). The track (nodes/track.py): tensors
 averaged over ``1 / sample_rate_hz`` (anti-alias: the detector and the fit need no more than
 10 Hz at survey speeds), the odometry pose interpolated onto each (position linear,
 orientation slerped; a sample whose nearest odometry is more than 0.5 s away is dropped and
@@ -57,9 +57,8 @@ from ..core.targets import DetectorSettings, LocatorSettings, locate
 from ..core.units import S_PER_NS
 from ..errors import InputError, MessageError
 from ..io import conversions as cv
-from ..io import target_messages as tm
-from ..io.track import SurveyTrack, TrackSnapshot
-from ..io.window_check import MAX_ODOM_GAP_S
+from ..pipelines.window_check import MAX_ODOM_GAP_S
+from . import target_messages as tm
 from .common import (
     ERROR,
     OK,
@@ -76,6 +75,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
+from .track import SurveyTrack, TrackSnapshot
 
 #: The outputs (relative: ``/tetra/targets`` ...).
 TARGETS_TOPIC = 'targets'

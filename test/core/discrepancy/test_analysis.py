@@ -16,7 +16,7 @@ import pytest
 
 from tetra_gradiometer.core.discrepancy import CANDIDATES, LIBRARY, Settings, analyze
 from tetra_gradiometer.core.discrepancy.synthetic import EFFECT_NAMES, make_case
-from tetra_gradiometer.io.report import write_report
+from tetra_gradiometer.reports.discrepancy import write_report
 
 REQUIRED = (
     'eddy_current',

@@ -17,7 +17,7 @@ from tetra_gradiometer.core.discrepancy import Settings, analyze
 from tetra_gradiometer.core.discrepancy.synthetic import make_case
 from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
-from tetra_gradiometer.io.report import write_report
+from tetra_gradiometer.reports.discrepancy import write_report
 
 EFFECTS = (
     'eddy_current',

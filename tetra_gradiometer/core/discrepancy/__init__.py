@@ -3,7 +3,7 @@ measured sensor readings of a recorded run disagree, name the missing physical e
 a library of candidates, add it, and show the held-out gap shrink to the noise floor.
 
 ``analyze(run, geometry, earth_field_enu=None)`` returns a :class:`Report`;
-``tetra_gradiometer.io.report.write_report(report, out_dir)`` writes ``report.json``,
+``tetra_gradiometer.reports.discrepancy.write_report(report, out_dir)`` writes ``report.json``,
 ``report.md`` and the plots.
 The command line is ``python -m tetra_gradiometer discrepancy BAG --params FILE --out DIR``.
 The core imports numpy and scipy only; the run comes in as a :class:`RecordedRun` (plain

@@ -23,19 +23,22 @@ import logging
 import os
 from collections.abc import Generator, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .._optional import require
 from ..core import MissionData
 from ..core.units import NS_PER_S, S_PER_NS
-from . import conversions as cv
-from .bag import MagneticBag
-from .bag_decode import checked_stamp_ns, skip_reason
-from .bag_skips import SkippedMessage, guarded_messages
-from .bag_skips import summary as bag_summary
+from ..io import conversions as cv
+from ..io.bag_decode import checked_stamp_ns, skip_reason
+from ..io.bag_skips import SkippedMessage, guarded_messages
+from ..io.bag_skips import summary as bag_summary
 
 LOG = logging.getLogger(__name__)
+
+if TYPE_CHECKING:
+    from ..io.bag import MagneticBag
 
 #: Publisher keys of a frame's messages: magnetometer ``sensor`` 0..3, truth, odometry.
 MAG, TRUTH, ODOM = 'mag', 'truth', 'odom'
@@ -90,7 +93,7 @@ def describe_bag(
     BagError
         The bag cannot be opened, lacks a magnetometer topic or holds no messages.
     """
-    with MagneticBag(path, remap=remap) as bag:
+    with _open_bag(path, remap) as bag:
         count = bag.check_contract()
         topics = sorted(
             {c.topic for c in bag.reader.connections if bag.topic_of(c.topic) in REPLAY_TOPICS}
@@ -125,7 +128,7 @@ def iter_frames(
     BagError
         As :func:`describe_bag`, on the first ``next()``.
     """
-    with MagneticBag(path, remap=remap) as bag:
+    with _open_bag(path, remap) as bag:
         bag.check_contract()
         reader = bag.reader
         connections = [c for c in reader.connections if bag.topic_of(c.topic) in REPLAY_TOPICS]
@@ -220,7 +223,7 @@ def simulate(
         scenario's array, flat (12,), m)
     """
     from ..core import simulate as simulate_mission
-    from .scenario import load_scenario_or_default
+    from ..io.scenario import load_scenario_or_default
 
     scenario, scenario_seed = load_scenario_or_default(scenario_path)
     mission = simulate_mission(
@@ -279,3 +282,12 @@ def _mission_frames(
         )
         items.append((ODOM, 0, odom))
         yield Frame(pace, stamp, int(mission.segment[i]), stamp, items)
+
+
+def _open_bag(path: str | os.PathLike[str], remap: Mapping[str, str] | None) -> MagneticBag:
+    """The bag at ``path`` (io/bag.py), imported only here: ``rosbags`` is an offline-only
+    package, and a driver in ``sim`` mode on a rosdep install must start without it."""
+    require('rosbags', 'replaying a bag (driver mode replay)')
+    from ..io.bag import MagneticBag
+
+    return MagneticBag(path, remap=remap)

@@ -2,7 +2,7 @@
 
 :func:`analyze_bag` is the work of the ``discrepancy`` command (and of ``batch``, per bag)
 between loading the params file and writing the report folder
-(:func:`tetra_gradiometer.io.report.write_report`): the bag read whole
+(:func:`tetra_gradiometer.reports.discrepancy.write_report`): the bag read whole
 (:func:`~tetra_gradiometer.io.recording.read_recording`), analysed by
 :func:`tetra_gradiometer.core.discrepancy.analyze`, and the report's ``data`` completed with
 what never reached the analysis (implausible sets, undecodable messages).
@@ -19,7 +19,7 @@ import numpy.typing as npt
 from ..core import TetraGeometry
 from ..core.discrepancy import RecordedRun, Report, Settings, analyze
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
-from .recording import Recording, read_recording
+from ..io.recording import Recording, read_recording
 
 __all__ = ['analyze_bag']
 

@@ -17,8 +17,8 @@ from ..core import InterferenceParameters, TetraGeometry
 from ..core.guidance import ENOUGH_RATIO, SURVEY_HEADINGS_DEG, SURVEY_SWAY_DEG, TrimAssessment
 from ..core.identification import regional_body_tensor
 from ..core.units import NT_PER_T, S_PER_NS
-from .bag_calibration import BagCalibration, WindowAssessment
-from .outputs import CALIBRATION_REPORT, atomic_output
+from ..io.outputs import CALIBRATION_REPORT, atomic_output
+from ..pipelines.calibration import BagCalibration, WindowAssessment
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

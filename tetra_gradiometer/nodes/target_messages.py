@@ -23,8 +23,8 @@ import numpy as np
 from ..core.targets import DetectionResult, Target
 from ..core.types import FloatArray
 from ..core.units import S_PER_NS
-from . import conversions as cv
-from .targets import dumps, targets_document
+from ..io import conversions as cv
+from ..io.targets import dumps, targets_document
 from .track import TrackSnapshot
 
 #: Marker spheres are at least this wide, m (a 5 mm sigma would be invisible).

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
-import os
 import threading
 from collections import deque
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import TetraGeometry
+from ..core.geometry import interp_orientation
 from ..core.guidance import TrimAssessment
 from ..core.identification import (
     Calibration,
@@ -32,9 +32,7 @@ from ..core.identification import (
 )
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import AssumptionError, IdentifiabilityError
-from . import conversions as cv
-from .bag import MagneticBag
-from .recording import interp_orientation
+from ..io import conversions as cv
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -51,25 +49,6 @@ MIN_SUB_WINDOW_S = 30.0
 #: survey leg predicts ~7x and compensates at ~5x; a trim 1.0x; the guidance's "enough" is
 #: 1.1x). Loose on purpose: the prediction is linearised, the survey representative only.
 MAX_PREDICTED_RATIO = 2.0
-
-
-def odom_orientation(
-    bag_path: str | os.PathLike[str], stamps_ns: IntArray
-) -> tuple[FloatArray | None, str]:
-    """``/odom``'s orientation slerped onto ``stamps_ns`` (n, 4), or None, with a note why.
-
-    None when the bag has no ``/odom`` or some set lies further than ``MAX_ODOM_GAP_S`` from
-    every ``/odom`` message (the joint solve needs every attitude).
-    """
-    with MagneticBag(bag_path) as bag:
-        series = bag.read_series(cv.ODOM_TOPIC)
-    if series is None or len(series.stamps_ns) < 2:
-        return None, (
-            f'no {cv.ODOM_TOPIC} in the bag: a regional gradient cannot be told from the '
-            'interference without the attitude, and is assumed zero'
-        )
-    orientation = series.values[:, cv.POSE_ORIENTATION]
-    return joint_attitude(orientation_at(series.stamps_ns, orientation, stamps_ns))
 
 
 def orientation_at(

@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..core.units import NT_PER_T
-from .bag_targets import BagTargets, Search
-from .outputs import TARGETS, atomic_output
-from .targets import dumps, targets_document
+from ..io.outputs import TARGETS, atomic_output
+from ..io.targets import dumps, targets_document
+from ..pipelines.targets import BagTargets, Search
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -39,8 +39,8 @@ from ..core.targets import DetectorSettings, Survey
 from ..core.targets.detection import ends_leg, headings
 from ..core.types import FloatArray, IntArray
 from ..core.units import NS_PER_S, S_PER_NS
-from . import conversions as cv
-from .window_check import orientation_at
+from ..io import conversions as cv
+from ..pipelines.window_check import orientation_at
 
 #: A tensor or odometry stamp this far before the previous one starts a new track, s.
 JUMP_BACK_S = 1.0

@@ -29,10 +29,10 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import MissionData, Scenario, TrimManoeuvre, simulate
-from .outputs import BAG, PARAMS, TRUTH, atomic_output, atomic_write_text, check_output
-from .params import params_document
-from .recording import mission_stamps_ns, write_mission_bag
-from .scenario import load_scenario
+from ..io.outputs import BAG, PARAMS, TRUTH, atomic_output, atomic_write_text, check_output
+from ..io.params import params_document
+from ..io.recording import mission_stamps_ns, write_mission_bag
+from ..io.scenario import load_scenario
 
 __all__ = ['SimulatedBag', 'sidecar_paths', 'simulate_to_bag']
 

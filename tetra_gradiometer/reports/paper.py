@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.paper import METHODS, READINGS, Choices, Reading, reproduce_readings, results_json
-from .outputs import PAPER, atomic_output, check_output
+from ..io.outputs import PAPER, atomic_output, check_output
 
 __all__ = ['COLOURS', 'FIGURES', 'TITLES', 'format_table', 'plot_fig2', 'plot_fig3', 'reproduce']
 

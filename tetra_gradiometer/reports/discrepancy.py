@@ -17,8 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.discrepancy import CANDIDATES, LIBRARY, Report, criterion_text
-from . import conversions as cv
-from .outputs import REPORT, atomic_output
+from ..io import conversions as cv
+from ..io.outputs import REPORT, atomic_output
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

@@ -40,11 +40,11 @@ from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.uncertainty import SigmaModel
 from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS, T_PER_NT
 from ..errors import BagError, InputError, OutputError
-from . import conversions as cv
-from .bag import BagWriter, MagneticBag, SetCounters
-from .calibration import check_positions, load_calibration
-from .health_report import HealthRecorder
-from .outputs import BAG, CSV, atomic_output, check_output
+from ..io import conversions as cv
+from ..io.bag import BagWriter, MagneticBag, SetCounters
+from ..io.calibration import check_positions, load_calibration
+from ..io.outputs import BAG, CSV, atomic_output, check_output
+from .health import HealthRecorder
 
 __all__ = [
     'COMPENSATED_TOPIC',

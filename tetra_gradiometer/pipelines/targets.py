@@ -20,8 +20,8 @@ from ..core.targets import DetectionResult, LocatorSettings, Survey, Target, loc
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.units import S_PER_NS
 from ..errors import BagError
-from . import conversions as cv
-from .recording import Recording, read_recording
+from ..io import conversions as cv
+from ..io.recording import Recording, read_recording
 
 
 @dataclass(frozen=True)

@@ -49,15 +49,15 @@ import yaml
 from ..core import TetraGeometry
 from ..core.units import NT_PER_T
 from ..errors import AssumptionError, IdentifiabilityError, InputError, ParamsError, TetraError
-from ._yaml import read_yaml
-from .bag_calibration import calibrate_assessed, window_text
-from .bag_compensation import TensorStatistics, compensate_bag, load_compensation
-from .bag_discrepancy import analyze_bag
-from .calibration import save_calibration
-from .outputs import BATCH_BAG, BATCH_SUMMARY, atomic_output, atomic_write_text
-from .params import earth_field_from_params, geometry_from_params, load_params, params_document
-from .report import write_report
-from .scenario import load_scenario
+from ..io._yaml import read_yaml
+from ..io.calibration import save_calibration
+from ..io.outputs import BATCH_BAG, BATCH_SUMMARY, atomic_output, atomic_write_text
+from ..io.params import earth_field_from_params, geometry_from_params, load_params, params_document
+from ..io.scenario import load_scenario
+from ..pipelines.calibration import calibrate_assessed, window_text
+from ..pipelines.compensation import TensorStatistics, compensate_bag, load_compensation
+from ..pipelines.discrepancy import analyze_bag
+from ..reports.discrepancy import write_report
 
 __all__ = [
     'COLUMNS',

@@ -36,9 +36,9 @@ from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import BagError, InputError
-from . import conversions as cv
-from .bag import MagneticBag, SetCounters
-from .calibration import CalibrationFile
+from ..io import conversions as cv
+from ..io.bag import MagneticBag, SetCounters
+from ..io.calibration import CalibrationFile
 from .window_check import (
     KNOWN_GRADIENT_METHODS,
     CheckedCalibration,
@@ -46,7 +46,7 @@ from .window_check import (
     excitation_refusal,
     forced,
     identify_checked,
-    odom_orientation,
+    joint_attitude,
     orientation_at,
 )
 
@@ -337,8 +337,16 @@ def _solve(
     """The checked solve (:func:`~.window_check.identify_checked`) on the sets used."""
     g_measured = difference_tensor(fields, geometry)
     return identify_checked(
-        method, stamps, g_measured, fields[:, 0], geometry, options,
-        window=window, first_ns=first_ns, force=force, notes=notes,
+        method,
+        stamps,
+        g_measured,
+        fields[:, 0],
+        geometry,
+        options,
+        window=window,
+        first_ns=first_ns,
+        force=force,
+        notes=notes,
     )
 
 
@@ -522,3 +530,22 @@ def calibrate_assessed(
     result = calibrate_bag(bag_path, geometry, force=force, **options)
     window = assess_window(result, bag_path, geometry, earth_field_enu)
     return check_excitation(result, window, force), window
+
+
+def odom_orientation(
+    bag_path: str | os.PathLike[str], stamps_ns: IntArray
+) -> tuple[FloatArray | None, str]:
+    """``/odom``'s orientation slerped onto ``stamps_ns`` (n, 4), or None, with a note why.
+
+    None when the bag has no ``/odom`` or some set lies further than ``MAX_ODOM_GAP_S`` from
+    every ``/odom`` message (the joint solve needs every attitude).
+    """
+    with MagneticBag(bag_path) as bag:
+        series = bag.read_series(cv.ODOM_TOPIC)
+    if series is None or len(series.stamps_ns) < 2:
+        return None, (
+            f'no {cv.ODOM_TOPIC} in the bag: a regional gradient cannot be told from the '
+            'interference without the attitude, and is assumed zero'
+        )
+    orientation = series.values[:, cv.POSE_ORIENTATION]
+    return joint_attitude(orientation_at(series.stamps_ns, orientation, stamps_ns))
