@@ -27,7 +27,8 @@ events (``ChangeState`` with ``lifecycle_msgs/Transition`` configure and activat
 by ``OnStateTransition``). A node that fails a transition stops the sequence there
 (launch_ros logs the failure) and the nodes after it stay unconfigured. With ``autostart``
 false every node is left unconfigured for an external lifecycle manager. A node process that
-exits ends the whole launch, as one failing node ends ``bringup``.
+exits ends the whole launch, as one failing node ends ``bringup``, with one ``Shutdown``
+(:func:`end_launch_once`): Ctrl-C, or a node that exits, stops the launch with exit code 0.
 
 Static transforms (REP 105). With ``static_transforms`` true (the default) one
 ``tf2_ros static_transform_publisher`` per child of the body frame publishes on the absolute
@@ -171,6 +172,7 @@ def launch_setup(context, *args, **kwargs):
             _transform_publisher(suffix, frame, values['namespace'], use_sim_time)
             for suffix, frame in zip(TRANSFORMS, frames, strict=True)
         ]
+    end_launch = end_launch_once()
     nodes = {
         name: LifecycleNode(
             package=PACKAGE,
@@ -179,7 +181,7 @@ def launch_setup(context, *args, **kwargs):
             namespace=values['namespace'],
             parameters=[*files, {**common, **node_overrides(name, names, values)}],
             output='screen',
-            on_exit=Shutdown(reason=f'{PACKAGE}: {name} exited'),
+            on_exit=end_launch,
         )
         for name in names
     }
@@ -192,6 +194,24 @@ def launch_setup(context, *args, **kwargs):
         *nodes.values(),
         _change_state(first, 'configure'),
     ]
+
+
+def end_launch_once():
+    """The ``on_exit`` of every node: the first node process to exit ends the launch with one
+    ``Shutdown``; later exits (the other nodes stopping, or every node after Ctrl-C) send
+    none. launch_ros shuts its ROS adapter down on each ``Shutdown`` event and raises on the
+    second ("Cannot shutdown a ROS adapter that is not running"), which made every stop
+    exit 1 with one ``[ERROR]`` line per node. One closure per launch, shared by its nodes.
+    """
+    sent = []
+
+    def on_exit(event, context):
+        if sent or context.is_shutdown:
+            return None
+        sent.append(event.process_name)
+        return [Shutdown(reason=f'{PACKAGE}: {event.process_name} exited')]
+
+    return on_exit
 
 
 def selected_nodes(text):

@@ -157,13 +157,42 @@ def _chain(names: list[str]) -> list[tuple[str, str]]:
     return [(name, step) for name in names for step in ('configure', 'activate')]
 
 
+class _Exited:
+    def __init__(self, name: str) -> None:
+        self.process_name = name
+
+
+class _Context:
+    def __init__(self, is_shutdown: bool) -> None:
+        self.is_shutdown = is_shutdown
+
+
+def test_the_first_node_to_exit_ends_the_launch_with_one_shutdown(launch):
+    """launch_ros raises on every Shutdown event after the first ("Cannot shutdown a ROS
+    adapter that is not running": exit 1 with an [ERROR] per node), so the nodes' exits
+    send one between them, and none once the launch is shutting down (Ctrl-C)."""
+    nodes = launch(mode='sim').nodes
+    assert len({id(node.on_exit) for node in nodes}) == 1  # one per launch, shared
+    running = _Context(is_shutdown=False)
+    first = nodes[2].on_exit(_Exited('compensator-3'), running)
+    assert [type(action) for action in first] == [standins.Shutdown]
+    assert 'compensator-3 exited' in first[0].reason
+    assert [node.on_exit(_Exited(node.name), running) for node in nodes] == [None] * len(nodes)
+    # Ctrl-C: the launch is already shutting down when the nodes exit.
+    after_sigint = launch(mode='sim').nodes
+    stopping = _Context(is_shutdown=True)
+    assert [node.on_exit(_Exited(node.name), stopping) for node in after_sigint] == [None] * 4
+    # A second launch has its own: its first exit still ends it.
+    assert after_sigint[0].on_exit(_Exited('tensor-1'), running) is not None
+
+
 def test_sim_starts_the_four_nodes_and_activates_them_one_after_the_other(launch, share):
     run = launch(mode='sim')
     assert [node.name for node in run.nodes] == list(ORDER)
     for node in run.nodes:
         assert (node.package, node.executable, node.namespace) == (PACKAGE, node.name, 'tetra')
         assert node.output == 'screen'
-        assert isinstance(node.on_exit, standins.Shutdown)
+        assert callable(node.on_exit)
         params_file, overrides = node.parameters
         assert params_file == str(share / 'config' / 'tetra_gradiometer.yaml')
         expected = {'use_sim_time': False, 'autostart': False}  # the sequence configures them
