@@ -10,16 +10,22 @@ Parameter vector layouts (``to_vector``/``from_vector``), SI units:
 * symmetric (27, the paper's): ``K_21, K_31, K_41`` as their 6 unique entries
   ``(xx, xy, xz, yy, yz, zz)`` (dimensionless), then ``B_21^h, B_31^h, B_41^h`` (tesla);
 * general (36): ``K_21, K_31, K_41`` as 9 entries each, row-major, then the same 9 offsets.
+
+Vehicle effects (:mod:`.effects`: currents, eddy currents, thermal drift) extend eq. 18 as
+terms ``W x(t)`` on the pair differences: ``D = (k B_1m + b + sum W x) a^-1``. Their
+coefficients are :attr:`InterferenceParameters.terms`; :meth:`~InterferenceParameters.
+full_vector` appends them (``[pair][axis][regressor]`` each) to the general layout.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import InputError
 from ._validate import as_array, as_fields, as_tensors, as_vectors, frozen_array, same_length
+from .effects import Term, pair_interference
 from .geometry import TetraGeometry, difference_tensor
 from .types import ArrayLike, FloatArray
 
@@ -54,14 +60,35 @@ class InterferenceParameters:
         ``k_soft[i] = K_(i+2)1``, soft-iron difference matrices, dimensionless.
     b_hard : array_like, shape (3, 3)
         ``b_hard[i] = B_(i+2)1^h``, hard-iron difference vectors, tesla.
+    terms : sequence of Term
+        Vehicle effects fitted with ``k``, ``b`` (:mod:`.effects`); () for the paper's model.
     """
 
     k_soft: np.ndarray
     b_hard: np.ndarray
+    terms: tuple[Term, ...] = field(default=())
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'k_soft', frozen_array(self.k_soft, 'k_soft', (3, 3, 3)))
         object.__setattr__(self, 'b_hard', frozen_array(self.b_hard, 'b_hard', (3, 3)))
+        object.__setattr__(self, 'terms', tuple(self.terms))
+
+    @property
+    def n_term_regressors(self) -> int:
+        """``M``: the regressors of every term (the columns of ``regressors`` in
+        :func:`interference_tensor`)."""
+        return sum(term.size for term in self.terms)
+
+    def full_vector(self) -> FloatArray:
+        """The general (36) vector followed by every term's coefficients, SI (the layout of
+        a calibration's covariance when it has terms)."""
+        parts = [self.to_vector(symmetric=False)]
+        parts += [term.coefficients.reshape(-1) for term in self.terms]
+        return np.concatenate(parts)
+
+    def without_terms(self) -> InterferenceParameters:
+        """``k``, ``b`` alone."""
+        return InterferenceParameters(self.k_soft, self.b_hard)
 
     @classmethod
     def zero(cls) -> InterferenceParameters:
@@ -172,10 +199,34 @@ class SensorInterference:
         return InterferenceParameters(k_effective, b_effective)
 
 
-def interference_tensor(
-    b_reference: ArrayLike, parameters: InterferenceParameters, geometry: TetraGeometry
+def _check_regressors(
+    parameters: InterferenceParameters, regressors: ArrayLike | None, n: int
 ) -> FloatArray:
-    """Interference on the tensor, ``D = (k B_1m + b) a^-1`` (eq. 18).
+    """The terms' regressors (N, M) for ``parameters``; refuse them missing (a term is never
+    taken as zero) or of the wrong shape."""
+    m = parameters.n_term_regressors
+    if regressors is None:
+        if m:
+            names = ', '.join(term.effect for term in parameters.terms)
+            raise InputError(
+                f'the calibration has terms ({names}): their regressors (the channels they '
+                'read, effects.term_regressors) must be given'
+            )
+        return np.zeros((n, 0))
+    regressors = np.asarray(regressors, dtype=float)
+    if regressors.shape != (n, m):
+        raise InputError(f'regressors must be ({n}, {m}) for these terms, got {regressors.shape}')
+    return regressors
+
+
+def interference_tensor(
+    b_reference: ArrayLike,
+    parameters: InterferenceParameters,
+    geometry: TetraGeometry,
+    regressors: ArrayLike | None = None,
+) -> FloatArray:
+    """Interference on the tensor, ``D = (k B_1m + b + sum W x) a^-1`` (eq. 18 and the
+    vehicle effects' terms).
 
     Parameters
     ----------
@@ -183,6 +234,10 @@ def interference_tensor(
         Reference-sensor reading ``B_1'``, tesla, body frame (taken as ``B^b``).
     parameters : InterferenceParameters
     geometry : TetraGeometry
+    regressors : array_like, shape (N, M), optional
+        The terms' regressors on the samples (``effects.term_regressors`` offline,
+        ``effects.LiveTerms`` live), SI; required when ``parameters`` has terms. A NaN
+        regressor (an unknown channel) gives a NaN tensor: callers drop such samples.
 
     Returns
     -------
@@ -190,8 +245,11 @@ def interference_tensor(
         T/m.
     """
     b_reference = as_vectors(b_reference, 'b_reference')
+    x = _check_regressors(parameters, regressors, len(b_reference))
     # Column i of (k B_1m + b) is K_(i+2)1 B_1' + B_(i+2)1^h.
     columns = np.einsum('irc,nc->nri', parameters.k_soft, b_reference) + parameters.b_hard.T[None]
+    if parameters.terms:
+        columns = columns + pair_interference(parameters.terms, x)
     return columns @ geometry.a_inv
 
 
@@ -200,6 +258,7 @@ def compensate(
     b_reference: ArrayLike,
     parameters: InterferenceParameters,
     geometry: TetraGeometry,
+    regressors: ArrayLike | None = None,
 ) -> FloatArray:
     """Compensated tensor ``G = G_m - D`` (eq. 19).
 
@@ -211,6 +270,8 @@ def compensate(
         Reference-sensor reading ``B_1'``, tesla.
     parameters : InterferenceParameters
     geometry : TetraGeometry
+    regressors : array_like, shape (N, M), optional
+        The terms' regressors (see :func:`interference_tensor`); required with terms.
 
     Returns
     -------
@@ -220,13 +281,17 @@ def compensate(
     g_measured = as_tensors(g_measured, 'g_measured')
     b_reference = as_vectors(b_reference, 'b_reference')
     same_length(g_measured=g_measured, b_reference=b_reference)
-    return g_measured - interference_tensor(b_reference, parameters, geometry)
+    return g_measured - interference_tensor(b_reference, parameters, geometry, regressors)
 
 
 def compensate_fields(
-    fields_measured: ArrayLike, parameters: InterferenceParameters, geometry: TetraGeometry
+    fields_measured: ArrayLike,
+    parameters: InterferenceParameters,
+    geometry: TetraGeometry,
+    regressors: ArrayLike | None = None,
 ) -> FloatArray:
-    """Eq. 7 then eq. 19 on raw readings, shape (N, 4, 3) tesla -> (N, 3, 3) T/m."""
+    """Eq. 7 then eq. 19 on raw readings, shape (N, 4, 3) tesla -> (N, 3, 3) T/m
+    (``regressors`` (N, M): the terms', see :func:`interference_tensor`)."""
     fields_measured = as_fields(fields_measured, 'fields_measured')
     g_measured = difference_tensor(fields_measured, geometry)
-    return compensate(g_measured, fields_measured[:, 0, :], parameters, geometry)
+    return compensate(g_measured, fields_measured[:, 0, :], parameters, geometry, regressors)

@@ -1,0 +1,162 @@
+"""Vehicle effects beyond the paper's soft and hard iron: the one registry.
+
+Each effect is one module here (:mod:`.vehicle_current`, :mod:`.eddy_current`,
+:mod:`.thermal_drift`) owning its physics, the channels it reads, its regressors offline
+and live, and its file form (:mod:`.base` says what an effect is). :data:`EFFECTS` is the
+registry that calibration (selection and the joint fit), compensation (offline and in the
+compensator node), the calibration file, the simulator and the discrepancy search read.
+Adding an effect is one module and one line in :data:`EFFECTS`.
+
+Model: ``D = (k B_1' + b + sum_terms W x(t)) a^-1`` (the pair differences' interference
+times eq. 7's ``a^-1``): :func:`pair_interference` is the terms' part.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from ...errors import InputError
+from ..types import FloatArray
+from .base import (
+    CURRENT_PREFIX,
+    TEMPERATURE,
+    Channels,
+    Effect,
+    LiveRegressor,
+    Term,
+    current_channel,
+)
+from .eddy_current import REFERENCE_RATE, EddyCurrent, causal_rate
+from .thermal_drift import ThermalDrift
+from .vehicle_current import VehicleCurrent
+
+__all__ = [
+    'CURRENT_PREFIX',
+    'EFFECTS',
+    'REFERENCE_RATE',
+    'TEMPERATURE',
+    'Channels',
+    'Effect',
+    'LiveTerms',
+    'Term',
+    'causal_rate',
+    'current_channel',
+    'pair_interference',
+    'term_from_dict',
+    'term_regressors',
+    'term_to_dict',
+    'terms_channels',
+]
+
+#: name -> effect: the one registry of the vehicle effects the operational model carries.
+EFFECTS: dict[str, Effect] = {
+    effect.name: effect for effect in (VehicleCurrent(), EddyCurrent(), ThermalDrift())
+}
+
+
+def effect(name: str) -> Effect:
+    """The registry's effect ``name``, or an :class:`InputError` listing the known ones."""
+    if name not in EFFECTS:
+        raise InputError(f'unknown effect {name!r}; known: {", ".join(EFFECTS)}')
+    return EFFECTS[name]
+
+
+def terms_channels(terms: Sequence[Term]) -> tuple[str, ...]:
+    """The recorded channels the terms read (the computed reference rate left out)."""
+    names = {name for term in terms for name in term.inputs if name != REFERENCE_RATE}
+    return tuple(sorted(names))
+
+
+def term_regressors(terms: Sequence[Term], channels: Channels) -> FloatArray:
+    """Every term's regressors side by side, (N, M), SI; NaN where a channel is unknown.
+
+    Raises
+    ------
+    InputError
+        A channel a term reads is not in ``channels`` (never taken as zero).
+    """
+    missing = [name for name in terms_channels(terms) if name not in channels.series]
+    if missing:
+        raise InputError(
+            f'the calibration has terms that read {", ".join(missing)}, which the data lack'
+        )
+    blocks = [
+        effect(term.effect).regressors(channels, term.inputs, term.reference) for term in terms
+    ]
+    return np.concatenate(blocks, axis=1) if blocks else np.zeros((len(channels), 0))
+
+
+def pair_interference(terms: Sequence[Term], regressors: np.ndarray) -> FloatArray:
+    """The terms' interference on the pair differences, (N, 3, 3) ``[n, axis, pair]`` T,
+    from :func:`term_regressors`' (N, M): the columns of ``(k B_1m + b)`` of eq. 18 get it."""
+    if not terms:
+        return np.zeros((len(regressors), 3, 3))
+    coefficients = np.concatenate([term.coefficients for term in terms], axis=2)  # (3, 3, M)
+    return np.einsum('irm,nm->nri', coefficients, regressors)
+
+
+class LiveTerms:
+    """The terms' regressors one sample at a time (the compensator node), equal to
+    :func:`term_regressors` on the same sequence of samples."""
+
+    def __init__(self, terms: Sequence[Term]) -> None:
+        self.terms = tuple(terms)
+        self.channels = terms_channels(self.terms)
+        self._live: list[LiveRegressor] = [
+            effect(term.effect).live(term.inputs, term.reference) for term in self.terms
+        ]
+
+    def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
+        """Regressors (M,) at this sample (see :meth:`LiveRegressor.push`)."""
+        if not self._live:
+            return np.zeros(0)
+        return np.concatenate([live.push(t_s, b_reference, values) for live in self._live])
+
+    def reset(self) -> None:
+        for live in self._live:
+            live.reset()
+
+
+def term_to_dict(term: Term) -> dict[str, Any]:
+    """The calibration file's form of a term: coefficients in the effect's file unit
+    (``nT/A``, ``s``, ``nT/degC``) as ``[pair][axis][regressor]``, plain types."""
+    spec = effect(term.effect)
+    return {
+        'effect': term.effect,
+        'inputs': list(term.inputs),
+        'labels': list(spec.labels(term.inputs)),
+        'unit': spec.file_unit,
+        'coefficients': (term.coefficients * spec.file_factor).tolist(),
+        'reference': list(term.reference),
+        'channel_noise': list(term.channel_noise),
+        'evidence': term.evidence,
+    }
+
+
+def term_from_dict(data: Any, where: str) -> Term:
+    """A term from its file form (:func:`term_to_dict`); :class:`InputError` naming
+    ``where`` and the key when it is not one."""
+    if not isinstance(data, dict):
+        raise InputError(f'{where}: a term must be a mapping, got {type(data).__name__}')
+    name = data.get('effect')
+    if name not in EFFECTS:
+        raise InputError(f'{where}: unknown effect {name!r}; known: {", ".join(EFFECTS)}')
+    spec = EFFECTS[name]
+    try:
+        inputs = tuple(str(v) for v in data.get('inputs', ()))
+        coefficients = np.asarray(data['coefficients'], dtype=float) / spec.file_factor
+        reference = tuple(float(v) for v in data.get('reference', ()))
+        noise = tuple(float(v) for v in data.get('channel_noise', ()))
+    except (KeyError, TypeError, ValueError) as error:
+        raise InputError(f'{where} ({name}): not a term: {error}') from None
+    labels = spec.labels(inputs)
+    if coefficients.shape != (3, 3, len(labels)) or not np.all(np.isfinite(coefficients)):
+        raise InputError(
+            f'{where} ({name}): coefficients must be finite (3, 3, {len(labels)}) '
+            f'[pair][axis][regressor], got {coefficients.shape}'
+        )
+    evidence = data.get('evidence', {})
+    return Term(name, inputs, coefficients, reference, noise, evidence if evidence else {})

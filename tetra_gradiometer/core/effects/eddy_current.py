@@ -1,0 +1,147 @@
+"""Eddy currents induced in the conducting hull and pressure housings by the change of the
+field they see as the vehicle turns. By Lenz their field opposes the change and, for a hull
+whose time constant is short against the manoeuvre, it is proportional to the rate of
+change of the body-frame background field: sensor ``s`` reads ``E_s dB^b/dt`` more, with a
+general 3x3 ``E_s`` in seconds (the Tolles-Lawson eddy term).
+
+The rate is that of the measured reference reading ``B_1'`` (the paper's ``B^b``), so the
+effect needs no recorded channel. A noisy stream is differentiated **causally**, the same
+way offline and live: the slope at each sample of a least-squares quadratic through the
+samples of the last ``window_s`` seconds (the sample itself included), evaluated at the
+sample (no delay for a field whose rate changes linearly over the window; a centred
+difference would need the future, which a node does not have). With fewer than three
+samples in the window a line is used, with one the rate is unknown (NaN: the first sample
+of a recording, and the first after a gap longer than the window). The window is fixed
+when the term is fitted (its reference value): :data:`WINDOW_PERIODS` sample periods of the
+calibration data, at least :data:`MIN_WINDOW_S`. Its noise, ``sigma / sqrt(sum tau^2)``
+order, is ~1 nT/s at 100 Hz for 0.05 nT sensors: times ``E`` ~ 1e-3 s, 1e-3 nT.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+
+import numpy as np
+
+from ..types import FloatArray
+from .base import Channels, Effect, LiveRegressor
+
+#: The pseudo-channel of the reference reading's rate (always available: it is computed).
+REFERENCE_RATE = 'reference_rate'
+#: The differentiation window in sample periods, and its floor, s.
+WINDOW_PERIODS = 8
+MIN_WINDOW_S = 0.05
+
+
+def window_for(t_s: np.ndarray) -> float:
+    """The differentiation window for samples at ``t_s`` (N,) s."""
+    steps = np.diff(np.asarray(t_s, dtype=float))
+    period = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
+    return max(MIN_WINDOW_S, WINDOW_PERIODS * period)
+
+
+def causal_rate(t_s: np.ndarray, values: np.ndarray, window_s: float) -> FloatArray:
+    """The causal rate of ``values`` (N, k) at ``t_s`` (N,) s: the slope at each sample of
+    the least-squares quadratic through the samples within ``window_s`` before it (itself
+    included); units of ``values`` per second; NaN where unknown (see the module)."""
+    t_s = np.asarray(t_s, dtype=float)
+    values = np.asarray(values, dtype=float)
+    n = len(t_s)
+    start = np.searchsorted(t_s, t_s - window_s, side='right')
+    count = np.arange(n) - start + 1
+    lags = int(count.max()) if n else 0
+    # Sums over the window of tau^p (p = 0..4) and tau^p y (p = 0..2), tau = t - t_n and
+    # y = values - values_n (small numbers: no cancellation), one lag at a time.
+    s = np.zeros((n, 5))
+    r = np.zeros((n, 3, values.shape[1]))
+    for lag in range(lags):
+        inside = count > lag
+        idx = np.flatnonzero(inside)
+        tau = t_s[idx - lag] - t_s[idx]
+        y = values[idx - lag] - values[idx]
+        powers = tau[:, None] ** np.arange(5)
+        s[idx] += powers
+        r[idx] += powers[:, :3, None] * y[:, None, :]
+    return _slopes(s, r, count)
+
+
+def _slopes(s: np.ndarray, r: np.ndarray, count: np.ndarray) -> FloatArray:
+    """The fitted slope at tau = 0 from the window sums (see :func:`causal_rate`)."""
+    n, k = len(count), r.shape[2]
+    out = np.full((n, k), np.nan)
+    quad = count >= 3
+    normal = np.stack([s[:, 0:3], s[:, 1:4], s[:, 2:5]], axis=1)  # (n, 3, 3)
+    if np.any(quad):
+        det = np.linalg.det(normal[quad])
+        ok = np.flatnonzero(quad)[np.abs(det) > 0]
+        coef = np.linalg.solve(normal[ok], r[ok])  # (m, 3, k)
+        out[ok] = coef[:, 1]
+    line = (count == 2) | (quad & ~np.isfinite(out[:, 0]))
+    if np.any(line):
+        # Two samples (or a degenerate quadratic): the line through the window's points.
+        cov = s[line, 0] * s[line, 2] - s[line, 1] ** 2
+        good = cov > 0
+        slope = (s[line, 0, None] * r[line, 1] - s[line, 1, None] * r[line, 0]) / np.where(
+            good, cov, 1.0
+        )[:, None]
+        slope[~good] = np.nan
+        out[line] = slope
+    return out
+
+
+class _Live(LiveRegressor):
+    def __init__(self, window_s: float) -> None:
+        self.window_s = window_s
+        self.history: deque[tuple[float, np.ndarray]] = deque()
+
+    def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
+        if self.history and t_s <= self.history[-1][0]:
+            self.history.clear()  # time went back: a restarted replay
+        self.history.append((t_s, np.asarray(b_reference, dtype=float)))
+        while self.history and self.history[0][0] <= t_s - self.window_s:
+            self.history.popleft()
+        t = np.array([item[0] for item in self.history])
+        y = np.array([item[1] for item in self.history]) - b_reference
+        tau = t - t_s
+        powers = tau[:, None] ** np.arange(5)
+        s = powers.sum(axis=0)[None]
+        r = (powers[:, :3, None] * y[:, None, :]).sum(axis=0)[None]
+        return _slopes(s, r, np.array([len(t)]))[0]
+
+    def reset(self) -> None:
+        self.history.clear()
+
+
+class EddyCurrent(Effect):
+    name = 'eddy_current'
+    physics = (
+        'Eddy currents induced in the conducting hull and pressure housings by the change of '
+        'the field they see as the vehicle turns; by Lenz their field opposes the change and, '
+        'for a hull whose time constant is short against the manoeuvre, is proportional to '
+        'the rate of change of the body-frame background field: E_i dB^b/dt with a general '
+        "3x3 E_i (seconds) per sensor (the Tolles-Lawson eddy term); the rate is B_1''s, "
+        'differentiated causally.'
+    )
+    file_unit = 's'
+    file_factor = 1.0
+
+    def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
+        return (REFERENCE_RATE,)
+
+    def missing(self, available: tuple[str, ...]) -> str:
+        return ''
+
+    def labels(self, inputs: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(f'dB1{axis}/dt_T_per_s' for axis in 'xyz')
+
+    def reference(self, channels: Channels, inputs: tuple[str, ...]) -> tuple[float, ...]:
+        return (window_for(channels.t_s),)
+
+    def regressors(
+        self, channels: Channels, inputs: tuple[str, ...], reference: tuple[float, ...]
+    ) -> FloatArray:
+        return causal_rate(channels.t_s, channels.b_reference, reference[0])
+
+    def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
+        return _Live(reference[0])

@@ -1,0 +1,409 @@
+"""Calibration with vehicle effects: ``k``, ``b`` and the effects' terms fitted jointly on a
+known-gradient window (a trim), optionally with a constant regional gradient, and the
+selection of the terms the data call for.
+
+**The joint solve.** On the pair differences ``P_n = (G_m,n - G_known,n) a`` (3 axes x 3
+pairs; ``G_known = R_n^T G_w R_n`` with a regional gradient, else 0) the model is
+``P_n[r, i] = x_n^T theta[:, r, i]`` with the regressors ``x_n = (B_1', 1, x_terms)`` (4 + M)
+shared by all nine outputs: the general ``K_i1`` (36 with ``b``) and every term. The pair
+noise is correlated (``sigma^2 (I + 1 1^T)`` over the pairs, per axis); right-multiplying by
+``W = (I + 1 1^T)^(-1/2)`` whitens it. With one design for every output the whitened least
+squares is ``theta = R^-1 Q^T P W`` (QR of the column-scaled ``X``), exact and fast; a
+regional gradient (5 coefficients ``c``, its columns differ per output) is solved first on
+the part of the data ``X`` cannot explain (``(I - Q Q^T)``), then ``theta`` on what is left.
+The covariance is exact for white sensor noise: ``sigma^2 (X^T X)^-1`` per whitened output,
+plus what ``c``'s uncertainty passes to ``theta``.
+
+**Selection** (:func:`select_terms`): forward selection on held-out data. The window is cut
+into :data:`FOLDS` contiguous blocks; each is predicted by the fit on the others, so a term
+must predict data it was not fitted on (a contiguous block also holds out the slow drifts a
+random split would leak). A candidate enters when, against the current set, (1) the
+held-out F statistic ``((RSS_0 - RSS_1) / p) / (RSS_1 / n)`` exceeds its ``1 - alpha / c``
+quantile (``c`` candidates left: Bonferroni), and (2) it removes at least
+:data:`MIN_GAIN` of the held-out residual's sum of squares (a term that explains less than
+a tenth of the noise's RMS is not worth its parameters). The strongest passing candidate
+enters first; the rest are tested again against the new set. A clean vehicle passes
+neither test by chance more often than ``alpha`` per selection.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from ...errors import IdentifiabilityError, InputError
+from ..effects import Channels, Term, effect
+from ..geometry import TetraGeometry
+from ..model import InterferenceParameters
+from ..types import FloatArray
+from ..units import NT_PER_T
+from .lstsq import REGIONAL_BASIS, _body_tensor, _orientations
+from .result import TensorCalibration
+
+#: Contiguous held-out blocks of the selection.
+FOLDS = 5
+#: Family-wise false-selection probability of one selection on a clean vehicle.
+ALPHA = 1.0e-3
+#: Smallest held-out reduction of the residual sum of squares that keeps a term.
+MIN_GAIN = 0.01
+#: Whitening of the pair differences' noise, ``(I + 1 1^T)^(-1/2)`` (see the module).
+PAIR_WHITENER = np.eye(3) - np.ones((3, 3)) / 6.0
+_PAIR_UNWHITENER = np.linalg.inv(PAIR_WHITENER)
+
+METHOD = 'known_gradient_lstsq_general'
+
+
+@dataclass(frozen=True)
+class PairSolution:
+    """The joint solve on whitened pair differences.
+
+    Attributes
+    ----------
+    theta : (P, 3, 3) ``[regressor, axis, pair]``, unwhitened, SI
+    covariance : (9 P, 9 P) of ``theta.reshape(-1)`` (unwhitened), SI
+    regional : (5,) regional coefficients, T/m, or None
+    regional_covariance : (5, 5) or None
+    sigma : sensor noise per axis estimated from the residual, T
+    residual_w : (N, 9) whitened residual, T
+    condition_number : of the column-scaled ``X``
+    """
+
+    theta: FloatArray
+    covariance: FloatArray
+    regional: FloatArray | None
+    regional_covariance: FloatArray | None
+    sigma: float
+    residual_w: FloatArray
+    condition_number: float
+
+
+def _whiten(pairs: FloatArray) -> FloatArray:
+    """(N, 3, 3) ``[n, axis, pair]`` -> (N, 9) whitened over the pairs."""
+    return (pairs @ PAIR_WHITENER).reshape(len(pairs), 9)
+
+
+def regional_columns(orientation_xyzw: FloatArray, geometry: TetraGeometry) -> FloatArray:
+    """The regional gradient's whitened pair-difference columns, (N, 5, 9): coefficient
+    ``q`` of ``G_w`` seen in the body frame, times ``a``, whitened."""
+    quaternions = _orientations(orientation_xyzw, len(orientation_xyzw), 'regional_columns')
+    body = np.stack([_body_tensor(quaternions, basis) for basis in REGIONAL_BASIS], axis=1)
+    return (body @ geometry.a @ PAIR_WHITENER).reshape(len(body), 5, 9)
+
+
+def solve_pairs(
+    pairs: FloatArray, x: FloatArray, regional: FloatArray | None = None
+) -> PairSolution:
+    """The joint least squares of the module docstring.
+
+    Parameters
+    ----------
+    pairs : (N, 3, 3) ``[n, axis, pair]`` pair differences to explain, T
+    x : (N, P) regressors (``B_1'``, 1, the terms'), SI
+    regional : (N, 5, 9) :func:`regional_columns`, or None
+
+    Raises
+    ------
+    IdentifiabilityError
+        Fewer rows than unknowns, a rank-deficient design, or attitudes that cannot separate
+        the regional gradient from the interference.
+    """
+    n, p = x.shape
+    y = _whiten(pairs)
+    unknowns = 9 * p + (5 if regional is not None else 0)
+    if 9 * n <= unknowns:
+        raise IdentifiabilityError(f'{n} samples are too few for {unknowns} unknowns')
+    scale = np.sqrt(np.mean(x**2, axis=0))
+    if np.any(scale == 0):
+        raise IdentifiabilityError('a regressor is zero on every sample')
+    q, r = np.linalg.qr(x / scale)
+    singular = np.linalg.svd(r, compute_uv=False)
+    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float('inf')
+    if not np.isfinite(condition) or condition > 1e10:
+        raise IdentifiabilityError(
+            f'the regressors are (nearly) dependent: condition number {condition:.3g}'
+        )
+    c = c_cov = None
+    if regional is not None:
+        flat = regional.reshape(n, 45)
+        projected = flat - q @ (q.T @ flat)
+        y_free = y - q @ (q.T @ y)
+        f3 = projected.reshape(n, 5, 9)
+        normal = np.einsum('nqo,nso->qs', f3, f3)
+        full = np.einsum('nqo,nso->qs', regional, regional)
+        eig = np.linalg.eigvalsh(normal)
+        if eig[0] <= 1e-8 * np.max(np.diag(full)):
+            raise IdentifiabilityError(
+                'the attitudes cannot separate a regional gradient from the interference'
+            )
+        c = np.linalg.solve(normal, np.einsum('nqo,no->q', f3, y_free))
+        y = y - np.einsum('nqo,q->no', regional, c)
+    theta_w = np.linalg.solve(r, q.T @ y) / scale[:, None]  # (P, 9)
+    residual = y - x @ theta_w
+    dof = 9 * n - unknowns
+    sigma2 = float(np.sum(residual**2) / dof)
+    r_inv = np.linalg.inv(r) / scale[:, None]
+    xtx_inv = r_inv @ r_inv.T  # (X^T X)^-1, P x P
+    # Whitened covariance: sigma^2 (X^T X)^-1 per output, independent outputs...
+    cov_w = np.kron(xtx_inv, np.eye(9)) * sigma2
+    if regional is not None and c is not None:
+        c_cov = sigma2 * np.linalg.inv(normal)
+        # ... plus what c's uncertainty passes to theta: A F, A = (X^T X)^-1 X^T.
+        gain = (xtx_inv @ (x.T @ regional.reshape(n, 45))).reshape(p, 5, 9)
+        spread = np.einsum('pqo,qs,tsu->potu', gain, c_cov, gain).reshape(9 * p, 9 * p)
+        cov_w = cov_w + spread
+    # Unwhiten over the pair index: theta = theta_w W^-1.
+    theta = theta_w.reshape(p, 3, 3) @ _PAIR_UNWHITENER
+    transform = np.kron(np.eye(3 * p), _PAIR_UNWHITENER.T)
+    covariance = transform @ cov_w @ transform.T
+    return PairSolution(theta, covariance, c, c_cov, float(np.sqrt(sigma2)), residual, condition)
+
+
+def _parameter_order(p: int) -> np.ndarray:
+    """Index into ``theta.reshape(-1)`` (``[regressor, axis, pair]``) of each entry of
+    :meth:`InterferenceParameters.full_vector` (k ``[pair, axis, col]``, b ``[pair, axis]``,
+    terms ``[pair, axis, regressor]``)."""
+    index = np.arange(9 * p).reshape(p, 3, 3)  # [regressor, axis, pair]
+    k = np.transpose(index[:3], (2, 1, 0)).reshape(-1)  # [pair, axis, col]
+    b = np.transpose(index[3], (1, 0)).reshape(-1)  # [pair, axis]
+    parts = [k, b]
+    if p > 4:
+        parts.append(np.transpose(index[4:], (2, 1, 0)).reshape(-1))  # [pair, axis, j]
+    return np.concatenate(parts)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An effect offered to the selection: its term's inputs, reference and regressors."""
+
+    name: str
+    inputs: tuple[str, ...]
+    reference: tuple[float, ...]
+    regressors: FloatArray  # (N, m) on the window's samples
+
+    @property
+    def size(self) -> int:
+        return int(self.regressors.shape[1])
+
+
+def candidates_for(
+    channels: Channels, names: tuple[str, ...] | None = None
+) -> tuple[list[Candidate], dict[str, str]]:
+    """The registry's effects that ``channels`` can fit (all, or ``names``), with their
+    regressors on the samples; and, per effect that cannot, what it lacks."""
+    from ..effects import EFFECTS
+
+    available = tuple(channels.series)
+    out, lacking = [], {}
+    for name in names if names is not None else tuple(EFFECTS):
+        spec = effect(name)
+        inputs = spec.inputs(available)
+        if not inputs:
+            lacking[name] = spec.missing(available)
+            continue
+        reference = spec.reference(channels, inputs)
+        out.append(
+            Candidate(name, inputs, reference, spec.regressors(channels, inputs, reference))
+        )
+    return out, lacking
+
+
+def _design(b_reference: FloatArray, chosen: list[Candidate]) -> FloatArray:
+    blocks = [b_reference, np.ones((len(b_reference), 1))]
+    blocks += [c.regressors for c in chosen]
+    return np.concatenate(blocks, axis=1)
+
+
+def _heldout_rss(
+    pairs: FloatArray, x: FloatArray, regional: FloatArray | None, folds: np.ndarray
+) -> float:
+    """Sum of squares of the whitened residual of each fold predicted by the others."""
+    total = 0.0
+    for fold in np.unique(folds):
+        test = folds == fold
+        train = ~test
+        fit = solve_pairs(pairs[train], x[train], None if regional is None else regional[train])
+        predicted = x[test] @ (
+            fit.theta.reshape(x.shape[1], 9) @ np.kron(np.eye(3), PAIR_WHITENER)
+        )
+        y = _whiten(pairs[test])
+        if regional is not None and fit.regional is not None:
+            y = y - np.einsum('nqo,q->no', regional[test], fit.regional)
+        total += float(np.sum((y - predicted) ** 2))
+    return total
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What :func:`select_terms` chose and why.
+
+    Attributes
+    ----------
+    chosen : the selected candidates, in order of entry
+    evidence : effect name -> its test (held-out RMS without and with it, nT per sensor
+        axis; F, p-value, gain, kept), for every candidate tested
+    lacking : effect name -> what it would need that the data lack
+    heldout_rms_nT : held-out RMS of the final set (whitened pair residual, nT)
+    """
+
+    chosen: tuple[Candidate, ...]
+    evidence: dict[str, dict[str, Any]]
+    lacking: dict[str, str] = field(default_factory=dict)
+    heldout_rms_nT: float = float('nan')
+
+
+def select_terms(
+    pairs: FloatArray,
+    b_reference: FloatArray,
+    candidates: list[Candidate],
+    *,
+    regional: FloatArray | None = None,
+    alpha: float = ALPHA,
+    min_gain: float = MIN_GAIN,
+    folds: int = FOLDS,
+) -> Selection:
+    """Forward selection of the candidates on held-out blocks (the module docstring).
+
+    ``pairs`` (N, 3, 3) and ``b_reference`` (N, 3) in time order; rows where a candidate's
+    regressor is NaN are left out of every comparison.
+    """
+    usable = np.all(np.isfinite(pairs.reshape(len(pairs), 9)), axis=1)
+    for candidate in candidates:
+        usable &= np.all(np.isfinite(candidate.regressors), axis=1)
+    keep = np.flatnonzero(usable)
+    n = len(keep)
+    fold_of = np.minimum((np.arange(n) * folds) // max(n, 1), folds - 1)
+    y = pairs[keep]
+    b1 = b_reference[keep]
+    reg = None if regional is None else regional[keep]
+    sub = [Candidate(c.name, c.inputs, c.reference, c.regressors[keep]) for c in candidates]
+    chosen: list[Candidate] = []
+    rss = _heldout_rss(y, _design(b1, chosen), reg, fold_of)
+    evidence: dict[str, dict[str, Any]] = {}
+    rows = 9 * n
+    remaining = list(sub)
+    while remaining:
+        tests = []
+        for candidate in remaining:
+            try:
+                rss_with = _heldout_rss(y, _design(b1, [*chosen, candidate]), reg, fold_of)
+            except IdentifiabilityError:
+                continue
+            p = 9 * candidate.size
+            f_stat = ((rss - rss_with) / p) / (rss_with / rows)
+            p_value = float(stats.f.sf(f_stat, p, rows)) if f_stat > 0 else 1.0
+            gain = 1.0 - rss_with / rss
+            passed = p_value < alpha / len(remaining) and gain >= min_gain
+            tests.append((passed, gain, candidate, rss_with, f_stat, p_value))
+            evidence[candidate.name] = {
+                'heldout_rms_without_nT': float(np.sqrt(rss / rows) * NT_PER_T),
+                'heldout_rms_with_nT': float(np.sqrt(rss_with / rows) * NT_PER_T),
+                'F': float(f_stat),
+                'p_value': p_value,
+                'gain': float(gain),
+                'kept': False,
+            }
+        passing = [test for test in tests if test[0]]
+        if not passing:
+            break
+        _, _, best, rss, _, _ = max(passing, key=lambda test: test[1])
+        evidence[best.name]['kept'] = True
+        chosen.append(best)
+        remaining = [c for c in remaining if c.name != best.name]
+    names = [c.name for c in chosen]
+    final = tuple(c for c in candidates if c.name in names)
+    final = tuple(sorted(final, key=lambda c: names.index(c.name)))
+    return Selection(final, evidence, heldout_rms_nT=float(np.sqrt(rss / rows) * NT_PER_T))
+
+
+def fit_with_terms(
+    g_measured: FloatArray,
+    b_reference: FloatArray,
+    geometry: TetraGeometry,
+    chosen: tuple[Candidate, ...],
+    *,
+    g_true: FloatArray | None = None,
+    orientation_xyzw: FloatArray | None = None,
+    evidence: Mapping[str, dict[str, Any]] | None = None,
+    channel_noise: Mapping[str, tuple[float, ...]] | None = None,
+) -> TensorCalibration:
+    """``k``, ``b`` (general), the chosen terms and (with ``orientation_xyzw``) the regional
+    gradient, jointly, as a :class:`TensorCalibration` whose parameters carry the terms and
+    whose covariance is of :meth:`InterferenceParameters.full_vector`.
+
+    ``g_measured`` (N, 3, 3) T/m and ``b_reference`` (N, 3) T on the window; samples where a
+    chosen regressor is NaN are left out.
+    """
+    target = g_measured if g_true is None else g_measured - g_true
+    x = _design(b_reference, list(chosen))
+    usable = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(target.reshape(-1, 9)), axis=1)
+    if orientation_xyzw is not None:
+        usable &= np.all(np.isfinite(orientation_xyzw), axis=1)
+    pairs = target[usable] @ geometry.a
+    regional = (
+        None
+        if orientation_xyzw is None
+        else regional_columns(np.asarray(orientation_xyzw)[usable], geometry)
+    )
+    solution = solve_pairs(pairs, x[usable], regional)
+    p = x.shape[1]
+    theta = solution.theta  # [regressor, axis, pair]
+    k_soft = np.transpose(theta[:3], (2, 1, 0))
+    b_hard = theta[3].T
+    terms = []
+    column = 4
+    for candidate in chosen:
+        coefficients = np.transpose(theta[column : column + candidate.size], (2, 1, 0))
+        column += candidate.size
+        terms.append(
+            Term(
+                candidate.name,
+                candidate.inputs,
+                coefficients,
+                candidate.reference,
+                (channel_noise or {}).get(candidate.name, ()),
+                dict((evidence or {}).get(candidate.name, {})),
+            )
+        )
+    order = _parameter_order(p)
+    covariance = solution.covariance[np.ix_(order, order)]
+    regional_g = regional_sigma = None
+    if solution.regional is not None and solution.regional_covariance is not None:
+        regional_g = np.tensordot(solution.regional, REGIONAL_BASIS, axes=1)
+        var = np.einsum(
+            'qij,qs,sij->ij', REGIONAL_BASIS, solution.regional_covariance, REGIONAL_BASIS
+        )
+        regional_sigma = np.sqrt(np.maximum(var, 0.0))
+    residual_pairs = solution.residual_w.reshape(-1, 3, 3) @ _PAIR_UNWHITENER
+    residual_rms = float(np.sqrt(np.mean((residual_pairs @ geometry.a_inv) ** 2)))
+    return TensorCalibration(
+        method=METHOD,
+        n_samples=int(np.sum(usable)),
+        n_parameters=9 * p,
+        rank=9 * p,
+        condition_number=solution.condition_number,
+        residual_rms=residual_rms,
+        details={
+            'sensor_noise_nT': solution.sigma * NT_PER_T,
+            'terms': [term.effect for term in terms],
+        },
+        parameters=InterferenceParameters(k_soft, b_hard, tuple(terms)),
+        symmetric=False,
+        covariance=covariance,
+        regional_gradient_enu=regional_g,
+        regional_gradient_sigma=regional_sigma,
+    )
+
+
+def check_window_channels(channels: Channels, names: tuple[str, ...]) -> None:
+    """Refuse ``names`` (effects asked for by name) that the channels cannot fit."""
+    _, lacking = candidates_for(channels, names)
+    if lacking:
+        raise InputError(
+            '; '.join(
+                f'{name} needs {what}, which the data lack' for name, what in lacking.items()
+            )
+        )
