@@ -20,6 +20,12 @@ neglects the product of parameter error and reference-field noise, smaller by
 :class:`SigmaModel` holds both for one calibration as a quadratic form in ``(B_1', 1)``:
 what a node evaluates per message and a bag pipeline per chunk (:func:`compensated_sigma`
 is its one-call form).
+
+With vehicle-effect terms (:mod:`.effects`) the form is in ``(B_1', 1, x)``, ``x`` the
+terms' regressors (the design stays affine in them), the covariance is of
+:meth:`~.model.InterferenceParameters.full_vector`, and a third source is added: the
+**channels' noise** (a current or temperature reading's own noise, ``channel_noise`` of each
+term) through the terms' coefficients, ``sum_j (W_j a^-1)^2 sigma_j^2`` per component.
 """
 
 from __future__ import annotations
@@ -59,6 +65,38 @@ def noise_jacobian(
     # Sensor 1: dG[i, j]/dB_1[m] = -sum_k a_inv[k, j] (delta(i, m) + K_k[i, m]).
     jacobian[:, :, 0, :] = -np.einsum('kj,kim->ijm', a_inv, eye[None] + k_soft)
     return jacobian.reshape(9, 12)
+
+
+def terms_design(geometry: TetraGeometry, parameters: InterferenceParameters) -> FloatArray:
+    """``M`` (4 + M, 9, 36 + 9 M) of ``D(x) = sum_c x_c M_c`` for ``x = (B_1', 1, z)``: the
+    general design of eq. 18 and, for regressor ``j`` of the terms, ``dD[r, c] / dW[i, r, j]
+    = a_inv[i, c]`` (coefficients in :meth:`InterferenceParameters.full_vector` order)."""
+    m = parameters.n_term_regressors
+    base = affine_interference_design(geometry, symmetric=False)  # (4, 9, 36)
+    design = np.zeros((4 + m, 9, 36 + 9 * m))
+    design[:4, :, :36] = base
+    offset, start = 36, 0
+    for term in parameters.terms:
+        size = term.size
+        for i in range(3):
+            for r in range(3):
+                for j in range(size):
+                    column = offset + (i * 3 + r) * size + j
+                    design[4 + start + j, 3 * r : 3 * r + 3, column] = geometry.a_inv[i]
+        offset += 9 * size
+        start += size
+    return design
+
+
+def channel_variance(geometry: TetraGeometry, parameters: InterferenceParameters) -> FloatArray:
+    """Variance (9,) (T/m)^2 per component from the terms' channel noise (module docstring)."""
+    variance = np.zeros(9)
+    for term in parameters.terms:
+        for j, noise in enumerate(term.channel_noise):
+            # D[r, c] += sum_i W[i, r, j] z_j a_inv[i, c]
+            per_unit = np.einsum('ir,ic->rc', term.coefficients[:, :, j], geometry.a_inv)
+            variance += (per_unit.reshape(9) * noise) ** 2
+    return variance
 
 
 def check_covariance(covariance: ArrayLike) -> tuple[FloatArray, bool]:
@@ -140,15 +178,21 @@ class SigmaModel:
 
     Attributes
     ----------
-    form : ndarray, shape (9, 4, 4)
+    form : ndarray, shape (9, 4 + M, 4 + M)
         ``F``, row-major tensor component first; T^2/m^2 per unit ``x x^T`` (``B_1'`` in
-        tesla). Read-only.
+        tesla, ``M`` term regressors in SI). Read-only.
     """
 
     form: FloatArray
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, 'form', frozen_array(self.form, 'form', (9, 4, 4)))
+        size = np.shape(self.form)[-1]
+        object.__setattr__(self, 'form', frozen_array(self.form, 'form', (9, size, size)))
+
+    @property
+    def n_regressors(self) -> int:
+        """``M``: the term regressors the model expects."""
+        return int(self.form.shape[-1]) - 4
 
     @classmethod
     def build(
@@ -159,6 +203,8 @@ class SigmaModel:
         covariance: np.ndarray | None = None,
     ) -> SigmaModel:
         """The model of :func:`compensated_sigma`'s arguments (all but ``b_reference``)."""
+        if parameters is not None and parameters.terms:
+            return cls._with_terms(geometry, sensor_noise_t, parameters, covariance)
         form = np.zeros((9, 4, 4))
         form[:, 3, 3] = (noise_sigma(geometry, sensor_noise_t, parameters) ** 2).reshape(9)
         if covariance is not None:
@@ -167,22 +213,54 @@ class SigmaModel:
             form += np.einsum('cqp,pr,dqr->qcd', design, covariance, design)
         return cls(form)
 
-    def __call__(self, b_reference: ArrayLike) -> FloatArray:
-        """1-sigma per sample and component, shape (N, 3, 3), T/m, for ``b_reference``
-        (N, 3) tesla."""
-        b_reference = as_vectors(b_reference, 'b_reference')
-        x = np.concatenate([b_reference, np.ones((len(b_reference), 1))], axis=1)
-        return self._sigma(x).reshape(-1, 3, 3)
+    @classmethod
+    def _with_terms(
+        cls,
+        geometry: TetraGeometry,
+        sensor_noise_t: float,
+        parameters: InterferenceParameters,
+        covariance: np.ndarray | None,
+    ) -> SigmaModel:
+        m = parameters.n_term_regressors
+        form = np.zeros((9, 4 + m, 4 + m))
+        noise = (noise_sigma(geometry, sensor_noise_t, parameters) ** 2).reshape(9)
+        form[:, 3, 3] = noise + channel_variance(geometry, parameters)
+        if covariance is not None:
+            covariance = np.asarray(covariance, dtype=float)
+            size = 36 + 9 * m
+            if covariance.shape != (size, size) or not np.all(np.isfinite(covariance)):
+                raise InputError(
+                    f'covariance must be a finite ({size}, {size}) array for k, b and '
+                    f'{m} term regressors, got {covariance.shape}'
+                )
+            design = terms_design(geometry, parameters)
+            form += np.einsum('cqp,pr,dqr->qcd', design, covariance, design)
+        return cls(form)
 
-    def one(self, b_reference: np.ndarray) -> FloatArray:
-        """1-sigma (3, 3), T/m, of one sample ``b_reference`` (3,) tesla, unchecked (the
-        per-message path of a node that has checked the reading already)."""
-        x = np.array([b_reference[0], b_reference[1], b_reference[2], 1.0])
+    def __call__(self, b_reference: ArrayLike, regressors: ArrayLike | None = None) -> FloatArray:
+        """1-sigma per sample and component, shape (N, 3, 3), T/m, for ``b_reference``
+        (N, 3) tesla and, with terms, their ``regressors`` (N, M) SI."""
+        b_reference = as_vectors(b_reference, 'b_reference')
+        blocks = [b_reference, np.ones((len(b_reference), 1))]
+        if self.n_regressors:
+            if regressors is None or np.shape(regressors) != (len(b_reference), self.n_regressors):
+                raise InputError(
+                    f'this sigma model needs the terms\' {self.n_regressors} regressors per sample'
+                )
+            blocks.append(np.asarray(regressors, dtype=float))
+        return self._sigma(np.concatenate(blocks, axis=1)).reshape(-1, 3, 3)
+
+    def one(self, b_reference: np.ndarray, regressors: np.ndarray | None = None) -> FloatArray:
+        """1-sigma (3, 3), T/m, of one sample ``b_reference`` (3,) tesla (and the terms'
+        ``regressors`` (M,)), unchecked (the per-message path of a node that has checked
+        the reading already)."""
+        x = np.concatenate([b_reference, [1.0], [] if regressors is None else regressors])
         return self._sigma(x[None])[0].reshape(3, 3)
 
     def _sigma(self, x: FloatArray) -> FloatArray:
-        """(N, 9) from ``x`` (N, 4)."""
-        outer = (x[:, :, None] * x[:, None, :]).reshape(len(x), 16)
-        variance = outer @ self.form.reshape(9, 16).T
+        """(N, 9) from ``x`` (N, 4 + M)."""
+        size = x.shape[1]
+        outer = (x[:, :, None] * x[:, None, :]).reshape(len(x), size * size)
+        variance = outer @ self.form.reshape(9, size * size).T
         # A positive semi-definite form can round to -1e-30 where it is ~0: clip, never NaN.
         return np.sqrt(np.maximum(variance, 0.0))

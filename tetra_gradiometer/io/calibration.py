@@ -13,11 +13,22 @@ Format (version 1)::
     sensor_noise_T: 5.0e-11           # optional: per-axis sensor noise estimated by the fit
     covariance: [[...]]               # optional: (P, P) covariance of the parameter vector
                                       # (P = 27 with symmetric_k, else 36; SI units of
-                                      # InterferenceParameters.to_vector)
+                                      # InterferenceParameters.to_vector; with terms, 36
+                                      # plus 9 per term regressor: full_vector)
+    terms:                            # optional: the vehicle effects fitted with k, b
+      - effect: vehicle_current       # core/effects registry name
+        inputs: [current:/battery_state]   # the channels it reads
+        labels: [I[/battery_state]_A]      # one per regressor
+        unit: nT/A                    # of the coefficients
+        coefficients: [[[...]]]       # [pair 2-1, 3-1, 4-1][axis x, y, z][regressor]
+        reference: []                 # values fixed at the fit (thermal_drift: T_ref degC;
+                                      # eddy_current: the differentiation window, s)
+        channel_noise: [0.01]         # RMS noise of each regressor, its unit
+        evidence: {...}               # the selection's held-out test of the term
 
 The two optional keys give the compensated tensor its uncertainty
 (:mod:`~tetra_gradiometer.core.uncertainty`); files without them (older ones, or methods that
-give no covariance) still load.
+give no covariance) still load, and so do files without ``terms`` (the paper's model).
 """
 
 from __future__ import annotations
@@ -33,6 +44,7 @@ import numpy as np
 import yaml
 
 from ..core import Calibration, InterferenceParameters, TensorCalibration, TetraGeometry
+from ..core.effects import Term, term_from_dict, term_to_dict
 from ..core.model import n_parameters
 from ..core.plausibility import check_parameters, check_positions_match
 from ..core.units import T_PER_NT
@@ -104,6 +116,8 @@ class CalibrationFile:
             document['sensor_noise_T'] = float(self.sensor_noise_t)
         if self.covariance is not None:
             document['covariance'] = np.asarray(self.covariance, dtype=float).tolist()
+        if self.parameters.terms:
+            document['terms'] = [term_to_dict(term) for term in self.parameters.terms]
         return yaml.safe_dump(document, sort_keys=False)
 
     @classmethod
@@ -124,8 +138,11 @@ class CalibrationFile:
             )
         try:
             check_parameters(document['k_soft'], document['b_hard_T'], source)
-            parameters = InterferenceParameters(document['k_soft'], document['b_hard_T'])
+            terms = _terms(document.get('terms'), source)
+            parameters = InterferenceParameters(document['k_soft'], document['b_hard_T'], terms)
             symmetric_k = bool(document['symmetric_k'])
+            if terms and symmetric_k:
+                raise InputError(f'{source}: terms need the general k (symmetric_k: false)')
             return cls(
                 parameters=parameters,
                 method=str(document['method']),
@@ -134,7 +151,9 @@ class CalibrationFile:
                 diagnostics=dict(document.get('diagnostics') or {}),
                 created_utc=str(document.get('created_utc', '')),
                 sensor_noise_t=_noise(document.get('sensor_noise_T'), source),
-                covariance=_covariance(document.get('covariance'), symmetric_k, source),
+                covariance=_covariance(
+                    document.get('covariance'), parameters, symmetric_k, source
+                ),
             )
         except InputError as error:  # named by check_parameters / the shape checks
             raise CalibrationFileError(str(error)) from None
@@ -152,16 +171,32 @@ def _noise(value: Any, source: str) -> float | None:
     return noise
 
 
-def _covariance(value: Any, symmetric_k: bool, source: str) -> np.ndarray | None:
+def _terms(value: Any, source: str) -> tuple[Term, ...]:
+    """The optional ``terms``: a list of :func:`~tetra_gradiometer.core.effects.term_to_dict`
+    mappings, each checked; () when absent."""
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise InputError(f'{source}: terms must be a list, got {type(value).__name__}')
+    terms = tuple(term_from_dict(item, f'{source}: terms[{i}]') for i, item in enumerate(value))
+    names = [term.effect for term in terms]
+    if len(set(names)) != len(names):
+        raise InputError(f'{source}: terms name an effect twice: {names}')
+    return terms
+
+
+def _covariance(
+    value: Any, parameters: InterferenceParameters, symmetric_k: bool, source: str
+) -> np.ndarray | None:
     """The optional ``covariance``: finite, (P, P) for this layout, non-negative diagonal."""
     if value is None:
         return None
     covariance = np.asarray(value, dtype=float)
-    size = n_parameters(symmetric=symmetric_k)
+    size = n_parameters(symmetric=symmetric_k) + 9 * parameters.n_term_regressors
     if covariance.shape != (size, size):
         raise InputError(
-            f'{source}: covariance must be {size} x {size} (symmetric_k: {symmetric_k}), '
-            f'got shape {covariance.shape}'
+            f'{source}: covariance must be {size} x {size} (symmetric_k: {symmetric_k}, '
+            f'{parameters.n_term_regressors} term regressors), got shape {covariance.shape}'
         )
     if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) < 0):
         raise InputError(f'{source}: covariance must be finite with a non-negative diagonal')

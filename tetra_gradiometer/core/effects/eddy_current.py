@@ -13,8 +13,10 @@ difference would need the future, which a node does not have). With fewer than t
 samples in the window a line is used, with one the rate is unknown (NaN: the first sample
 of a recording, and the first after a gap longer than the window). The window is fixed
 when the term is fitted (its reference value): :data:`WINDOW_PERIODS` sample periods of the
-calibration data, at least :data:`MIN_WINDOW_S`. Its noise, ``sigma / sqrt(sum tau^2)``
-order, is ~1 nT/s at 100 Hz for 0.05 nT sensors: times ``E`` ~ 1e-3 s, 1e-3 nT.
+calibration data, at least :data:`MIN_WINDOW_S`: a trade of the fit's error, ~``W^2`` times
+the field's third derivative (8 periods biased ``E`` by ~5 of its sigma on a 2-minute trim
+at 50 Hz; 4 periods by ~1), against the rate's noise, ~6 nT/s at 100 Hz for 0.05 nT
+sensors, which times ``E`` ~ 3e-4 s is 2e-3 nT, a twentieth of the sensor noise.
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ from .base import Channels, Effect, LiveRegressor
 #: The pseudo-channel of the reference reading's rate (always available: it is computed).
 REFERENCE_RATE = 'reference_rate'
 #: The differentiation window in sample periods, and its floor, s.
-WINDOW_PERIODS = 8
-MIN_WINDOW_S = 0.05
+WINDOW_PERIODS = 4
+MIN_WINDOW_S = 0.02
 
 
 def window_for(t_s: np.ndarray) -> float:

@@ -425,6 +425,7 @@ def calibration_residual(
     geometry: TetraGeometry,
     *,
     orientation_xyzw: ArrayLike | None = None,
+    regressors: ArrayLike | None = None,
 ) -> FloatArray:
     """What a known-gradient fit leaves: ``G_m - D(B_1'; theta) - R_n^T G_w R_n``.
 
@@ -442,6 +443,9 @@ def calibration_residual(
     geometry : TetraGeometry
     orientation_xyzw : array_like, shape (N, 4), optional
         Quaternions (x, y, z, w) rotating body vectors into ENU.
+    regressors : array_like, shape (N, M), optional
+        The terms' regressors, required when the calibration has terms (a NaN regressor
+        gives a NaN residual).
 
     Returns
     -------
@@ -458,7 +462,9 @@ def calibration_residual(
     g_measured = as_tensors(g_measured, 'g_measured')
     b_reference = as_vectors(b_reference, 'b_reference')
     n = same_length(g_measured=g_measured, b_reference=b_reference)
-    residual = g_measured - interference_tensor(b_reference, calibration.parameters, geometry)
+    residual = g_measured - interference_tensor(
+        b_reference, calibration.parameters, geometry, regressors
+    )
     if calibration.regional_gradient_enu is not None and orientation_xyzw is not None:
         quaternions = _orientations(orientation_xyzw, n, 'calibration_residual')
         residual -= _body_tensor(quaternions, calibration.regional_gradient_enu)
