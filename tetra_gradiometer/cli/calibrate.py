@@ -10,7 +10,7 @@ manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and ``pape
 do not use that assumption). ``--method`` is one of the registry's methods whose result is
 a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help`` describes them).
 
-The work is :func:`tetra_gradiometer.pipelines.calibration.calibrate_assessed` (``batch``
+The work is :func:`tetra_gradiometer.pipelines.trim.calibrate_assessed` (``batch``
 calls it too): the window is read streaming, and thinned to at most ``--max-sets`` sets (the
 printed summary says so); the trim assessment of the sets used (predicted survey accuracy,
 coverage, enough or the next manoeuvre) refuses a window that does not excite the
@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 
+from ..core.effects import EFFECTS, Term
 from ..core.identification import (
     CALIBRATION_METHODS,
     DEFAULT_METHOD,
@@ -36,13 +37,8 @@ from ..core.units import NT_PER_T
 from ..io.calibration import save_calibration
 from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
-from ..pipelines.calibration import (
-    DEFAULT_MAX_SETS,
-    MIN_SETS,
-    BagCalibration,
-    WindowAssessment,
-    calibrate_assessed,
-)
+from ..pipelines.calibration import DEFAULT_MAX_SETS, MIN_SETS, BagCalibration
+from ..pipelines.trim import WindowAssessment, calibrate_assessed
 from ..reports.calibration import write_calibration_report
 from ._args import (
     add_bag_arguments,
@@ -251,8 +247,9 @@ def _print_window_check(result: BagCalibration) -> None:
 
 def _print_parameters(result: BagCalibration) -> None:
     errors = getattr(result.calibration, 'standard_errors', None)
-    n_k = result.calibration.n_parameters - 9
     parameters = result.record.parameters
+    n_base = result.calibration.n_parameters - 9 * parameters.n_term_regressors
+    n_k = n_base - 9
     for pair in range(3):
         b_hard = ' '.join(f'{v:+.3f}' for v in parameters.b_hard[pair] * NT_PER_T)
         line = (
@@ -266,5 +263,32 @@ def _print_parameters(result: BagCalibration) -> None:
     if errors is not None:
         print(
             f'  largest standard error: K {errors[:n_k].max():.2g}, '
-            f'B^h {errors[n_k:].max() * NT_PER_T:.2g} nT'
+            f'B^h {errors[n_k:n_base].max() * NT_PER_T:.2g} nT'
+        )
+    _print_terms(parameters.terms, None if errors is None else errors[n_base:])
+
+
+def _print_terms(terms: tuple[Term, ...], errors: np.ndarray | None) -> None:
+    """Each vehicle-effect term: the largest coefficient (file unit) with its 1-sigma, what
+    it reads, and the held-out test that kept it."""
+    offset = 0
+    for term in terms:
+        spec = EFFECTS[term.effect]
+        values = term.coefficients * spec.file_factor
+        sigma = (
+            None if errors is None else errors[offset : offset + values.size] * spec.file_factor
+        )
+        offset += values.size
+        big = int(np.argmax(np.abs(values)))
+        largest = f'{values.flat[big]:+.4g}' + ('' if sigma is None else f' +- {sigma[big]:.2g}')
+        test = term.evidence
+        held_out = (
+            f'; held-out {test["heldout_rms_without_nT"]:.3g} -> '
+            f'{test["heldout_rms_with_nT"]:.3g} nT'
+            if 'heldout_rms_with_nT' in test
+            else ''
+        )
+        print(
+            f'  term {term.effect} ({", ".join(spec.labels(term.inputs))}): largest '
+            f'coefficient {largest} {spec.file_unit}{held_out}'
         )

@@ -10,7 +10,7 @@ figures are theirs:
 1. *params*: ``NAME.yaml`` as ``calibrate --params`` reads it; a scenario file instead (as
    ``bags/*.yaml`` are) gives the sensor positions and Earth field the way ``simulate``
    writes ``BAG.params.yaml``, and that params file is written as ``params.yaml``;
-2. *calibrate* the window (:func:`~.bag_calibration.calibrate_assessed`) into
+2. *calibrate* the window (:func:`~tetra_gradiometer.pipelines.trim.calibrate_assessed`) into
    ``calibration.yaml``; a window the calibration refuses (``AssumptionError``: the fit's
    assumption or the attitude excitation fails; ``IdentifiabilityError``: the window
    cannot identify the parameters) makes the row ``refused`` and skips step 3;
@@ -54,9 +54,10 @@ from ..io.calibration import save_calibration
 from ..io.outputs import BATCH_BAG, BATCH_SUMMARY, atomic_output, atomic_write_text
 from ..io.params import earth_field_from_params, geometry_from_params, load_params, params_document
 from ..io.scenario import load_scenario
-from ..pipelines.calibration import calibrate_assessed, window_text
+from ..pipelines.calibration import window_text
 from ..pipelines.compensation import TensorStatistics, compensate_bag, load_compensation
 from ..pipelines.discrepancy import analyze_bag
+from ..pipelines.trim import calibrate_assessed
 from ..reports.discrepancy import write_report
 
 __all__ = [

@@ -6,11 +6,9 @@ taken as zero**: a trim manoeuvre in a uniform field, away from targets
 only its sets are kept. A window of more than ``max_sets`` sets is thinned uniformly (every
 k-th set) to bound the solver's memory (the design holds 9 x 36 floats per set).
 
-:func:`assess_window` adds the trim guidance of :mod:`tetra_gradiometer.core.guidance` on the
-sets the solve used: attitude coverage from the bag's ``/odom`` when it holds one, the Earth
-field from the params file (else estimated from ``/odom``). :func:`calibrate_assessed` is what
-the ``calibrate`` command (and ``batch``, per bag) does before it writes: the calibration, its
-assessment and the refusal of a window whose attitudes do not excite the parameters.
+The default method fits the vehicle effects the window calls for with ``k``, ``b``
+(:mod:`.terms`). :mod:`.trim` adds the trim guidance on the sets the solve used
+(``calibrate_assessed``: what the ``calibrate`` command and ``batch`` do before they write).
 """
 
 from __future__ import annotations
@@ -24,7 +22,6 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import TetraGeometry, difference_tensor
-from ..core.guidance import TrimAssessment, assess, trim_statistics
 from ..core.identification import (
     DEFAULT_METHOD,
     MAX_COVERAGE_CONDITION,
@@ -34,17 +31,16 @@ from ..core.identification import (
 from ..core.identification.paper_ga import GENERATIONS
 from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
-from ..core.units import NT_PER_T, S_PER_NS
+from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
 from ..io import conversions as cv
 from ..io.bag import MagneticBag, SetCounters
 from ..io.calibration import CalibrationFile
+from .terms import EffectsChoice, WindowTerms, window_terms
 from .window_check import (
     KNOWN_GRADIENT_METHODS,
     CheckedCalibration,
     WindowCheck,
-    excitation_refusal,
-    forced,
     identify_checked,
     joint_attitude,
     orientation_at,
@@ -54,12 +50,8 @@ __all__ = [
     'DEFAULT_MAX_SETS',
     'MIN_SETS',
     'BagCalibration',
-    'WindowAssessment',
     'WindowSets',
-    'assess_window',
-    'calibrate_assessed',
     'calibrate_bag',
-    'check_excitation',
     'read_window',
     'window_text',
 ]
@@ -138,6 +130,8 @@ class BagCalibration:
         Their readings, tesla, body frame.
     orientation_xyzw : ndarray, shape (n, 4), or None
         Their attitude from ``/odom`` when the regional gradient was fitted jointly.
+    terms : WindowTerms
+        The vehicle effects fitted (or why none), with their held-out tests.
     """
 
     calibration: Calibration
@@ -156,6 +150,7 @@ class BagCalibration:
     stamps_ns: IntArray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     fields: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 3)))
     orientation_xyzw: FloatArray | None = None
+    terms: WindowTerms = dataclasses.field(default_factory=WindowTerms)
 
     def with_note(self, note: str) -> BagCalibration:
         """The same calibration with ``note`` added to its notes and its file's."""
@@ -163,6 +158,13 @@ class BagCalibration:
         diagnostics = {**self.record.diagnostics, 'notes': list(notes)}
         record = dataclasses.replace(self.record, diagnostics=diagnostics)
         return dataclasses.replace(self, notes=notes, record=record)
+
+    def with_diagnostics(self, extra: dict[str, Any]) -> BagCalibration:
+        """The same calibration with ``extra`` added to its file's diagnostics."""
+        diagnostics = {**self.record.diagnostics, **extra}
+        return dataclasses.replace(
+            self, record=dataclasses.replace(self.record, diagnostics=diagnostics)
+        )
 
     @property
     def checked(self) -> CheckedCalibration:
@@ -257,11 +259,13 @@ def calibrate_bag(
     max_sets: int = DEFAULT_MAX_SETS,
     progress: bool | None = None,
     force: bool = False,
+    effects: EffectsChoice | None = None,
 ) -> BagCalibration:
     """Identify the interference of the array ``geometry`` on a window of the bag.
 
     Known-gradient methods estimate a regional gradient jointly when the bag has ``/odom``
-    (else assume zero: ``notes``) and test the residual against the noise (window_check).
+    (else assume zero: ``notes``) and test the residual against the noise (window_check);
+    the default method fits the vehicle effects ``effects`` chooses (pipelines/terms).
 
     Parameters
     ----------
@@ -271,10 +275,11 @@ def calibrate_bag(
     method : a method of ``core.identification.CALIBRATION_METHODS``
     seed, generations, wide_bounds : ``paper_ga`` only (generations default ``GENERATIONS``)
     max_coverage_condition : refuse a window whose attitude coverage condition is larger
-    timebase : how the four streams become sets (default: resampled to sensor 1's stamps)
+    timebase : how the streams become sets (default: resampled to sensor 1's stamps)
     max_sets : thin the window to at most this many sets (at least :data:`MIN_SETS`)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force : keep a calibration that fails the window check (warning in its diagnostics)
+    effects : the vehicle effects to fit (None: automatic selection)
 
     Raises
     ------
@@ -282,8 +287,7 @@ def calibrate_bag(
     InputError : ``max_sets`` or ``generations`` out of range, or an unknown method
     BagError : the bag breaks the data contract, or the window holds no usable set
     IdentifiabilityError : the window cannot identify the parameters (message names it)
-    CalibrationFileError : the method gives no ``k, b`` calibration
-    """
+    CalibrationFileError : the method gives no ``k, b`` calibration"""
     _check_limits(max_sets, generations)
     sets, dropped = _plausible(
         read_window(bag_path, window, timebase=timebase, progress=progress), bag_path
@@ -291,15 +295,15 @@ def calibrate_bag(
     n_window = len(sets.stamps_ns)
     thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
     text = window_text(window)
-    stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
     options = Options(
         rng=np.random.default_rng(seed),
         generations=generations or GENERATIONS,
         wide_bounds=wide_bounds,
         max_coverage_condition=max_coverage_condition,
     )
-    options, note = _with_attitude(options, method, bag_path, stamps)
-    checked = _solve(method, stamps, fields, geometry, options, text, sets.first_ns, force, note)
+    checked, options, terms = _solve(
+        bag_path, sets, thinned, geometry, method, options, effects, text, force
+    )
     result = BagCalibration(
         calibration=checked.calibration,
         record=CalibrationFile.from_calibration(checked.calibration, geometry),
@@ -314,39 +318,70 @@ def calibrate_bag(
         notes=checked.notes,
         skipped_messages=sets.skipped_messages,
         skipped_summary=sets.skipped_summary,
-        stamps_ns=stamps,
-        fields=fields,
+        stamps_ns=sets.stamps_ns[::thinned],
+        fields=sets.fields[::thinned],
         orientation_xyzw=options.orientation_xyzw,
+        terms=terms,
     )
     extra = _diagnostics(result, bag_path) | ({'seed': seed} if method == 'paper_ga' else {})
-    record = dataclasses.replace(result.record, diagnostics={**result.record.diagnostics, **extra})
-    return dataclasses.replace(result, record=record)
+    return result.with_diagnostics(extra)
 
 
 def _solve(
-    method: str,
-    stamps: IntArray,
-    fields: FloatArray,
+    bag_path: str | os.PathLike[str],
+    sets: WindowSets,
+    thinned: int,
     geometry: TetraGeometry,
+    method: str,
     options: Options,
+    effects: EffectsChoice | None,
     window: str,
-    first_ns: int,
     force: bool,
-    notes: tuple[str, ...],
-) -> CheckedCalibration:
-    """The checked solve (:func:`~.window_check.identify_checked`) on the sets used."""
-    g_measured = difference_tensor(fields, geometry)
-    return identify_checked(
+) -> tuple[CheckedCalibration, Options, WindowTerms]:
+    """The checked solve (:func:`~.window_check.identify_checked`) on every ``thinned``-th
+    set of ``sets``, with the ``/odom`` attitude and the vehicle effects' terms."""
+    stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
+    options, note = _with_attitude(options, method, bag_path, stamps)
+    terms = _terms(bag_path, sets, thinned, geometry, method, effects, options.orientation_xyzw)
+    options = dataclasses.replace(options, terms=terms.candidates)
+    checked = identify_checked(
         method,
         stamps,
-        g_measured,
+        difference_tensor(fields, geometry),
         fields[:, 0],
         geometry,
         options,
         window=window,
-        first_ns=first_ns,
+        first_ns=sets.first_ns,
         force=force,
-        notes=notes,
+        notes=(*note, *terms.notes),
+        lacking=terms.lacking,
+    )
+    return checked, options, terms
+
+
+def _terms(
+    bag_path: str | os.PathLike[str],
+    sets: WindowSets,
+    thinned: int,
+    geometry: TetraGeometry,
+    method: str,
+    effects: EffectsChoice | None,
+    orientation_xyzw: FloatArray | None,
+) -> WindowTerms:
+    """The vehicle effects the window is fitted with (the default method only: the others
+    fit the paper's form)."""
+    choice = effects or EffectsChoice()
+    if method != DEFAULT_METHOD:
+        if choice.names:
+            raise InputError(
+                f'--effects {",".join(choice.names)}: vehicle effects are fitted with '
+                f'{DEFAULT_METHOD}, not {method}'
+            )
+        return WindowTerms(notes=(f'effects: none ({method} fits k, b only)',))
+    used = np.arange(0, len(sets.stamps_ns), thinned)
+    return window_terms(
+        bag_path, sets.stamps_ns, sets.fields, used, geometry, choice, orientation_xyzw
     )
 
 
@@ -381,6 +416,7 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
         **result.counters.as_dict(),
         **_clock_diagnostics(result.clocks),
         **result.checked.diagnostics(),
+        'effects': result.terms.diagnostics(),
         'messages_skipped_undecodable': result.skipped_messages,
     }
 
@@ -388,148 +424,6 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
 def _clock_diagnostics(clocks: tuple[ClockEstimate, ...] | None) -> dict[str, Any]:
     """Each sensor's clock against the reference (absent when stamps were paired)."""
     return {} if clocks is None else {'sensor_clocks': [c.to_dict() for c in clocks]}
-
-
-#: Sensor noise the assessment assumes if the window were too short to estimate its own, T.
-DEFAULT_SENSOR_NOISE_T = 0.1e-9
-
-
-@dataclass(frozen=True)
-class WindowAssessment:
-    """The trim guidance of a calibration window (``assessment`` None when it is impossible).
-
-    Attributes
-    ----------
-    assessment : TrimAssessment or None
-        On the sets the solve used; None without an Earth field (see ``notes``).
-    earth_field_enu : ndarray, shape (3,), or None
-        The site's field used, tesla, ENU.
-    notes : tuple of str
-        Where the Earth field and the attitude came from, or why there is no assessment.
-    """
-
-    assessment: TrimAssessment | None
-    earth_field_enu: FloatArray | None
-    notes: tuple[str, ...]
-
-
-def _odom_earth_field(orientation: FloatArray, b_reference: FloatArray) -> FloatArray | None:
-    """The Earth field in ENU as the mean of ``R B_1'`` over the sets with an attitude (sensor
-    1's own interference, a few hundred nT, biases it: negligible for the guidance)."""
-    from scipy.spatial.transform import Rotation
-
-    known = np.all(np.isfinite(orientation), axis=1)
-    if not known.any():
-        return None
-    return Rotation.from_quat(orientation[known]).apply(b_reference[known]).mean(axis=0)
-
-
-def assess_window(
-    result: BagCalibration,
-    bag_path: str | os.PathLike[str],
-    geometry: TetraGeometry,
-    earth_field_enu: FloatArray | None = None,
-) -> WindowAssessment:
-    """The trim guidance (:func:`tetra_gradiometer.core.guidance.assess`) of the sets a
-    calibration used: coverage by attitude from the bag's ``/odom`` when present, the Earth
-    field ``earth_field_enu`` (the params file's) or else estimated from ``/odom``; the model
-    assessed is the known-gradient solve of the method's parameter count.
-
-    Raises
-    ------
-    BagError
-        ``/odom`` is present but unreadable past the bag reader's skip limit.
-    """
-    stamps, fields = result.stamps_ns, result.fields
-    notes: list[str] = []
-    orientation = result.orientation_xyzw  # read for the joint fit: every set has one
-    if orientation is None:  # not read, or some sets lack one: the coverage takes the rest
-        with MagneticBag(bag_path) as bag:
-            series = bag.read_series(cv.ODOM_TOPIC)
-        if series is not None:
-            orientation = orientation_at(
-                series.stamps_ns, series.values[:, cv.POSE_ORIENTATION], stamps
-            )
-    if orientation is None:
-        notes.append(
-            f'no {cv.ODOM_TOPIC} in the bag: coverage is of the body-frame field direction'
-        )
-    earth = earth_field_enu
-    if earth is not None:
-        notes.append('Earth field from the params file (earth_field_enu)')
-    elif orientation is not None:
-        earth = _odom_earth_field(orientation, fields[:, 0])
-        if earth is not None:
-            b_nt = ', '.join(f'{v * NT_PER_T:.0f}' for v in earth)
-            notes.append(f"Earth field estimated from {cv.ODOM_TOPIC} and B_1': [{b_nt}] nT ENU")
-    if earth is None:
-        notes.append(
-            'no trim assessment: the params file has no earth_field_enu and the bag no '
-            f'{cv.ODOM_TOPIC} to estimate it from'
-        )
-        return WindowAssessment(None, None, tuple(notes))
-    statistics = trim_statistics(
-        fields[:, 0],
-        difference_tensor(fields, geometry),
-        geometry,
-        orientation_xyzw=orientation,
-    )
-    span_s = (stamps[-1] - stamps[0]) * S_PER_NS if len(stamps) > 1 else 0.0
-    noise_nt = result.calibration.details.get('sensor_noise_nT')
-    assessment = assess(
-        statistics,
-        geometry,
-        earth,
-        sample_rate_hz=(len(stamps) - 1) / span_s if span_s > 0 else 1.0,
-        sensor_noise_t=noise_nt / NT_PER_T if noise_nt else DEFAULT_SENSOR_NOISE_T,
-        symmetric=result.calibration.n_parameters == 27,
-    )
-    return WindowAssessment(assessment, np.asarray(earth, dtype=float), tuple(notes))
-
-
-def check_excitation(
-    result: BagCalibration, window: WindowAssessment, force: bool = False
-) -> BagCalibration:
-    """Refuse a calibration whose window's attitudes do not excite its parameters, or with
-    ``force`` keep it with the warning in its notes (and its file's).
-
-    Raises
-    ------
-    AssumptionError
-        The trim assessment predicts a compensated survey sigma above
-        :data:`~.window_check.MAX_PREDICTED_RATIO` noise floors, and not ``force``.
-    """
-    refusal = None
-    if window.assessment is not None:
-        refusal = excitation_refusal(window.assessment, result.window)
-    for warning in forced([refusal], force):
-        result = result.with_note(warning)
-    return result
-
-
-def calibrate_assessed(
-    bag_path: str | os.PathLike[str],
-    geometry: TetraGeometry,
-    earth_field_enu: FloatArray | None = None,
-    *,
-    force: bool = False,
-    **options: Any,
-) -> tuple[BagCalibration, WindowAssessment]:
-    """The ``calibrate`` command's work before it writes: :func:`calibrate_bag` (``options``
-    are its keywords; ``force`` keeps a window that fails a check, with the warning), the trim
-    assessment of the sets used (:func:`assess_window`, ``earth_field_enu`` the params
-    file's) and :func:`check_excitation`.
-
-    Raises
-    ------
-    AssumptionError : the window breaks the fit's assumption or does not excite the
-        parameters (not ``force``)
-    BagError, IdentifiabilityError, InputError, CalibrationFileError : as
-        :func:`calibrate_bag`
-    """
-    result = calibrate_bag(bag_path, geometry, force=force, **options)
-    window = assess_window(result, bag_path, geometry, earth_field_enu)
-    return check_excitation(result, window, force), window
 
 
 def odom_orientation(

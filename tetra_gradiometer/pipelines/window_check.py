@@ -30,6 +30,7 @@ from ..core.identification import (
     fit_consistency,
     identify,
 )
+from ..core.identification.misfit import FIELD_SHARE, gradient_share
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import AssumptionError, IdentifiabilityError
 from ..io import conversions as cv
@@ -145,10 +146,35 @@ class WindowCheck:
     consistency: FitConsistency
     first_ns: int
     passing_window: tuple[float, float] | None
+    field_share: float | None = None
 
     @property
     def passed(self) -> bool:
         return self.consistency.passed
+
+    def cause(self, lacking: dict[str, str] | None = None) -> str:
+        """What the misfit's shape says it is (:mod:`~tetra_gradiometer.core.
+        identification.misfit`), naming the effects whose channels the data lack."""
+        share = self.field_share
+        if share is not None and share >= FIELD_SHARE:
+            return (
+                f'a target or a spatially varying field: {share:.0%} of the misfit above the '
+                'noise is symmetric and traceless, as a field gradient is'
+            )
+        lacking = lacking or {}
+        shape = (
+            ''
+            if share is None
+            else f'{share:.0%} of the misfit above the noise is symmetric and traceless, '
+            'where a field gradient would be ~100 %: '
+        )
+        if lacking:
+            names = '; '.join(f'{name} needs {what}' for name, what in lacking.items())
+            return (
+                f'{shape}not a field but an effect of the vehicle the model lacks; the data '
+                f'lack the channel of an effect that may explain it ({names})'
+            )
+        return f'{shape}not a field but an effect of the vehicle the model lacks, or a bad stretch'
 
     def text(self, sub_window: str = '--window {0:.0f}:{1:.0f}') -> str:
         """One line: the verdict with the figures, the failing part, the passing window
@@ -174,6 +200,7 @@ class WindowCheck:
         return {
             **self.consistency.to_dict(),
             'passing_window_s': None if self.passing_window is None else list(self.passing_window),
+            'misfit_field_share': self.field_share,
         }
 
 
@@ -195,16 +222,19 @@ def _check_window(
     in ``options.orientation_xyzw`` when the regional gradient was fitted jointly.
     """
     orientation = options.orientation_xyzw
-    consistency = _consistency(
-        calibration, stamps_ns, g_measured, b_reference, geometry, orientation, first_ns
+    consistency, share = _consistency(
+        calibration, stamps_ns, g_measured, b_reference, geometry, options, first_ns
     )
     passing = None
     span = None if consistency.passed else consistency.longest_passing_span()
     if span is not None and span[1] - span[0] >= MIN_SUB_WINDOW_S:
         t = (stamps_ns - first_ns) * S_PER_NS
         keep = (t >= span[0]) & (t <= span[1])
+        # The sub-window is refitted and checked with the same terms.
         sub = dataclasses.replace(
-            options, orientation_xyzw=None if orientation is None else orientation[keep]
+            options,
+            orientation_xyzw=None if orientation is None else orientation[keep],
+            terms=tuple(term.select(keep) for term in options.terms),
         )
         g_kept, b_kept = g_measured[keep], b_reference[keep]
         try:
@@ -212,11 +242,11 @@ def _check_window(
         except IdentifiabilityError:
             refit = None
         if isinstance(refit, TensorCalibration):
-            again = _consistency(
-                refit, stamps_ns[keep], g_kept, b_kept, geometry, sub.orientation_xyzw, first_ns
+            again, _ = _consistency(
+                refit, stamps_ns[keep], g_kept, b_kept, geometry, sub, first_ns
             )
             passing = span if again.passed else None
-    return WindowCheck(consistency, first_ns, passing)
+    return WindowCheck(consistency, first_ns, passing, share)
 
 
 def _consistency(
@@ -225,24 +255,39 @@ def _consistency(
     g_measured: FloatArray,
     b_reference: FloatArray,
     geometry: TetraGeometry,
-    orientation: FloatArray | None,
+    options: Options,
     first_ns: int,
-) -> FitConsistency:
+) -> tuple[FitConsistency, float | None]:
+    """The check of the fit on its samples (the terms' regressors from ``options.terms``;
+    samples where one is unknown, e.g. the first of an eddy term, left out) and the misfit's
+    share that looks like a field."""
+    terms = options.terms
+    regressors = np.concatenate([term.regressors for term in terms], axis=1) if terms else None
     residual = calibration_residual(
-        calibration, g_measured, b_reference, geometry, orientation_xyzw=orientation
+        calibration,
+        g_measured,
+        b_reference,
+        geometry,
+        orientation_xyzw=options.orientation_xyzw,
+        regressors=regressors,
     )
+    known = np.all(np.isfinite(residual.reshape(len(residual), 9)), axis=1)
     regional = calibration.regional_gradient_enu is not None
     n_parameters = calibration.n_parameters + (5 if regional else 0)
-    t_s = (stamps_ns - first_ns) * S_PER_NS
-    return fit_consistency(residual, t_s, geometry, n_parameters)
+    t_s = (stamps_ns[known] - first_ns) * S_PER_NS
+    consistency = fit_consistency(residual[known], t_s, geometry, n_parameters)
+    share = gradient_share(residual[known], geometry, consistency.sensor_noise)
+    return consistency, share
 
 
-def _refusal(check: WindowCheck, window: str, force: str, sub_window: str) -> AssumptionError:
-    """The error of a failed check; ``force`` and ``sub_window`` say how the caller may act."""
+def _refusal(
+    check: WindowCheck, window: str, force: str, sub_window: str, lacking: dict[str, str]
+) -> AssumptionError:
+    """The error of a failed check, with what the misfit looks like (:meth:`WindowCheck.
+    cause`); ``force`` and ``sub_window`` say how the caller may act."""
     return AssumptionError(
-        f'the window ({window}) is not consistent with a constant gradient (a target, a '
-        f'spatially varying field or a bad stretch): {check.text(sub_window)}; no '
-        f'calibration written ({force})'
+        f'the window ({window}) does not fit the model ({check.cause(lacking)}): '
+        f'{check.text(sub_window)}; no calibration written ({force})'
     )
 
 
@@ -317,6 +362,7 @@ def identify_checked(
     sub_window: str = '--window {0:.0f}:{1:.0f}',
     notes: tuple[str, ...] = (),
     assessment: TrimAssessment | None = None,
+    lacking: dict[str, str] | None = None,
 ) -> CheckedCalibration:
     """Identify on the samples, then (known-gradient methods) test the fit's window, and
     with the samples' trim ``assessment`` their attitude excitation
@@ -325,6 +371,10 @@ def identify_checked(
     ``window`` names the samples in messages; ``force_name`` is how the caller forces a
     failed check (``--force``; the node's ``force:=true``) and ``sub_window`` how it names a
     passing sub-window (a format of its ends, s from ``first_ns``).
+
+    ``options.terms`` are the vehicle effects fitted with ``k``, ``b`` (their regressors on
+    the samples); ``lacking`` names the effects whose channels the data lack (effect ->
+    what it needs), for the refusal's cause.
 
     Raises
     ------
@@ -343,7 +393,8 @@ def identify_checked(
             calibration, method, stamps_ns, g_measured, b_reference, geometry, options, first_ns
         )
         hint = f'{force_name} writes it anyway, with this warning in the file'
-        refusals.append(None if check.passed else _refusal(check, window, hint, sub_window))
+        refusal = _refusal(check, window, hint, sub_window, lacking or {})
+        refusals.append(None if check.passed else refusal)
     return CheckedCalibration(calibration, check, (*notes, *forced(refusals, force, force_name)))
 
 

@@ -18,7 +18,8 @@ from ..core.guidance import ENOUGH_RATIO, SURVEY_HEADINGS_DEG, SURVEY_SWAY_DEG, 
 from ..core.identification import regional_body_tensor
 from ..core.units import NT_PER_T, S_PER_NS
 from ..io.outputs import CALIBRATION_REPORT, atomic_output
-from ..pipelines.calibration import BagCalibration, WindowAssessment
+from ..pipelines.calibration import BagCalibration
+from ..pipelines.trim import WindowAssessment
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

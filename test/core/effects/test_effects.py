@@ -140,7 +140,7 @@ def test_a_clean_vehicle_gets_no_term():
 
 
 def test_the_compensated_trim_is_at_the_noise_with_every_effect():
-    _, mission, g, b1, channels = _trim(7, tuple(EFFECTS))
+    scenario, mission, g, b1, channels = _trim(7, tuple(EFFECTS))
     candidates, _ = candidates_for(channels)
     selection = select_terms(g @ GEOMETRY.a, b1, candidates)
     assert {c.name for c in selection.chosen} == set(EFFECTS)
@@ -150,6 +150,16 @@ def test_the_compensated_trim_is_at_the_noise_with_every_effect():
     ok = np.all(np.isfinite(x), axis=1)
     noise_only = np.sqrt(2.0) * NOISE_T * np.sqrt(np.mean(GEOMETRY.a_inv**2) * 3)
     assert np.sqrt(np.mean(residual[ok] ** 2)) < 1.1 * noise_only
+    # Every term against the truth, each in its place of the joint covariance.
+    sigma = np.sqrt(np.diag(calibration.covariance))
+    k_pairs = scenario.interference.k_soft[1:] - scenario.interference.k_soft[0]
+    offset = 36
+    for term in calibration.parameters.terms:
+        per_sensor = getattr(scenario.effects, term.effect).reshape(4, 3, -1)
+        truth = per_sensor[1:] - per_sensor[0] - k_pairs @ per_sensor[0]
+        block = sigma[offset : offset + truth.size].reshape(truth.shape)
+        offset += truth.size
+        assert np.max(np.abs((term.coefficients - truth) / block)) < 5.0, term.effect
 
 
 def test_terms_are_never_taken_as_zero():

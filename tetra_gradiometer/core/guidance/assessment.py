@@ -419,6 +419,7 @@ def assess(
     sensor_noise_t: float,
     symmetric: bool = False,
     max_coverage_condition: float = MAX_COVERAGE_CONDITION,
+    noise_given: str = '',
 ) -> TrimAssessment:
     """Assess trim samples: predicted errors, coverage, enough, and the next manoeuvre.
 
@@ -439,11 +440,17 @@ def assess(
         Assess the 27-parameter model (``known_gradient_lstsq``) instead of the 36.
     max_coverage_condition : float
         "Enough" also needs a coverage condition number the solver accepts.
+    noise_given : str
+        Non-empty: take ``sensor_noise_t`` as the noise whatever the samples' own fit says,
+        this text naming where it came from (a calibration with vehicle-effect terms: the
+        statistics fit ``k``, ``b`` only, whose residual holds the terms' effect).
     """
     earth = as_array(earth_field_enu, 'earth_field_enu', (3,))
     reduction = _reduction(statistics.gram, statistics.cross)
     design = _whitened_design(reduction, geometry, symmetric)
-    fitted = _fitted_noise(statistics, design, reduction.targets, symmetric)
+    fitted = (
+        None if noise_given else _fitted_noise(statistics, design, reduction.targets, symmetric)
+    )
     sigma, parameters = fitted if fitted is not None else (float(sensor_noise_t), None)
     attitudes = survey_attitudes()
     setting = _Setting(
@@ -466,7 +473,7 @@ def assess(
     return TrimAssessment(
         n_samples=statistics.n,
         sensor_noise=setting.sigma,
-        noise_source='configured' if fitted is None else 'fit residual',
+        noise_source=noise_given or ('configured' if fitted is None else 'fit residual'),
         symmetric=symmetric,
         parameter_sigma=np.sqrt(np.diag(covariance)),
         survey_attitudes=attitudes,

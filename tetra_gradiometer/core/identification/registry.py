@@ -26,6 +26,7 @@ from .lstsq import (
 from .paper_ga import GENERATIONS, paper_ga
 from .pei_yeo import pei_yeo_2009
 from .result import Calibration
+from .terms import Candidate, fit_with_terms
 
 FloatArray = NDArray[np.float64]
 
@@ -62,6 +63,10 @@ class Options:
         Attitude quaternions (x, y, z, w) rotating body vectors into ENU. The known-gradient
         methods then fit a constant regional (world-frame) gradient jointly with ``k``, ``b``
         (the result's ``regional_gradient_enu``); the others ignore it.
+    terms : tuple of terms.Candidate
+        Vehicle effects to fit jointly (their regressors on the same samples):
+        ``known_gradient_lstsq_general`` only (:func:`~.terms.fit_with_terms`); the result's
+        parameters carry them.
     """
 
     rng: np.random.Generator | None = None
@@ -73,6 +78,7 @@ class Options:
     deadline_s: float | None = None
     should_stop: Callable[[], bool] | None = field(default=None, repr=False)
     orientation_xyzw: FloatArray | None = field(default=None, repr=False)
+    terms: tuple[Candidate, ...] = field(default=(), repr=False)
 
 
 Solver = Callable[[FloatArray, FloatArray, TetraGeometry, Options], Calibration]
@@ -106,6 +112,15 @@ class Method:
 
 def _known_gradient(symmetric: bool) -> Solver:
     def solve(g: FloatArray, b: FloatArray, geometry: TetraGeometry, o: Options) -> Calibration:
+        if o.terms:
+            if symmetric:
+                raise InputError(
+                    'vehicle-effect terms are fitted with known_gradient_lstsq_general '
+                    '(a general K_i1), not with the symmetric known_gradient_lstsq'
+                )
+            return fit_with_terms(
+                g, b, geometry, o.terms, g_true=o.g_true, orientation_xyzw=o.orientation_xyzw
+            )
         return known_gradient_lstsq(
             g,
             b,

@@ -28,8 +28,7 @@ neither test by chance more often than ``alpha`` per selection.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -162,31 +161,43 @@ def solve_pairs(
     return PairSolution(theta, covariance, c, c_cov, float(np.sqrt(sigma2)), residual, condition)
 
 
-def _parameter_order(p: int) -> np.ndarray:
+def _parameter_order(sizes: list[int]) -> np.ndarray:
     """Index into ``theta.reshape(-1)`` (``[regressor, axis, pair]``) of each entry of
-    :meth:`InterferenceParameters.full_vector` (k ``[pair, axis, col]``, b ``[pair, axis]``,
-    terms ``[pair, axis, regressor]``)."""
+    :meth:`InterferenceParameters.full_vector`: k ``[pair, axis, col]``, b ``[pair, axis]``,
+    then each term (of ``sizes`` regressors) ``[pair, axis, regressor]``."""
+    p = 4 + sum(sizes)
     index = np.arange(9 * p).reshape(p, 3, 3)  # [regressor, axis, pair]
-    k = np.transpose(index[:3], (2, 1, 0)).reshape(-1)  # [pair, axis, col]
-    b = np.transpose(index[3], (1, 0)).reshape(-1)  # [pair, axis]
-    parts = [k, b]
-    if p > 4:
-        parts.append(np.transpose(index[4:], (2, 1, 0)).reshape(-1))  # [pair, axis, j]
+    parts = [
+        np.transpose(index[:3], (2, 1, 0)).reshape(-1),  # [pair, axis, col]
+        np.transpose(index[3], (1, 0)).reshape(-1),  # [pair, axis]
+    ]
+    start = 4
+    for size in sizes:
+        block = index[start : start + size]
+        parts.append(np.transpose(block, (2, 1, 0)).reshape(-1))  # [pair, axis, j]
+        start += size
     return np.concatenate(parts)
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """An effect offered to the selection: its term's inputs, reference and regressors."""
+    """An effect offered to the selection: its term's inputs, reference, regressors (N, m)
+    on the window's samples (SI), and, once tested, its evidence (:class:`Selection`)."""
 
     name: str
     inputs: tuple[str, ...]
     reference: tuple[float, ...]
-    regressors: FloatArray  # (N, m) on the window's samples
+    regressors: FloatArray
+    evidence: dict[str, Any] = field(default_factory=dict, compare=False)
+    channel_noise: tuple[float, ...] = ()
 
     @property
     def size(self) -> int:
         return int(self.regressors.shape[1])
+
+    def select(self, keep: np.ndarray) -> Candidate:
+        """The same candidate on the samples ``keep`` (a sub-window)."""
+        return replace(self, regressors=self.regressors[keep])
 
 
 def candidates_for(
@@ -279,7 +290,7 @@ def select_terms(
     y = pairs[keep]
     b1 = b_reference[keep]
     reg = None if regional is None else regional[keep]
-    sub = [Candidate(c.name, c.inputs, c.reference, c.regressors[keep]) for c in candidates]
+    sub = [c.select(keep) for c in candidates]
     chosen: list[Candidate] = []
     rss = _heldout_rss(y, _design(b1, chosen), reg, fold_of)
     evidence: dict[str, dict[str, Any]] = {}
@@ -314,8 +325,12 @@ def select_terms(
         chosen.append(best)
         remaining = [c for c in remaining if c.name != best.name]
     names = [c.name for c in chosen]
-    final = tuple(c for c in candidates if c.name in names)
-    final = tuple(sorted(final, key=lambda c: names.index(c.name)))
+    final = tuple(
+        replace(c, evidence=evidence.get(c.name, {}))
+        for c in sorted(
+            (c for c in candidates if c.name in names), key=lambda c: names.index(c.name)
+        )
+    )
     return Selection(final, evidence, heldout_rms_nT=float(np.sqrt(rss / rows) * NT_PER_T))
 
 
@@ -327,8 +342,6 @@ def fit_with_terms(
     *,
     g_true: FloatArray | None = None,
     orientation_xyzw: FloatArray | None = None,
-    evidence: Mapping[str, dict[str, Any]] | None = None,
-    channel_noise: Mapping[str, tuple[float, ...]] | None = None,
 ) -> TensorCalibration:
     """``k``, ``b`` (general), the chosen terms and (with ``orientation_xyzw``) the regional
     gradient, jointly, as a :class:`TensorCalibration` whose parameters carry the terms and
@@ -364,11 +377,11 @@ def fit_with_terms(
                 candidate.inputs,
                 coefficients,
                 candidate.reference,
-                (channel_noise or {}).get(candidate.name, ()),
-                dict((evidence or {}).get(candidate.name, {})),
+                candidate.channel_noise,
+                dict(candidate.evidence),
             )
         )
-    order = _parameter_order(p)
+    order = _parameter_order([c.size for c in chosen])
     covariance = solution.covariance[np.ix_(order, order)]
     regional_g = regional_sigma = None
     if solution.regional is not None and solution.regional_covariance is not None:

@@ -1,0 +1,105 @@
+"""The recorded channels the vehicle effects read (:mod:`tetra_gradiometer.core.effects`),
+from a bag onto the sample sets' stamps.
+
+Channels and their topics: ``temperature`` is ``/tetra/temperature``
+(``sensor_msgs/Temperature``, degC); ``current:<topic>`` is the ``current`` (A) of the
+``sensor_msgs/BatteryState`` on ``<topic>``: ``/battery_state`` by default, and any further
+BatteryState topics the user names (one per thruster ESC, say). A channel is interpolated
+linearly between its messages (by header stamp) onto each set's stamp; a set further than
+:data:`MAX_GAP_S` from every message of the channel (a gap, or beyond the channel's ends)
+gets NaN there: **stale, never taken as zero**. The pipelines drop and count such sets, and
+say which channel and when.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.effects import CURRENT_PREFIX, TEMPERATURE, current_channel
+from ..core.units import S_PER_NS
+from ..errors import BagError
+from . import conversions as cv
+from .bag import MagneticBag
+
+#: The furthest a set may lie from a channel's nearest message, s: a temperature changes
+#: slowly (sensors report at ~1 Hz or less), a current steps with the thrusters.
+MAX_GAP_S = {TEMPERATURE: 10.0, CURRENT_PREFIX: 2.0}
+
+
+def max_gap_s(name: str) -> float:
+    """:data:`MAX_GAP_S` of channel ``name``."""
+    return MAX_GAP_S[TEMPERATURE if name == TEMPERATURE else CURRENT_PREFIX]
+
+
+def channel_topic(name: str) -> str:
+    """The bag topic of channel ``name``."""
+    if name == TEMPERATURE:
+        return cv.TEMPERATURE_TOPIC
+    if name.startswith(CURRENT_PREFIX):
+        return name.removeprefix(CURRENT_PREFIX)
+    raise BagError(f'{name!r} is not a recorded channel')
+
+
+def current_channels(topics: Iterable[str] = ()) -> tuple[str, ...]:
+    """The current channels: ``/battery_state`` and the further ``topics`` (duplicates
+    dropped)."""
+    names = [current_channel(cv.BATTERY_TOPIC)]
+    names += [current_channel(topic) for topic in topics]
+    return tuple(dict.fromkeys(names))
+
+
+@dataclass(frozen=True)
+class ChannelSeries:
+    """One channel as recorded: header stamps (m,) ns, values (m,), its name."""
+
+    name: str
+    stamps_ns: np.ndarray
+    values: np.ndarray
+
+    def on(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """The values at ``stamps_ns`` (n,): linear between messages, NaN where stale."""
+        stamps = np.asarray(stamps_ns, dtype=np.int64)
+        values = np.interp(stamps, self.stamps_ns, self.values)
+        after = np.clip(np.searchsorted(self.stamps_ns, stamps), 0, len(self.stamps_ns) - 1)
+        before = np.clip(after - 1, 0, len(self.stamps_ns) - 1)
+        gap = np.minimum(
+            np.abs(self.stamps_ns[after] - stamps), np.abs(self.stamps_ns[before] - stamps)
+        )
+        values[gap * S_PER_NS > max_gap_s(self.name)] = np.nan
+        return values
+
+    def stale_spans(self, stamps_ns: np.ndarray, origin_ns: int) -> list[tuple[float, float]]:
+        """The runs of ``stamps_ns`` where the channel is stale, (t0, t1) s from
+        ``origin_ns``."""
+        stale = ~np.isfinite(self.on(stamps_ns))
+        return runs(stamps_ns, stale, origin_ns)
+
+
+def runs(stamps_ns: np.ndarray, flag: np.ndarray, origin_ns: int) -> list[tuple[float, float]]:
+    """The runs of consecutive ``flag`` samples as (t0, t1) s from ``origin_ns``."""
+    if not np.any(flag):
+        return []
+    edges = np.diff(np.concatenate([[0], flag.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+    t = (np.asarray(stamps_ns) - origin_ns) * S_PER_NS
+    return [(float(t[a]), float(t[b])) for a, b in zip(starts, ends, strict=True)]
+
+
+def read_channels(bag: MagneticBag, names: Sequence[str]) -> dict[str, ChannelSeries]:
+    """The channels ``names`` the bag records (an absent topic is left out), each by header
+    stamp."""
+    out = {}
+    for name in names:
+        series = bag.read_series(channel_topic(name))
+        if series is not None and len(series.stamps_ns):
+            out[name] = ChannelSeries(name, series.stamps_ns, series.values[:, 0])
+    return out
+
+
+def spans_text(spans: list[tuple[float, float]], limit: int = 3) -> str:
+    """``'12.0-15.5 s, 80.2-80.9 s'`` (at most ``limit``, then how many more)."""
+    text = ', '.join(f'{a:.1f}-{b:.1f} s' for a, b in spans[:limit])
+    return text + (f' and {len(spans) - limit} more' if len(spans) > limit else '')

@@ -1,0 +1,242 @@
+"""Which vehicle effects a calibration window fits, from a bag: its channels read onto the
+window's sets, the candidates of the effects registry they allow, and the selection
+(:func:`tetra_gradiometer.core.identification.terms.select_terms`) or the user's choice.
+
+:class:`EffectsChoice` is what ``calibrate --effects auto|none|NAME,... [--effects-from
+REPORT] [--current-topics T,...]`` (and the calibrator node's ``effects`` and
+``current_topics``) ask for: ``auto`` (the default) offers every effect whose channels the
+data have and keeps those that pass the selection's held-out test; ``none`` fits the paper's
+``k``, ``b`` alone; names fit exactly those (refused when a channel they need is missing);
+``--effects-from`` takes the effects a discrepancy ``report.json`` named.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ..core.effects import EFFECTS, Channels
+from ..core.geometry import TetraGeometry
+from ..core.identification.terms import (
+    ALPHA,
+    MIN_GAIN,
+    Candidate,
+    Selection,
+    candidates_for,
+    regional_columns,
+    select_terms,
+)
+from ..core.units import S_PER_NS
+from ..errors import InputError
+from ..io.bag import MagneticBag
+from ..io.channels import TEMPERATURE as TEMPERATURE_CHANNEL
+from ..io.channels import ChannelSeries, channel_topic, current_channels, read_channels
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: Robust standard deviation of a normal sample from its median absolute deviation.
+MAD_TO_SIGMA = 1.4826
+
+
+@dataclass(frozen=True)
+class EffectsChoice:
+    """The effects a calibration may fit.
+
+    Attributes
+    ----------
+    names : None for automatic selection; () for none; else exactly these effects
+    current_topics : BatteryState topics read besides ``/battery_state``
+    source : how it was chosen, for notes ('auto', 'none', '--effects', a report's path)
+    """
+
+    names: tuple[str, ...] | None = None
+    current_topics: tuple[str, ...] = ()
+    source: str = 'auto'
+
+    @classmethod
+    def parse(cls, text: str, current_topics: tuple[str, ...] = ()) -> EffectsChoice:
+        """``auto``, ``none`` or comma-separated registry names."""
+        word = text.strip()
+        if word == 'auto':
+            return cls(None, current_topics, 'auto')
+        if word == 'none':
+            return cls((), current_topics, 'none')
+        names = tuple(dict.fromkeys(n.strip() for n in word.split(',') if n.strip()))
+        unknown = [n for n in names if n not in EFFECTS]
+        if unknown or not names:
+            raise InputError(
+                f'--effects {text!r}: {"unknown " + ", ".join(unknown) if unknown else "empty"};'
+                f' choose auto, none or names of {", ".join(EFFECTS)}'
+            )
+        return cls(names, current_topics, '--effects')
+
+    @classmethod
+    def from_report(
+        cls, path: str | os.PathLike[str], current_topics: tuple[str, ...] = ()
+    ) -> EffectsChoice:
+        """The registry effects a discrepancy ``report.json`` named (others it named, such as
+        a time skew, are not vehicle effects a calibration carries: listed in the error when
+        none is)."""
+        try:
+            document = json.loads(open(path, encoding='utf-8').read())
+        except (OSError, ValueError) as error:
+            raise InputError(f'--effects-from {path}: cannot read it: {error}') from None
+        named = document.get('named_effects') if isinstance(document, dict) else None
+        if not isinstance(named, list):
+            raise InputError(f'--effects-from {path}: not a discrepancy report.json')
+        names = tuple(dict.fromkeys(str(n) for n in named if n in EFFECTS))
+        return cls(names, current_topics, str(path))
+
+    @property
+    def automatic(self) -> bool:
+        return self.names is None
+
+
+@dataclass(frozen=True)
+class WindowTerms:
+    """The terms a window is fitted with, and why.
+
+    Attributes
+    ----------
+    candidates : the effects to fit, their regressors on the solve's sets
+    selection : the held-out tests (None when no effect was offered)
+    lacking : effect -> what it would need that the bag lacks
+    channels : the recorded channels found (name -> topic)
+    notes : one line on the choice, for the summary and the file
+    """
+
+    candidates: tuple[Candidate, ...] = ()
+    selection: Selection | None = None
+    lacking: dict[str, str] = field(default_factory=dict)
+    channels: dict[str, str] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+    def diagnostics(self) -> dict[str, Any]:
+        """For the calibration file's diagnostics and the report."""
+        out: dict[str, Any] = {
+            'selected': [c.name for c in self.candidates],
+            'channels': self.channels,
+            'lacking': self.lacking,
+        }
+        if self.selection is not None:
+            out['tests'] = self.selection.evidence
+        return out
+
+
+def _series_noise(series: ChannelSeries) -> float:
+    """A channel's own noise, its unit: the robust spread of successive differences."""
+    steps = np.diff(series.values)
+    if len(steps) < 3:
+        return 0.0
+    return float(MAD_TO_SIGMA * np.median(np.abs(steps - np.median(steps))) / np.sqrt(2.0))
+
+
+def _regressor_noise(regressors: FloatArray) -> tuple[float, ...]:
+    """Noise of computed regressors (the eddy rate): third differences' robust spread
+    (``var(d^3 e) = 20 sigma^2`` for white ``e``)."""
+    third = np.diff(regressors, n=3, axis=0)
+    third = third[np.all(np.isfinite(third), axis=1)]
+    if len(third) < 3:
+        return (0.0,) * regressors.shape[1]
+    spread = MAD_TO_SIGMA * np.median(np.abs(third - np.median(third, axis=0)), axis=0)
+    return tuple(float(v) for v in spread / np.sqrt(20.0))
+
+
+def window_channels(
+    bag_path: str | os.PathLike[str],
+    stamps_ns: IntArray,
+    fields: FloatArray,
+    current_topics: tuple[str, ...] = (),
+) -> tuple[Channels, dict[str, ChannelSeries]]:
+    """The recorded channels on the sets ``stamps_ns`` (n,) with readings ``fields``
+    (n, 4, 3) T: the temperature and the currents the bag has."""
+    names = (TEMPERATURE_CHANNEL, *current_channels(current_topics))
+    with MagneticBag(bag_path) as bag:
+        series = read_channels(bag, names)
+    t_s = (stamps_ns - stamps_ns[0]) * S_PER_NS
+    on_sets = {name: s.on(stamps_ns) for name, s in series.items()}
+    return Channels(t_s, fields[:, 0, :], on_sets), series
+
+
+def window_terms(
+    bag_path: str | os.PathLike[str],
+    stamps_ns: IntArray,
+    fields: FloatArray,
+    used: npt.NDArray[np.intp],
+    geometry: TetraGeometry,
+    choice: EffectsChoice,
+    orientation_xyzw: FloatArray | None,
+) -> WindowTerms:
+    """The terms to fit on the window's sets ``stamps_ns`` (n,) / ``fields`` (n, 4, 3) T, of
+    which the solve uses ``used`` (a thinned window: regressors are computed on every set,
+    an eddy rate needs the neighbours), with the attitude of the used sets when the regional
+    gradient is fitted jointly.
+
+    Raises
+    ------
+    InputError
+        Effects asked for by name whose channels the bag lacks (named with the channel).
+    """
+    if choice.names == ():
+        return WindowTerms(notes=("effects: none (the paper's k, b only)",))
+    channels, series = window_channels(bag_path, stamps_ns, fields, choice.current_topics)
+    found = {name: channel_topic(name) for name in series}
+    candidates, lacking = candidates_for(channels, choice.names)
+    if choice.names is not None and lacking:
+        raise InputError(
+            'effects asked for ('
+            + choice.source
+            + ') need channels the bag lacks: '
+            + '; '.join(f'{name} needs {what}' for name, what in lacking.items())
+        )
+    candidates = [
+        replace(
+            c.select(used),
+            channel_noise=(
+                tuple(_series_noise(series[name]) for name in c.inputs)
+                if all(name in series for name in c.inputs)
+                else _regressor_noise(c.regressors)
+            ),
+        )
+        for c in candidates
+    ]
+    fields_used = fields[used]
+    g_pairs = _pairs(fields_used, geometry)
+    regional = None if orientation_xyzw is None else regional_columns(orientation_xyzw, geometry)
+    # Named effects are all kept (their tests are still reported); auto keeps what passes.
+    strict = choice.automatic
+    selection = select_terms(
+        g_pairs,
+        fields_used[:, 0],
+        candidates,
+        regional=regional,
+        alpha=ALPHA if strict else np.inf,
+        min_gain=MIN_GAIN if strict else -np.inf,
+    )
+    chosen = selection.chosen
+    return WindowTerms(chosen, selection, lacking, found, (_note(choice, selection, lacking),))
+
+
+def _pairs(fields: FloatArray, geometry: TetraGeometry) -> FloatArray:
+    """The pair differences ``B_i' - B_1'`` as (n, 3 axes, 3 pairs), T (eq. 7 times a)."""
+    return np.swapaxes(fields[:, 1:, :] - fields[:, :1, :], 1, 2)
+
+
+def _note(choice: EffectsChoice, selection: Selection, lacking: dict[str, str]) -> str:
+    chosen = [c.name for c in selection.chosen]
+    tested = selection.evidence
+    parts = [f'effects ({choice.source}): ' + (', '.join(chosen) if chosen else 'none selected')]
+    for name, test in tested.items():
+        parts.append(
+            f'{name}: held-out {test["heldout_rms_without_nT"]:.3g} -> '
+            f'{test["heldout_rms_with_nT"]:.3g} nT ({"kept" if test["kept"] else "not kept"})'
+        )
+    if lacking:
+        parts.append('cannot fit: ' + '; '.join(f'{n} needs {w}' for n, w in lacking.items()))
+    return '; '.join(parts)
