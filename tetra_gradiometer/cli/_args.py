@@ -12,10 +12,14 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from ..core.timebase import SYNC_METHODS, TimeBase
 from ..core.units import S_PER_MS
 from ..errors import InputError
+
+if TYPE_CHECKING:
+    from ..pipelines.terms import EffectsChoice
 
 __all__ = [
     'MAX_FALSE_ALARMS_PER_HOUR',
@@ -222,3 +226,56 @@ def timebase_from_args(args: argparse.Namespace) -> TimeBase:
         max_gap_periods=args.max_gap_periods,
         tolerance_s=args.tolerance_ms * S_PER_MS,
     )
+
+
+def topics_arg(text: str) -> tuple[str, ...]:
+    """``--current-topics /a,/b``: absolute ROS topic names, comma-separated."""
+    topics = tuple(t.strip() for t in text.split(',') if t.strip())
+    bad = [t for t in topics if not t.startswith('/') or ' ' in t]
+    if bad or not topics:
+        raise argparse.ArgumentTypeError(
+            f'{text!r}: give absolute topic names separated by commas (e.g. /thruster1/battery)'
+        )
+    return topics
+
+
+def add_current_topics_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        '--current-topics',
+        type=topics_arg,
+        default=(),
+        metavar='T1,T2',
+        help='further sensor_msgs/BatteryState topics whose current the vehicle_current effect '
+        'reads, besides /battery_state (e.g. one per thruster ESC)',
+    )
+
+
+def add_effects_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--effects``, ``--effects-from`` and ``--current-topics`` (pipelines/terms)."""
+    from ..core.effects import EFFECTS
+
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        '--effects',
+        default='auto',
+        metavar='auto|none|NAME,...',
+        help='vehicle effects fitted with k, b: auto (default: those whose channels the bag '
+        "has and that pass the window's held-out test), none (the paper's k, b only), or "
+        f'names of {", ".join(EFFECTS)} (fitted whatever the test says)',
+    )
+    group.add_argument(
+        '--effects-from',
+        default=None,
+        metavar='REPORT',
+        help="fit the effects a discrepancy report.json named (those of the registry)",
+    )
+    add_current_topics_argument(parser)
+
+
+def effects_from_args(args: argparse.Namespace) -> EffectsChoice:
+    """The :class:`~tetra_gradiometer.pipelines.terms.EffectsChoice` of the arguments."""
+    from ..pipelines.terms import EffectsChoice
+
+    if args.effects_from is not None:
+        return EffectsChoice.from_report(args.effects_from, args.current_topics)
+    return EffectsChoice.parse(args.effects, args.current_topics)

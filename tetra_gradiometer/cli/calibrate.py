@@ -42,8 +42,10 @@ from ..pipelines.trim import WindowAssessment, calibrate_assessed
 from ..reports.calibration import write_calibration_report
 from ._args import (
     add_bag_arguments,
+    add_effects_arguments,
     add_force_argument,
     add_progress_arguments,
+    effects_from_args,
     finite_float,
     int_range,
     seed_arg,
@@ -78,6 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + f' (default: {DEFAULT_METHOD})',
     )
     parser.add_argument('--out', required=True, help='calibration YAML to write')
+    add_effects_arguments(parser)
     parser.add_argument(
         '--report',
         default=None,
@@ -150,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         max_sets=args.max_sets,
         progress=args.progress,
         force=args.force,
+        effects=effects_from_args(args),
     )
     save_calibration(args.out, result.record, force=args.force, inputs=inputs)
     _print_summary(args, result)

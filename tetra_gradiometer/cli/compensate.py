@@ -168,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
         print(f'  {clocks_text(counts.clocks)}')
     if counts.skipped_summary:
         print(counts.skipped_summary)
+    if counts.channel_summary:
+        print(f'  {counts.channel_summary}')
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m; {_sigma_text(compensation)})')
     if args.out_bag is not None:

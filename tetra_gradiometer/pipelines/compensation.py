@@ -45,6 +45,7 @@ from ..io.bag import BagWriter, MagneticBag, SetCounters
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, atomic_output, check_output
 from .health import HealthRecorder
+from .terms import StreamRegressors
 
 __all__ = [
     'COMPENSATED_TOPIC',
@@ -94,6 +95,10 @@ class CompensationCounts:
         Messages skipped as undecodable or unreadable (``MagneticBag.skipped``).
     skipped_summary : str
         The reader's line about them ('' when none).
+    channel_dropped : int
+        Sets dropped because a channel the calibration's terms read was unknown there.
+    channel_summary : str
+        Which channel and when ('' when none).
     """
 
     n_sets: int
@@ -104,6 +109,8 @@ class CompensationCounts:
     clocks: tuple[ClockEstimate, ...] | None = None
     skipped_messages: int = 0
     skipped_summary: str = ''
+    channel_dropped: int = 0
+    channel_summary: str = ''
 
 
 @dataclass
@@ -284,29 +291,26 @@ def compensate_bag(
     Parameters
     ----------
     bag_path : path of the rosbag2 folder to read
-    geometry : TetraGeometry
-        The array that recorded the bag.
+    geometry : TetraGeometry of the array that recorded the bag
     parameters : InterferenceParameters or None
-        ``k``, ``b`` of eq. 19; None writes the raw tensor (eq. 7).
-    sigma : SigmaModel, optional
-        The tensor's 1-sigma (built for ``parameters``): the CSV gets the nine ``sigma_``
-        columns (the output bag has no place for them).
-    health : HealthRecorder, optional
-        Fed every chunk of compensated sets (``compensate --report``).
+        ``k``, ``b`` of eq. 19 and the terms (their channels read from the bag, a set where
+        one is unknown dropped and counted); None writes the raw tensor (eq. 7).
+    sigma : SigmaModel, optional; the tensor's 1-sigma (built for ``parameters``): the CSV
+        gets the nine ``sigma_`` columns (the output bag has no place for them)
+    health : HealthRecorder, optional; fed every chunk of compensated sets
     statistics : TensorStatistics, optional; fed every chunk's raw and written tensors
-    csv, out_bag : outputs (at least one), each written atomically
-    out_storage : storage of ``out_bag`` (default: the input's)
-    timebase : how the four streams become sets (default: resampled to sensor 1's stamps)
-    fast : False decodes with rosbags and matches message by message (same result)
+    csv, out_bag, out_storage : outputs (one at least, each written atomically); the bag's
+        storage (default: the input's)
+    timebase : how the streams become sets (default: resampled to sensor 1's stamps);
+        ``fast`` False decodes with rosbags and matches message by message (same result)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force, inputs : as for :func:`~tetra_gradiometer.io.outputs.atomic_output`
 
     Raises
     ------
-    BagError
-        The bag breaks the data contract, or every set has a non-finite reading.
-    OutputError
-        An output is not ours to replace.
+    BagError : the bag breaks the data contract, every set has a non-finite reading, or a
+        channel the terms read is not in the bag
+    OutputError : an output is not ours to replace
     """
     inputs = tuple(inputs)
     topic = RAW_TOPIC if parameters is None else COMPENSATED_TOPIC
@@ -320,17 +324,16 @@ def compensate_bag(
             stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs
         )
         sets = bag.iter_sets(timebase=timebase, progress=progress, fast=fast)
+        terms = _stream_regressors(parameters, bag, bag_path)
         for stamps, fields in sets:
             stamps, fields = _drop_implausible(stamps, fields, dropped)
+            stamps, fields, x = _with_regressors(terms, stamps, fields)
             if not len(stamps):
                 continue
-            raw, tensors = _tensors(fields, geometry, parameters)
-            sigmas = None if sigma is None or handle is None else sigma(fields[:, 0, :])
+            raw, tensors = _tensors(fields, geometry, parameters, x)
+            sigmas = None if sigma is None or handle is None else sigma(fields[:, 0, :], x)
             _write(handle, writer, topic, stamps, tensors, sigmas)
-            if health is not None:
-                health.add(stamps, fields, tensors, bag_start_ns=bag.reader.start_time)
-            if statistics is not None:
-                statistics.add(raw, tensors)
+            _feed(health, statistics, stamps, fields, raw, tensors, bag.reader.start_time)
             first = int(stamps[0]) if n_sets == 0 else first
             last = int(stamps[-1])
             n_sets += len(stamps)
@@ -341,7 +344,46 @@ def compensate_bag(
             )
     span_s = (last - first) * S_PER_NS
     skipped = bag.skipped_messages, bag.skipped_summary()
-    return CompensationCounts(n_sets, dropped, span_s, topic, bag.counters, bag.clocks, *skipped)
+    channel = (0, '') if terms is None else (sum(terms.unknown.values()), terms.text())
+    return CompensationCounts(
+        n_sets, dropped, span_s, topic, bag.counters, bag.clocks, *skipped, *channel
+    )
+
+
+def _feed(
+    health: HealthRecorder | None,
+    statistics: TensorStatistics | None,
+    stamps: IntArray,
+    fields: FloatArray,
+    raw: FloatArray,
+    tensors: FloatArray,
+    bag_start_ns: int,
+) -> None:
+    """The chunk to the health monitor and the running statistics, when asked for."""
+    if health is not None:
+        health.add(stamps, fields, tensors, bag_start_ns=bag_start_ns)
+    if statistics is not None:
+        statistics.add(raw, tensors)
+
+
+def _stream_regressors(
+    parameters: InterferenceParameters | None, bag: MagneticBag, bag_path: PathLike
+) -> StreamRegressors | None:
+    """The terms' regressors over the bag (None without terms)."""
+    if parameters is None or not parameters.terms:
+        return None
+    return StreamRegressors(parameters.terms, bag, bag_path)
+
+
+def _with_regressors(
+    terms: StreamRegressors | None, stamps: IntArray, fields: FloatArray
+) -> tuple[IntArray, FloatArray, FloatArray | None]:
+    """The sets whose terms' regressors are known, with them (all sets, None: no terms)."""
+    if terms is None or not len(stamps):
+        return stamps, fields, None
+    x = terms(stamps, fields)
+    known = np.all(np.isfinite(x), axis=1)
+    return stamps[known], fields[known], x[known]
 
 
 def _open_outputs(
@@ -381,13 +423,17 @@ def _drop_implausible(
 
 
 def _tensors(
-    fields: FloatArray, geometry: TetraGeometry, parameters: InterferenceParameters | None
+    fields: FloatArray,
+    geometry: TetraGeometry,
+    parameters: InterferenceParameters | None,
+    regressors: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
-    """The raw tensor (eq. 7) and the one written: compensated (eq. 19), or the raw one."""
+    """The raw tensor (eq. 7) and the one written: compensated (eq. 19, with the terms'
+    ``regressors``), or the raw one."""
     raw = difference_tensor(fields, geometry)
     if parameters is None:
         return raw, raw
-    return raw, compensate(raw, fields[:, 0, :], parameters, geometry)
+    return raw, compensate(raw, fields[:, 0, :], parameters, geometry, regressors)
 
 
 def _write(

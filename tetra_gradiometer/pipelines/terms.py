@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ..core.effects import EFFECTS, Channels
+from ..core.effects import EFFECTS, REFERENCE_RATE, Channels, Term, term_regressors, terms_channels
 from ..core.geometry import TetraGeometry
 from ..core.identification.terms import (
     ALPHA,
@@ -32,10 +32,17 @@ from ..core.identification.terms import (
     select_terms,
 )
 from ..core.units import S_PER_NS
-from ..errors import InputError
+from ..errors import BagError, InputError
 from ..io.bag import MagneticBag
 from ..io.channels import TEMPERATURE as TEMPERATURE_CHANNEL
-from ..io.channels import ChannelSeries, channel_topic, current_channels, read_channels
+from ..io.channels import (
+    ChannelSeries,
+    channel_topic,
+    current_channels,
+    read_channels,
+    runs,
+    spans_text,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -130,11 +137,13 @@ class WindowTerms:
 
 
 def _series_noise(series: ChannelSeries) -> float:
-    """A channel's own noise, its unit: the robust spread of successive differences."""
-    steps = np.diff(series.values)
-    if len(steps) < 3:
+    """A channel's own noise, its unit: the robust spread of second differences of its
+    messages (``var(d^2 e) = 6 sigma^2`` for white ``e``; a ramp or a step between messages
+    adds nothing or one outlier)."""
+    second = np.diff(series.values, n=2)
+    if len(second) < 3:
         return 0.0
-    return float(MAD_TO_SIGMA * np.median(np.abs(steps - np.median(steps))) / np.sqrt(2.0))
+    return float(MAD_TO_SIGMA * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
 
 
 def _regressor_noise(regressors: FloatArray) -> tuple[float, ...]:
@@ -240,3 +249,84 @@ def _note(choice: EffectsChoice, selection: Selection, lacking: dict[str, str]) 
     if lacking:
         parts.append('cannot fit: ' + '; '.join(f'{n} needs {w}' for n, w in lacking.items()))
     return '; '.join(parts)
+
+
+class StreamRegressors:
+    """The terms' regressors over a bag's sets chunk by chunk (compensation), equal to
+    :func:`~tetra_gradiometer.core.effects.term_regressors` on the whole run: an eddy term's
+    rate takes the end of the previous chunk as its history. Counts the sets each channel
+    left unknown (stale, or the first set's rate) and their time spans.
+
+    Raises
+    ------
+    BagError
+        (At construction) a channel the terms read is not in the bag at all.
+    """
+
+    def __init__(
+        self, terms: tuple[Term, ...], bag: MagneticBag, bag_path: str | os.PathLike[str]
+    ) -> None:
+        self.terms = terms
+        names = terms_channels(terms)
+        self.series = read_channels(bag, names)
+        missing = [name for name in names if name not in self.series]
+        if missing:
+            raise BagError(
+                f'{bag_path}: the calibration has terms that read '
+                + ', '.join(f'{name} ({channel_topic(name)})' for name in missing)
+                + ', which the bag lacks: a channel is never taken as zero (record it, or '
+                'calibrate with --effects none)'
+            )
+        self.history_s = max(
+            (term.reference[0] for term in terms if term.effect == 'eddy_current'), default=0.0
+        )
+        self._tail: tuple[IntArray, FloatArray] | None = None
+        self.origin_ns: int | None = None
+        self.unknown: dict[str, int] = {}
+        self.spans: dict[str, list[tuple[float, float]]] = {}
+
+    def __call__(self, stamps_ns: IntArray, fields: FloatArray) -> FloatArray:
+        """Regressors (n, M) of the chunk's sets, NaN where a channel is unknown."""
+        if self.origin_ns is None:
+            self.origin_ns = int(stamps_ns[0])
+        prefix = 0
+        if self._tail is not None:
+            tail_stamps, tail_b = self._tail
+            prefix = len(tail_stamps)
+            stamps_all = np.concatenate([tail_stamps, stamps_ns])
+            b_all = np.concatenate([tail_b, fields[:, 0, :]])
+        else:
+            stamps_all, b_all = stamps_ns, fields[:, 0, :]
+        on_sets = {name: s.on(stamps_all) for name, s in self.series.items()}
+        t_s = (stamps_all - self.origin_ns) * S_PER_NS
+        regressors = term_regressors(self.terms, Channels(t_s, b_all, on_sets))[prefix:]
+        keep = (stamps_all[-1] - stamps_all) * S_PER_NS < self.history_s + 1e-9
+        self._tail = (stamps_all[keep], b_all[keep])
+        self._count(stamps_ns, {name: v[prefix:] for name, v in on_sets.items()}, regressors)
+        return regressors
+
+    def _count(
+        self, stamps_ns: IntArray, on_sets: dict[str, FloatArray], regressors: FloatArray
+    ) -> None:
+        unknown_any = ~np.all(np.isfinite(regressors), axis=1)
+        flags = {name: ~np.isfinite(values) for name, values in on_sets.items()}
+        channel_any = np.zeros(len(stamps_ns), dtype=bool)
+        for flag in flags.values():
+            channel_any |= flag
+        flags[REFERENCE_RATE] = unknown_any & ~channel_any  # no rate yet (first set, a gap)
+        for name, flag in flags.items():
+            if np.any(flag):
+                self.unknown[name] = self.unknown.get(name, 0) + int(np.sum(flag))
+                self.spans.setdefault(name, []).extend(
+                    runs(stamps_ns, flag, self.origin_ns or int(stamps_ns[0]))
+                )
+
+    def text(self) -> str:
+        """One line on the sets dropped for an unknown channel ('' when none)."""
+        if not self.unknown:
+            return ''
+        parts = [
+            f'{count} without {name} ({spans_text(self.spans.get(name, []))})'
+            for name, count in self.unknown.items()
+        ]
+        return 'sets dropped for a channel the terms read: ' + '; '.join(parts)

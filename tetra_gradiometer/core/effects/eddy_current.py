@@ -11,12 +11,16 @@ samples of the last ``window_s`` seconds (the sample itself included), evaluated
 sample (no delay for a field whose rate changes linearly over the window; a centred
 difference would need the future, which a node does not have). With fewer than three
 samples in the window a line is used, with one the rate is unknown (NaN: the first sample
-of a recording, and the first after a gap longer than the window). The window is fixed
-when the term is fitted (its reference value): :data:`WINDOW_PERIODS` sample periods of the
-calibration data, at least :data:`MIN_WINDOW_S`: a trade of the fit's error, ~``W^2`` times
-the field's third derivative (8 periods biased ``E`` by ~5 of its sigma on a 2-minute trim
-at 50 Hz; 4 periods by ~1), against the rate's noise, ~6 nT/s at 100 Hz for 0.05 nT
-sensors, which times ``E`` ~ 3e-4 s is 2e-3 nT, a twentieth of the sensor noise.
+of a recording, and the first after a gap longer than the window), and so is the rate of
+every sample whose window holds a jump: a change between two samples faster than the field
+can turn (:data:`MAX_TURN_RATE_RAD_S`; a recording joined from pieces, a glitch).
+
+The window is fixed when the term is fitted (its reference value): :data:`WINDOW_PERIODS`
+sample periods of the calibration data, at least :data:`MIN_WINDOW_S`. It trades the fit's
+error, ~``W^2`` times the field's third derivative (8 periods biased ``E`` by ~5 of its
+sigma on a 2-minute trim at 50 Hz; 4 periods by ~1), against the rate's noise, ~6 nT/s at
+100 Hz for 0.05 nT sensors, which times ``E`` ~ 3e-4 s is 2e-3 nT: a twentieth of the
+sensor noise.
 """
 
 from __future__ import annotations
@@ -31,6 +35,10 @@ from .base import Channels, Effect, LiveRegressor
 
 #: The pseudo-channel of the reference reading's rate (always available: it is computed).
 REFERENCE_RATE = 'reference_rate'
+#: The fastest the body-frame field can turn, rad/s: a rate above this times ``|B_1'|`` is
+#: not the vehicle turning but a jump of the reading (a recording joined from pieces, a
+#: glitch) and is unknown (NaN), never an eddy field of thousands of nT.
+MAX_TURN_RATE_RAD_S = 2.0
 #: The differentiation window in sample periods, and its floor, s.
 WINDOW_PERIODS = 4
 MIN_WINDOW_S = 0.02
@@ -92,6 +100,30 @@ def _slopes(s: np.ndarray, r: np.ndarray, count: np.ndarray) -> FloatArray:
     return out
 
 
+def jumps(t_s: np.ndarray, b_reference: np.ndarray) -> np.ndarray:
+    """(N,) True where the reading changed from the previous sample faster than the field
+    can turn (:data:`MAX_TURN_RATE_RAD_S`): a jump, not a turn."""
+    out = np.zeros(len(t_s), dtype=bool)
+    if len(t_s) > 1:
+        step = np.linalg.norm(np.diff(b_reference, axis=0), axis=1)
+        dt = np.diff(t_s)
+        limit = MAX_TURN_RATE_RAD_S * np.linalg.norm(b_reference[1:], axis=1) * dt
+        out[1:] = step > limit
+    return out
+
+
+def jump_free_rate(t_s: np.ndarray, b_reference: np.ndarray, window_s: float) -> FloatArray:
+    """:func:`causal_rate` of ``b_reference`` with NaN where the window holds a jump
+    (:func:`jumps`): the rate across it would be the jump's, not the vehicle's."""
+    rate = causal_rate(t_s, b_reference, window_s)
+    start = np.searchsorted(t_s, t_s - window_s, side='right')
+    flagged = np.concatenate([[0], np.cumsum(jumps(t_s, b_reference))])
+    # A jump at sample j lies in the window of n when start[n] < j <= n.
+    inside = flagged[np.arange(len(t_s)) + 1] - flagged[np.minimum(start + 1, len(t_s))] > 0
+    rate[inside] = np.nan
+    return rate
+
+
 class _Live(LiveRegressor):
     def __init__(self, window_s: float) -> None:
         self.window_s = window_s
@@ -109,7 +141,11 @@ class _Live(LiveRegressor):
         powers = tau[:, None] ** np.arange(5)
         s = powers.sum(axis=0)[None]
         r = (powers[:, :3, None] * y[:, None, :]).sum(axis=0)[None]
-        return _slopes(s, r, np.array([len(t)]))[0]
+        rate = _slopes(s, r, np.array([len(t)]))[0]
+        b = np.array([item[1] for item in self.history])
+        if np.any(jumps(t, b)[1:]):
+            rate[:] = np.nan
+        return rate
 
     def reset(self) -> None:
         self.history.clear()
@@ -143,7 +179,7 @@ class EddyCurrent(Effect):
     def regressors(
         self, channels: Channels, inputs: tuple[str, ...], reference: tuple[float, ...]
     ) -> FloatArray:
-        return causal_rate(channels.t_s, channels.b_reference, reference[0])
+        return jump_free_rate(channels.t_s, channels.b_reference, reference[0])
 
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         return _Live(reference[0])
