@@ -7,7 +7,6 @@ a bag without it cannot place anything and is refused.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,7 +20,9 @@ from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.units import S_PER_NS
 from ..errors import BagError
 from ..io import conversions as cv
+from ..io.bag import MagneticBag
 from ..io.recording import Recording, read_recording
+from .terms import StreamRegressors
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,18 @@ def survey_of(recording: Recording, tensors: np.ndarray, where: str) -> Survey:
     return Survey(recording.t_s, recording.position_m, rotations, tensors)
 
 
+def _term_regressors(
+    bag: str | os.PathLike[str], parameters: InterferenceParameters, recording: Recording
+) -> np.ndarray | None:
+    """The calibration's terms' regressors on the recording's sets (None without terms);
+    NaN where a channel is unknown."""
+    if not parameters.terms:
+        return None
+    with MagneticBag(bag) as reader:
+        stream = StreamRegressors(parameters.terms, reader, bag)
+        return stream(recording.stamps_ns, recording.fields)
+
+
 def locate_bag(
     bag: str | os.PathLike[str],
     geometry: TetraGeometry,
@@ -86,15 +99,19 @@ def locate_bag(
     searches: list[Search] = []
     kinds: list[tuple[str, np.ndarray]] = []
     if parameters is not None:
-        kinds.append(
-            ('compensated', compensate(raw, recording.fields[:, 0, :], parameters, geometry))
-        )
+        x = _term_regressors(bag, parameters, recording)
+        b1 = recording.fields[:, 0, :]
+        kinds.append(('compensated', compensate(raw, b1, parameters, geometry, x)))
     if parameters is None or comparison:
         kinds.append(('raw', raw))
     for tensor, tensors in kinds:
         if on_stage is not None:
             on_stage(f'locating on the {tensor} tensor')
-        survey = dataclasses.replace(track, tensors=tensors)
+        # Sets where a channel the terms read is unknown have no compensated tensor.
+        known = np.all(np.isfinite(tensors.reshape(len(tensors), 9)), axis=1)
+        survey = Survey(
+            track.t_s[known], track.positions[known], track.rotations[known], tensors[known]
+        )
         targets, detected = locate(survey, geometry, settings)
         searches.append(Search(tensor, survey, targets, detected))
     return BagTargets(

@@ -1,0 +1,167 @@
+"""The vehicle effects on bags (issue 28): ``calibrate`` selects and fits the terms the trim
+calls for, ``compensate`` and ``locate`` apply them, a missing channel is named, never zero.
+Truth: the simulator's ``g_true`` (the sidecar ``.truth.npz``) and its effects."""
+import json
+
+import numpy as np
+import pytest
+import yaml
+from cli_helpers import assert_refused, run_cli
+
+from tetra_gradiometer.io.calibration import load_calibration
+from tetra_gradiometer.pipelines.terms import EffectsChoice
+
+SCENARIO = {
+    'seed': 31,
+    'sample_rate_hz': 20,
+    'noise_nT': 0.05,
+    'geometry': {'regular_edge_m': 0.5},
+    'earth_field': {'enu_nT': [0.0, 21000.0, -45376.2]},
+    'dipoles': [{'position_m': [0.0, 0.0, -60.0], 'moment_Am2': [30000.0, 20000.0, -33000.0]}],
+    'interference': {'random': {'k_scale': 0.01, 'b_scale_nT': 300, 'reference_clean': True}},
+    'current': {'base_a': -15.0, 'step_amplitude_a': 12.0, 'step_s': 15.0},
+    'temperature': {'mean_c': 15.0, 'ramp_c': 5.0, 'amplitude_c': 0.5, 'period_s': 437.0},
+    'segments': [
+        {'trim': {'duration_s': 150, 'center_m': [3000.0, 3000.0, -50.0]}},
+        {'line': {'start_m': [-150.0, 0.0, -40.0], 'end_m': [150.0, 0.0, -40.0], 'speed_m_s': 2.0,
+                  'roll_amplitude_deg': 2.0, 'pitch_amplitude_deg': 1.0}},
+    ],
+}
+RNG = np.random.default_rng(28)
+EFFECTS = {
+    'vehicle_current': {'nT_per_A': (RNG.uniform(0.5, 2.4, (4, 3)) * RNG.choice([-1, 1], (4, 3))).tolist()},
+    'eddy_current': {'coefficients_s': RNG.normal(0, 3e-4, (4, 3, 3)).tolist()},
+    'thermal_drift': {'nT_per_degC': (RNG.uniform(0.08, 0.28, (4, 3)) * RNG.choice([-1, 1], (4, 3))).tolist()},
+}
+TRIM = '0:149'
+
+
+def _simulate(tmp, capsys, name, effects, *extra):
+    scenario = tmp / f'{name}.yaml'
+    scenario.write_text(yaml.safe_dump({**SCENARIO, 'effects': effects}))
+    code, _, err = run_cli(capsys, 'simulate', '--scenario', scenario, '--out', tmp / name, *extra)
+    assert code == 0, err
+    return tmp / name, tmp / f'{name}.params.yaml', np.load(tmp / f'{name}.truth.npz')
+
+
+@pytest.fixture(scope='module')
+def bags(tmp_path_factory):
+    """A clean vehicle and one with all three effects, with every channel recorded."""
+    tmp = tmp_path_factory.mktemp('effects')
+    capsys = _NoCapture()
+    return {
+        'clean': _simulate(tmp, capsys, 'clean', {}),
+        'all': _simulate(tmp, capsys, 'all', EFFECTS),
+        'magonly': _simulate(tmp, capsys, 'magonly', {'vehicle_current': EFFECTS['vehicle_current']},
+                             '--mag-only'),
+    }
+
+
+class _NoCapture:
+    """run_cli's capsys for a module fixture (output is not checked there)."""
+
+    def readouterr(self):
+        class _Out:
+            out = err = ''
+        return _Out()
+
+
+def _survey_residual(csv, truth):
+    rows = np.loadtxt(csv, delimiter=',', skiprows=1)
+    # The stamp column exactly (9 decimals), not through a float.
+    lines = csv.read_text().splitlines()[1:]
+    stamps = np.array([int(line.split(',', 1)[0].replace('.', '')) for line in lines])
+    index = np.searchsorted(truth['stamps_ns'], stamps)
+    assert np.array_equal(truth['stamps_ns'][index], stamps)
+    survey = truth['t_s'][index] > 150.5
+    residual = rows[survey, 1:10] - truth['g_true'][index[survey]].reshape(-1, 9) * 1e9
+    sigma = rows[survey, 10:19]
+    return np.sqrt(np.mean(residual**2)), np.sqrt(np.mean(sigma**2))
+
+
+def test_calibrate_selects_the_effects_and_compensate_reaches_the_noise(bags, tmp_path, capsys):
+    bag, params, truth = bags['all']
+    calibration = tmp_path / 'all.yaml'
+    code, out, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
+                             '--out', calibration)
+    assert code == 0, err
+    terms = load_calibration(calibration).parameters.terms
+    assert sorted(term.effect for term in terms) == sorted(EFFECTS)
+    assert 'term vehicle_current' in out
+    csv = tmp_path / 'all.csv'
+    code, _, err = run_cli(capsys, 'compensate', bag, '--params', params, '--calibration',
+                           calibration, '--csv', csv)
+    assert code == 0, err
+    residual, sigma = _survey_residual(csv, truth)
+    # The noise floor: the compensated tensor's 1-sigma (sensor noise through eq. 7 and 19).
+    assert residual < 1.2 * sigma
+    # Without the terms the same trim cannot calibrate (the window check refuses).
+    assert_refused(
+        run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
+                '--out', tmp_path / 'none.yaml', '--effects', 'none'),
+        'not a field but an effect of the vehicle',
+    )
+
+
+def test_a_clean_vehicle_gets_the_paper_model(bags, tmp_path, capsys):
+    bag, params, truth = bags['clean']
+    auto, none = tmp_path / 'auto.yaml', tmp_path / 'none.yaml'
+    for out, effects in ((auto, 'auto'), (none, 'none')):
+        code, _, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
+                               '--out', out, '--effects', effects)
+        assert code == 0, err
+    a, b = load_calibration(auto), load_calibration(none)
+    assert a.parameters.terms == () and b.parameters.terms == ()
+    np.testing.assert_array_equal(a.parameters.k_soft, b.parameters.k_soft)
+    np.testing.assert_array_equal(a.parameters.b_hard, b.parameters.b_hard)
+
+
+def test_a_missing_channel_is_named_never_zero(bags, tmp_path, capsys):
+    bag, params, _ = bags['magonly']
+    assert_refused(
+        run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
+                '--out', tmp_path / 'x.yaml'),
+        'vehicle_current needs a current', '/battery_state',
+    )
+    assert_refused(
+        run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
+                '--out', tmp_path / 'x.yaml', '--effects', 'vehicle_current'),
+        'vehicle_current needs a current',
+    )
+    # A calibration with a current term on a bag without /battery_state.
+    full, full_params, _ = bags['all']
+    calibration = tmp_path / 'current.yaml'
+    code, _, err = run_cli(capsys, 'calibrate', full, '--params', full_params, '--window', TRIM,
+                           '--out', calibration, '--effects', 'vehicle_current,eddy_current,thermal_drift')
+    assert code == 0, err
+    assert_refused(
+        run_cli(capsys, 'compensate', bag, '--params', params, '--calibration', calibration,
+                '--csv', tmp_path / 'x.csv'),
+        'current:/battery_state (/battery_state)', 'never taken as zero',
+    )
+
+
+def test_effects_from_a_discrepancy_report(tmp_path):
+    report = tmp_path / 'report.json'
+    report.write_text(json.dumps({'named_effects': ['time_skew', 'thermal_drift', 'vehicle_current']}))
+    choice = EffectsChoice.from_report(report)
+    assert choice.names == ('thermal_drift', 'vehicle_current')
+    (tmp_path / 'bad.json').write_text('{"x": 1}')
+    with pytest.raises(Exception, match='not a discrepancy report'):
+        EffectsChoice.from_report(tmp_path / 'bad.json')
+
+
+def test_the_calibration_file_round_trips_its_terms(bags, tmp_path, capsys):
+    bag, params, _ = bags['all']
+    first = tmp_path / 'first.yaml'
+    code, _, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
+                           '--out', first)
+    assert code == 0, err
+    loaded = load_calibration(first)
+    again = type(loaded).from_yaml(loaded.to_yaml())
+    for a, b in zip(loaded.parameters.terms, again.parameters.terms, strict=True):
+        assert (a.effect, a.inputs, a.reference, a.channel_noise) == (
+            b.effect, b.inputs, b.reference, b.channel_noise)
+        np.testing.assert_allclose(a.coefficients, b.coefficients, rtol=1e-12)
+    np.testing.assert_allclose(loaded.covariance, again.covariance, rtol=1e-12)
+    assert again.covariance.shape == (36 + 9 * 5, 36 + 9 * 5)
