@@ -43,9 +43,9 @@ from typing import Any
 
 import numpy as np
 from scipy.signal import lfilter
-from scipy.stats import chi2
 
 from ..errors import InputError
+from ._distributions import chi2_isf
 from ._validate import as_array, as_tensors, as_vectors, same_length
 from .design import CONSTRAINT_ROWS, affine_interference_design, constraint_residual
 from .geometry import TetraGeometry
@@ -168,7 +168,7 @@ class HealthTrace:
 def alarm_threshold(false_alarms_per_hour: float, sample_rate_hz: float, n_tests: int) -> float:
     """The chi2(4) threshold for a false-alarm rate (per hour) over ``n_tests`` per sample."""
     p = false_alarms_per_hour / (3600.0 * sample_rate_hz * n_tests)
-    return float(chi2.isf(min(p, 0.5), 4))
+    return float(chi2_isf(min(p, 0.5), 4))
 
 
 class HealthMonitor:
@@ -369,7 +369,7 @@ class HealthMonitor:
         if w < 1:
             return ()
         misfit = self._jump_misfits(after[:w].mean(axis=0), self._before[-w:].mean(axis=0), w)
-        limit = chi2.isf(ATTRIBUTION_P, 1)
+        limit = chi2_isf(ATTRIBUTION_P, 1)
         return tuple(int(s) + 1 for s in np.argsort(misfit) if misfit[s] < limit)
 
     def _jump_misfits(self, recent: FloatArray, earlier: FloatArray, w: int) -> FloatArray:
@@ -488,7 +488,7 @@ class HealthMonitor:
     def _attribute(self, shift_y: FloatArray, spread: FloatArray) -> tuple[int, ...]:
         """1-based sensors whose offset signature fits ``shift_y`` (chi2(1) at 1 %), best
         first; ``spread`` (4,) is the shift's variance per coordinate of the basis."""
-        limit = chi2.isf(ATTRIBUTION_P, 1)
+        limit = chi2_isf(ATTRIBUTION_P, 1)
         scale = 1.0 / np.sqrt(spread)
         target = shift_y * scale
         misfit = []

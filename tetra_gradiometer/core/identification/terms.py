@@ -32,9 +32,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from ...errors import IdentifiabilityError, InputError
+from .._distributions import f_sf
 from ..effects import Channels, Term, effect
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters
@@ -305,7 +305,7 @@ def select_terms(
                 continue
             p = 9 * candidate.size
             f_stat = ((rss - rss_with) / p) / (rss_with / rows)
-            p_value = float(stats.f.sf(f_stat, p, rows)) if f_stat > 0 else 1.0
+            p_value = f_sf(f_stat, p, rows)
             gain = 1.0 - rss_with / rss
             passed = p_value < alpha / len(remaining) and gain >= min_gain
             tests.append((passed, gain, candidate, rss_with, f_stat, p_value))
