@@ -48,10 +48,12 @@ from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
 from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEncoding: re-exported)
+    SCALAR_LAYOUTS,
     _UnsupportedEncoding,
     checked_stamp_ns,
     decode_checked,
     decode_magnetic_field,
+    decode_scalar,
     skip_reason,
 )
 from .bag_skips import MAX_SKIPPED_FRACTION, SkippedMessage, guarded_messages, summary
@@ -443,8 +445,17 @@ class MagneticBag:
             n = self.record_skip(record)
             lost[0] += n if self.topic_of(record.topic) == topic else 0
 
+        fast = connections[0].msgtype in SCALAR_LAYOUTS
         for connection, log_ns, raw in guarded_messages(self.reader, connections, on_skip):
             try:
+                if fast:  # the scalar channels: 360 000 messages an hour at 100 Hz
+                    try:
+                        stamp, scalar = decode_scalar(raw, connection.msgtype)
+                        stamps.append(stamp)
+                        values.append(np.array([scalar]))
+                        continue
+                    except _UnsupportedEncoding:
+                        pass  # rosbags' deserializer names the fault below
                 msg: Any = self.reader.deserialize(raw, connection.msgtype)
                 stamp = checked_stamp_ns(msg.header.stamp)
                 value = extract(msg)

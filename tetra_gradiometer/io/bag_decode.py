@@ -143,3 +143,36 @@ def skip_reason(error: Exception) -> str:
     """A short reason for a skipped message."""
     text = str(error).strip() or type(error).__name__
     return text if len(text) <= 120 else text[:117] + '...'
+
+
+#: Scalar channels decoded without rosbags' generic deserializer (io/bag.py read_series): the
+#: message type -> (alignment of the value after the header, its struct code, its offset
+#: after that alignment). ``sensor_msgs/Temperature``: float64 ``temperature`` first;
+#: ``sensor_msgs/BatteryState``: float32 ``voltage``, ``temperature``, then ``current``.
+SCALAR_LAYOUTS = {
+    cv.TEMPERATURE: (8, 'd', 0),
+    cv.BATTERY_STATE: (4, 'f', 8),
+}
+
+
+def decode_scalar(raw: bytes, msgtype: str) -> tuple[int, float]:
+    """One Temperature or BatteryState CDR -> (stamp_ns, temperature degC or current A);
+    raises _UnsupportedEncoding when it is not plain CDR of that layout (the caller then
+    takes rosbags' deserializer, which names the fault)."""
+    align, code, after = SCALAR_LAYOUTS[msgtype]
+    if not isinstance(raw, (bytes, bytearray, memoryview)) or len(raw) < 16:
+        raise _UnsupportedEncoding('payload cut short')
+    kind = bytes(raw[:2])
+    if kind not in (_CDR_LE, _CDR_BE):
+        raise _UnsupportedEncoding(f'unknown CDR encapsulation 0x{kind.hex()}')
+    order = '<' if kind == _CDR_LE else '>'
+    sec, nanosec, length = struct.unpack_from(order + 'iII', raw, 4)
+    offset = 16 + length
+    offset += -(offset - 4) % align
+    offset += after
+    if 16 + length > len(raw) or offset + struct.calcsize(code) > len(raw):
+        raise _UnsupportedEncoding('payload cut short')
+    if nanosec >= NS_PER_S:
+        raise _UnsupportedEncoding(f'header stamp nanosec {nanosec} >= 1e9')
+    (value,) = struct.unpack_from(order + code, raw, offset)
+    return sec * NS_PER_S + nanosec, float(value)
