@@ -89,9 +89,11 @@ def test_calibrate_selects_the_effects_and_compensate_reaches_the_noise(bags, tm
     assert sorted(term.effect for term in terms) == sorted(EFFECTS)
     assert 'term vehicle_current' in out
     csv = tmp_path / 'all.csv'
-    code, _, err = run_cli(capsys, 'compensate', bag, '--params', params, '--calibration',
-                           calibration, '--csv', csv)
+    code, out, err = run_cli(capsys, 'compensate', bag, '--params', params, '--calibration',
+                             calibration, '--csv', csv, '--report', tmp_path / 'health')
     assert code == 0, err
+    # The health monitor watches the compensated tensor with its terms: nothing changed.
+    assert 'health: no change detected' in out
     residual, sigma = _survey_residual(csv, truth)
     # The noise floor: the compensated tensor's 1-sigma (sensor noise through eq. 7 and 19).
     assert residual < 1.2 * sigma

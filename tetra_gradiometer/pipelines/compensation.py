@@ -210,7 +210,8 @@ class Compensation:
     with_covariance : bool
         ``sigma`` includes the calibration parameters' covariance.
     covariance : (P, P) ndarray or None
-        That covariance (for the health monitor's calibration-error bound).
+        That covariance (for the health monitor's calibration-error bound): of ``k``, ``b``
+        only when the calibration has terms.
     """
 
     parameters: InterferenceParameters | None
@@ -259,13 +260,18 @@ def load_compensation(
         )
     sigma = SigmaModel.build(geometry, noise, calibration.parameters, calibration.covariance)
     source = '--sensor-noise-nt' if override is not None else f"{calibration_path}'s estimate"
+    covariance = calibration.covariance
+    if covariance is not None and calibration.parameters.terms:
+        # The health monitor bounds the k, b part of the calibration error (the terms' part
+        # is in the 1-sigma, not in its offsets' signatures): the general 36 block.
+        covariance = covariance[:36, :36]
     return Compensation(
         calibration.parameters,
         sigma,
         noise,
         source,
         calibration.covariance is not None,
-        calibration.covariance,
+        covariance,
     )
 
 
