@@ -49,6 +49,8 @@ FOLDS = 5
 ALPHA = 1.0e-3
 #: Smallest held-out reduction of the residual sum of squares that keeps a term.
 MIN_GAIN = 0.01
+#: Fewest samples a selection is made on (5 blocks of at least 20).
+MIN_SELECTION_SAMPLES = 100
 #: Whitening of the pair differences' noise, ``(I + 1 1^T)^(-1/2)`` (see the module).
 PAIR_WHITENER = np.eye(3) - np.ones((3, 3)) / 6.0
 _PAIR_UNWHITENER = np.linalg.inv(PAIR_WHITENER)
@@ -215,11 +217,26 @@ def candidates_for(
         if not inputs:
             lacking[name] = spec.missing(available)
             continue
-        reference = spec.reference(channels, inputs)
+        known = channels.select(_known_rows(channels, inputs))
+        if not len(known):
+            # Recorded, but never near a sample (a channel that stopped, or from another
+            # time): as good as missing.
+            lacking[name] = f'{", ".join(inputs)} known at some sample (it never is)'
+            continue
+        reference = spec.reference(known, inputs)
         out.append(
             Candidate(name, inputs, reference, spec.regressors(channels, inputs, reference))
         )
     return out, lacking
+
+
+def _known_rows(channels: Channels, inputs: tuple[str, ...]) -> np.ndarray:
+    """The samples where every recorded channel of ``inputs`` is known."""
+    known = np.ones(len(channels), dtype=bool)
+    for name in inputs:
+        if name in channels.series:
+            known &= np.isfinite(channels.series[name])
+    return known
 
 
 def _design(b_reference: FloatArray, chosen: list[Candidate]) -> FloatArray:
@@ -245,6 +262,20 @@ def _heldout_rss(
             y = y - np.einsum('nqo,q->no', regional[test], fit.regional)
         total += float(np.sum((y - predicted) ** 2))
     return total
+
+
+def _held_out_test(rss: float, rss_with: float, p: int, rows: int) -> tuple[float, float, float]:
+    """The held-out F statistic, its p-value and the gain of a candidate of ``p`` parameters
+    that takes the held-out sum of squares from ``rss`` to ``rss_with`` (``rows`` of them);
+    noise-free data (a zero sum) give no gain, or an infinite F when the candidate fits it
+    exactly."""
+    if rss <= 0.0:
+        return 0.0, 1.0, 0.0
+    gain = 1.0 - rss_with / rss
+    if rss_with <= 0.0:
+        return float('inf'), 0.0, gain
+    f_stat = ((rss - rss_with) / p) / (rss_with / rows)
+    return f_stat, f_sf(f_stat, p, rows), gain
 
 
 @dataclass(frozen=True)
@@ -282,10 +313,16 @@ def select_terms(
     regressor is NaN are left out of every comparison.
     """
     usable = np.all(np.isfinite(pairs.reshape(len(pairs), 9)), axis=1)
+    # A candidate known on fewer than half the samples is not offered (its channel stopped):
+    # the comparison needs the same samples for every model.
+    known = {c.name: np.all(np.isfinite(c.regressors), axis=1) & usable for c in candidates}
+    candidates = [c for c in candidates if known[c.name].sum() >= 0.5 * usable.sum()]
     for candidate in candidates:
-        usable &= np.all(np.isfinite(candidate.regressors), axis=1)
+        usable &= known[candidate.name]
     keep = np.flatnonzero(usable)
     n = len(keep)
+    if n < MIN_SELECTION_SAMPLES:
+        return Selection((), {})
     fold_of = np.minimum((np.arange(n) * folds) // max(n, 1), folds - 1)
     y = pairs[keep]
     b1 = b_reference[keep]
@@ -303,10 +340,7 @@ def select_terms(
                 rss_with = _heldout_rss(y, _design(b1, [*chosen, candidate]), reg, fold_of)
             except IdentifiabilityError:
                 continue
-            p = 9 * candidate.size
-            f_stat = ((rss - rss_with) / p) / (rss_with / rows)
-            p_value = f_sf(f_stat, p, rows)
-            gain = 1.0 - rss_with / rss
+            f_stat, p_value, gain = _held_out_test(rss, rss_with, 9 * candidate.size, rows)
             passed = p_value < alpha / len(remaining) and gain >= min_gain
             tests.append((passed, gain, candidate, rss_with, f_stat, p_value))
             evidence[candidate.name] = {
