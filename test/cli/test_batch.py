@@ -270,7 +270,9 @@ def test_seven_bags_on_a_scheduler_and_two_workers(fleet_dir, scheduler, tmp_pat
     truncated = rows['truncated']
     assert truncated['reason'].startswith('calibrate: cannot open bag ')
     assert 'database disk image is malformed' in truncated['reason']
-    assert rows['survey']['reason'].startswith('calibrate: the window (0:59 s) is not consistent')
+    assert rows['survey']['reason'].startswith(
+        'calibrate: the window (0:59 s) does not fit the model (a target or a spatially varying field'
+    )
     assert rows['trim']['params'] == str(out / 'trim' / 'params.yaml')
     for name, status in EXPECTED.items():
         ref, calibrated, _, analysed = _single_bag_reference(capsys, fleet_dir, name, tmp_path)

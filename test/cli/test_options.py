@@ -58,6 +58,8 @@ BAD = [
     *[('compensate', '--false-alarms-per-hour', value, ('0 < x <= 60 per hour',)) for value in ('0', '-1', 'nan', '61')],
     # calibrate
     ('calibrate', '--window', '10:5', ('0 <= T0 < T1',)),
+    ('calibrate', '--current-topics', 'battery', ('absolute topic names',)),
+    ('calibrate', '--current-topics', ',', ('absolute topic names',)),
     ('calibrate', '--window', 'a:b', ('T0:T1',)),
     ('calibrate', '--window', '5', ('T0:T1',)),
     ('calibrate', '--window', 'nan:5', ('0 <= T0 < T1',)),
