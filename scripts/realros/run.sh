@@ -294,7 +294,8 @@ stop_signals() {  # stop_signals NAME MODE: int1 | int2 | term; prints "rc elaps
   case $2 in
     int1) kill -INT -- -"$pg" ;;
     int2) kill -INT -- -"$pg"; sleep 0.1; kill -INT -- -"$pg" ;;
-    term) kill -TERM -- -"$pg" ;;
+    term)  # as systemd's KillMode=control-group: every process of the unit, not our wrapper
+      for p in $(pgrep -g "$pg"); do [ "$p" != "$pg" ] && kill -TERM "$p" 2> /dev/null; done ;;
   esac
   if ! wait_group "$pg" 10; then
     kill -KILL -- -"$pg" 2> /dev/null; sleep 0.3; echo "hung >10s"; return
