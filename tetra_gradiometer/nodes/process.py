@@ -10,11 +10,20 @@ refused by its validator, an override naming a parameter the node does not decla
 :func:`~tetra_gradiometer.nodes.common.unknown_overrides`), unparsable ROS arguments, and any
 ``TetraError`` of the node's constructor end the process with exit status 1 and one log line,
 never a traceback.
+
+Stopping (``spin_node``): SIGINT and SIGTERM only set a flag (:class:`StopRequest`;
+rclpy's own handlers are not installed). The spin loop sees it within :data:`STOP_POLL_S`,
+then the node's work stops, running callbacks finish, the node and the context go, in that
+order, and the process exits 0. Further signals are ignored from then on, and a watchdog
+ends the process (status 1, every thread's traceback on stderr) if that stop has not
+finished :data:`STOP_DEADLINE_S` after it began (docs/ros.md, test/ros/test_shutdown.py).
 """
 
 from __future__ import annotations
 
+import faulthandler
 import gc
+import signal
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -69,7 +78,34 @@ def _rcl_reason(error: Exception) -> str:
     return str(error).split(', at /')[0]
 
 
-_EVENTS_WAIT_S = 0.5  # longest wait of one spin call: bounds the reaction to a shutdown
+#: Longest wait of one spin call: bounds the reaction to a stop request or a shutdown, s.
+STOP_POLL_S = 0.1
+#: Time the stop of ``spin_node`` may take before its watchdog ends the process, s.
+STOP_DEADLINE_S = 2.5
+
+
+class StopRequest:
+    """The first SIGINT or SIGTERM, once :meth:`install` has made them set it.
+
+    The handler only stores the signal's number: it takes no lock and raises nothing, so it
+    is safe wherever the main thread is when Python runs it (inside a callback, a lock's
+    ``with``, rclpy's teardown), unlike rclpy's handler, which raises KeyboardInterrupt
+    there for SIGINT and shuts the context down under the running callbacks."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def install(self) -> StopRequest:
+        signal.signal(signal.SIGINT, self._handle)
+        signal.signal(signal.SIGTERM, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signum is None:
+            self.signum = signum
+
+    def is_set(self) -> bool:
+        return self.signum is not None
 
 
 def events_executor() -> Any:
@@ -83,26 +119,32 @@ def events_executor() -> Any:
     return EventsExecutor()
 
 
-def spin(executor: Any, context: Any = None, stop: threading.Event | None = None) -> None:
+def spin(
+    executor: Any, context: Any = None, stop: threading.Event | StopRequest | None = None
+) -> None:
     """Spin ``executor`` until ``context`` (default: rclpy's) shuts down (rclpy's SIGINT
-    handler, an external shutdown), ``stop`` is set (:func:`stop_on_signals`) or Ctrl-C
-    raises. The events executor is spun in a loop of ``spin_until_future_complete`` on a
-    future that never completes, with a timeout: its own ``spin()`` in rclpy 7.1.6
-    busy-waits without dispatching and ignores SIGINT, and ``spin_once`` returns to Python
-    after every callback (a tenth of the tensor node's time at 1000 sets/s went to that
-    loop)."""
+    handler, an external shutdown), ``stop`` is set (:func:`stop_on_signals`,
+    :class:`StopRequest`) or Ctrl-C raises. The events executor is spun in a loop of
+    ``spin_until_future_complete`` on a future that never completes, with a timeout: its own
+    ``spin()`` in rclpy 7.1.6 busy-waits without dispatching and ignores SIGINT, and
+    ``spin_once`` returns to Python after every callback (a tenth of the tensor node's time at
+    1000 sets/s went to that loop). An rclpy executor is spun by its ``spin()`` without
+    ``stop``, else by ``spin_once`` calls of at most :data:`STOP_POLL_S`."""
     import rclpy
     from rclpy.executors import Executor, ExternalShutdownException
     from rclpy.task import Future
 
-    if isinstance(executor, Executor):
+    if isinstance(executor, Executor) and stop is None:
         executor.spin()
         return
     context = context or rclpy.get_default_context()
     never = Future()  # dispatch events until the timeout, not one per Python loop
     try:
         while context.ok() and not (stop and stop.is_set()):
-            executor.spin_until_future_complete(never, timeout_sec=_EVENTS_WAIT_S)
+            if isinstance(executor, Executor):
+                executor.spin_once(timeout_sec=STOP_POLL_S)
+            else:
+                executor.spin_until_future_complete(never, timeout_sec=STOP_POLL_S)
     except ExternalShutdownException:  # the context shut down while waiting: done
         pass
 
@@ -111,8 +153,16 @@ def spin_node(
     factory: Callable[[], Any], name: str, args: list[str] | None, threads: int = 1
 ) -> int:
     """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
-    Ctrl-C or an external shutdown, then stop its long work (``stop_work()``:
-    nodes/managed.py), the executor, the node and ``rclpy.try_shutdown()``.
+    SIGINT or SIGTERM (or an external shutdown), then :func:`_stop_node`: stop its long work
+    (``stop_work()``: nodes/managed.py), wait for its running callbacks, destroy the node,
+    ``rclpy.try_shutdown()``; 0.
+
+    Signals only request that stop (:class:`StopRequest`, installed first: a signal during
+    ``rclpy.init`` or the node's construction stops the node once built).
+    rclpy's handlers are not installed: on SIGINT theirs raises KeyboardInterrupt wherever
+    the main thread is, so a second Ctrl-C landed in this teardown or in the interpreter's
+    exit (exit -2 or 130, an abort inside the events executor's C++), and they shut the
+    context down under running callbacks (a publish failing: exit 1).
 
     ``threads`` > 1 spins a MultiThreadedExecutor of that many threads (the calibrator: its
     callback groups let diagnostics and ``~/cancel`` run while a solve runs); else the
@@ -123,17 +173,15 @@ def spin_node(
     ``ParameterException``), an override names an undeclared parameter
     (:func:`unknown_overrides`) or the node's constructor raises a ``TetraError``; else 0.
     """
+    stop = StopRequest().install()
     import rclpy
     from rclpy.exceptions import ParameterException
-    from rclpy.executors import (
-        Executor,
-        ExternalShutdownException,
-        MultiThreadedExecutor,
-    )
+    from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     logger = rclpy.logging.get_logger(name)
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RuntimeError as error:  # rclpy's RCLError: unparsable arguments or params file
         logger.error(f'cannot start: {_rcl_reason(error)}')
         return 1
@@ -159,15 +207,42 @@ def spin_node(
     gc.collect()
     gc.freeze()
     try:
-        spin(executor)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        spin(executor, stop=stop)
+    except ExternalShutdownException:
         pass
     finally:
-        node.stop_work()
-        executor.shutdown(timeout_sec=5)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        _stop_node(node, executor)
     return 0
+
+
+def _stop_node(node: Any, executor: Any) -> None:
+    """The end of :func:`spin_node`, the executor no longer spinning: from here SIGINT and
+    SIGTERM are ignored (the stop is under way; ignored, not Python-handled, they cannot end
+    the interpreter's own exit either), and a watchdog ends the process with status 1 and
+    every thread's traceback if all this and the exit take over :data:`STOP_DEADLINE_S`."""
+    import rclpy
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
+    node.stop_work()  # a callback waiting on that work (~/calibrate) returns now
+    _finish_callbacks(executor)
+    executor.shutdown(timeout_sec=STOP_DEADLINE_S)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def _finish_callbacks(executor: Any) -> None:
+    """Wait for the callbacks a MultiThreadedExecutor is running and end its threads. rclpy
+    7.1.6's ``Executor.shutdown`` does not wait for them (it sets its shutdown flag, then
+    waits only if the flag is unset), so the node was destroyed and the context shut down
+    under them (a ``~/calibrate`` reply lost), and its pool's threads were left for the
+    interpreter's exit to join. Nothing new is dispatched: only the spin loop does that."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = getattr(executor, '_executor', None)  # MultiThreadedExecutor's thread pool
+    if isinstance(pool, ThreadPoolExecutor):
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def stop_graph(executors: list[Any], spinner: Any, nodes: list[Any]) -> None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import CancelledError, ThreadPoolExecutor
 
 
 class SolveWorker:
@@ -59,7 +59,7 @@ class SolveWorker:
                 self._on_start()
             try:
                 return self._executor.submit(work).result()
-            except RuntimeError:  # shut down: the node is stopping
+            except (RuntimeError, CancelledError):  # shut down before it ran: the node stops
                 return False, 'shutting down'
         finally:
             self._last_s = time.monotonic() - (self._started or time.monotonic())
@@ -74,6 +74,9 @@ class SolveWorker:
         return True
 
     def shutdown(self) -> None:
-        """Cancel the running work and wait for it; later :meth:`run` calls are refused."""
+        """Cancel the running work and wait for it; later :meth:`run` calls are refused, and
+        a work accepted but not started is dropped (its :meth:`run` answers "shutting
+        down"). The caller bounds the wait (``process.spin_node``'s watchdog): the work
+        polls :meth:`should_stop`."""
         self._cancel.set()
         self._executor.shutdown(wait=True, cancel_futures=True)
