@@ -26,11 +26,11 @@ setup(
     extras_require={'test': ['pytest', 'pytest-timeout']},
     entry_points={
         'console_scripts': [
-            'driver = tetra_gradiometer.nodes.driver:main',
-            'tensor = tetra_gradiometer.nodes.tensor:main',
-            'calibrator = tetra_gradiometer.nodes.calibrator:main',
-            'compensator = tetra_gradiometer.nodes.compensator:main',
-            'target = tetra_gradiometer.nodes.target:main',
+            'driver = tetra_gradiometer.nodes.process:main_driver',
+            'tensor = tetra_gradiometer.nodes.process:main_tensor',
+            'calibrator = tetra_gradiometer.nodes.process:main_calibrator',
+            'compensator = tetra_gradiometer.nodes.process:main_compensator',
+            'target = tetra_gradiometer.nodes.process:main_target',
         ],
     },
 )

@@ -238,7 +238,7 @@ def test_the_target_node_starts_only_when_named_and_before_the_driver(launch):
     assert run.requests == _chain(expected)
     target = run.node('target')
     assert (target.package, target.executable) == (PACKAGE, 'target')
-    assert console_scripts()['target'] == 'tetra_gradiometer.nodes.target:main'
+    assert console_scripts()['target'] == 'tetra_gradiometer.nodes.process:main_target'
     assert target.parameters[-1] == {'use_sim_time': False, 'autostart': False}
     assert 'target' not in [node.name for node in launch(mode='sim').nodes]
 

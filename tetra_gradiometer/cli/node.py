@@ -11,7 +11,6 @@ unparsable ROS arguments are one ``cannot start:`` log line, exit 1 (nodes/proce
 from __future__ import annotations
 
 import argparse
-import importlib
 from pathlib import Path
 
 from ..errors import ParamsError
@@ -47,5 +46,6 @@ def ros_arguments(params: str, extra: list[str]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     if args.params and not Path(args.params).is_file():
         raise ParamsError(f'--params {args.params}: no such file')
-    module = importlib.import_module(f'tetra_gradiometer.nodes.{args.name}')
-    return int(module.main(ros_arguments(args.params, args.ros_args)) or 0)
+    from ..nodes.process import run_node  # signals handled before the node's imports
+
+    return run_node(args.name, ros_arguments(args.params, args.ros_args))

@@ -11,25 +11,30 @@ refused by its validator, an override naming a parameter the node does not decla
 ``TetraError`` of the node's constructor end the process with exit status 1 and one log line,
 never a traceback.
 
-Stopping (``spin_node``): SIGINT and SIGTERM only set a flag (:class:`StopRequest`;
-rclpy's own handlers are not installed). The spin loop sees it within :data:`STOP_POLL_S`,
-then the node's work stops, running callbacks finish, the node and the context go, in that
-order, and the process exits 0. Further signals are ignored from then on, and a watchdog
-ends the process (status 1, every thread's traceback on stderr) if that stop has not
-finished :data:`STOP_DEADLINE_S` after it began (docs/ros.md, test/ros/test_shutdown.py).
+Stopping (``run_node``, ``spin_node``): SIGINT and SIGTERM only set a flag
+(:class:`StopRequest`; rclpy's own handlers are not installed), from the start of the
+process: the console scripts (``main_driver`` ...) and ``python -m tetra_gradiometer node``
+install it before the node's module is imported (a second of numpy, scipy and rclpy, during
+which a signal was lost when the process inherited SIGINT ignored, a script's background
+job: the node then came up and spun for good). The spin loop sees the flag within
+:data:`STOP_POLL_S` (a flag set during start-up: as soon as the node is built), then the
+node's work stops, running callbacks finish, the node and the context go, in that order,
+and the process exits 0. Further signals are ignored from then on, and a watchdog ends the
+process (status 1, every thread's traceback on stderr) if that stop has not finished
+:data:`STOP_DEADLINE_S` after it began (docs/ros.md, test/ros/test_shutdown.py).
 """
 
 from __future__ import annotations
 
 import faulthandler
 import gc
+import importlib
 import signal
 import threading
 from collections.abc import Callable
 from typing import Any
 
 from ..errors import TetraError
-from .common import command_line_parameters, dropped_command_line_value, unknown_overrides
 
 
 def interrupt_on_signals() -> None:
@@ -64,6 +69,8 @@ def stop_on_signals() -> threading.Event:
 def _start_refusal(node: Any, args: list[str] | None) -> str | None:
     """Why the overrides of a constructed node are refused (an undeclared name, a ``-p``
     value rcl dropped), or None."""
+    from .common import command_line_parameters, dropped_command_line_value, unknown_overrides
+
     rules = command_line_parameters(args, node.get_name())
     unknown = unknown_overrides(node, rules)
     if unknown:
@@ -106,6 +113,43 @@ class StopRequest:
 
     def is_set(self) -> bool:
         return self.signum is not None
+
+
+#: The process's stop request: installed by :func:`run_node` before the node's imports,
+#: again (the same handler) by :func:`spin_node`.
+_STOP = StopRequest()
+
+
+def run_node(name: str, args: list[str] | None = None) -> int:
+    """Run node ``name`` (``driver``, ``tensor``, ``calibrator``, ``compensator``,
+    ``target``) in this process, its exit status: SIGINT and SIGTERM are first made to
+    request the stop (:class:`StopRequest`), then the node's module is imported and its
+    ``main(args)`` called. This module imports nothing heavy, so only the interpreter's own
+    start precedes the handler."""
+    _STOP.install()
+    module = importlib.import_module(f'{__package__}.{name}')
+    return int(module.main(args) or 0)
+
+
+# The console scripts (setup.py; ``ros2 run``, the launch file).
+def main_driver() -> int:
+    return run_node('driver')
+
+
+def main_tensor() -> int:
+    return run_node('tensor')
+
+
+def main_calibrator() -> int:
+    return run_node('calibrator')
+
+
+def main_compensator() -> int:
+    return run_node('compensator')
+
+
+def main_target() -> int:
+    return run_node('target')
 
 
 def events_executor() -> Any:
@@ -157,8 +201,8 @@ def spin_node(
     (``stop_work()``: nodes/managed.py), wait for its running callbacks, destroy the node,
     ``rclpy.try_shutdown()``; 0.
 
-    Signals only request that stop (:class:`StopRequest`, installed first: a signal during
-    ``rclpy.init`` or the node's construction stops the node once built).
+    Signals only request that stop (:class:`StopRequest`, installed by :func:`run_node`
+    before the imports, else here: a signal during start-up stops the node once built).
     rclpy's handlers are not installed: on SIGINT theirs raises KeyboardInterrupt wherever
     the main thread is, so a second Ctrl-C landed in this teardown or in the interpreter's
     exit (exit -2 or 130, an abort inside the events executor's C++), and they shut the
@@ -173,7 +217,7 @@ def spin_node(
     ``ParameterException``), an override names an undeclared parameter
     (:func:`unknown_overrides`) or the node's constructor raises a ``TetraError``; else 0.
     """
-    stop = StopRequest().install()
+    stop = _STOP.install()  # already, when started by run_node
     import rclpy
     from rclpy.exceptions import ParameterException
     from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
