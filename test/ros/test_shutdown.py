@@ -1,0 +1,250 @@
+"""Stopping a node process (nodes/process.py: run_node, spin_node): one SIGINT, two SIGINTs
+0.1 s apart (Ctrl-C in the terminal of a ``ros2 launch``, which sends its own SIGINT too)
+and SIGTERM (launch's escalation, systemd) end every node with exit status 0 within
+``STOP_S`` and no traceback, active and unconfigured, and the calibrator while a solve runs,
+whose pending ``~/calibrate`` is answered before the node goes; a signal during start-up
+(while the node's modules are imported) stops the node once built, also when the process
+inherited SIGINT ignored (a background job of a script, as realros's ``start_bg``).
+
+The nodes run as their console scripts do (setup.py: ``process.main_<node>`` under
+``sys.exit``, what ``ros2 run`` and the launch file start), all at once, each in a namespace
+of its own; once every one answers ``get_state`` (so it spins) they are stopped a few at a
+time. Before the fix a second SIGINT raised KeyboardInterrupt in the teardown or the
+interpreter's exit (exit -2 in nearly every run, issue 33 item 3), the cancelled solve's
+reply was lost, and a SIGINT during the imports was lost when SIGINT was inherited ignored
+(the node then spun for good: the issue's 15 s "inside MultiThreadedExecutor.spin"), else it
+ended the process with a KeyboardInterrupt traceback (-2), and SIGTERM there killed it (-15).
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from ros_helpers import PARAMS, REPO, child_env, interference_set, ros_graph, wait_for, wait_matched
+
+STOP_S = 3.0  # first signal to exit, the bound docs/ros.md states
+STARTING_S = 60.0  # a signal during start-up: the rest of the start (a loaded machine), then STOP_S
+SECOND_SIGNAL_S = 0.1
+T0 = 1_800_000_000 * 10**9
+NODES = ('driver', 'tensor', 'calibrator', 'compensator', 'target')
+SIGNALS = ('INT', 'INT INT', 'TERM')
+#: Signals while the node's modules are imported (numpy mapped, rclpy not yet initialised);
+#: 'starting ignored': the process inherited SIGINT ignored.
+STARTING = (('calibrator', 'starting ignored', 'INT INT'), ('tensor', 'starting', 'INT'),
+            ('driver', 'starting', 'TERM'))
+#: The cases run by default: every node active with two SIGINTs and with SIGTERM; one SIGINT
+#: on one node of each executor (the events executor, the calibrator's multithreaded one);
+#: unconfigured, where the nodes hold nothing yet (stop_work does nothing), one node per
+#: signal kind; the calibrator while a solve runs; the start-up cases. TETRA_SHUTDOWN_ALL=1
+#: runs every node in every state with every signal kind (35 processes).
+DEFAULT_CASES = (
+    *((node, 'active', kind) for node in NODES for kind in ('INT INT', 'TERM')),
+    ('tensor', 'active', 'INT'), ('calibrator', 'active', 'INT'),
+    ('driver', 'unconfigured', 'INT INT'), ('calibrator', 'unconfigured', 'TERM'),
+    ('target', 'unconfigured', 'INT'),
+    ('calibrator', 'solving', 'INT INT'),
+    *STARTING,
+)
+ALL_CASES = (
+    *((node, state, kind) for state in ('active', 'unconfigured') for node in NODES for kind in SIGNALS),
+    ('calibrator', 'solving', 'INT INT'), ('calibrator', 'solving', 'TERM'),
+    *STARTING,
+)
+NODE_PARAMS = {'driver': {'mode': 'sim'}}
+SOLVE_PARAMS = {'method': 'paper_ga', 'ga_generations': 20000, 'diagnostics_period_s': 0.1}
+
+
+@dataclass
+class Case:
+    node: str
+    state: str  # active, unconfigured, solving, starting, starting ignored
+    signals: str  # 'INT', 'INT INT', 'TERM'
+    ns: str = ''
+    process: Any = None
+    log: Any = None
+    reply: Any = None  # the pending ~/calibrate of a solving calibrator
+    result: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return f'{self.node} {self.state} SIG{self.signals.replace(" ", "+SIG")}'
+
+
+def _cases() -> list[Case]:
+    chosen = ALL_CASES if os.environ.get('TETRA_SHUTDOWN_ALL') == '1' else DEFAULT_CASES
+    return [Case(node, state, kind, ns=f'/shutdown{i}') for i, (node, state, kind) in enumerate(chosen)]
+
+
+def _start(case: Case, domain: int, home: Path) -> None:
+    """The node's console script, ``ros2 run`` style: its ``main()`` under ``sys.exit``."""
+    params = dict(NODE_PARAMS.get(case.node, {}))
+    if case.state == 'unconfigured':
+        params['autostart'] = False
+    remaps = {'__ns': case.ns}
+    if case.state == 'solving':  # the test's feeder publishes in /tetra
+        params.update(SOLVE_PARAMS, calibration_file=str(home / f'{case.ns[1:]}.yaml'))
+        remaps.update({'gradient/raw': '/tetra/gradient/raw', 'reference_field': '/tetra/reference_field'})
+    script = f'import sys; from tetra_gradiometer.nodes.process import main_{case.node}; sys.exit(main_{case.node}())'
+    command = [sys.executable, '-c', script, '--ros-args', '--params-file', str(PARAMS)]
+    if case.state == 'starting ignored':  # exec keeps an ignored signal ignored
+        command = ['sh', '-c', 'trap "" INT; exec "$@"', 'sh', *command]
+    for key, value in params.items():
+        command += ['-p', f'{key}:={str(value).lower() if isinstance(value, bool) else value}']
+    for source, target in remaps.items():
+        command += ['-r', f'{source}:={target}']
+    env = dict(child_env(domain), ROS_HOME=str(home))
+    case.log = tempfile.NamedTemporaryFile('w+', prefix=f'tg_shutdown_{case.node}_', suffix='.log', delete=False)
+    case.process = subprocess.Popen(command, cwd=REPO, env=env, stdout=case.log, stderr=subprocess.STDOUT,
+                                    start_new_session=True)
+
+
+def _importing(case: Case, timeout_s: float = 60.0) -> bool:
+    """Wait until the node's process has numpy mapped: it is importing the node's modules
+    (rclpy is initialised only after them, a second later)."""
+    maps = Path(f'/proc/{case.process.pid}/maps')
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and case.process.poll() is None:
+        if '_multiarray_umath' in maps.read_text():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def _state(probe: Any, case: Case, timeout_s: float) -> str:
+    """The node's lifecycle state label from its ``get_state`` service (answered: it spins)."""
+    from lifecycle_msgs.srv import GetState
+
+    client = probe.create_client(GetState, f'{case.ns}/{case.node}/get_state')
+    try:
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            return 'no get_state service'
+        future = client.call_async(GetState.Request())
+        deadline = time.monotonic() + 10
+        while not future.done() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return future.result().current_state.label if future.done() else 'no get_state reply'
+    finally:
+        probe.destroy_client(client)
+
+
+def _start_solves(probe: Any, feeder: Any, solving: list[Case]) -> None:
+    """Samples into the solving calibrators, then a 20 000-generation ~/calibrate each,
+    pending until both report ``solving``."""
+    from std_srvs.srv import Trigger
+
+    wait_matched(feeder.raw, len(solving))
+    wait_matched(feeder.reference, len(solving))
+    keys = [f'{c.ns[1:]}/calibrator: calibration' for c in solving]
+    for case in solving:
+        assert probe.call(f'{case.ns}/calibrator/start').success
+    g, b, _ = interference_set(300, np.random.default_rng(7), 'rich')
+    for i in range(len(g)):
+        feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
+        time.sleep(0.002)
+    for key in keys:
+        wait_for(lambda key=key: probe.status(key).get('samples') == '300', 20, f'300 samples ({key})')
+    for case in solving:
+        assert probe.call(f'{case.ns}/calibrator/stop').success
+        client = probe.create_client(Trigger, f'{case.ns}/calibrator/calibrate')
+        assert client.wait_for_service(timeout_sec=10)
+        case.reply = client.call_async(Trigger.Request())
+    for key in keys:
+        wait_for(lambda key=key: probe.status(key).get('state') == 'solving', 20, f'solving ({key})')
+
+
+def _stop(case: Case) -> None:
+    """The case's signals to the node; its exit status, time and output."""
+    kinds = [getattr(signal, f'SIG{kind}') for kind in case.signals.split()]
+    started = time.monotonic()
+    for i, kind in enumerate(kinds):
+        if i:
+            time.sleep(SECOND_SIGNAL_S)
+        case.process.send_signal(kind)
+    try:
+        code = case.process.wait(timeout=(STARTING_S if case.state.startswith('starting') else STOP_S) + 5)
+    except subprocess.TimeoutExpired:
+        code = None
+        case.process.kill()
+        case.process.wait(timeout=5)
+    case.result = {'code': code, 'seconds': time.monotonic() - started,
+                   'output': Path(case.log.name).read_text()}
+    if case.reply is not None:
+        deadline = started + STOP_S
+        while not case.reply.done() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        case.result['reply'] = case.reply.result() if case.reply.done() else None
+
+
+def _failures(case: Case) -> list[str]:
+    r = case.result
+    found = []
+    if r['code'] != 0:
+        found.append(f'exit status {r["code"]}')
+    if r['seconds'] > (STARTING_S if case.state.startswith('starting') else STOP_S):
+        found.append(f'{r["seconds"]:.2f} s to exit')
+    if any(text in r['output'] for text in ('Traceback', 'KeyboardInterrupt', 'Exception in')):
+        found.append('a traceback or a callback exception in its output')
+    if case.state == 'solving':
+        reply = r.get('reply')
+        if reply is None:
+            found.append('~/calibrate not answered')
+        elif reply.success or not reply.message.startswith(('cancelled', 'shutting down')):
+            found.append(f'~/calibrate answered {reply.success} {reply.message!r}')
+    return found
+
+
+def test_the_console_scripts_are_the_entry_points_started_here():
+    """``ros2 run`` and the launch file start ``process.main_<node>`` (setup.py), which
+    handles signals before the node's imports, as the cases below start them."""
+    text = (REPO / 'setup.py').read_text(encoding='utf-8')
+    for node in NODES:
+        assert f"'{node} = tetra_gradiometer.nodes.process:main_{node}'" in text, node
+
+
+def test_every_node_exits_0_within_3_s_on_sigint_two_sigints_and_sigterm(tmp_path):
+    cases = _cases()
+    with ros_graph() as (graph, probe, feeder):
+        try:
+            starting = [c for c in cases if c.state.startswith('starting')]
+            running = [c for c in cases if c not in starting]
+            stopping = []
+            for case in starting:  # one at a time: each is signalled while it imports
+                _start(case, graph.domain, tmp_path)
+                assert _importing(case), f'{case.name}: never imported numpy'
+                stopping.append(threading.Thread(target=_stop, args=(case,)))
+                stopping[-1].start()
+            for case in running:
+                _start(case, graph.domain, tmp_path)
+            states = [_state(probe, case, 60) for case in running]
+            wrong = [f'{c.name}: {s}' for c, s in zip(running, states, strict=True)
+                     if s != ('unconfigured' if c.state == 'unconfigured' else 'active')]
+            assert not wrong, 'not up: ' + '; '.join(wrong)
+            _start_solves(probe, feeder, [c for c in running if c.state == 'solving'])
+            with ThreadPoolExecutor(4) as pool:  # a few at a time: the bound is not a CPU race
+                list(pool.map(_stop, running))
+            for thread in stopping:
+                thread.join()
+        finally:
+            for case in cases:
+                if case.process is not None and case.process.poll() is None:
+                    case.process.kill()
+                    case.process.wait(timeout=5)
+    report = [f'{c.name}: exit {c.result["code"]} after {c.result["seconds"]:.2f} s' for c in cases]
+    print('\n'.join(report))
+    failed = {c.name: _failures(c) for c in cases if _failures(c)}
+    details = '\n'.join(f'--- {c.name} ---\n{c.result["output"][-1500:]}'
+                        for c in cases if c.name in failed)
+    assert not failed, f'{failed}\n' + '\n'.join(report) + '\n' + details
+    for case in cases:
+        case.log.close()
+        os.unlink(case.log.name)
