@@ -129,7 +129,7 @@ def _state(probe: Any, case: Case, timeout_s: float) -> str:
         if not client.wait_for_service(timeout_sec=timeout_s):
             return 'no get_state service'
         future = client.call_async(GetState.Request())
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + timeout_s
         while not future.done() and time.monotonic() < deadline:
             time.sleep(0.01)
         return future.result().current_state.label if future.done() else 'no get_state reply'
