@@ -288,14 +288,14 @@ check "rosdep-only install: tensor, calibrator, compensator, target and driver (
   "$dep_ok" "to active (ros2 run, incl. the lifecycle poll): $startup"
 check "on-vehicle nodes' resident memory once active (VmRSS)" "$([ -n "$rss" ]; echo $?)" "$rss"
 
-stop_signals() {  # stop_signals NAME MODE: int1 | int2 | term; prints "rc elapsed_s"
+stop_signals() {  # stop_signals NAME MODE NODE: int1 | int2 | term; prints "rc elapsed_s"
   local pg t0 t1 rc; pg=$(cat "$LOGS/$1.pid" 2> /dev/null) || { echo "none -"; return; }
   t0=$(date +%s.%N)
   case $2 in
     int1) kill -INT -- -"$pg" ;;
     int2) kill -INT -- -"$pg"; sleep 0.1; kill -INT -- -"$pg" ;;
-    term)  # as systemd's KillMode=control-group: every process of the unit, not our wrapper
-      for p in $(pgrep -g "$pg"); do [ "$p" != "$pg" ] && kill -TERM "$p" 2> /dev/null; done ;;
+    term)  # to the node's own process (ros2 run dies of SIGTERM itself: 143, not ours)
+      kill -TERM "$(node_pid "$pg" "$3")" 2> /dev/null ;;
   esac
   if ! wait_group "$pg" 10; then
     kill -KILL -- -"$pg" 2> /dev/null; sleep 0.3; echo "hung >10s"; return
@@ -312,11 +312,11 @@ for mode in int1 int2 term; do
   done
   wait_state active 60 "${NODES4[@]}" /tetra/target
   for n in tensor calibrator compensator target driver; do
-    r=$(stop_signals "sig_${mode}_$n" "$mode")
+    r=$(stop_signals "sig_${mode}_$n" "$mode" "$n")
     results+="$n=$r "
     case $r in 0\ *) ;; *) bad=1 ;; esac
   done
-  check "shutdown by $mode (one SIGINT / two 0.1 s apart / SIGTERM): each node exits 0 within 10 s" "$bad" "$results"
+  check "shutdown by $mode (int1: one SIGINT to ros2 run's group, int2: two 0.1 s apart, term: SIGTERM to the node): exit 0 within 10 s" "$bad" "$results"
 done
 
 # ---------------------------------------------------------------------------------------
