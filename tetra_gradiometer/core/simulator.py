@@ -24,7 +24,6 @@ sensor 1's instants and each sensor's own messages are in ``MissionData.streams`
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,11 +33,39 @@ from scipy.spatial.transform import Rotation
 from ..errors import InputError
 from ._validate import frozen_array, require_positive
 from .clocks import SensorClocks, SensorStream, kept_messages, sample_instants, select_streams
+from .effects import EFFECTS, TEMPERATURE, current_channel
+from .effects.simulation import EffectSpec, Truth
 from .fields import dipole_field, dipole_gradient, uniform_field
 from .geometry import TetraGeometry, difference_tensor, to_body
 from .model import SensorInterference
+from .simulated_effects import ADDITIVE, EFFECT_SPECS, Effects, sensor_matrices
 from .types import ArrayLike, FloatArray
-from .units import T_PER_NT
+from .vehicle_signals import (
+    BATTERY_TOPIC,
+    CurrentProfile,
+    Currents,
+    TemperatureProfile,
+    Thruster,
+    draw_currents,
+)
+
+__all__ = [
+    'BATTERY_TOPIC',
+    'EFFECT_SPECS',
+    'CurrentProfile',
+    'Dipole',
+    'EffectSpec',
+    'Effects',
+    'MissionData',
+    'Scenario',
+    'SurveyLine',
+    'TemperatureProfile',
+    'Thruster',
+    'TrimManoeuvre',
+    'check_gradient_tensor',
+    'random_interference',
+    'simulate',
+]
 
 _DERIVATIVE_STEP_S = 1.0e-3
 #: Relative tolerance (of the tensor's norm) of the regional gradient's symmetry and trace.
@@ -170,91 +197,6 @@ Segment = TrimManoeuvre | SurveyLine
 
 
 @dataclass(frozen=True)
-class TemperatureProfile:
-    """``T(t) = mean + ramp * t / duration + amplitude * sin(2 pi t / period)``, degC."""
-
-    mean_c: float = 10.0
-    ramp_c: float = 4.0
-    amplitude_c: float = 1.0
-    period_s: float = 437.0
-
-    def __call__(self, t: np.ndarray, duration_s: float) -> np.ndarray:
-        return (
-            self.mean_c
-            + self.ramp_c * t / max(duration_s, 1e-9)
-            + self.amplitude_c * np.sin(2 * np.pi * t / self.period_s)
-        )
-
-
-@dataclass(frozen=True)
-class CurrentProfile:
-    """Battery current, A (negative while discharging): a base load plus thruster steps,
-    random levels every ``step_s`` seconds linearly joined (seeded by the scenario)."""
-
-    base_a: float = -8.0
-    step_amplitude_a: float = 6.0
-    step_s: float = 15.0
-
-
-@dataclass(frozen=True)
-class EffectSpec:
-    """One simulated physical effect: its parameter shape and SI unit, and how a scenario
-    file gives it (key and the factor from the file's unit to SI)."""
-
-    shape: tuple[int, ...]
-    unit: str
-    scenario_key: str
-    scenario_factor: float = 1.0
-
-
-#: The simulator's effects, each spelled once: :class:`Effects`, its validation and
-#: ``active()``, and the scenario format (``io/scenario.py``) all read this table.
-EFFECT_SPECS: dict[str, EffectSpec] = {
-    'eddy_current': EffectSpec((4, 3, 3), 's', 'coefficients_s'),
-    'sensor_misalignment': EffectSpec((4, 3), 'rad', 'rotation_deg', float(np.pi / 180.0)),
-    'time_skew': EffectSpec((4,), 's', 'delay_s'),
-    'thermal_drift': EffectSpec((4, 3), 'T/degC', 'nT_per_degC', T_PER_NT),
-    'vehicle_current': EffectSpec((4, 3), 'T/A', 'nT_per_A', T_PER_NT),
-}
-
-
-@dataclass(frozen=True)
-class Effects:
-    """Physical effects beyond the paper's model, each off (None) or with its magnitude
-    (shapes and units in :data:`EFFECT_SPECS`).
-
-    Attributes
-    ----------
-    eddy_current : (4, 3, 3) seconds
-        ``B_i += E_i dB^b/dt`` (body-frame rate of the background field).
-    sensor_misalignment : (4, 3) rad
-        Rotation vector of each sensor's axes against the array frame.
-    time_skew : (4,) s
-        Each sensor's constant delay: its reading stamped ``t`` is the field at ``t - skew``.
-    thermal_drift : (4, 3) T/degC
-        Offset per degree away from the profile's mean temperature.
-    vehicle_current : (4, 3) T/A
-        Field per ampere of battery current.
-    """
-
-    eddy_current: FloatArray | None = None
-    sensor_misalignment: FloatArray | None = None
-    time_skew: FloatArray | None = None
-    thermal_drift: FloatArray | None = None
-    vehicle_current: FloatArray | None = None
-
-    def __post_init__(self) -> None:
-        for name, spec in EFFECT_SPECS.items():
-            value = getattr(self, name)
-            if value is not None:
-                object.__setattr__(self, name, frozen_array(value, name, spec.shape))
-
-    def active(self) -> list[str]:
-        """Names of the effects that are switched on."""
-        return [name for name in EFFECT_SPECS if getattr(self, name) is not None]
-
-
-@dataclass(frozen=True)
 class Scenario:
     """Everything a simulated mission needs; SI units throughout.
 
@@ -272,6 +214,7 @@ class Scenario:
     effects : Effects
     temperature : TemperatureProfile
     current : CurrentProfile
+        The hotel load and the thrusters' channels (:mod:`.vehicle_signals`).
     regional_gradient_enu : (3, 3) T/m
         Uniform world-frame gradient ``G_w`` (symmetric, traceless): the world field gains
         ``G_w x`` at ENU position ``x`` (m from the world origin). Default zero.
@@ -282,8 +225,9 @@ class Scenario:
     Raises
     ------
     InputError
-        No segment, a non-positive rate, negative noise, or a regional gradient that is not
-        symmetric and traceless (:func:`check_gradient_tensor`).
+        No segment, a non-positive rate, negative noise, a regional gradient that is not
+        symmetric and traceless (:func:`check_gradient_tensor`), or a ``vehicle_current``
+        whose channels are not the current profile's.
     """
 
     geometry: TetraGeometry
@@ -314,6 +258,13 @@ class Scenario:
             raise InputError(f'sample_rate_hz must be positive, got {self.sample_rate_hz}')
         if not self.noise_t >= 0:
             raise InputError(f'noise_t must be >= 0, got {self.noise_t}')
+        per_amp = self.effects.vehicle_current
+        topics = self.current.topics
+        if per_amp is not None and per_amp.reshape(4, 3, -1).shape[2] != len(topics):
+            raise InputError(
+                f'vehicle_current has {per_amp.reshape(4, 3, -1).shape[2]} column(s) per sensor '
+                f'and axis for {len(topics)} current channel(s) ({", ".join(topics)})'
+            )
 
     @property
     def duration_s(self) -> float:
@@ -342,12 +293,15 @@ class MissionData:
     g_true : (N, 3, 3) T/m, eq. 7 on ``fields_true``
     g_analytic : (N, 3, 3) T/m, exact gradient at the centroid
     temperature_c : (N,) degC
-    current_a : (N,) A
+    current_a : (N,) A, the battery's (``/battery_state``)
+    currents_a : (N, m) A, every current channel: the battery's (``current_a``) first, then
+        each thruster's, in the order of ``current_topics``
     streams : tuple of four SensorStream, or None
         Without clocks None. With clocks, each sensor's messages as logged on its own
         instants, after message loss: ``t`` (n_s,) s and ``fields`` (n_s, 3) T measured
         (interference, effects, noise). Sensor 1's stream is ``fields_measured[:, 0]`` at the
         instants of ``t`` whose message arrived.
+    current_topics : (m,) the BatteryState topic of each current channel
     """
 
     t: np.ndarray
@@ -361,7 +315,9 @@ class MissionData:
     g_analytic: np.ndarray
     temperature_c: np.ndarray
     current_a: np.ndarray
+    currents_a: np.ndarray
     streams: tuple[SensorStream, ...] | None = None
+    current_topics: tuple[str, ...] = (BATTERY_TOPIC,)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -374,12 +330,13 @@ class MissionData:
         selection (a segment, a window) that is every message of that stretch of the mission;
         a scattered one keeps every message between its first and last instant.
         """
-        names = [name for name in self.__dataclass_fields__ if name != 'streams']
+        fixed = ('streams', 'current_topics')
+        names = [name for name in self.__dataclass_fields__ if name not in fixed]
         arrays = {name: getattr(self, name)[mask] for name in names}
         streams = self.streams
         if streams is not None:
             streams = select_streams(streams, self.t, arrays['t'])
-        return MissionData(**arrays, streams=streams)
+        return MissionData(**arrays, streams=streams, current_topics=self.current_topics)
 
 
 def _segment_index(scenario: Scenario, t: np.ndarray) -> np.ndarray:
@@ -430,49 +387,73 @@ def _clean_fields(
     return body, position, attitude, index
 
 
-def _current_function(
-    scenario: Scenario, rng: np.random.Generator
-) -> Callable[[np.ndarray], np.ndarray]:
-    profile = scenario.current
-    knots = (
-        np.arange(0.0, scenario.duration_s + 2 * profile.step_s, profile.step_s) - profile.step_s
-    )
-    levels = profile.base_a + profile.step_amplitude_a * rng.uniform(-1.0, 1.0, len(knots))
-    return lambda t: np.interp(t, knots, levels)
+def _kinematics(
+    scenario: Scenario, t: np.ndarray, index: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Speed (N,) m/s and (yaw, pitch, roll) rates (N, 3) deg/s at times ``t`` (s) flown on
+    segments ``index`` (each rate within its own segment, as the eddy term's)."""
+    starts = np.cumsum([0.0] + [s.duration_s for s in scenario.segments])
+    speed = np.array([s.speed_m_s for s in scenario.segments])[index]
+    rates = np.zeros((len(t), 3))
+    step = _DERIVATIVE_STEP_S
+    for i, segment in enumerate(scenario.segments):
+        here = index == i
+        if np.any(here):
+            local = t[here] - starts[i]
+            ahead, behind = segment.pose(local + step)[1], segment.pose(local - step)[1]
+            rates[here] = (ahead - behind) / (2 * step)
+    return speed, np.degrees(rates)
+
+
+def _currents_at(
+    scenario: Scenario, currents: Currents, t: np.ndarray, index: np.ndarray
+) -> np.ndarray:
+    """Every current channel (N, m) A at times ``t`` (s) flown on segments ``index``."""
+    return currents(t, lambda: _kinematics(scenario, t, index))
+
+
+def _truth(scenario: Scenario, t: np.ndarray, index: np.ndarray, currents: Currents) -> Truth:
+    """What the registry's effects read at times ``t`` (s) on segments ``index``: the
+    temperature, every current channel and the exact rate of the background field."""
+    series = {TEMPERATURE: scenario.temperature(t, scenario.duration_s)}
+    values = _currents_at(scenario, currents, t, index)
+    for j, topic in enumerate(scenario.current.topics):
+        series[current_channel(topic)] = values[:, j]
+
+    def rate() -> np.ndarray:
+        # Within the segment of each sample: segments join with a jump in pose, and a
+        # difference across the join would read it as a huge dB/dt.
+        step = _DERIVATIVE_STEP_S
+        ahead = _clean_fields(scenario, t + step, index)[0][:, 0]
+        return (ahead - _clean_fields(scenario, t - step, index)[0][:, 0]) / (2 * step)
+
+    return Truth(t, series, rate, scenario.temperature.mean_c)
 
 
 def _readings(
     scenario: Scenario,
     t: np.ndarray,
-    current: Callable[[np.ndarray], np.ndarray],
+    currents: Currents,
     index: np.ndarray | None = None,
 ) -> np.ndarray:
     """Noise-free measured readings (N, 4, 3) T at times ``t`` (on segments ``index``, default
-    the segments flown at ``t``): interference and effects."""
+    the segments flown at ``t``): interference, the registry's effects (each its own
+    physics, :meth:`~.effects.Effect.simulate`, in :data:`EFFECT_SPECS`' order), then each
+    sensor's response (:func:`~.simulated_effects.sensor_matrices`)."""
     if index is None:
         index = _segment_index(scenario, t)
     fields, _, _, _ = _clean_fields(scenario, t, index)
     background = fields[:, 0, :]
     readings = scenario.interference.apply(fields, background)
     effects = scenario.effects
-    if effects.eddy_current is not None:
-        step = _DERIVATIVE_STEP_S
-        # Within the segment of each sample: segments join with a jump in pose, and a
-        # difference across the join would read it as a huge dB/dt.
-        rate = (
-            _clean_fields(scenario, t + step, index)[0][:, 0]
-            - _clean_fields(scenario, t - step, index)[0][:, 0]
-        ) / (2 * step)
-        readings += np.einsum('sij,nj->nsi', effects.eddy_current, rate)
-    if effects.thermal_drift is not None:
-        excess = scenario.temperature(t, scenario.duration_s) - scenario.temperature.mean_c
-        readings += excess[:, None, None] * effects.thermal_drift[None]
-    if effects.vehicle_current is not None:
-        readings += current(t)[:, None, None] * effects.vehicle_current[None]
-    if effects.sensor_misalignment is not None:
-        # A writable copy: scipy's Cython Rotation refuses read-only buffers.
-        rotations = Rotation.from_rotvec(np.array(effects.sensor_misalignment)).as_matrix()
-        readings = np.einsum('sij,nsj->nsi', rotations, readings)
+    active = [name for name in ADDITIVE if getattr(effects, name) is not None]
+    if active:
+        truth = _truth(scenario, t, index, currents)
+        for name in active:
+            readings += EFFECTS[name].simulate(getattr(effects, name), truth)
+    matrices = sensor_matrices(effects)
+    if matrices is not None:
+        readings = np.einsum('sij,nsj->nsi', matrices, readings)
     return readings
 
 
@@ -480,18 +461,18 @@ def _measured(
     scenario: Scenario,
     t: np.ndarray,
     index: np.ndarray,
-    current: Callable[[np.ndarray], np.ndarray],
+    currents: Currents,
     rng: np.random.Generator,
 ) -> np.ndarray:
     """Measured readings (N, 4, 3) T of the four sensors at the instants ``t`` (s, flown on
     segments ``index``): interference, effects, time skew and noise."""
-    measured = _readings(scenario, t, current)
+    measured = _readings(scenario, t, currents)
     skew = scenario.effects.time_skew
     if skew is not None:
         for sensor in np.flatnonzero(skew):
             # The skewed sensor reads the same segment's trajectory, earlier (not the pose
             # of the previous segment across a join, which is a jump).
-            measured[:, sensor] = _readings(scenario, t - skew[sensor], current, index)[:, sensor]
+            measured[:, sensor] = _readings(scenario, t - skew[sensor], currents, index)[:, sensor]
     measured += rng.normal(0.0, scenario.noise_t, measured.shape) if scenario.noise_t > 0 else 0.0
     return measured
 
@@ -501,7 +482,7 @@ def _streams(
     clocks: SensorClocks,
     instants: tuple[np.ndarray, ...],
     first: np.ndarray,
-    current: Callable[[np.ndarray], np.ndarray],
+    currents: Currents,
     rng: np.random.Generator,
 ) -> tuple[SensorStream, ...]:
     """Each sensor's logged messages: its measured readings at its own ``instants`` (s), with
@@ -512,7 +493,7 @@ def _streams(
         t = instants[sensor]
         delay = 0.0 if skew is None else float(skew[sensor])
         # As in _measured: a skewed sensor reads its own segment's trajectory, earlier.
-        readings = _readings(scenario, t - delay, current, _segment_index(scenario, t))[:, sensor]
+        readings = _readings(scenario, t - delay, currents, _segment_index(scenario, t))[:, sensor]
         if scenario.noise_t > 0:
             readings += rng.normal(0.0, scenario.noise_t, readings.shape)
         fields.append(readings)
@@ -527,15 +508,16 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     ----------
     scenario : Scenario
     rng : numpy.random.Generator
-        Source of the current profile, the clocks' jitter, the noise and the message loss
-        (drawn in that order; without clocks only the current profile and the noise).
+        Source of the current profile (the hotel load's levels, then each thruster's
+        steps), the clocks' jitter, the noise and the message loss (drawn in that order;
+        without clocks only the current profile and the noise).
 
     Raises
     ------
     InputError
         If sensor 1 takes no sample within the scenario.
     """
-    current = _current_function(scenario, rng)
+    currents = draw_currents(scenario.current, scenario.duration_s, rng)
     clocks = scenario.clocks
     if clocks is None:
         n = int(np.floor(scenario.duration_s * scenario.sample_rate_hz + 1e-9))  # 4.35 s x 100 Hz
@@ -546,10 +528,10 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     if len(t) < 1:
         raise InputError('the scenario is shorter than one sample period (of sensor 1)')
     fields_true, position, attitude, index = _clean_fields(scenario, t)
-    measured = _measured(scenario, t, index, current, rng)
+    measured = _measured(scenario, t, index, currents, rng)
     streams = None
     if clocks is not None:
-        streams = _streams(scenario, clocks, instants, measured[:, 0], current, rng)
+        streams = _streams(scenario, clocks, instants, measured[:, 0], currents, rng)
     centroid_world = position + attitude.apply(scenario.geometry.centroid)
     g_world = np.zeros((len(t), 3, 3))
     if np.any(scenario.regional_gradient_enu):
@@ -557,6 +539,7 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
     for dipole in scenario.dipoles:
         g_world += dipole_gradient(centroid_world, dipole.moment, dipole.position)
     rot = attitude.as_matrix()
+    currents_a = _currents_at(scenario, currents, t, index)
     return MissionData(
         t=t,
         segment=index,
@@ -568,8 +551,10 @@ def simulate(scenario: Scenario, rng: np.random.Generator) -> MissionData:
         g_true=difference_tensor(fields_true, scenario.geometry),
         g_analytic=to_body(g_world, rot),
         temperature_c=scenario.temperature(t, scenario.duration_s),
-        current_a=current(t),
+        current_a=currents_a[:, 0].copy(),
+        currents_a=currents_a,
         streams=streams,
+        current_topics=scenario.current.topics,
     )
 
 

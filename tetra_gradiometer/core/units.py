@@ -15,3 +15,5 @@ NS_PER_S = 1_000_000_000
 S_PER_NS = 1.0e-9
 #: milliseconds -> seconds (command-line tolerances are given in ms).
 S_PER_MS = 1.0e-3
+#: parts per million -> a fraction (scenario files give scale-factor errors in ppm).
+PPM = 1.0e-6

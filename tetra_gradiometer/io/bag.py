@@ -283,6 +283,14 @@ class MagneticBag:
     def has_topic(self, topic: str) -> bool:
         return bool(self._connections(topic))
 
+    def topics_of_type(self, msgtype: str) -> tuple[str, ...]:
+        """The (remapped) topics whose messages are of ``msgtype``, sorted."""
+        return tuple(
+            sorted(
+                {self.topic_of(c.topic) for c in self.reader.connections if c.msgtype == msgtype}
+            )
+        )
+
     def check_contract(self) -> int:
         """Raise :class:`BagError` for a missing magnetometer topic or an empty bag; return
         the number of magnetometer messages."""
@@ -427,7 +435,8 @@ class MagneticBag:
 
     def read_series(self, topic: str) -> Series | None:
         """``/odom`` (the pose: ``conversions.odometry_pose``), ``/tetra/temperature`` (degC) or
-        ``/battery_state`` (current, A) by header stamp; None when the topic is absent."""
+        a BatteryState topic (``/battery_state``, a thruster's: current, A) by header stamp;
+        None when the topic is absent."""
         connections = self._connections(topic)
         if not connections:
             return None

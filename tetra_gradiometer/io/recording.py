@@ -2,7 +2,8 @@
 
 ``write_mission_bag`` writes a :class:`~tetra_gradiometer.core.MissionData` per the data
 contract; ``read_recording`` reads a bag's matched sets with the optional topics
-(``/odom``, ``/tetra/temperature``, ``/battery_state``) interpolated onto the set stamps.
+(``/odom``, ``/tetra/temperature``, ``/battery_state`` and any further BatteryState topic,
+one per thruster say) interpolated onto the set stamps.
 """
 
 from __future__ import annotations
@@ -67,7 +68,9 @@ def write_mission_bag(
     mission : MissionData
     start_ns : header stamp of the first sample, ns (default 2026-01-01T00:00:00Z)
     storage : 'sqlite3' or 'mcap'
-    odom, temperature, battery : write ``/odom``, ``/tetra/temperature``, ``/battery_state``
+    odom, temperature, battery : write ``/odom``, ``/tetra/temperature``, the current
+        channels (``/battery_state`` and each of ``mission.current_topics`` after it, one
+        ``sensor_msgs/BatteryState`` per channel)
     progress : tqdm bar on stderr (None: only on a terminal and for long missions)
     force, inputs, command : as for :class:`~tetra_gradiometer.io.bag.BagWriter`
 
@@ -126,6 +129,8 @@ class _Extras:
             writer.write(
                 cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp
             )
+            for j, topic in enumerate(mission.current_topics[1:], start=1):
+                writer.write(topic, cv.battery_msg(types, mission.currents_a[i, j], stamp), stamp)
 
 
 def _write_streams(
@@ -176,6 +181,9 @@ class Recording:
     position_m : (N, 3) m, the body origin in the odom frame (ENU), or None without ``/odom``
     temperature_c : (N,) degC, or None without ``/tetra/temperature``
     current_a : (N,) A, or None without ``/battery_state``
+    extra_currents : BatteryState topic -> (N,) A: every further current channel of the bag
+        (one per thruster, say), by topic; a topic whose ``current`` is never known (NaN)
+        is left out and named in ``missing``
     missing : topic -> why it is unavailable
     dropped : sets dropped as implausible (:mod:`~tetra_gradiometer.core.plausibility`)
     skipped_messages : messages skipped as undecodable or unreadable (``MagneticBag.skipped``)
@@ -187,6 +195,7 @@ class Recording:
     position_m: np.ndarray | None = None
     temperature_c: np.ndarray | None = None
     current_a: np.ndarray | None = None
+    extra_currents: dict[str, np.ndarray] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)
     dropped: DroppedSets = field(default_factory=DroppedSets)
     skipped_messages: int = 0
@@ -247,7 +256,32 @@ def read_recording(
                 )
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
+        currents = _extra_currents(bag, stamps, missing)
         skipped = bag.skipped_messages
     return Recording(
-        stamps, fields, missing=missing, dropped=dropped, skipped_messages=skipped, **extras
+        stamps,
+        fields,
+        extra_currents=currents,
+        missing=missing,
+        dropped=dropped,
+        skipped_messages=skipped,
+        **extras,
     )
+
+
+def _extra_currents(
+    bag: MagneticBag, stamps: np.ndarray, missing: dict[str, str]
+) -> dict[str, np.ndarray]:
+    """Every BatteryState topic's current but ``/battery_state``'s on ``stamps`` (linear,
+    held at the ends); a topic with no known current is named in ``missing`` instead."""
+    out = {}
+    for topic in bag.topics_of_type(cv.BATTERY_STATE):
+        if topic == cv.BATTERY_TOPIC:
+            continue
+        series = bag.read_series(topic)
+        known = None if series is None else np.isfinite(series.values[:, 0])
+        if series is None or known is None or not known.any():
+            missing[topic] = f'{topic} has no known current'
+            continue
+        out[topic] = np.interp(stamps, series.stamps_ns[known], series.values[known, 0])
+    return out

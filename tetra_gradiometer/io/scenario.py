@@ -17,7 +17,15 @@ Example::
     segments:
       - trim: {duration_s: 300, center_m: [3000, 3000, -50]}
       - line: {start_m: [-200, 30, -50], end_m: [200, 30, -50], speed_m_s: 2}
-    effects: {}                                # see EFFECT_KEYS
+    effects: {}                                # see EFFECT_KEYS; e.g.
+                                               # vehicle_current: {nT_per_A: 4x3xm}
+    current:                                   # the vehicle's currents, A (negative:
+      base_a: -3                               # discharging): the hotel load, plus
+      step_amplitude_a: 1                      # one channel per thruster (its own
+      step_s: 30                               # BatteryState topic; see THRUSTER_KEYS)
+      thrusters:
+        - {topic: /thruster_1/battery_state, speed_a_per_m2_s2: -2.5}
+        - {topic: /thruster_2/battery_state, turn_a_per_deg_s: -0.1}
     regional_gradient_nT_per_m: [[0.5, 0.2, 0], [0.2, -0.3, 0.1], [0, 0.1, -0.2]]
                                                # symmetric, traceless; default zero
     clocks: {offset_ms: [0, 0.5, 2, 4], jitter_ms: 0.2, drift_ppm: [0, 20, -30, 50],
@@ -48,6 +56,7 @@ from ..core import (
     SurveyLine,
     TemperatureProfile,
     TetraGeometry,
+    Thruster,
     TrimManoeuvre,
     check_gradient_tensor,
     random_interference,
@@ -55,6 +64,7 @@ from ..core import (
 from ..core.simulator import EFFECT_SPECS
 from ..core.units import S_PER_MS, T_PER_NT
 from ..errors import InputError, ScenarioError
+from . import conversions as cv
 from ._yaml import read_yaml
 
 #: effect name -> (key in the file, factor to SI)
@@ -63,6 +73,12 @@ from ._yaml import read_yaml
 EFFECT_KEYS = {
     name: (spec.scenario_key, spec.scenario_factor) for name, spec in EFFECT_SPECS.items()
 }
+
+#: Scenario file keys of a thruster under ``current: {thrusters: [...]}`` (A and the units in
+#: the names; see :mod:`tetra_gradiometer.core.vehicle_signals`); ``topic`` is required.
+THRUSTER_KEYS = tuple(Thruster.__dataclass_fields__)
+#: Topics a thruster's BatteryState may not take: the data contract's other topics.
+RESERVED_TOPICS = frozenset((*cv.BAG_MAG_TOPICS, cv.ODOM_TOPIC, cv.TEMPERATURE_TOPIC))
 
 #: Scenario file keys of ``clocks``: ``{key: (SensorClocks attribute, factor to SI)}``; each
 #: takes a number (all sensors) or four.
@@ -269,19 +285,53 @@ def _effects(effects_spec: dict[str, Any]) -> Effects:
     unknown = set(effects_spec) - set(EFFECT_KEYS)
     if unknown:
         raise ScenarioError(f'effects: unknown {sorted(unknown)}; known: {sorted(EFFECT_KEYS)}')
-    return Effects(
-        **{
-            name: _vec(
-                effects_spec[name],
-                spec.scenario_key,
-                spec.shape,
-                f'effects.{name}',
-                spec.scenario_factor,
+    values = {}
+    for name, spec in EFFECT_SPECS.items():
+        if name not in effects_spec:
+            continue
+        section, key, where = effects_spec[name], spec.scenario_key, f'effects.{name}'
+        if not isinstance(section, dict) or key not in section:
+            raise ScenarioError(f'{where}: missing "{key}"')
+        try:
+            value = np.asarray(section[key], dtype=float) * spec.scenario_factor
+        except (TypeError, ValueError):
+            raise ScenarioError(f'{where}.{key}: not numeric: {section[key]!r}') from None
+        try:
+            values[name] = spec.check(value, f'{where}.{key}')
+        except InputError as error:
+            raise ScenarioError(str(error)) from None
+    try:
+        return Effects(**values)
+    except InputError as error:
+        raise ScenarioError(f'effects: {error}') from None
+
+
+def _current(current_spec: dict[str, Any]) -> CurrentProfile:
+    """The current profile: the hotel load's keys and the ``thrusters`` list."""
+    spec = dict(current_spec)
+    entries = spec.pop('thrusters', None) or []
+    if not isinstance(entries, list):
+        raise ScenarioError('current.thrusters: expected a list of {topic: ..., ...}')
+    thrusters = []
+    for i, entry in enumerate(entries):
+        where = f'current.thrusters[{i}]'
+        if not isinstance(entry, dict) or 'topic' not in entry:
+            raise ScenarioError(f'{where}: expected a mapping with a "topic", got {entry!r}')
+        unknown = set(entry) - set(THRUSTER_KEYS)
+        if unknown:
+            raise ScenarioError(
+                f'{where}: unknown {sorted(unknown)}; known: {list(THRUSTER_KEYS)}'
             )
-            for name, spec in EFFECT_SPECS.items()
-            if name in effects_spec
-        }
-    )
+        if entry['topic'] in RESERVED_TOPICS:
+            raise ScenarioError(f'{where}.topic: {entry["topic"]} is a topic of the data contract')
+        try:
+            thrusters.append(Thruster(**entry))
+        except (TypeError, ValueError) as error:
+            raise ScenarioError(f'{where}: {error}') from None
+    try:
+        return CurrentProfile(**spec, thrusters=tuple(thrusters))
+    except (TypeError, ValueError) as error:
+        raise ScenarioError(f'current: {error}') from None
 
 
 def _regional_gradient(document: dict[str, Any]) -> npt.NDArray[np.float64]:
@@ -345,6 +395,7 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
     segments = [_segment(entry, i) for i, entry in enumerate(document.get('segments') or [])]
     regional_gradient = _regional_gradient(document)
     clocks = _clocks(document.get('clocks'))
+    current = _current(document.get('current') or {})
     try:
         scenario = Scenario(
             geometry=geometry,
@@ -356,7 +407,7 @@ def scenario_from_dict(document: dict[str, Any]) -> tuple[Scenario, int]:
             noise_t=float(document.get('noise_nT', 0.1)) * T_PER_NT,
             effects=effects,
             temperature=TemperatureProfile(**document.get('temperature', {})),
-            current=CurrentProfile(**document.get('current', {})),
+            current=current,
             regional_gradient_enu=regional_gradient,
             clocks=clocks,
         )

@@ -59,6 +59,7 @@ def analyze_bag(
         recording.temperature_c,
         recording.current_a,
         recording.missing,
+        recording.extra_currents,
     )
     report = analyze(run, geometry, earth_field_enu, settings=settings, window_s=window)
     report = dataclasses.replace(report, data={**report.data, **recording.input_counts()})

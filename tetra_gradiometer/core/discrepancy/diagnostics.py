@@ -36,6 +36,8 @@ def drivers(prep: Prepared) -> dict[str, Array]:
         out['temperature_c'] = prep.temperature_c
     if prep.current_a is not None:
         out['current_a'] = prep.current_a
+    for topic, values in prep.extra_currents:
+        out[f'current_a[{topic}]'] = values
     return out
 
 

@@ -64,6 +64,9 @@ def scan_residual(
             if series is not None:
                 recorded.append(series[:, None])
                 channels.append(name)
+        for topic, values in prep.extra_currents:
+            recorded.append(values[:, None])
+            channels.append(f'current[{topic}]')
         lines = find_lines(
             prep.t,
             residual[:, list(prep.sensors)],

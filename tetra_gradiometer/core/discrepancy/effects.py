@@ -12,6 +12,14 @@ parameter), an optional fixed ``offset`` ``(N, 4, 3)`` nT (the exact remainder o
 nonlinear family at its current estimate, so that the linear columns fit the correction),
 and a label ``(sensor, name)`` per column. Units: nT, s, degC, A.
 
+The operational effects (``eddy_current``, ``thermal_drift``, ``vehicle_current``) are the
+registry's (:data:`tetra_gradiometer.core.effects.EFFECTS`): their physics text and their
+regressors come from there, laid out per sensor here (:func:`registry_columns`). The
+thermal and current regressors are the registry's own (``Effect.regressors``, the
+temperature against the run's mean, every current channel); the eddy term's regressor is
+the same quantity, the background field's rate, estimated here on the whole run from the
+view's ``B^b`` (smoothed, non-causal: the search has the run, the live path does not).
+
 Families that are nonlinear in their parameters (``time_skew``: a shift of the sensor's
 own prediction in time; ``sensor_misalignment``: a rotation of it) are linearised around
 their current estimate and iterated (Gauss-Newton with the exact remainder as offset).
@@ -28,6 +36,7 @@ from scipy.interpolate import BSpline, CubicSpline, make_interp_spline
 from scipy.spatial.transform import Rotation
 
 from ...errors import InputError
+from ..effects import EFFECTS, TEMPERATURE, Channels, current_channel
 from ..model import SYMMETRIC_ENTRIES, SensorInterference
 from ..simulator import random_interference
 from .openworld import OpenWorld
@@ -49,11 +58,13 @@ class Context:
     b_background : (N, 3) ``B^b`` used by the model
     b_rate : (N, 3) ``dB^b/dt``, nT/s
     prediction : (N, 4, 3) the current model's prediction of every sensor (no noise)
-    temperature_c, current_a : (N,) or None
+    temperature_c, current_a : (N,) or None (``current_a``: the battery's, ``/battery_state``)
     piece : (N,) index of the continuous piece of the run, or None (one piece)
     rotation : (N, 3, 3) body -> ENU with /odom, or None
     knot_s : knot spacing of the ``external_field`` spline, s
     open_world : the steps and spectral lines the scans found (:mod:`.openworld`)
+    extra_currents : further current channels, (BatteryState topic, (N,) A) each (one per
+        thruster, say)
     """
 
     t: Array
@@ -68,6 +79,7 @@ class Context:
     rotation: Array | None = None
     knot_s: float = 30.0
     open_world: OpenWorld = field(default_factory=OpenWorld)
+    extra_currents: tuple[tuple[str, Array], ...] = ()
 
 
 def _required(value: Array | None, what: str) -> Array:
@@ -178,18 +190,26 @@ def _empty(n: int, p: int) -> Array:
     return np.zeros((n, 4, 3, p))
 
 
-def _eddy(ctx: Context, estimate: Estimate | None) -> Built:
-    n = len(ctx.t)
+def registry_columns(ctx: Context, x: Array, label: Callable[[int, int], str]) -> Built:
+    """A registry effect's regressors ``x`` (N, m) as per-sensor columns: for each sensor of
+    the view, axis ``a`` and regressor ``j`` a column ``x[:, j]`` at (sensor, axis) with the
+    label ``label(a, j)`` (the coefficient is in nT per unit of ``x``)."""
+    n, m = x.shape
+    cols = _empty(n, 3 * m * len(ctx.sensors))
     labels: list[tuple[int, str]] = []
-    cols = _empty(n, 9 * len(ctx.sensors))
     k = 0
     for s in ctx.sensors:
-        for r in range(3):
-            for c in range(3):
-                cols[:, s, r, k] = ctx.b_rate[:, c]
-                labels.append((s, f'E{"xyz"[r]}{"xyz"[c]}_s'))
+        for a in range(3):
+            for j in range(m):
+                cols[:, s, a, k] = x[:, j]
+                labels.append((s, label(a, j)))
                 k += 1
     return cols, None, labels
+
+
+def _eddy(ctx: Context, estimate: Estimate | None) -> Built:
+    # The registry's regressor, the background's rate (nT/s), as the search estimates it.
+    return registry_columns(ctx, ctx.b_rate, lambda a, j: f'E{"xyz"[a]}{"xyz"[j]}_s')
 
 
 def _time_skew(ctx: Context, estimate: Estimate | None) -> Built:
@@ -248,37 +268,44 @@ def _reference(ctx: Context, estimate: Estimate | None) -> Built:
     return cols, None, labels
 
 
-def _per_sensor_scalar(ctx: Context, series: Array, unit: str, reference_offset: bool) -> Built:
-    n = len(ctx.t)
-    extra = 3 if (reference_offset and 0 in ctx.sensors) else 0
-    cols = _empty(n, 3 * len(ctx.sensors) + extra)
-    labels: list[tuple[int, str]] = []
-    k = 0
-    for s in ctx.sensors:
-        for a in range(3):
-            cols[:, s, a, k] = series
-            labels.append((s, f'{"xyz"[a]}_{unit}'))
-            k += 1
-    if extra:
-        for a in range(3):
-            cols[:, 0, a, k] = 1.0
-            labels.append((0, f'offset_{"xyz"[a]}_nT'))
-            k += 1
-    return cols, None, labels
+def recorded_currents(
+    current_a: Array | None, extra: tuple[tuple[str, Array], ...]
+) -> list[tuple[str, Array]]:
+    """Every current channel of the run, (BatteryState topic, (N,) A): the battery's first."""
+    battery = [] if current_a is None else [('/battery_state', current_a)]
+    return battery + list(extra)
 
 
 def _thermal(ctx: Context, estimate: Estimate | None) -> Built:
     recorded = _required(ctx.temperature_c, 'the temperature (/tetra/temperature)')
-    temperature = recorded - np.mean(recorded)
+    # The registry's regressor T - T_ref, with T_ref the run's mean temperature.
+    channels = Channels(ctx.t, ctx.b_background, {TEMPERATURE: recorded})
+    reference = (float(np.mean(recorded)),)
+    x = EFFECTS['thermal_drift'].regressors(channels, (TEMPERATURE,), reference)
+    cols, _, labels = registry_columns(ctx, x, lambda a, j: f'{"xyz"[a]}_nT_per_degC')
+    if 0 not in ctx.sensors:
+        return cols, None, labels
     # The drift is c (T - T_ref) with T_ref unknown: sensors 2-4 absorb the constant in
     # their hard iron, the clean reference sensor needs its own offset.
-    return _per_sensor_scalar(ctx, temperature, 'nT_per_degC', reference_offset=True)
+    offsets = _empty(len(ctx.t), 3)
+    for a in range(3):
+        offsets[:, 0, a, a] = 1.0
+        labels.append((0, f'offset_{"xyz"[a]}_nT'))
+    return np.concatenate([cols, offsets], axis=-1), None, labels
 
 
 def _current(ctx: Context, estimate: Estimate | None) -> Built:
-    # No current, no field: the family has no offset of its own.
-    current = _required(ctx.current_a, 'the battery current (/battery_state)')
-    return _per_sensor_scalar(ctx, current, 'nT_per_A', reference_offset=False)
+    # No current, no field: the family has no offset of its own. Every current channel
+    # (the battery's and each further BatteryState's) has its own coefficients.
+    recorded = recorded_currents(ctx.current_a, ctx.extra_currents)
+    if not recorded:
+        _required(None, 'a current (/battery_state or another BatteryState topic)')
+    series = {current_channel(topic): values for topic, values in recorded}
+    names = tuple(series)
+    x = EFFECTS['vehicle_current'].regressors(Channels(ctx.t, ctx.b_background, series), names, ())
+    topics = [topic for topic, _ in recorded]
+    suffix = [''] if topics == ['/battery_state'] else [f'[{topic}]' for topic in topics]
+    return registry_columns(ctx, x, lambda a, j: f'{"xyz"[a]}_nT_per_A{suffix[j]}')
 
 
 def spline_basis(t: Array, knot_s: float) -> Array:
@@ -375,14 +402,21 @@ def _draw_current(rng: np.random.Generator, mask: Array) -> Hidden:
     return Hidden({'vehicle_current': rng.normal(0, 1.0, (4, 3)) * mask[:, None]})
 
 
+#: The end of a registry effect's physics text that describes the operational path's
+#: estimate of its regressor, not the search's (see the module).
+_OPERATIONAL_ONLY = "; the rate is B_1''s, differentiated causally."
+
+
+def _physics(name: str) -> str:
+    """The registry effect's physics text, for the report."""
+    text = EFFECTS[name].physics
+    return text.removesuffix(_OPERATIONAL_ONLY) + '.' if text.endswith(_OPERATIONAL_ONLY) else text
+
+
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate(
         'eddy_current',
-        'Eddy currents induced in the conducting hull and pressure housings by the change of '
-        'the field they see as the vehicle turns; by Lenz their field opposes the change and, '
-        'for a hull whose time constant is short against the manoeuvre, is proportional to '
-        'the rate of change of the body-frame background field: E_i dB^b/dt with a general '
-        '3x3 E_i (seconds) per sensor (the Tolles-Lawson eddy term).',
+        _physics('eddy_current'),
         'E_i, 3x3 per sensor, seconds (nT per nT/s)',
         (),
         _eddy,
@@ -443,9 +477,7 @@ CANDIDATES: tuple[Candidate, ...] = (
     ),
     Candidate(
         'thermal_drift',
-        'Offsets of the fluxgates (and of the hard iron near them) that change with the '
-        'temperature of the electronics and the housing: c_i (T - T_ref) with the temperature '
-        'from /tetra/temperature, c_i in nT/degC per sensor and axis.',
+        _physics('thermal_drift'),
         'c_i per sensor and axis, nT/degC (plus the reference offset)',
         ('temperature',),
         _thermal,
@@ -457,10 +489,8 @@ CANDIDATES: tuple[Candidate, ...] = (
     ),
     Candidate(
         'vehicle_current',
-        'The field of the currents drawn from the battery (thrusters, payload) along the '
-        "vehicle's wiring: by Biot-Savart proportional to the current, v_i I(t) with I from "
-        '/battery_state, v_i in nT/A per sensor and axis.',
-        'v_i per sensor and axis, nT/A',
+        _physics('vehicle_current'),
+        'v_i per sensor, axis and current channel, nT/A',
         ('current',),
         _current,
         simulated=Simulated(_draw_current),

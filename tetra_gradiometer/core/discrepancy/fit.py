@@ -193,6 +193,7 @@ def _context(prep: Prepared, basis: Array, knot_s: float) -> Context:
         prep.rotation,
         knot_s,
         prep.open_world,
+        prep.extra_currents,
     )
 
 

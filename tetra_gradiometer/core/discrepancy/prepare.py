@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from ...errors import InputError
 from ..model import SYMMETRIC_ENTRIES
 from ..units import NT_PER_T
-from .effects import Candidate, PiecewiseSpline
+from .effects import Candidate, PiecewiseSpline, recorded_currents
 from .openworld import OpenWorld
 
 Array = NDArray[np.float64]
@@ -63,6 +63,8 @@ class RecordedRun:
     temperature_c : (N,) degC, or None without ``/tetra/temperature``
     current_a : (N,) A, or None without ``/battery_state``
     missing : topic -> why it is unavailable
+    extra_currents : BatteryState topic -> (N,) A, the further current channels (one per
+        thruster, say): ``vehicle_current`` fits a field per channel
     """
 
     t_s: Array
@@ -71,6 +73,7 @@ class RecordedRun:
     temperature_c: Array | None = None
     current_a: Array | None = None
     missing: Mapping[str, str] = field(default_factory=dict)
+    extra_currents: Mapping[str, Array] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,7 @@ class Prepared:
     piece : (N,) index of the continuous piece of the run
     rotation : (N, 3, 3) body -> ENU, or None
     open_world : the steps and spectral lines the scans of the residual found
+    extra_currents : the further current channels, (BatteryState topic, (N,) A) each
     """
 
     t: Array
@@ -113,6 +117,7 @@ class Prepared:
     piece: NDArray[np.int_]
     rotation: Array | None
     open_world: OpenWorld = field(default_factory=OpenWorld)
+    extra_currents: tuple[tuple[str, Array], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -126,6 +131,7 @@ class _Samples:
     temperature_c: Array | None
     current_a: Array | None
     notes: tuple[str, ...]
+    extra_currents: tuple[tuple[str, Array], ...] = ()
 
 
 def prepare(
@@ -168,6 +174,10 @@ def _samples(
             value = np.asarray(value, dtype=float)
             keep &= np.isfinite(value).reshape(len(value), -1).all(axis=1)
         optional[name] = value
+    extra: dict[str, Array] = {}
+    for topic, value in (getattr(recording, 'extra_currents', None) or {}).items():
+        extra[topic] = np.asarray(value, dtype=float)
+        keep &= np.isfinite(extra[topic])
     if keep.sum() < _MIN_SAMPLES:
         raise InputError(
             f'the recording has {int(keep.sum())} usable samples; the workflow needs at least 50'
@@ -202,6 +212,7 @@ def _samples(
         picked['temperature_c'],
         picked['current_a'],
         tuple(notes),
+        tuple((topic, value[index]) for topic, value in extra.items()),
     )
 
 
@@ -273,6 +284,7 @@ def _absolute_view(samples: _Samples, quat: Array, earth_field_enu: object) -> P
         base_labels=labels,
         temperature_c=samples.temperature_c,
         current_a=samples.current_a,
+        extra_currents=samples.extra_currents,
         attitude=attitude,
         earth_field_nT=earth,
         notes=tuple(notes),
@@ -306,6 +318,7 @@ def _pair_view(samples: _Samples) -> Prepared:
         base_labels=labels,
         temperature_c=samples.temperature_c,
         current_a=samples.current_a,
+        extra_currents=samples.extra_currents,
         attitude=None,
         earth_field_nT=None,
         notes=notes,
@@ -484,9 +497,10 @@ def _untestable_reason(candidate: Candidate, prep: Prepared) -> str | None:
                 'constant offset'
             )
     elif 'current' in candidate.requires:
-        if prep.current_a is None:
+        currents = recorded_currents(prep.current_a, prep.extra_currents)
+        if not currents:
             return 'no /battery_state in the bag: the field has no regressor'
-        if np.ptp(prep.current_a) < 1e-3:
+        if all(np.ptp(values) < 1e-3 for _, values in currents):
             return 'the recorded current does not vary (< 1 mA): its field is a constant offset'
     return None
 

@@ -99,7 +99,7 @@ def _data(search: SearchResult, info: RunInfo) -> dict[str, Any]:
         'folds': info.settings.n_folds,
         'has_odom': prep.absolute,
         'has_temperature': prep.temperature_c is not None,
-        'has_current': prep.current_a is not None,
+        'has_current': prep.current_a is not None or bool(prep.extra_currents),
         'missing_topics': dict(info.missing or {}),
         'window_s': None
         if window_s is None

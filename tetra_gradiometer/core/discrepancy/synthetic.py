@@ -68,6 +68,7 @@ class Case:
             m.temperature_c if temperature else None,
             m.current_a if battery else None,
             missing,
+            dict(zip(m.current_topics[1:], m.currents_a[:, 1:].T, strict=True)) if battery else {},
         )
 
 

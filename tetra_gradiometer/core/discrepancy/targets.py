@@ -94,6 +94,7 @@ def _detector_columns(
         prep.piece,
         prep.rotation,
         settings.knot_s,
+        extra_currents=prep.extra_currents,
     )
     families = [c for c in CANDIDATES if c.in_detector and c.name in names]
     return np.concatenate([prep.base_cols] + [c.build(ctx, None)[0] for c in families], axis=-1)

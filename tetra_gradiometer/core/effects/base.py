@@ -26,7 +26,8 @@ import numpy as np
 
 from ...errors import InputError
 from .._validate import frozen_array
-from ..types import FloatArray
+from ..types import ArrayLike, FloatArray
+from .simulation import EffectSpec, Truth, linear_field
 
 #: Channel names. A current channel is ``current:<topic>`` (a sensor_msgs/BatteryState
 #: topic: the battery, or one per thruster ESC).
@@ -127,6 +128,21 @@ class Effect(ABC):
     @abstractmethod
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         """The per-sample form of :meth:`regressors`."""
+
+    #: How the simulator and a scenario file give the effect's per-sensor coefficients
+    #: (None: the simulator does not produce it).
+    simulation: ClassVar[EffectSpec | None] = None
+
+    def simulated_regressors(self, truth: Truth) -> FloatArray:
+        """The exact regressors (N, m) of the simulated mission, SI: what
+        :meth:`regressors` estimates from the recorded channels."""
+        raise InputError(f'the simulator does not produce {self.name}')
+
+    def simulate(self, coefficients: ArrayLike, truth: Truth) -> FloatArray:
+        """The effect's field (N, 4, 3) T at the four sensors: the per-sensor coefficients
+        ``coefficients`` (4, 3, m) SI (:attr:`simulation`'s shape) times
+        :meth:`simulated_regressors`. This is the simulator's physics of the effect."""
+        return linear_field(coefficients, self.simulated_regressors(truth))
 
 
 @dataclass(frozen=True)

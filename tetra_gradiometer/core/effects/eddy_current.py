@@ -32,6 +32,7 @@ import numpy as np
 
 from ..types import FloatArray
 from .base import Channels, Effect, LiveRegressor
+from .simulation import EffectSpec, Truth
 
 #: The pseudo-channel of the reference reading's rate (always available: it is computed).
 REFERENCE_RATE = 'reference_rate'
@@ -183,3 +184,10 @@ class EddyCurrent(Effect):
 
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         return _Live(reference[0])
+
+    #: (4, 3, 3) s: sensor, axis of the field, axis of the rate (``E_s``).
+    simulation = EffectSpec((4, 3, 3), 's', 'coefficients_s')
+
+    def simulated_regressors(self, truth: Truth) -> FloatArray:
+        """The exact rate (N, 3) T/s of the clean background field at sensor 1."""
+        return np.asarray(truth.reference_rate(), float)

@@ -14,8 +14,9 @@ from collections.abc import Mapping
 import numpy as np
 
 from ..types import FloatArray
-from ..units import NT_PER_T
+from ..units import NT_PER_T, T_PER_NT
 from .base import TEMPERATURE, Channels, Effect, LiveRegressor
+from .simulation import EffectSpec, Truth
 
 
 class _Live(LiveRegressor):
@@ -60,3 +61,11 @@ class ThermalDrift(Effect):
 
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         return _Live(reference[0])
+
+    #: (4, 3) T/degC: sensor, axis.
+    simulation = EffectSpec((4, 3), 'T/degC', 'nT_per_degC', T_PER_NT)
+
+    def simulated_regressors(self, truth: Truth) -> FloatArray:
+        """The true temperature's excess over the drift's zero, (N, 1) degC."""
+        temperature = np.asarray(truth.series[TEMPERATURE], float)
+        return (temperature - truth.temperature_reference_c)[:, None]

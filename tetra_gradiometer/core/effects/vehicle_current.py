@@ -12,8 +12,9 @@ from collections.abc import Mapping
 import numpy as np
 
 from ..types import FloatArray
-from ..units import NT_PER_T
+from ..units import NT_PER_T, T_PER_NT
 from .base import CURRENT_PREFIX, Channels, Effect, LiveRegressor
+from .simulation import EffectSpec, Truth
 
 
 class _Live(LiveRegressor):
@@ -58,3 +59,12 @@ class VehicleCurrent(Effect):
 
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         return _Live(inputs)
+
+    #: (4, 3, m) T/A: sensor, axis, current channel (the battery's first, then the
+    #: scenario's thrusters); (4, 3) is the battery's alone.
+    simulation = EffectSpec((4, 3, None), 'T/A', 'nT_per_A', T_PER_NT, also=((4, 3),))
+
+    def simulated_regressors(self, truth: Truth) -> FloatArray:
+        """The true current of every channel (N, m) A, in the scenario's order."""
+        names = [name for name in truth.series if name.startswith(CURRENT_PREFIX)]
+        return np.column_stack([np.asarray(truth.series[name], float) for name in names])
