@@ -202,7 +202,8 @@ def sample_terms(
     (:func:`~tetra_gradiometer.pipelines.terms.terms_on`) on the samples ``stamps_ns`` (n,)
     ns, ``G_m`` (n, 3, 3) T/m, ``B_1'`` (n, 3) T, with the channels' received ``series``
     and the samples' attitude (or None); none for a ``method`` other than the default (it
-    fits the paper's form), as ``calibrate``.
+    fits the paper's form), as ``calibrate``. A channel none of whose messages is near a
+    sample counts as missing.
 
     Raises
     ------
@@ -217,6 +218,9 @@ def sample_terms(
                 f'{DEFAULT_METHOD}, not {method}'
             )
         return WindowTerms(notes=(f'effects: none ({method} fits k, b only)',))
+    # A channel with no value near any sample (messages of another time) is one the data
+    # lack: offered, it would leave no sample to select on.
+    series = {name: s for name, s in series.items() if np.isfinite(s.on(stamps_ns)).any()}
     channels = channels_on(stamps_ns, b_reference, series)
     pairs = g_measured @ geometry.a  # B_i' - B_1' per axis and pair (eq. 7 times a)
     used = np.arange(len(stamps_ns))

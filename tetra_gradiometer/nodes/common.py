@@ -248,8 +248,10 @@ def _refusal(node: Any, spec: ParamSpec, error: Exception) -> str:
     head = f'parameter {spec.name!r} = {_shown(value)} refused'
     within = f' within {range_text(spec)}' if range_text(spec) else ''
     if isinstance(error, InvalidParameterTypeException):
-        hint = ' (write it with a decimal point)' if _type_name(value) == 'an integer' else ''
-        return f'{head}: {_type_name(value)}, it must be {_type_name(spec.default)}{within}{hint}'
+        expected = 'a string array' if spec.string_array else _type_name(spec.default)
+        decimal = _type_name(value) == 'an integer' and expected == 'a double'
+        hint = ' (write it with a decimal point)' if decimal else ''
+        return f'{head}: {_type_name(value)}, it must be {expected}{within}{hint}'
     bounds = spec.int_range or spec.float_range
     if bounds and not bounds[0] <= value <= bounds[1]:
         return f'{head}: must be{within} ({spec.description.rstrip(".")})'
