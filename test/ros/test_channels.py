@@ -126,3 +126,17 @@ def test_the_calibrators_choice_is_calibrates_and_refuses_a_named_effect_without
     assert auto.candidates == ()  # noise only: nothing passes the held-out test
     assert set(auto.selection.evidence) == {'eddy_current', 'thermal_drift'}
     assert 'vehicle_current' in auto.lacking and auto.channels == {TEMPERATURE: '/tetra/temperature'}
+
+
+def test_samples_whose_eddy_rate_is_never_known_select_nothing_and_do_not_fail():
+    """Synthetic samples whose ``B_1'`` jumps between every pair (random directions 0.1 s
+    apart): no eddy rate anywhere, so the effect is not offered (it crashed the selection
+    with a division by zero and left ``~/calibrate`` unanswered)."""
+    rng = np.random.default_rng(6)
+    n = 200
+    sets = T0 + np.arange(n, dtype=np.int64) * 10**8
+    b = rng.normal(size=(n, 3))
+    b *= 5e-5 / np.linalg.norm(b, axis=1, keepdims=True)
+    g = rng.normal(size=(n, 3, 3)) * 0.1 * NT
+    chosen = sample_terms('known_gradient_lstsq_general', sets, g, b, {}, GEOMETRY, EffectsChoice(), None)
+    assert chosen.candidates == () and 'none selected' in chosen.notes[0]

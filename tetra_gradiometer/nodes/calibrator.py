@@ -87,7 +87,7 @@ from std_srvs.srv import Trigger
 
 from ..core import TetraGeometry
 from ..core.guidance import TrimAssessment, TrimStatistics, assess, trim_statistics
-from ..core.identification import Options
+from ..core.identification import Options, attitude_coverage
 from ..core.plausibility import plausible_readings
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
@@ -434,7 +434,10 @@ class CalibratorNode(ManagedNode):
         self, method: str, t: np.ndarray, g: np.ndarray, b: np.ndarray, options: Options
     ) -> WindowTerms:
         """The vehicle effects the samples are fitted with (``effects``; the channels'
-        messages received), chosen as ``calibrate`` chooses them on a bag."""
+        messages received), chosen as ``calibrate`` chooses them on a bag; none when the
+        samples span too few field directions (the solve refuses them, saying so)."""
+        if not attitude_coverage(b) <= options.max_coverage_condition:
+            return WindowTerms()
         choice = EffectsChoice.parse(self.get_parameter('effects').value, self._current_topics)
         series = self._channels.series()
         orientation = options.orientation_xyzw

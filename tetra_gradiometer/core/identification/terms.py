@@ -279,13 +279,18 @@ def select_terms(
     """Forward selection of the candidates on held-out blocks (the module docstring).
 
     ``pairs`` (N, 3, 3) and ``b_reference`` (N, 3) in time order; rows where a candidate's
-    regressor is NaN are left out of every comparison.
+    regressor is NaN are left out of every comparison (a candidate without a known row is
+    not offered: it cannot be tested). Data the base model fits exactly (noise-free) keep
+    no term: there is nothing left to explain.
     """
     usable = np.all(np.isfinite(pairs.reshape(len(pairs), 9)), axis=1)
+    candidates = [c for c in candidates if np.any(np.all(np.isfinite(c.regressors), axis=1))]
     for candidate in candidates:
         usable &= np.all(np.isfinite(candidate.regressors), axis=1)
     keep = np.flatnonzero(usable)
     n = len(keep)
+    if n == 0:  # no row where every candidate is known: none can be tested
+        return Selection((), {})
     fold_of = np.minimum((np.arange(n) * folds) // max(n, 1), folds - 1)
     y = pairs[keep]
     b1 = b_reference[keep]
@@ -296,7 +301,7 @@ def select_terms(
     evidence: dict[str, dict[str, Any]] = {}
     rows = 9 * n
     remaining = list(sub)
-    while remaining:
+    while remaining and rss > 0:
         tests = []
         for candidate in remaining:
             try:
@@ -304,7 +309,7 @@ def select_terms(
             except IdentifiabilityError:
                 continue
             p = 9 * candidate.size
-            f_stat = ((rss - rss_with) / p) / (rss_with / rows)
+            f_stat = ((rss - rss_with) / p) / (rss_with / rows) if rss_with > 0 else np.inf
             p_value = float(stats.f.sf(f_stat, p, rows)) if f_stat > 0 else 1.0
             gain = 1.0 - rss_with / rss
             passed = p_value < alpha / len(remaining) and gain >= min_gain
