@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,7 +23,9 @@ from ..core.effects import CURRENT_PREFIX, TEMPERATURE, current_channel
 from ..core.units import S_PER_NS
 from ..errors import BagError
 from . import conversions as cv
-from .bag import MagneticBag
+
+if TYPE_CHECKING:  # only an annotation: the nodes import this module without rosbags
+    from .bag import MagneticBag
 
 #: The furthest a set may lie from a channel's nearest message, s: a temperature changes
 #: slowly (sensors report at ~1 Hz or less), a current steps with the thrusters.

@@ -42,6 +42,15 @@ blocks the other callbacks until the solve ends.
 default ``known_gradient_lstsq_general``: the true gradient is taken as zero, a trim far
 from targets).
 
+Vehicle effects (issue 28): the node keeps the messages of the channels the effects read
+(``/tetra/temperature``, sensor_msgs/Temperature; the ``current`` of sensor_msgs/BatteryState
+on ``/battery_state`` and on each of ``current_topics``), whether or not it collects, and
+``~/calibrate`` fits the terms ``effects`` asks for (``auto``: those whose channels have
+messages and pass the held-out test) jointly with ``k``, ``b``, through the code
+``calibrate`` runs on a bag (:func:`.channels.sample_terms`: the channels interpolated onto
+the samples' stamps, NaN where stale, never zero); the calibration written and published
+carries the terms.
+
 Trim guidance (:mod:`tetra_gradiometer.core.guidance`): while samples arrive, about once a
 second (:data:`GUIDANCE_PERIOD_S`) the node publishes on ``~/guidance`` (std_msgs/String,
 JSON of ``TrimAssessment.to_dict``, latched) the predicted 1-sigma of every parameter and of
@@ -78,20 +87,15 @@ from std_srvs.srv import Trigger
 
 from ..core import TetraGeometry
 from ..core.guidance import TrimAssessment, TrimStatistics, assess, trim_statistics
-from ..core.identification import (
-    CALIBRATION_METHODS,
-    DEFAULT_METHOD,
-    MAX_COVERAGE_CONDITION,
-    METHODS,
-    MIN_SAMPLES,
-    Options,
-)
-from ..core.plausibility import MAX_FIELD_T, plausible_readings
+from ..core.identification import Options, attitude_coverage
+from ..core.plausibility import plausible_readings
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, CalibrationFileError, save_calibration
+from ..io.channels import TEMPERATURE, current_channels
 from ..io.matching import StampPairer
+from ..pipelines.terms import EffectsChoice, WindowTerms
 from ..pipelines.window_check import (
     KNOWN_GRADIENT_METHODS,
     AttitudeHistory,
@@ -99,17 +103,13 @@ from ..pipelines.window_check import (
     identify_checked,
     joint_attitude,
 )
+from .calibrator_params import DEFAULT_NOISE_T, PARAMETERS
+from .channels import ChannelHistory, channel_message, sample_terms, subscribe_channels
 from .common import (
     OK,
-    POSITIONS_SPEC,
     WARN,
-    ParamSpec,
     derived_qos,
-    diagnostics_period_spec,
     latched_qos,
-    non_negative,
-    one_of,
-    positive,
     resolve_node_path,
     status,
     tensor_or_nan,
@@ -118,110 +118,10 @@ from .managed import ManagedNode
 from .process import spin_node
 from .solve_worker import SolveWorker
 
-#: Bounds of ``max_samples`` and ``ga_generations`` (see their descriptions).
-MAX_SAMPLES = 500_000
-MAX_GENERATIONS = 20_000
 #: Period of the trim guidance on ``~/guidance`` while samples arrive, s (the issue's ~1 Hz).
 GUIDANCE_PERIOD_S = 1.0
 #: How ``~/calibrate`` names a passing part of the samples (times from the first one, s).
 SUB_WINDOW = 'the samples {0:.0f}-{1:.0f} s after the first'
-#: The guidance's sensor noise before the samples estimate it, with ``sensor_noise_t`` 0, T.
-DEFAULT_NOISE_T = 1.0e-10
-
-
-def _path(value: str) -> str | None:
-    return None if value.strip() else 'must name a file'
-
-
-def _field_enu(value: Any) -> str | None:
-    field = np.asarray(value, dtype=float)
-    if field.shape != (3,) or not plausible_readings(field):
-        return f'must be 3 finite floats, tesla ENU, with |B| <= {MAX_FIELD_T:g} T, got {value!r}'
-    return None
-
-
-PARAMETERS = [
-    POSITIONS_SPEC,
-    ParamSpec(
-        'method',
-        DEFAULT_METHOD,
-        'Identification method: '
-        + '; '.join(f'{name} ({METHODS[name].description})' for name in CALIBRATION_METHODS)
-        + '.',
-        one_of(*CALIBRATION_METHODS),
-    ),
-    ParamSpec(
-        'calibration_file',
-        'calibration.yaml',
-        'Where ~/calibrate writes the parameters (YAML, '
-        'written atomically; only a previous calibration file is replaced). Read-only after '
-        'start-up; "~" is expanded, a relative path is under $ROS_HOME (default ~/.ros).',
-        _path,
-    ),
-    ParamSpec(
-        'min_samples',
-        100,
-        f'Fewest sample sets ~/calibrate accepts (the solvers need >= {MIN_SAMPLES}; at most '
-        'max_samples).',
-        int_range=(MIN_SAMPLES, MAX_SAMPLES),
-    ),
-    ParamSpec(
-        'max_samples',
-        200_000,
-        f'Most sample sets kept while collecting (older ones are dropped); at most {MAX_SAMPLES}: '
-        '42 min of trim at 200 sets/s, a solve of about 1 s and 0.4 GB.',
-        int_range=(MIN_SAMPLES, MAX_SAMPLES),
-    ),
-    ParamSpec(
-        'max_coverage_condition',
-        MAX_COVERAGE_CONDITION,
-        "Refuse samples whose attitude-coverage condition number (of [B_1' 1], unit columns) "
-        'exceeds this: the body-frame field spans too few directions (at most 1e8: beyond, '
-        'the solve loses more than half of its 16 digits).',
-        positive,
-        float_range=(1.0, 1e8),
-    ),
-    ParamSpec(
-        'force',
-        False,
-        '~/calibrate keeps a calibration whose samples fail the test of its assumption '
-        "(residual vs sensor noise), warning in the file's notes (false: refused, not written).",
-    ),
-    ParamSpec('ga_seed', 0, 'paper_ga: random seed.', int_range=(0, 2**31 - 1)),
-    ParamSpec(
-        'ga_generations',
-        1000,
-        f'paper_ga: generations (the paper: 1000; at most {MAX_GENERATIONS}, about 4 s on one '
-        'core: more does not lower its objective, which stalls within a few thousand).',
-        int_range=(1, MAX_GENERATIONS),
-    ),
-    ParamSpec(
-        'max_solve_s',
-        60.0,
-        'Time budget of one ~/calibrate solve, s (0.1-600): paper_ga stops at it and returns '
-        'its best so far; the closed-form methods take about 1 s per 10^6 samples.',
-        positive,
-        float_range=(0.1, 600.0),
-    ),
-    ParamSpec(
-        'earth_field_enu',
-        (0.0, 2.0e-5, -4.5e-5),
-        "The site's Earth field, tesla, ENU (east, north, up): the trim guidance flies its "
-        'survey attitudes and candidate manoeuvres in it (the offline tools read it too).',
-        _field_enu,
-    ),
-    ParamSpec(
-        'sensor_noise_t',
-        0.0,
-        'White noise per axis of each magnetometer, tesla RMS (0 to 1e-6), that the trim '
-        f'guidance assumes until {MIN_SAMPLES} samples estimate their own (the fit residual); '
-        f'0 = unknown ({DEFAULT_NOISE_T:g} T then). (The driver and compensator read the same '
-        'value.)',
-        non_negative,
-        float_range=(0.0, 1e-6),
-    ),
-    diagnostics_period_spec(),
-]
 
 
 class CalibratorNode(ManagedNode):
@@ -231,6 +131,7 @@ class CalibratorNode(ManagedNode):
     DYNAMIC = (
         *('method', 'min_samples', 'max_samples', 'max_coverage_condition', 'force'),
         *('ga_seed', 'ga_generations', 'max_solve_s', 'earth_field_enu', 'sensor_noise_t'),
+        'effects',
     )
 
     def __init__(self, **kwargs: Any) -> None:
@@ -262,6 +163,9 @@ class CalibratorNode(ManagedNode):
         self._worker = SolveWorker('calibrator_solve', on_start=self._publish_diagnostics)
         # Trim guidance: recent odom (stamp ns, quaternion), samples not yet in the sums.
         self._odom = AttitudeHistory()
+        # The channels' messages (temperature, currents) for the vehicle effects' terms.
+        self._current_topics = tuple(p['current_topics'])
+        self._channels = ChannelHistory((TEMPERATURE, *current_channels(self._current_topics)))
         self._epoch = 0  # counts ~/start: a tick that straddles one discards its work
         self._added: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (g, b, q)
         self._removed: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -293,6 +197,8 @@ class CalibratorNode(ManagedNode):
         self.create_subscription(
             Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos(), callback_group=odom
         )
+        # The channels the vehicle effects read (nodes/channels.py), beside odom.
+        subscribe_channels(self, self._channels.names, self._on_channel, callback_group=odom)
 
     # ----------------------------------------------------------------- samples
 
@@ -326,6 +232,12 @@ class CalibratorNode(ManagedNode):
 
     def _on_odom(self, msg: Odometry) -> None:
         self._odom.add(cv.stamp_to_ns(msg.header.stamp), cv.odometry_orientation(msg))
+
+    def _on_channel(self, name: str, msg: Any) -> None:
+        """A temperature or current message: kept whether or not collecting, as odom."""
+        if self.active:
+            stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+            self._channels.add(name, stamp_ns, channel_message(name, msg))
 
     # ----------------------------------------------------------------- guidance
 
@@ -496,6 +408,8 @@ class CalibratorNode(ManagedNode):
             )
         options, notes = self._options(method, t)
         try:
+            terms = self._terms(method, t, g, b, options)
+            options = dataclasses.replace(options, terms=terms.candidates)
             checked = identify_checked(
                 method,
                 t,
@@ -508,14 +422,30 @@ class CalibratorNode(ManagedNode):
                 force=bool(self.get_parameter('force').value),
                 force_name='force:=true',
                 sub_window=SUB_WINDOW,
-                notes=notes,
+                notes=(*notes, *terms.notes),
                 assessment=self._assessment,  # the guidance's, at its last tick
+                lacking=terms.lacking,
             )
         except (TetraError, np.linalg.LinAlgError) as error:
             return False, str(error)
-        return self._keep(checked, method)
+        return self._keep(checked, method, terms)
 
-    def _keep(self, checked: CheckedCalibration, method: str) -> tuple[bool, str]:
+    def _terms(
+        self, method: str, t: np.ndarray, g: np.ndarray, b: np.ndarray, options: Options
+    ) -> WindowTerms:
+        """The vehicle effects the samples are fitted with (``effects``; the channels'
+        messages received), chosen as ``calibrate`` chooses them on a bag; none when the
+        samples span too few field directions (the solve refuses them, saying so)."""
+        if not attitude_coverage(b) <= options.max_coverage_condition:
+            return WindowTerms()
+        choice = EffectsChoice.parse(self.get_parameter('effects').value, self._current_topics)
+        series = self._channels.series()
+        orientation = options.orientation_xyzw
+        return sample_terms(method, t, g, b, series, self._geometry, choice, orientation)
+
+    def _keep(
+        self, checked: CheckedCalibration, method: str, terms: WindowTerms
+    ) -> tuple[bool, str]:
         """Write and publish a solved calibration (unless cancelled); the reply."""
         result = checked.calibration
         generations = int(self.get_parameter('ga_generations').value)
@@ -533,7 +463,11 @@ class CalibratorNode(ManagedNode):
             calibration = CalibrationFile.from_calibration(result, self._geometry)
         except CalibrationFileError as error:  # k or b outside the physical bounds
             return False, str(error)
-        diagnostics = {**calibration.diagnostics, **checked.diagnostics()}
+        diagnostics = {
+            **calibration.diagnostics,
+            **checked.diagnostics(),
+            'effects': terms.diagnostics(),
+        }
         calibration = dataclasses.replace(calibration, diagnostics=diagnostics)
         path = self._calibration_path
         try:
@@ -581,6 +515,8 @@ class CalibratorNode(ManagedNode):
                     'unpaired_evicted': self._pairer.evicted,
                     'dropped_implausible': self._dropped_implausible,
                     'method': self.get_parameter('method').value,
+                    'effects': self.get_parameter('effects').value,
+                    **{f'{n} messages': count for n, count in self._channels.counts().items()},
                     'calibration_file': str(self._calibration_path),
                     **self._guidance_values(),
                 },

@@ -89,7 +89,8 @@ Validator = Callable[[Any], 'str | None']
 @dataclass(frozen=True)
 class ParamSpec:
     """One declared parameter: default (its type fixes the ROS type), description (with
-    units), an optional numeric range and an optional validator returning an error text."""
+    units), an optional numeric range and an optional validator returning an error text.
+    ``string_array``: a string array (needed when the default is empty: ``()``)."""
 
     name: str
     default: Any
@@ -98,6 +99,7 @@ class ParamSpec:
     float_range: tuple[float, float] | None = None
     int_range: tuple[int, int] | None = None
     read_only: bool = False
+    string_array: bool = False
 
 
 def _descriptor(spec: ParamSpec, read_only: bool) -> Any:
@@ -109,7 +111,9 @@ def _descriptor(spec: ParamSpec, read_only: bool) -> Any:
     )
 
     default = spec.default
-    if isinstance(default, bool):
+    if spec.string_array:
+        kind = ParameterType.PARAMETER_STRING_ARRAY
+    elif isinstance(default, bool):
         kind = ParameterType.PARAMETER_BOOL
     elif isinstance(default, int):
         kind = ParameterType.PARAMETER_INTEGER
@@ -168,8 +172,8 @@ def declare_parameters(
     def on_set(parameters: list) -> Any:
         for parameter in parameters:
             spec = by_name.get(parameter.name)
-            if spec is None or spec.validate is None:
-                continue
+            if spec is None or spec.validate is None or parameter.value is None:
+                continue  # (None: a string array declared unset, see below)
             reason = spec.validate(parameter.value)
             if reason:
                 return SetParametersResult(successful=False, reason=f'{parameter.name}: {reason}')
@@ -180,10 +184,30 @@ def declare_parameters(
         default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
         read_only = spec.read_only or spec.name not in dynamic
         try:
-            node.declare_parameter(spec.name, default, _descriptor(spec, read_only))
+            if spec.string_array and not default:
+                _declare_empty_string_array(node, spec, read_only)
+            else:
+                node.declare_parameter(spec.name, default, _descriptor(spec, read_only))
         except ParameterException as error:
             raise ParamsError(_refusal(node, spec, error)) from None
     return {spec.name: node.get_parameter(spec.name).value for spec in specs}
+
+
+def _declare_empty_string_array(node: Any, spec: ParamSpec, read_only: bool) -> None:
+    """Declare a string array whose default is empty: rclpy types an empty default as a byte
+    array (and an empty YAML list ``[]`` arrives unset), so it is declared by type, set to
+    ``[]`` when no override gave it a value, and only then made read-only."""
+    from rclpy.exceptions import ParameterUninitializedException
+    from rclpy.parameter import Parameter
+
+    kind = Parameter.Type.STRING_ARRAY
+    node.declare_parameter(spec.name, kind, _descriptor(spec, False))
+    try:
+        node.get_parameter(spec.name)
+    except ParameterUninitializedException:
+        node.set_parameters([Parameter(spec.name, kind, [])])
+    if read_only:
+        node.set_descriptor(spec.name, _descriptor(spec, True))
 
 
 _TYPE_NAMES = ((bool, 'a boolean'), (int, 'an integer'), (float, 'a double'), (str, 'a string'))
@@ -224,8 +248,10 @@ def _refusal(node: Any, spec: ParamSpec, error: Exception) -> str:
     head = f'parameter {spec.name!r} = {_shown(value)} refused'
     within = f' within {range_text(spec)}' if range_text(spec) else ''
     if isinstance(error, InvalidParameterTypeException):
-        hint = ' (write it with a decimal point)' if _type_name(value) == 'an integer' else ''
-        return f'{head}: {_type_name(value)}, it must be {_type_name(spec.default)}{within}{hint}'
+        expected = 'a string array' if spec.string_array else _type_name(spec.default)
+        decimal = _type_name(value) == 'an integer' and expected == 'a double'
+        hint = ' (write it with a decimal point)' if decimal else ''
+        return f'{head}: {_type_name(value)}, it must be {expected}{within}{hint}'
     bounds = spec.int_range or spec.float_range
     if bounds and not bounds[0] <= value <= bounds[1]:
         return f'{head}: must be{within} ({spec.description.rstrip(".")})'
@@ -320,6 +346,17 @@ def unknown_overrides(node: Any, command_line: Collection[str]) -> list[str]:
         for name in overrides
         if not node.has_parameter(name) and (name in command_line or name not in suite)
     )
+
+
+def absolute_topics(value: Any) -> str | None:
+    """A string array of absolute topic names (``/thruster1/battery``), none twice."""
+    topics = list(value)
+    bad = [t for t in topics if not (isinstance(t, str) and t.startswith('/') and ' ' not in t)]
+    if bad:
+        return f'must be absolute topic names (e.g. /thruster1/battery), got {bad!r}'
+    if len(set(topics)) != len(topics):
+        return f'names a topic twice: {topics!r}'
+    return None
 
 
 def positive(value: Any) -> str | None:

@@ -21,6 +21,15 @@ once per calibration (:class:`~tetra_gradiometer.core.uncertainty.SigmaModel`). 
 same stamp it publishes the running ``epsilon`` (eq. 24, over the samples compensated
 with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 (std_msgs/Float64). A new calibration, or ``~/reset_metrics``, restarts the running metric.
+
+Vehicle effects (issue 28): a calibration with terms (``vehicle_current``, ``eddy_current``,
+``thermal_drift``: ``D = (k B_1' + b + sum W x) a^-1``) makes the node subscribe to the
+channels they read (``/tetra/temperature``, sensor_msgs/Temperature; the BatteryState topic
+of each ``current:<topic>``; :mod:`.channels`), evaluate the terms' regressors on each set
+(the channels interpolated onto its stamp; the eddy rate from the sets before it) and
+compensate and compute the sigma with them, as ``compensate`` does offline. A channel that
+is missing or stale at a set is never taken as zero: the set is dropped (nothing published
+for it), counted per channel, and ``/diagnostics`` goes WARN naming the channel.
 """
 
 from __future__ import annotations
@@ -50,6 +59,7 @@ from ..io.calibration import (
     load_calibration,
 )
 from ..io.matching import StampPairer
+from .channels import LiveEffects, channel_message, subscribe_channels
 from .common import (
     ARRAY_FRAME_SPEC,
     ERROR,
@@ -147,6 +157,9 @@ class CompensatorNode(ManagedNode):
         self._health_text = 'off: no calibration'
         self._health_buffer: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._health_sent: dict[int, bool] = {}  # alarm index -> settled when published
+        self._effects: LiveEffects | None = None
+        self._channel_subscriptions: dict[str, Any] = {}
+        self._dropped_reported = 0  # channel drops already on /diagnostics
         self._set_sigma(None)
         self.published = 0
         self.dropped_non_finite = 0
@@ -216,11 +229,36 @@ class CompensatorNode(ManagedNode):
         )
         self._set_sigma(calibration)
         self._interference = calibration.parameters
+        self._follow_channels(calibration)
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
         self._problem = ''
         self._reset_metrics()
         self.get_logger().info(f'compensating with {self._source}')
         self._publish_diagnostics()
+
+    def _follow_channels(self, calibration: CalibrationFile) -> None:
+        """The calibration's terms, live, and the subscriptions to the channels they read
+        (those no term reads any more are dropped; the messages of the others are kept)."""
+        terms = calibration.parameters.terms
+        kept = {} if self._effects is None else self._effects.channels
+        self._effects = LiveEffects(terms, kept) if terms else None
+        self._dropped_reported = 0
+        names = set(self._effects.channels) if self._effects is not None else set()
+        for name in set(self._channel_subscriptions) - names:
+            self.destroy_subscription(self._channel_subscriptions.pop(name))
+        new = sorted(names - set(self._channel_subscriptions))
+        self._channel_subscriptions.update(subscribe_channels(self, new, self._on_channel))
+        if self._effects is not None:
+            self.get_logger().info(
+                f'terms {self._effects.names}: reading '
+                + ', '.join(f'{b.name} ({b.topic})' for b in self._effects.channels.values())
+            )
+
+    def _on_channel(self, name: str, msg: Any) -> None:
+        """A channel message (ignored while inactive, as the sets are)."""
+        if self.active and self._effects is not None and name in self._effects.channels:
+            stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+            self._effects.add(name, stamp_ns, channel_message(name, msg))
 
     def _set_sigma(self, calibration: CalibrationFile | None) -> None:
         """The 1-sigma model of ``calibration`` (None: the raw tensor's) and its description."""
@@ -251,12 +289,13 @@ class CompensatorNode(ManagedNode):
         if calibration is None:
             self._health, self._health_text = None, 'off: no calibration'
             return
+        parameters, covariance = calibration.parameters, calibration.covariance
+        if parameters.terms:  # the monitor's model is k, b: their block of the covariance
+            size = 36  # the general k, b lead InterferenceParameters.full_vector
+            parameters = parameters.without_terms()
+            covariance = None if covariance is None else covariance[:size, :size]
         self._health = HealthMonitor(
-            self._geometry,
-            calibration.parameters,
-            noise,
-            calibration.covariance,
-            self._health_config,
+            self._geometry, parameters, noise, covariance, self._health_config
         )
         self._health_text = 'watching'
 
@@ -321,10 +360,23 @@ class CompensatorNode(ManagedNode):
         if not (np.all(np.isfinite(g_raw)) and plausible_readings(b_reference)):
             self._drop(stamp_ns, 'a non-finite, implausible or malformed input')
             return
+        x = None
+        if self._effects is not None:  # the terms' regressors; None: a channel is unknown
+            x = self._effects.regressors(stamp_ns, b_reference)
+            if x is None:
+                if self._warn():
+                    self.get_logger().warning(
+                        f'dropped the set at stamp {stamp_ns} ns: {self._effects.reason} '
+                        '(never compensated with zero)'
+                    )
+                return
         if self._interference is None:
             g = g_raw
         else:
-            g = compensate(g_raw[None], b_reference[None], self._interference, self._geometry)[0]
+            regressors = None if x is None else x[None]
+            g = compensate(
+                g_raw[None], b_reference[None], self._interference, self._geometry, regressors
+            )[0]
         norm_nt = float(np.linalg.norm(g) * NT_PER_T)
         if not (np.all(np.isfinite(g)) and np.isfinite(norm_nt)):  # never publish inf or NaN
             self._drop(stamp_ns, 'a non-finite compensated tensor')
@@ -334,7 +386,7 @@ class CompensatorNode(ManagedNode):
         if self._health is not None:
             self._health_buffer.append((stamp_ns * S_PER_NS, g, b_reference))
         if self._sigma is not None:
-            sigma = self._sigma.one(b_reference)
+            sigma = self._sigma.one(b_reference, x)
             if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
                 self._sigma_pub.publish(self._cdr.write(sigma, stamp_ns))
         self.published += 1
@@ -382,11 +434,14 @@ class CompensatorNode(ManagedNode):
         return response
 
     def _publish_diagnostics(self) -> None:
+        channel_level, channel_text, channel_values = self._channels_status()
         if self.compensating:
             level = WARN if self._problem else OK
             text = f'compensating with {self._source}' + (
                 f'; refused a newer one: {self._problem}' if self._problem else ''
             )
+            if channel_level == WARN:
+                level, text = WARN, f'{text}; {channel_text}'
         else:
             level, text = WARN, f'UNCOMPENSATED: {self._problem}'
         eps = self._eps_sum / self._eps_count if self._eps_count else float('nan')
@@ -411,8 +466,38 @@ class CompensatorNode(ManagedNode):
                 },
             )
         )
+        array.status.append(
+            status(self, 'channels', channel_level, channel_text, '', channel_values)
+        )
         array.status.append(self._health_status())
         self._diag_pub.publish(array)
+
+    def _channels_status(self) -> tuple[int, str, dict[str, Any]]:
+        """``tetra/compensator: channels`` as (level, message, values): WARN while sets are
+        dropped for a missing or stale channel (since the last report) or a channel the terms
+        read has no message yet, naming it; OK otherwise (also without terms)."""
+        effects = self._effects
+        if effects is None:
+            return OK, 'no terms: no channel read', {}
+        values: dict[str, Any] = {'terms': effects.names, 'replay_restarts': effects.resets}
+        for name, buffer in effects.channels.items():
+            values[f'{name} ({buffer.topic}) messages'] = buffer.received
+        for name, count in effects.dropped.items():
+            values[f'sets dropped without {name}'] = count
+        by_channel = sum(n for name, n in effects.dropped.items() if name in effects.channels)
+        new, self._dropped_reported = by_channel - self._dropped_reported, by_channel
+        waiting = effects.stale()
+        if new > 0:
+            text = (
+                f'{new} sets dropped since the last report, never compensated with zero: '
+                f'{effects.reason}'
+            )
+            return WARN, text, values
+        if waiting:
+            listed = ', '.join(f'{n} ({effects.channels[n].topic})' for n in waiting)
+            text = f'no message yet on {listed}: its sets are dropped'
+            return WARN, text, values
+        return OK, f'terms {effects.names}: channels fresh', values
 
     def _health_status(self) -> Any:
         """``tetra/compensator: health``: ERROR after an alarm (until a new calibration), WARN

@@ -8,14 +8,20 @@ REPORT] [--current-topics T,...]`` (and the calibrator node's ``effects`` and
 data have and keeps those that pass the selection's held-out test; ``none`` fits the paper's
 ``k``, ``b`` alone; names fit exactly those (refused when a channel they need is missing);
 ``--effects-from`` takes the effects a discrepancy ``report.json`` named.
+
+:func:`window_terms` reads the bag; :func:`terms_on` is the same choice on channels already
+on the sets (:func:`channels_on`), without a bag: the calibrator node calls it on the
+samples and channel messages it collected. This module imports ``rosbags`` (through
+``io.bag``) only where it opens a bag, so an on-vehicle node may import it.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -33,7 +39,6 @@ from ..core.identification.terms import (
 )
 from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
-from ..io.bag import MagneticBag
 from ..io.channels import TEMPERATURE as TEMPERATURE_CHANNEL
 from ..io.channels import (
     ChannelSeries,
@@ -43,6 +48,9 @@ from ..io.channels import (
     runs,
     spans_text,
 )
+
+if TYPE_CHECKING:
+    from ..io.bag import MagneticBag
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -157,6 +165,17 @@ def _regressor_noise(regressors: FloatArray) -> tuple[float, ...]:
     return tuple(float(v) for v in spread / np.sqrt(20.0))
 
 
+def channels_on(
+    stamps_ns: IntArray, b_reference: FloatArray, series: Mapping[str, ChannelSeries]
+) -> Channels:
+    """The channels ``series`` on the sets ``stamps_ns`` (n,) ns whose reference reading is
+    ``b_reference`` (n, 3) T (:meth:`ChannelSeries.on`: NaN where stale), times from the
+    first set."""
+    t_s = (stamps_ns - stamps_ns[0]) * S_PER_NS
+    on_sets = {name: s.on(stamps_ns) for name, s in series.items()}
+    return Channels(t_s, b_reference, on_sets)
+
+
 def window_channels(
     bag_path: str | os.PathLike[str],
     stamps_ns: IntArray,
@@ -165,12 +184,16 @@ def window_channels(
 ) -> tuple[Channels, dict[str, ChannelSeries]]:
     """The recorded channels on the sets ``stamps_ns`` (n,) with readings ``fields``
     (n, 4, 3) T: the temperature and the currents the bag has."""
+    from ..io.bag import MagneticBag
+
     names = (TEMPERATURE_CHANNEL, *current_channels(current_topics))
     with MagneticBag(bag_path) as bag:
         series = read_channels(bag, names)
-    t_s = (stamps_ns - stamps_ns[0]) * S_PER_NS
-    on_sets = {name: s.on(stamps_ns) for name, s in series.items()}
-    return Channels(t_s, fields[:, 0, :], on_sets), series
+    return channels_on(stamps_ns, fields[:, 0, :], series), series
+
+
+#: The note of ``--effects none``.
+NONE_NOTE = "effects: none (the paper's k, b only)"
 
 
 def window_terms(
@@ -185,7 +208,7 @@ def window_terms(
     """The terms to fit on the window's sets ``stamps_ns`` (n,) / ``fields`` (n, 4, 3) T, of
     which the solve uses ``used`` (a thinned window: regressors are computed on every set,
     an eddy rate needs the neighbours), with the attitude of the used sets when the regional
-    gradient is fitted jointly.
+    gradient is fitted jointly (:func:`terms_on` on the bag's channels).
 
     Raises
     ------
@@ -193,15 +216,41 @@ def window_terms(
         Effects asked for by name whose channels the bag lacks (named with the channel).
     """
     if choice.names == ():
-        return WindowTerms(notes=("effects: none (the paper's k, b only)",))
+        return WindowTerms(notes=(NONE_NOTE,))
     channels, series = window_channels(bag_path, stamps_ns, fields, choice.current_topics)
+    pairs = _pairs(fields[used], geometry)
+    return terms_on(channels, series, pairs, used, geometry, choice, orientation_xyzw)
+
+
+def terms_on(
+    channels: Channels,
+    series: Mapping[str, ChannelSeries],
+    pairs: FloatArray,
+    used: npt.NDArray[np.intp],
+    geometry: TetraGeometry,
+    choice: EffectsChoice,
+    orientation_xyzw: FloatArray | None,
+    data: str = 'the bag',
+) -> WindowTerms:
+    """The terms to fit, without a bag: ``channels`` on every set of the window
+    (:func:`channels_on` of the recorded ``series``), the pair differences ``B_i' - B_1'``
+    of the sets the solve uses (``used``), (len(used), 3 axes, 3 pairs) T, and their
+    attitude (or None). ``data`` names where the channels come from, in errors.
+
+    Raises
+    ------
+    InputError
+        Effects asked for by name whose channels ``data`` lacks (named with the channel).
+    """
+    if choice.names == ():
+        return WindowTerms(notes=(NONE_NOTE,))
     found = {name: channel_topic(name) for name in series}
     candidates, lacking = candidates_for(channels, choice.names)
     if choice.names is not None and lacking:
         raise InputError(
             'effects asked for ('
             + choice.source
-            + ') need channels the bag lacks: '
+            + f') need channels {data} lacks: '
             + '; '.join(f'{name} needs {what}' for name, what in lacking.items())
         )
     candidates = [
@@ -215,14 +264,12 @@ def window_terms(
         )
         for c in candidates
     ]
-    fields_used = fields[used]
-    g_pairs = _pairs(fields_used, geometry)
     regional = None if orientation_xyzw is None else regional_columns(orientation_xyzw, geometry)
     # Named effects are all kept (their tests are still reported); auto keeps what passes.
     strict = choice.automatic
     selection = select_terms(
-        g_pairs,
-        fields_used[:, 0],
+        pairs,
+        channels.b_reference[used],
         candidates,
         regional=regional,
         alpha=ALPHA if strict else np.inf,

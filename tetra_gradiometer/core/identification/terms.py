@@ -310,7 +310,9 @@ def select_terms(
     """Forward selection of the candidates on held-out blocks (the module docstring).
 
     ``pairs`` (N, 3, 3) and ``b_reference`` (N, 3) in time order; rows where a candidate's
-    regressor is NaN are left out of every comparison.
+    regressor is NaN are left out of every comparison (a candidate without a known row is
+    not offered: it cannot be tested). Data the base model fits exactly (noise-free) keep
+    no term: there is nothing left to explain.
     """
     usable = np.all(np.isfinite(pairs.reshape(len(pairs), 9)), axis=1)
     # A candidate known on fewer than half the samples is not offered (its channel stopped):
@@ -333,7 +335,7 @@ def select_terms(
     evidence: dict[str, dict[str, Any]] = {}
     rows = 9 * n
     remaining = list(sub)
-    while remaining:
+    while remaining and rss > 0:
         tests = []
         for candidate in remaining:
             try:

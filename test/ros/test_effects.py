@@ -1,0 +1,379 @@
+"""Issue 28, item 4 live: the calibrator and compensator nodes fit and apply the vehicle
+effects (battery current, eddy currents, thermal drift) as ``calibrate`` and ``compensate``
+do on the bag.
+
+One simulated bag (``simulate`` on a scenario with the three effects: a 60 s trim then a
+60 s line at 20 Hz, ``/battery_state`` and ``/tetra/temperature`` recorded) is calibrated
+and compensated offline by the commands; then this process replays it into the calibrator
+and compensator nodes: the temperature and battery messages as recorded, the trim's sets (as
+the tensor node makes them of the bag: test_tensor_replay.py) with their ``/odom``, and,
+once the compensator follows the calibration, the whole bag. Each chunk is sent once the
+node has counted the previous (nothing lost in transit on a loaded machine: the nodes'
+outputs are compared set by set). The live calibration is the offline one and every
+compensated tensor and its sigma are within 1 % of the noise floor of the offline CSV, the
+same sets dropped (the first eddy rates).
+
+And a channel that is missing or stale is never taken as zero: the compensator drops the set
+and goes WARN on ``/diagnostics`` naming the channel.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from ros_helpers import REPO, ros_graph, wait_for, wait_matched
+
+from tetra_gradiometer import core
+from tetra_gradiometer.io import conversions as cv
+from tetra_gradiometer.io.bag import MagneticBag
+from tetra_gradiometer.io.calibration import load_calibration
+
+NT = 1e-9
+GEOMETRY = core.TetraGeometry.regular(0.5)
+NOISE_T = 0.05 * NT
+#: The calibration window: the trim's sets (20 Hz from 0 s; the line starts at 60 s). The
+#: driver plays as much sample time; ``calibrate --window`` takes the same sets.
+TRIM_S = 59.975
+COMPENSATION = 'tetra/compensator: compensation'
+CHANNELS = 'tetra/compensator: channels'
+CALIBRATION = 'tetra/calibrator: calibration'
+BATTERY = 'current:/battery_state'
+
+
+def _scenario() -> dict:
+    """Three effects on a clean-reference vehicle: a short trim, then a line."""
+    rng = np.random.default_rng(28)
+    return {
+        'description': 'issue 28 nodes: trim and line with current, eddy and thermal effects',
+        'seed': 2028,
+        'geometry': {'regular_edge_m': 0.5},
+        'earth_field': {'enu_nT': [0.0, 21000.0, -45376.2]},
+        'sample_rate_hz': 20,
+        'noise_nT': NOISE_T / NT,
+        'interference': {'random': {'b_scale_nT': 300, 'k_scale': 0.01, 'reference_clean': True}},
+        'effects': {
+            'vehicle_current': {'nT_per_A': np.round(rng.uniform(-2.5, 2.5, (4, 3)), 3).tolist()},
+            'eddy_current': {'coefficients_s': np.round(rng.uniform(-6e-4, 6e-4, (4, 3, 3)), 6).tolist()},
+            'thermal_drift': {'nT_per_degC': np.round(rng.uniform(-0.3, 0.3, (4, 3)), 3).tolist()},
+        },
+        'current': {'base_a': -15.0, 'step_amplitude_a': 12.0, 'step_s': 10.0},
+        'temperature': {'mean_c': 15.0, 'ramp_c': 4.0, 'amplitude_c': 0.5, 'period_s': 437.0},
+        'dipoles': [{'position_m': [0.0, 0.0, -80.0], 'moment_Am2': [30000.0, 20000.0, -33000.0]}],
+        'segments': [
+            {'trim': {'duration_s': 60, 'center_m': [3000.0, 3000.0, -50.0], 'heading_rate_deg_s': 6.0,
+                      'roll_amplitude_deg': 25.0, 'roll_period_s': 11.0, 'pitch_amplitude_deg': 20.0,
+                      'pitch_period_s': 17.0, 'speed_m_s': 1.0}},
+            {'line': {'start_m': [-60.0, 0.0, -50.0], 'end_m': [60.0, 0.0, -50.0], 'speed_m_s': 2.0,
+                      'roll_amplitude_deg': 2.0, 'pitch_amplitude_deg': 1.0}},
+        ],
+    }
+
+
+def _cli(*args: str) -> str:
+    result = subprocess.run([sys.executable, '-m', 'tetra_gradiometer', *args], cwd=REPO,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result.stdout
+
+
+class Offline:
+    """The bag, its channels, and what ``calibrate`` and ``compensate`` make of it."""
+
+    def __init__(self, folder: Path) -> None:
+        scenario = folder / 'effects.yaml'
+        scenario.write_text(yaml.safe_dump(_scenario()))
+        self.bag = folder / 'bag'
+        self.params = folder / 'bag.params.yaml'
+        self.calibration = folder / 'offline.yaml'
+        self.csv = folder / 'offline.csv'
+        _cli('simulate', '--scenario', str(scenario), '--out', str(self.bag))
+        self.calibrate_text = _cli('calibrate', str(self.bag), '--params', str(self.params),
+                                   '--window', f'0:{TRIM_S}', '--out', str(self.calibration))
+        _cli('compensate', str(self.bag), '--params', str(self.params), '--calibration',
+             str(self.calibration), '--csv', str(self.csv))
+        table = np.loadtxt(self.csv, delimiter=',', skiprows=1, dtype=str)
+        seconds = [row.split('.') for row in table[:, 0]]
+        self.stamps = np.array([int(s) * 10**9 + int(ns) for s, ns in seconds], dtype=np.int64)
+        values = table[:, 1:].astype(float) * NT  # T/m
+        self.tensors = values[:, :9].reshape(-1, 3, 3)
+        self.sigmas = values[:, 9:].reshape(-1, 3, 3)
+        with MagneticBag(self.bag) as bag:
+            self.sets = bag.read_sets()
+            self.temperature = bag.read_series(cv.TEMPERATURE_TOPIC)
+            self.current = bag.read_series(cv.BATTERY_TOPIC)
+        self.floor = core.noise_floor(NOISE_T, GEOMETRY)
+        truth = np.load(folder / 'bag.truth.npz')
+        index = np.searchsorted(truth['stamps_ns'], self.stamps)
+        assert np.array_equal(truth['stamps_ns'][index], self.stamps)
+        self.g_true, self.segment = truth['g_true'][index], truth['segment'][index]
+
+    def residuals(self, tensors: np.ndarray) -> list[float]:
+        """RMS of ``tensors`` (on :attr:`stamps`) minus the simulator's truth per segment
+        (trim, line), over the noise floor."""
+        return [core.rms_residual(tensors[self.segment == k], self.g_true[self.segment == k]) / self.floor
+                for k in (0, 1)]
+
+
+@pytest.fixture(scope='module')
+def offline(tmp_path_factory) -> Offline:
+    return Offline(tmp_path_factory.mktemp('effects'))
+
+
+def test_the_offline_commands_fit_and_apply_every_effect(offline):
+    """The reference itself: ``calibrate`` selects the three terms on the trim and
+    ``compensate`` drops only the sets without an eddy rate (the first, the segment join)."""
+    terms = load_calibration(offline.calibration).parameters.terms
+    assert sorted(t.effect for t in terms) == ['eddy_current', 'thermal_drift', 'vehicle_current']
+    n_sets = len(offline.sets[0])
+    assert n_sets - 5 <= len(offline.stamps) < n_sets, offline.calibrate_text
+
+
+class ChannelPublisher:
+    """Publishes the bag's temperature and battery messages (as recorded) from the test."""
+
+    def __init__(self, node, offline: Offline) -> None:
+        from sensor_msgs.msg import BatteryState, Temperature
+
+        from tetra_gradiometer.nodes.common import derived_qos
+
+        self.types = cv.rclpy_types()
+        self.offline = offline
+        self.temperature = node.create_publisher(Temperature, cv.TEMPERATURE_TOPIC, derived_qos())
+        self.battery = node.create_publisher(BatteryState, cv.BATTERY_TOPIC, derived_qos())
+
+    def publish(self, until_ns: int | None = None, battery: bool = True, pace: int = 100,
+                taken=None) -> int:
+        """Every message (up to ``until_ns``), ``pace`` at a time; with ``taken`` (the count
+        of each topic's messages a node reports) each chunk once the node has the previous
+        (its subscriptions are best effort: a burst can overflow them); the count per topic."""
+        t, c = self.offline.temperature, self.offline.current
+        n = len(t.stamps_ns) if until_ns is None else int(np.searchsorted(t.stamps_ns, until_ns, 'right'))
+        for i in range(n):
+            self.temperature.publish(cv.temperature_msg(self.types, t.values[i, 0], int(t.stamps_ns[i])))
+            if battery:
+                self.battery.publish(cv.battery_msg(self.types, c.values[i, 0], int(c.stamps_ns[i])))
+            if i % pace == pace - 1 or i == n - 1:
+                if taken is None:
+                    time.sleep(0.03)
+                else:
+                    wait_for(lambda: min(taken()) >= i + 1, 20, f'a node to take {i + 1} messages')
+        return n
+
+
+def _received(probe, status: str, key: str) -> int:
+    value = probe.status(status).get(key)
+    return -1 if value is None else int(value)
+
+
+def _feed(feeder, offline: Offline, indices: range, taken, odom=None, chunk: int = 200) -> None:
+    """The bag's sets ``indices`` as ``gradient/raw`` and ``reference_field`` (what the tensor
+    node makes of the bag: eq. 7 on the sets resampled to sensor 1's stamps), each after its
+    ``/odom`` message when ``odom`` is given, ``chunk`` at a time: the next once ``taken()``
+    (what the receiving end has counted) has the previous, so nothing is lost in transit on a
+    loaded machine."""
+    stamps, fields = offline.sets
+    g = core.difference_tensor(fields, GEOMETRY)
+    for n, i in enumerate(indices, 1):
+        if odom is not None:
+            odom(i)
+        feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
+        if n % chunk == 0 or n == len(indices):
+            wait_for(lambda n=n: taken() >= n, 30, f'{n} of the sets taken')
+
+
+def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(offline, tmp_path):
+    """The bag's trim into the calibrator (with its ``/odom``: the joint regional gradient, as
+    offline; and every temperature and battery message), ``~/calibrate``; the compensator
+    follows the latched calibration, and the whole bag into it."""
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import JointState
+
+    from tetra_gradiometer.nodes.common import derived_qos
+
+    calibration_file = tmp_path / 'calibration.yaml'
+    n_messages = len(offline.temperature.stamps_ns)
+    stamps = offline.sets[0]
+    n_trim = int(np.sum(stamps - stamps[0] <= TRIM_S * 1e9))
+    sigmas: dict[int, np.ndarray] = {}
+    with MagneticBag(offline.bag) as bag:
+        odom = bag.read_series(cv.ODOM_TOPIC)
+    assert np.array_equal(odom.stamps_ns, stamps)  # one message per set, same stamp
+    with ros_graph() as (graph, probe, feeder):
+        probe.create_subscription(
+            JointState, 'gradient/sigma',
+            lambda msg: sigmas.__setitem__(cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg)),
+            derived_qos())
+        odom_pub = feeder.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos())
+        channels = ChannelPublisher(feeder, offline)
+
+        def publish_odom(i: int) -> None:
+            pose = odom.values[i]
+            odom_pub.publish(cv.odometry_msg(channels.types, pose[cv.POSE_POSITION],
+                                             pose[cv.POSE_ORIENTATION], int(odom.stamps_ns[i])))
+
+        graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        wait_matched(feeder.raw, 3)  # calibrator, compensator, probe
+        wait_matched(odom_pub, 1)
+        wait_for(lambda: channels.battery.get_subscription_count() >= 1
+                 and channels.temperature.get_subscription_count() >= 1, 30, 'discovery', graph)
+        wait_for(lambda: _received(probe, CALIBRATION, 'samples') == 0, 20, 'the calibrator', graph)
+        # The channels first (the whole recording, as the offline tools read it), then the trim.
+        channels.publish(pace=200, taken=lambda: (_received(probe, CALIBRATION, 'temperature messages'),
+                                                  _received(probe, CALIBRATION, f'{BATTERY} messages')))
+        assert probe.call('calibrator/start').success
+        _feed(feeder, offline, range(n_trim), lambda: _received(probe, CALIBRATION, 'samples'), publish_odom)
+        assert probe.call('calibrator/stop').success
+        reply = probe.call('calibrator/calibrate', timeout_s=60)
+        assert reply.success, reply.message
+        assert 'effects (auto): vehicle_current' in reply.message, reply.message
+
+        # The compensator follows the calibration and subscribes to its channels.
+        wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True'
+                 and channels.battery.get_subscription_count() >= 2
+                 and channels.temperature.get_subscription_count() >= 2, 20,
+                 'the compensator to follow the calibration and its channels', graph)
+        time.sleep(0.5)
+        channels.publish(pace=200, taken=lambda: (
+            _received(probe, CHANNELS, f'{BATTERY} (/battery_state) messages'),
+            _received(probe, CHANNELS, 'temperature (/tetra/temperature) messages')))
+        with probe.lock:
+            probe.collecting = True
+        published = _received(probe, COMPENSATION, 'published')  # the trim, uncompensated
+
+        def compensated() -> int:  # the sets the compensator has taken, as seen here
+            with probe.lock:
+                out = len(probe.tensors['gradient/compensated'])
+            return min(out, len(sigmas)) + max(_received(probe, CHANNELS, 'sets dropped without reference_rate'), 0)
+
+        # Sets 0.. again: their stamps go back (a restarted replay): the eddy history restarts.
+        _feed(feeder, offline, range(len(stamps)), compensated)
+        time.sleep(0.5)  # anything extra would come now
+        with probe.lock:
+            live = dict(probe.tensors['gradient/compensated'])
+        channel_status = dict(probe.status(CHANNELS))
+        assert _received(probe, COMPENSATION, 'published') - published == len(offline.stamps)
+
+    # The calibration: the offline one (same sets, channels, selection and solve).
+    saved, reference = load_calibration(calibration_file), load_calibration(offline.calibration)
+    assert [t.effect for t in saved.parameters.terms] == [t.effect for t in reference.parameters.terms]
+    sigma = np.sqrt(np.diag(reference.covariance))
+    worst_parameter = float(np.max(np.abs(saved.parameters.full_vector() - reference.parameters.full_vector()) / sigma))
+    assert worst_parameter < 1e-4, worst_parameter
+    np.testing.assert_allclose(saved.covariance, reference.covariance, rtol=1e-6, atol=1e-30)
+    assert saved.diagnostics['n_samples'] == reference.diagnostics['n_samples']
+
+    # The tensors: the same sets (the first eddy rates dropped alike), within 1 % of the floor.
+    assert sorted(live) == offline.stamps.tolist(), (len(live), len(offline.stamps))
+    assert sorted(sigmas) == offline.stamps.tolist()
+    tensors = np.array([live[s] for s in offline.stamps])
+    worst = float(np.max(np.abs(tensors - offline.tensors))) / offline.floor
+    sigma_live = np.array([sigmas[s] for s in offline.stamps])
+    worst_sigma = float(np.max(np.abs(sigma_live - offline.sigmas))) / offline.floor
+    live_ratios, offline_ratios = offline.residuals(tensors), offline.residuals(offline.tensors)
+    print(f'\nlive vs offline: parameters within {worst_parameter:.1e} of their sigma; over '
+          f'{len(live)} sets max |dG| {worst:.2e}, max |d sigma| {worst_sigma:.2e} x noise floor '
+          f'{offline.floor / NT:.3f} nT/m; residual against the truth / noise floor, trim and '
+          f'line: live {live_ratios[0]:.4f}, {live_ratios[1]:.4f}; offline {offline_ratios[0]:.4f}, '
+          f'{offline_ratios[1]:.4f}; channels: {channel_status.get("message")}')
+    assert worst <= 0.01 and worst_sigma <= 0.01
+    np.testing.assert_allclose(live_ratios, offline_ratios, rtol=0, atol=0.01)
+    assert max(live_ratios) < 1.2  # every effect compensated to the noise floor
+    assert channel_status['level'] == 0, channel_status
+    assert int(channel_status['sets dropped without reference_rate']) == len(offline.sets[0]) - len(offline.stamps)
+    assert int(channel_status['replay_restarts']) == 0  # a new calibration: fresh history
+
+
+def test_a_missing_or_stale_channel_drops_the_sets_and_warns_naming_it(offline, tmp_path):
+    """The offline calibration (its terms read ``/battery_state`` and the temperature), the
+    sets fed as ``gradient/raw`` and ``reference_field``: without battery messages nothing is
+    compensated (never with a zero current) and ``/diagnostics`` names the channel; with them
+    the sets come out; when they stop for longer than 2 s of stamps, the sets are dropped
+    again as stale."""
+    from std_msgs.msg import Float64
+
+    stamps, fields = offline.sets
+    g = core.difference_tensor(fields, GEOMETRY)
+    norms: list[float] = []
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('compensator', calibration_file=str(offline.calibration), diagnostics_period_s=0.2)
+        probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)
+        channels = ChannelPublisher(feeder, offline)
+        wait_matched(feeder.raw, 2)
+        wait_for(lambda: channels.battery.get_subscription_count() >= 1
+                 and channels.temperature.get_subscription_count() >= 1, 20, 'channel subscriptions', graph)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/norm') >= 1, 10, 'norm publisher', graph)
+        time.sleep(0.5)
+        with probe.lock:
+            probe.collecting = True
+
+        # Temperature only: every set dropped, WARN naming the battery current.
+        channels.publish(until_ns=int(stamps[99]), battery=False)
+        for i in range(100):
+            feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
+        wait_for(lambda: _received(probe, CHANNELS, f'sets dropped without {BATTERY}') == 100, 20,
+                 'the sets dropped for the battery current', graph)
+        status = probe.status(CHANNELS)
+        assert status['level'] == 1 and BATTERY in status['message'] and '/battery_state' in status['message']
+        assert 'never compensated with zero' in status['message']
+        compensation = probe.status(COMPENSATION)
+        assert compensation['level'] == 1 and BATTERY in compensation['message']
+        assert probe.tensors['gradient/compensated'] == {} and norms == []
+
+        # With the current: compensated.
+        channels.publish(until_ns=int(stamps[199]))
+        for i in range(100, 200):
+            feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
+        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 100, 20, 'compensated sets', graph)
+        wait_for(lambda: probe.status(CHANNELS).get('level') == 0, 10, 'the channels OK again', graph)
+        assert sorted(probe.tensors['gradient/compensated']) == stamps[100:200].tolist()
+
+        # The battery falls silent (the temperature goes on): stale after 2 s of stamps.
+        t = offline.temperature
+        for i in range(200, 300):
+            feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
+        for i in range(200, 300):
+            channels.temperature.publish(cv.temperature_msg(channels.types, t.values[i, 0], int(t.stamps_ns[i])))
+        stale = int(np.sum(stamps[200:300] - offline.current.stamps_ns[199] > 2e9))
+        wait_for(lambda: _received(probe, CHANNELS, f'sets dropped without {BATTERY}') == 100 + stale, 20,
+                 'the sets dropped for a stale battery current', graph)
+        status = probe.status(CHANNELS)
+        assert status['level'] == 1 and 'stale' in status['message'] and BATTERY in status['message']
+        assert len(probe.tensors['gradient/compensated']) == 200 - stale
+    print(f'\n{status["message"]}')
+
+
+@pytest.mark.parametrize('params, expected', [
+    ({'current_topics': ['thruster1/battery']}, ["'current_topics'", 'absolute topic names']),
+    ({'effects': 'vehicle_current,magic'}, ["'effects' = 'vehicle_current,magic'", 'unknown magic']),
+])
+def test_bad_effects_parameters_are_refused_at_start(params, expected):
+    from ros_helpers import NodeProcess, unique_domain
+
+    code, output = NodeProcess('calibrator', unique_domain(), params).refusal()
+    assert code == 1 and 'Traceback' not in output, output
+    line = next(line for line in output.splitlines() if 'cannot start:' in line)
+    assert all(text in line for text in expected), line
+
+
+def test_the_calibrator_reads_the_further_current_topics_and_refuses_a_bad_effects_value(tmp_path):
+    from ros_helpers import set_parameter
+
+    with ros_graph() as (graph, probe, _):
+        graph.start('calibrator', calibration_file=str(tmp_path / 'c.yaml'), diagnostics_period_s=0.2,
+                    current_topics=['/thruster1/battery', '/thruster2/battery'], effects='none')
+        for topic in ('/battery_state', '/thruster1/battery', '/thruster2/battery', '/tetra/temperature'):
+            wait_for(lambda t=topic: probe.count_subscribers(t) >= 1, 30, f'a subscription to {topic}', graph)
+        wait_for(lambda: _received(probe, CALIBRATION, 'current:/thruster2/battery messages') == 0, 20,
+                 'the calibrator diagnostics', graph)
+        assert probe.status(CALIBRATION)['effects'] == 'none'
+        refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal')
+        assert not refused.successful and 'unknown thermal' in refused.reason
+        assert set_parameter(probe, graph, 'calibrator', 'effects', 'thermal_drift').successful
+        refused = set_parameter(probe, graph, 'calibrator', 'current_topics', '/x')
+        assert not refused.successful

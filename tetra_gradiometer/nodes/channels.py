@@ -1,0 +1,301 @@
+"""The recorded channels of the vehicle effects (:mod:`tetra_gradiometer.core.effects`), live:
+what the calibrator and compensator nodes subscribe to and how a set gets its values.
+
+Channels and topics are those of the bags (:mod:`tetra_gradiometer.io.channels`):
+``temperature`` is ``/tetra/temperature`` (``sensor_msgs/Temperature``, degC) and
+``current:<topic>`` the ``current`` (A) of the ``sensor_msgs/BatteryState`` on ``<topic>``
+(``/battery_state``, and the calibrator's ``current_topics``). The subscriptions are best
+effort (they match a reliable publisher and a sensor-data one alike), depth
+:data:`CHANNEL_DEPTH`.
+
+A set's value of a channel is the offline one (:meth:`io.channels.ChannelSeries.on`) on the
+messages received so far: linear between the messages on both sides of the set's stamp when
+both have arrived, else the nearest message; **unknown (NaN) when that message is further
+than** :data:`~tetra_gradiometer.io.channels.MAX_GAP_S` **from the set** (temperature
+10 s, currents 2 s), or when there is none: never zero. A message whose stamp is earlier than
+the channel's last (a restarted replay) forgets the channel's earlier messages.
+
+* :class:`ChannelHistory` (calibrator): every channel's messages (thread-safe, bounded), as
+  :class:`~tetra_gradiometer.io.channels.ChannelSeries` at ``~/calibrate``, where
+  :func:`sample_terms` chooses and fits the terms through the same code as ``calibrate``
+  (:func:`tetra_gradiometer.pipelines.terms.terms_on`).
+* :class:`LiveEffects` (compensator): a calibration's terms evaluated per set
+  (:class:`~tetra_gradiometer.core.effects.LiveTerms`: the eddy rate keeps its history,
+  reset when the sets' stamps go back); a set where a regressor is unknown is dropped and
+  counted per channel, with the reason for ``/diagnostics``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import threading
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ..core import TetraGeometry
+from ..core.effects import REFERENCE_RATE, LiveTerms, Term
+from ..core.identification import DEFAULT_METHOD
+from ..core.units import NS_PER_S, S_PER_NS
+from ..errors import InputError
+from ..io.channels import TEMPERATURE, ChannelSeries, channel_topic, max_gap_s
+from ..pipelines.terms import EffectsChoice, WindowTerms, channels_on, terms_on
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Queue depth of a channel subscription (a burst of a recorded replay).
+CHANNEL_DEPTH = 1000
+#: Messages kept per channel (a day at 1 Hz, 21 min at 100 Hz); the oldest go first.
+MAX_MESSAGES = 125_000
+#: The compensator forgets a channel's messages older than its gap limit before the last
+#: set in steps of this many (the per-set cost stays a bisection).
+PRUNE_STEP = 256
+
+
+class ChannelBuffer:
+    """One channel's messages by header stamp (not thread-safe: see :class:`ChannelHistory`).
+
+    Attributes
+    ----------
+    name : channel name; ``max_gap_s`` its staleness limit, s
+    received : messages taken; ``restarts``: times a stamp went back (messages forgotten)
+    """
+
+    def __init__(self, name: str, capacity: int = MAX_MESSAGES) -> None:
+        self.name = name
+        self.topic = channel_topic(name)
+        self.max_gap_s = max_gap_s(name)
+        self.capacity = capacity
+        self.stamps: list[int] = []
+        self.values: list[float] = []
+        self.received = 0
+        self.restarts = 0
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def add(self, stamp_ns: int, value: float) -> None:
+        """One message (a NaN value stays: the channel is unknown around it)."""
+        if self.stamps and stamp_ns < self.stamps[-1]:
+            self.stamps, self.values = [], []
+            self.restarts += 1
+        self.stamps.append(int(stamp_ns))
+        self.values.append(float(value))
+        self.received += 1
+        if len(self.stamps) > self.capacity:
+            drop = len(self.stamps) - self.capacity
+            del self.stamps[:drop], self.values[:drop]
+
+    def at(self, stamp_ns: int) -> float:
+        """The value at ``stamp_ns``: :meth:`ChannelSeries.on` on the messages so far."""
+        n = len(self.stamps)
+        if n == 0:
+            return float('nan')
+        after = min(bisect.bisect_left(self.stamps, stamp_ns), n - 1)
+        before = max(after - 1, 0)
+        gap = min(abs(self.stamps[after] - stamp_ns), abs(self.stamps[before] - stamp_ns))
+        if gap * S_PER_NS > self.max_gap_s:
+            return float('nan')
+        lo, hi = max(after - 1, 0), after + 1
+        return float(np.interp(stamp_ns, self.stamps[lo:hi], self.values[lo:hi]))
+
+    def gap_s(self, stamp_ns: int) -> float:
+        """Distance from ``stamp_ns`` to the nearest message, s (inf: none)."""
+        if not self.stamps:
+            return float('inf')
+        after = bisect.bisect_left(self.stamps, stamp_ns)
+        near = self.stamps[max(after - 1, 0) : after + 1]
+        return min(abs(s - stamp_ns) for s in near) * S_PER_NS
+
+    def prune(self, stamp_ns: int) -> None:
+        """Forget the messages no set at or after ``stamp_ns`` can use (all but the last one
+        more than the gap limit before it), in steps of :data:`PRUNE_STEP`."""
+        cut = bisect.bisect_right(self.stamps, stamp_ns - int(self.max_gap_s * NS_PER_S)) - 1
+        if cut >= PRUNE_STEP:
+            del self.stamps[:cut], self.values[:cut]
+
+    def series(self) -> ChannelSeries:
+        return ChannelSeries(
+            self.name, np.array(self.stamps, dtype=np.int64), np.array(self.values, dtype=float)
+        )
+
+    def why_unknown(self, stamp_ns: int) -> str:
+        """Why the channel has no value at ``stamp_ns``, for a message."""
+        what = f'{self.name} ({self.topic})'
+        if not self.stamps:
+            return f'{what}: no message yet'
+        if not np.isfinite(self.at(stamp_ns)) and self.gap_s(stamp_ns) <= self.max_gap_s:
+            return f'{what}: the message near the set is NaN'
+        return (
+            f'{what}: stale, the nearest message is {self.gap_s(stamp_ns):.3g} s from the set '
+            f'(limit {self.max_gap_s:g} s)'
+        )
+
+
+def channel_message(name: str, msg: Any) -> float:
+    """The channel's value in a ``sensor_msgs/Temperature`` (degC) or ``BatteryState`` (A)."""
+    return float(msg.temperature if name == TEMPERATURE else msg.current)
+
+
+def subscribe_channels(
+    node: Any, names: Iterable[str], on_message: Callable[[str, Any], None], **kwargs: Any
+) -> dict[str, Any]:
+    """Subscriptions of ``node`` to the channels ``names`` (name -> subscription), each
+    calling ``on_message(name, msg)``; ``kwargs`` go to ``create_subscription``."""
+    from sensor_msgs.msg import BatteryState, Temperature
+
+    from .common import sensor_qos
+
+    out = {}
+    for name in names:
+        kind = Temperature if name == TEMPERATURE else BatteryState
+        out[name] = node.create_subscription(
+            kind,
+            channel_topic(name),
+            lambda msg, n=name: on_message(n, msg),
+            sensor_qos(CHANNEL_DEPTH),
+            **kwargs,
+        )
+    return out
+
+
+class ChannelHistory:
+    """The channels' messages the calibrator received (thread-safe; each bounded to
+    :data:`MAX_MESSAGES`), kept whether or not it collects, like its ``odom``."""
+
+    def __init__(self, names: Iterable[str]) -> None:
+        self._buffers = {name: ChannelBuffer(name) for name in names}
+        self._lock = threading.Lock()
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self._buffers)
+
+    def add(self, name: str, stamp_ns: int, value: float) -> None:
+        with self._lock:
+            self._buffers[name].add(stamp_ns, value)
+
+    def series(self) -> dict[str, ChannelSeries]:
+        """The channels with at least one message, as recorded series (a bag's)."""
+        with self._lock:
+            return {name: b.series() for name, b in self._buffers.items() if len(b)}
+
+    def counts(self) -> dict[str, int]:
+        """Messages received per channel (for ``/diagnostics``)."""
+        with self._lock:
+            return {name: b.received for name, b in self._buffers.items()}
+
+
+def sample_terms(
+    method: str,
+    stamps_ns: npt.NDArray[np.int64],
+    g_measured: FloatArray,
+    b_reference: FloatArray,
+    series: dict[str, ChannelSeries],
+    geometry: TetraGeometry,
+    choice: EffectsChoice,
+    orientation_xyzw: FloatArray | None,
+) -> WindowTerms:
+    """The terms the calibrator's samples are fitted with: ``calibrate``'s choice
+    (:func:`~tetra_gradiometer.pipelines.terms.terms_on`) on the samples ``stamps_ns`` (n,)
+    ns, ``G_m`` (n, 3, 3) T/m, ``B_1'`` (n, 3) T, with the channels' received ``series``
+    and the samples' attitude (or None); none for a ``method`` other than the default (it
+    fits the paper's form), as ``calibrate``. A channel none of whose messages is near a
+    sample counts as missing.
+
+    Raises
+    ------
+    InputError
+        Effects asked for by name whose channels the node has received no message on, or
+        with another method.
+    """
+    if method != DEFAULT_METHOD:
+        if choice.names:
+            raise InputError(
+                f'effects {",".join(choice.names)}: vehicle effects are fitted with '
+                f'{DEFAULT_METHOD}, not {method}'
+            )
+        return WindowTerms(notes=(f'effects: none ({method} fits k, b only)',))
+    # A channel with no value near any sample (messages of another time) is one the data
+    # lack: offered, it would leave no sample to select on.
+    series = {name: s for name, s in series.items() if np.isfinite(s.on(stamps_ns)).any()}
+    channels = channels_on(stamps_ns, b_reference, series)
+    pairs = g_measured @ geometry.a  # B_i' - B_1' per axis and pair (eq. 7 times a)
+    used = np.arange(len(stamps_ns))
+    data = 'the node has received no message on (or none near the samples): it'
+    return terms_on(channels, series, pairs, used, geometry, choice, orientation_xyzw, data)
+
+
+class LiveEffects:
+    """A calibration's terms on the compensator's sets, one at a time.
+
+    Parameters
+    ----------
+    terms : the calibration's
+    buffers : channel buffers to keep (a previous calibration's: their messages stay)
+
+    Attributes
+    ----------
+    channels : channel name -> :class:`ChannelBuffer` (the channels the terms read)
+    dropped : channel name (or ``reference_rate``: the eddy rate not yet known, after a
+        start or a jump) -> sets dropped for it
+    reason : why the last dropped set was, '' before any
+    resets : times the sets' stamps went back (a restarted replay): the terms' history
+        forgotten
+    """
+
+    def __init__(
+        self, terms: tuple[Term, ...], buffers: Mapping[str, ChannelBuffer] | None = None
+    ) -> None:
+        self.terms = LiveTerms(terms)
+        buffers = buffers or {}
+        self.channels = {
+            name: buffers[name] if name in buffers else ChannelBuffer(name)
+            for name in self.terms.channels
+        }
+        self.dropped: dict[str, int] = {}
+        self.reason = ''
+        self.resets = 0
+        self._origin_ns: int | None = None
+        self._last_ns: int | None = None
+
+    @property
+    def names(self) -> str:
+        return ', '.join(term.effect for term in self.terms.terms)
+
+    def add(self, name: str, stamp_ns: int, value: float) -> None:
+        """A channel message."""
+        self.channels[name].add(stamp_ns, value)
+
+    def regressors(self, stamp_ns: int, b_reference: np.ndarray) -> FloatArray | None:
+        """The terms' regressors (M,) of the set at ``stamp_ns`` with ``B_1'`` (3,) T, or
+        None when one is unknown (the set is dropped: counted, :attr:`reason` says why)."""
+        if self._last_ns is not None and stamp_ns <= self._last_ns:
+            self.terms.reset()  # the stamps went back: a restarted replay
+            self._origin_ns = None
+            self.resets += 1
+        if self._origin_ns is None:
+            self._origin_ns = stamp_ns
+        self._last_ns = stamp_ns
+        values = {name: buffer.at(stamp_ns) for name, buffer in self.channels.items()}
+        t_s = (stamp_ns - self._origin_ns) * S_PER_NS
+        x = self.terms.push(t_s, b_reference, values)
+        for buffer in self.channels.values():
+            buffer.prune(stamp_ns)
+        if np.all(np.isfinite(x)):
+            return x
+        unknown = [name for name, value in values.items() if not np.isfinite(value)]
+        for name in unknown or [REFERENCE_RATE]:
+            self.dropped[name] = self.dropped.get(name, 0) + 1
+        self.reason = (
+            '; '.join(self.channels[name].why_unknown(stamp_ns) for name in unknown)
+            if unknown
+            else f'{REFERENCE_RATE}: the eddy rate needs the sets before (a start or a jump)'
+        )
+        return None
+
+    def stale(self) -> list[str]:
+        """The channels the terms read that have no message yet."""
+        return [name for name, buffer in self.channels.items() if not buffer.received]
