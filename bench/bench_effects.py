@@ -6,8 +6,10 @@
   5-minute trim at 10 Hz each, with a battery current and a temperature recorded: how many
   get a term (target: at most 1 in 100); and 20 vehicles per effect: how often it is found.
   Core-level (simulate, ``select_terms``): no bags.
-* ``--table``: the issue's five vehicles (none, battery current 3-27 A at 0.5-2.4 nT/A, eddy
-  currents, thermal drift 0.08-0.28 nT/degC over ~13 -> 18 degC, all three) on one mission
+* ``--table``: the issue's vehicles (none, battery current 3-27 A at 0.5-2.4 nT/A, eddy
+  currents, thermal drift 0.08-0.28 nT/degC over ~13 -> 18 degC, all three, and all three
+  with each fluxgate's scale error (+-3000 ppm), non-orthogonality and misalignment
+  (+-0.3 and +-0.5 deg)) on one mission
   (5 min trim 3.5 km from anything, then three 400 m lines past two dipoles, 10 Hz): default
   ``calibrate`` on the trim and ``compensate`` of the survey through the commands; the
   survey residual against the truth over the noise floor (the compensated tensor's 1-sigma
@@ -133,8 +135,15 @@ def _vehicles() -> dict[str, dict]:
     current = {'vehicle_current': {'nT_per_A': (rng.uniform(0.5, 2.4, (4, 3)) * sign((4, 3))).tolist()}}
     eddy = {'eddy_current': {'coefficients_s': rng.normal(0, 3e-4, (4, 3, 3)).tolist()}}
     thermal = {'thermal_drift': {'nT_per_degC': (rng.uniform(0.08, 0.28, (4, 3)) * sign((4, 3))).tolist()}}
+    sensors = {
+        'scale_factor': {'error_ppm': rng.uniform(-3000, 3000, (4, 3)).tolist()},
+        'non_orthogonality': {'angles_deg': rng.uniform(-0.3, 0.3, (4, 3)).tolist()},
+        'sensor_misalignment': {'rotation_deg': rng.uniform(-0.5, 0.5, (4, 3)).tolist()},
+    }
     return {'none': {}, 'battery current': current, 'eddy currents': eddy,
-            'thermal drift': thermal, 'all three': {**current, **eddy, **thermal}}
+            'thermal drift': thermal, 'all three': {**current, **eddy, **thermal},
+            'all three + fluxgate scale, non-orthogonality, misalignment':
+                {**current, **eddy, **thermal, **sensors}}
 
 
 def _noise_floor() -> float:
