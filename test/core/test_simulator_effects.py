@@ -208,3 +208,15 @@ def test_scenario_files_refuse_coefficients_for_other_channels():
                 'effects': {'vehicle_current': {'nT_per_A': np.full((4, 3), 0.5).tolist()}}}
     with pytest.raises(ScenarioError, match=r'1 column\(s\) per sensor and axis for 2 current channel'):
         scenario_from_dict(document)
+
+
+def test_the_shipped_scenario_has_every_effect_and_three_current_channels():
+    from pathlib import Path
+
+    from tetra_gradiometer.io.scenario import load_scenario
+
+    scenario, _ = load_scenario(Path(__file__).parents[2] / 'config/scenarios/thrusters_and_sensor_errors.yaml')
+    assert set(scenario.effects.active()) == set(EFFECT_SPECS) - {'time_skew'}
+    assert scenario.current.topics == ('/battery_state', '/thruster_port/battery_state',
+                                       '/thruster_starboard/battery_state')
+    assert scenario.effects.vehicle_current.shape == (4, 3, 3)
