@@ -245,8 +245,9 @@ def add_current_topics_argument(parser: argparse.ArgumentParser) -> None:
         type=topics_arg,
         default=(),
         metavar='T1,T2',
-        help='further sensor_msgs/BatteryState topics whose current the vehicle_current effect '
-        'reads, besides /battery_state (e.g. one per thruster ESC)',
+        help='sensor_msgs/BatteryState topics whose current the vehicle_current effect reads, '
+        'besides /battery_state and every BatteryState topic the bag records (e.g. a topic '
+        'recorded under another message type name)',
     )
 
 

@@ -39,6 +39,7 @@ from ..core.identification.terms import (
 )
 from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
+from ..io import conversions as cv
 from ..io.channels import TEMPERATURE as TEMPERATURE_CHANNEL
 from ..io.channels import (
     ChannelSeries,
@@ -183,11 +184,14 @@ def window_channels(
     current_topics: tuple[str, ...] = (),
 ) -> tuple[Channels, dict[str, ChannelSeries]]:
     """The recorded channels on the sets ``stamps_ns`` (n,) with readings ``fields``
-    (n, 4, 3) T: the temperature and the currents the bag has."""
+    (n, 4, 3) T: the temperature and the currents the bag has: ``/battery_state``,
+    ``current_topics`` and every other ``sensor_msgs/BatteryState`` topic it records (one per
+    thruster ESC, say: a current the calibration does not read would be misfit)."""
     from ..io.bag import MagneticBag
 
-    names = (TEMPERATURE_CHANNEL, *current_channels(current_topics))
     with MagneticBag(bag_path) as bag:
+        recorded = bag.topics_of_type(cv.BATTERY_STATE)
+        names = (TEMPERATURE_CHANNEL, *current_channels((*current_topics, *recorded)))
         series = read_channels(bag, names)
     return channels_on(stamps_ns, fields[:, 0, :], series), series
 
