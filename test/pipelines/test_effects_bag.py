@@ -167,3 +167,17 @@ def test_the_calibration_file_round_trips_its_terms(bags, tmp_path, capsys):
         np.testing.assert_allclose(a.coefficients, b.coefficients, rtol=1e-12)
     np.testing.assert_allclose(loaded.covariance, again.covariance, rtol=1e-12)
     assert again.covariance.shape == (36 + 9 * 5, 36 + 9 * 5)
+
+
+def test_calibrate_report_shows_the_selection(bags, tmp_path, capsys):
+    bag, params, _ = bags['all']
+    code, _, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
+                           '--out', tmp_path / 'c.yaml', '--report', tmp_path / 'report')
+    assert code == 0, err
+    document = json.loads((tmp_path / 'report' / 'report.json').read_text())
+    assert sorted(document['effects']['selected']) == sorted(EFFECTS)
+    assert all(test['kept'] for test in document['effects']['tests'].values())
+    assert [t['effect'] for t in document['terms']] == document['effects']['selected']
+    # The window's residual is the one left with the terms in: at the noise.
+    assert document['residual']['rms_nT_per_m'] < 0.2
+    assert '**Vehicle effects fitted:**' in (tmp_path / 'report' / 'report.md').read_text()

@@ -14,8 +14,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..core import InterferenceParameters, TetraGeometry
+from ..core.effects import term_to_dict
 from ..core.guidance import ENOUGH_RATIO, SURVEY_HEADINGS_DEG, SURVEY_SWAY_DEG, TrimAssessment
 from ..core.identification import regional_body_tensor
+from ..core.model import compensate_fields
 from ..core.units import NT_PER_T, S_PER_NS
 from ..io.outputs import CALIBRATION_REPORT, atomic_output
 from ..pipelines.calibration import BagCalibration
@@ -53,12 +55,21 @@ def window_residual(result: BagCalibration, geometry: TetraGeometry) -> tuple[An
     """Seconds from the first set used (n,) and the RMS over the 9 components of each set's
     compensated tensor (n,), T/m: the residual where the true gradient is taken as zero, or
     as the regional gradient fitted with the calibration."""
-    compensated = result.calibration.compensate_fields(result.fields, geometry)
+    candidates = result.terms.candidates
+    if candidates:  # the terms' regressors on the sets used (NaN rows: left out)
+        regressors = np.concatenate([c.regressors for c in candidates], axis=1)
+        compensated = compensate_fields(
+            result.fields, result.record.parameters, geometry, regressors
+        )
+    else:
+        compensated = result.calibration.compensate_fields(result.fields, geometry)
     regional = getattr(result.calibration, 'regional_gradient_enu', None)
     if regional is not None and result.orientation_xyzw is not None:
         compensated = compensated - regional_body_tensor(result.orientation_xyzw, regional)
     t = (result.stamps_ns - result.stamps_ns[0]) * S_PER_NS
-    return t, np.sqrt(np.mean(compensated.reshape(len(t), 9) ** 2, axis=1))
+    rms = np.sqrt(np.mean(compensated.reshape(len(t), 9) ** 2, axis=1))
+    known = np.isfinite(rms)
+    return t[known], rms[known]
 
 
 def _parameters(result: BagCalibration, assessment: TrimAssessment | None) -> dict[str, Any]:
@@ -75,7 +86,8 @@ def _parameters(result: BagCalibration, assessment: TrimAssessment | None) -> di
     if errors is None and assessment is not None:
         errors, source = assessment.parameter_sigma, 'assessment (known-gradient solve)'
     if errors is not None:
-        sigma = InterferenceParameters.from_vector(errors, symmetric=len(errors) == 27)
+        base = len(errors) - 9 * result.record.parameters.n_term_regressors  # k, b first
+        sigma = InterferenceParameters.from_vector(errors[:base], symmetric=base == 27)
         out.update(k_soft_sigma=sigma.k_soft, b_hard_sigma_nT=sigma.b_hard * NT_PER_T)
         out['sigma_source'] = source
     return out
@@ -106,6 +118,8 @@ def report_document(
             if window.earth_field_enu is None
             else window.earth_field_enu * NT_PER_T,
             'assessment': None if assessment is None else assessment.to_dict(),
+            'effects': result.terms.diagnostics(),
+            'terms': [term_to_dict(term) for term in result.record.parameters.terms],
             'notes': list(window.notes),
         }
     )
@@ -218,6 +232,22 @@ def _plot_survey(path: Path, assessment: TrimAssessment) -> None:
     fig.savefig(path, format='png', dpi=90)
 
 
+def _effects_lines(effects: dict[str, Any]) -> list[str]:
+    """The vehicle effects: which were kept, each test (held-out RMS without and with it)."""
+    selected = ', '.join(effects['selected']) or 'none'
+    lines = [f'**Vehicle effects fitted:** {selected}.', '']
+    for name, test in effects.get('tests', {}).items():
+        lines.append(
+            f'- {name}: held-out {test["heldout_rms_without_nT"]:.3g} -> '
+            f'{test["heldout_rms_with_nT"]:.3g} nT per sensor axis, F {test["F"]:.3g}, '
+            f'p {test["p_value"]:.2g}: {"kept" if test["kept"] else "not kept"}'
+        )
+    lines += [
+        f'- {name}: cannot be fitted, needs {what}' for name, what in effects['lacking'].items()
+    ]
+    return [*lines, '']
+
+
 def report_markdown(document: dict[str, Any], figures: dict[str, str]) -> str:
     """``report.md``: the figures with one line each of what they show."""
     residual = document['residual']
@@ -231,6 +261,7 @@ def report_markdown(document: dict[str, Any], figures: dict[str, str]) -> str:
     assessment = document['assessment']
     if assessment is not None:
         lines += [f'**Trim assessment:** {assessment["text"]}', '']
+    lines += _effects_lines(document['effects'])
     lines += [f'- {note}' for note in document['notes']] + ['']
     for key in FIGURES:
         if key in figures:
