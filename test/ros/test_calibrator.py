@@ -293,7 +293,7 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
         _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
         reply = probe.call('calibrator/calibrate')
         assert not reply.success, reply.message
-        assert re.search(r'not consistent with a constant gradient.*x the noise.*force:=true', reply.message), \
+        assert re.search(r'does not fit the model \(.*\): .*x the noise.*force:=true', reply.message), \
             reply.message
         assert not calibration_file.exists()
         assert set_parameter(probe, graph, 'calibrator', 'force', True).successful

@@ -27,6 +27,7 @@ from ..core.identification import (
     MAX_COVERAGE_CONDITION,
     Calibration,
     Options,
+    attitude_coverage,
 )
 from ..core.identification.paper_ga import GENERATIONS
 from ..core.plausibility import DroppedSets, plausible_sets
@@ -342,7 +343,7 @@ def _solve(
     set of ``sets``, with the ``/odom`` attitude and the vehicle effects' terms."""
     stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
     options, note = _with_attitude(options, method, bag_path, stamps)
-    terms = _terms(bag_path, sets, thinned, geometry, method, effects, options.orientation_xyzw)
+    terms = _terms(bag_path, sets, thinned, geometry, method, effects, options)
     options = dataclasses.replace(options, terms=terms.candidates)
     checked = identify_checked(
         method,
@@ -367,10 +368,10 @@ def _terms(
     geometry: TetraGeometry,
     method: str,
     effects: EffectsChoice | None,
-    orientation_xyzw: FloatArray | None,
+    options: Options,
 ) -> WindowTerms:
     """The vehicle effects the window is fitted with (the default method only: the others
-    fit the paper's form)."""
+    fit the paper's form; none on a window the solve will refuse for its attitudes)."""
     choice = effects or EffectsChoice()
     if method != DEFAULT_METHOD:
         if choice.names:
@@ -379,9 +380,13 @@ def _terms(
                 f'{DEFAULT_METHOD}, not {method}'
             )
         return WindowTerms(notes=(f'effects: none ({method} fits k, b only)',))
+    if choice.names != () and not (
+        attitude_coverage(sets.fields[::thinned, 0]) <= options.max_coverage_condition
+    ):  # the solve refuses these attitudes, naming their condition number
+        return WindowTerms(notes=('effects: none offered (the field spans too few directions)',))
     used = np.arange(0, len(sets.stamps_ns), thinned)
     return window_terms(
-        bag_path, sets.stamps_ns, sets.fields, used, geometry, choice, orientation_xyzw
+        bag_path, sets.stamps_ns, sets.fields, used, geometry, choice, options.orientation_xyzw
     )
 
 
