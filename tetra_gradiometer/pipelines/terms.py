@@ -21,6 +21,7 @@ import json
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -100,7 +101,7 @@ class EffectsChoice:
         a time skew, are not vehicle effects a calibration carries: listed in the error when
         none is)."""
         try:
-            document = json.loads(open(path, encoding='utf-8').read())
+            document = json.loads(Path(path).read_text(encoding='utf-8'))
         except (OSError, ValueError) as error:
             raise InputError(f'--effects-from {path}: cannot read it: {error}') from None
         named = document.get('named_effects') if isinstance(document, dict) else None
