@@ -216,6 +216,32 @@ def wait_matched(publisher: Any, count: int, timeout_s: float = 20.0) -> None:
              f'{count} subscriber(s) on {publisher.topic_name}')
 
 
+def wait_connected(probe: Any, graph: Graph, node: str, topic: str, publishers: int,
+                   timeout_s: float = 30.0) -> None:
+    """Until what ``node`` (a child process) publishes on ``topic`` reaches ``probe``: both
+    sides of the discovery, instead of a fixed sleep after the publisher shows in the graph.
+
+    The probe's side: its subscription on ``topic`` has matched ``publishers`` writers (the
+    feeder's, in this process, count too). The node's side: a ``get_parameters`` round trip
+    with a client made now. Its endpoints reach the node after those of every subscription the
+    probe already has (one reliable, ordered discovery stream per participant; the probe and
+    the feeder share one), and the reply needs the node's writer matched to the client's
+    reader, so by then the node has matched the probe's subscription on ``topic`` too."""
+    from rcl_interfaces.srv import GetParameters
+
+    subscriptions = [s for s in probe.subscriptions if s.topic_name == topic]
+    assert subscriptions, f'the probe has no subscription on {topic}'
+    wait_for(lambda: all(s.get_publisher_count() >= publishers for s in subscriptions), timeout_s,
+             f'{publishers} publisher(s) matched on {topic}', graph)
+    client = probe.create_client(GetParameters, f'{node}/get_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=timeout_s), f'{node}/get_parameters'
+        future = client.call_async(GetParameters.Request(names=['use_sim_time']))
+        wait_for(future.done, timeout_s, f'{node}/get_parameters', graph)
+    finally:
+        probe.destroy_client(client)
+
+
 def uniform_gradient_fields(positions: np.ndarray, b0: np.ndarray, g: np.ndarray) -> np.ndarray:
     """Fields (4, 3) T of a linear field ``B(r) = b0 + G r`` at the sensor positions (4, 3) m:
     exact for eq. 7, an independent truth for the tensor node."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from ros_helpers import ros_graph, set_parameter, uniform_gradient_fields, wait_for, wait_matched
+from ros_helpers import ros_graph, set_parameter, uniform_gradient_fields, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 
@@ -44,8 +44,7 @@ def _feed_bad_readings(graph, probe, feeder, **params):
     tensor = graph.start('tensor', warn_throttle_s=30.0, diagnostics_period_s=0.2, **params)
     for publisher in feeder.mags:
         wait_matched(publisher, 1)
-    wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 1, 20, 'tensor node', graph)
-    time.sleep(0.5)
+    wait_connected(probe, graph, 'tensor', '/tetra/gradient/raw', 2)  # the feeder's and the node's
     with probe.lock:
         probe.collecting = True
     _tensor_graph_feed(feeder, probe, graph, 60, 0, BAD)
@@ -101,8 +100,7 @@ def test_a_silent_sensor_is_an_error_on_diagnostics_and_no_tensor_is_published_u
         graph.start('tensor', stale_timeout_s=0.3, diagnostics_period_s=0.1)
         for publisher in feeder.mags:
             wait_matched(publisher, 1)
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 1, 20, 'tensor node', graph)
-        time.sleep(0.5)
+        wait_connected(probe, graph, 'tensor', '/tetra/gradient/raw', 2)  # the feeder's and the node's
         _tensor_graph_feed(feeder, probe, graph, 50, 0, period_s=0.01)
         wait_for(lambda: probe.counts['gradient/raw'] == 50, 5, '50 tensors', graph)
         wait_for(lambda: _diag(probe, 'tetra/tensor: mag3').get('level') == 0, 5, 'mag3 OK', graph)
