@@ -226,7 +226,9 @@ def wait_connected(probe: Any, graph: Graph, node: str, topic: str, publishers: 
     with a client made now. Its endpoints reach the node after those of every subscription the
     probe already has (one reliable, ordered discovery stream per participant; the probe and
     the feeder share one), and the reply needs the node's writer matched to the client's
-    reader, so by then the node has matched the probe's subscription on ``topic`` too."""
+    reader, so by then the node has matched the probe's subscription on ``topic`` too. The
+    request is asked again each second: a server drops a reply whose reader it has not matched
+    within 0.1 s (rmw_fastrtps), which a loaded machine makes happen."""
     from rcl_interfaces.srv import GetParameters
 
     subscriptions = [s for s in probe.subscriptions if s.topic_name == topic]
@@ -236,8 +238,15 @@ def wait_connected(probe: Any, graph: Graph, node: str, topic: str, publishers: 
     client = probe.create_client(GetParameters, f'{node}/get_parameters')
     try:
         assert client.wait_for_service(timeout_sec=timeout_s), f'{node}/get_parameters'
-        future = client.call_async(GetParameters.Request(names=['use_sim_time']))
-        wait_for(future.done, timeout_s, f'{node}/get_parameters', graph)
+        deadline = time.monotonic() + timeout_s
+        futures = []
+        while not any(f.done() for f in futures):
+            if time.monotonic() > deadline:
+                raise AssertionError(f'no reply from {node}/get_parameters in {timeout_s:g} s\n{graph.logs()}')
+            if not futures or time.monotonic() - asked > 1.0:
+                futures.append(client.call_async(GetParameters.Request(names=['use_sim_time'])))
+                asked = time.monotonic()
+            time.sleep(0.02)
     finally:
         probe.destroy_client(client)
 
