@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import IdentifiabilityError, InputError
+from ...errors import IdentifiabilityError
 from .._distributions import f_sf
 from ..effects import Channels, Term, effect
 from ..geometry import TetraGeometry
@@ -445,14 +445,3 @@ def fit_with_terms(
         regional_gradient_enu=regional_g,
         regional_gradient_sigma=regional_sigma,
     )
-
-
-def check_window_channels(channels: Channels, names: tuple[str, ...]) -> None:
-    """Refuse ``names`` (effects asked for by name) that the channels cannot fit."""
-    _, lacking = candidates_for(channels, names)
-    if lacking:
-        raise InputError(
-            '; '.join(
-                f'{name} needs {what}, which the data lack' for name, what in lacking.items()
-            )
-        )
