@@ -170,8 +170,16 @@ def periodogram(t: Array, values: Array) -> tuple[Array, Array]:
 
 def line_power(power: Array) -> Array:
     """Power over the local noise level (running median / ln 2: the median of an
-    exponential variable), per column."""
-    level = median_filter(power, size=(NOISE_WIDTH, 1), mode='reflect') / np.log(2.0)
+    exponential variable), per column. ``power`` (F, c) or (F,).
+
+    One column at a time: scipy's 1-D median filter has a running-median algorithm, while
+    its n-D form with a (width, 1) footprint sorts each window anew; the same values
+    (test_line_power.py), over 100 times faster at 12 columns of 40 000 bins."""
+    columns = power.reshape(len(power), -1)
+    level = np.empty_like(columns)
+    for k in range(columns.shape[1]):
+        level[:, k] = median_filter(columns[:, k], size=NOISE_WIDTH, mode='reflect')
+    level = level.reshape(power.shape) / np.log(2.0)
     out: Array = power / np.maximum(level, 1e-300)
     return out
 
