@@ -26,9 +26,25 @@ PARAMS = REPO / 'config' / 'tetra_gradiometer.yaml'
 _counter = itertools.count()
 
 
+def domain_range() -> range:
+    """The ROS_DOMAIN_IDs this test process may use: 1..100 (101 and up are left to manual
+    runs, e.g. scripts/realros), split into disjoint ranges, one per pytest-xdist worker
+    (``PYTEST_XDIST_WORKER`` ``gwK`` of ``PYTEST_XDIST_WORKER_COUNT``), so two workers of one
+    run never share a domain; a serial run has them all."""
+    count = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
+    worker = os.environ.get('PYTEST_XDIST_WORKER', 'gw0')
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    size = max(1, 100 // max(count, 1))
+    first = 1 + (index % max(count, 1)) * size
+    return range(first, min(first + size, 101))
+
+
 def unique_domain() -> int:
-    """A ROS_DOMAIN_ID in 1..100 for one test: from the pid and a per-run counter."""
-    return 1 + (os.getpid() * 7 + next(_counter)) % 100
+    """A ROS_DOMAIN_ID for one test: the next in this worker's ``domain_range()``, starting at
+    an offset from the pid (runs by other people on this machine start elsewhere; ros_graph
+    also skips a domain where it sees foreign nodes)."""
+    domains = domain_range()
+    return domains[(os.getpid() * 7 + next(_counter)) % len(domains)]
 
 
 def child_env(domain: int) -> dict[str, str]:

@@ -1,0 +1,80 @@
+"""Settings of the whole test run (loaded before any test module, hence before numpy).
+
+One BLAS thread per test process: the suite runs on pytest-xdist workers (``-n``, pytest.ini),
+one per core, and OpenBLAS's own threads on top of them made the linear-algebra-heavy tests
+(discrepancy, identification) use several times the CPU for the same work. Node processes the
+ROS tests start inherit the setting through the environment. ``bench/`` measures speed with the
+library defaults; the tests measure nothing that depends on the thread count.
+"""
+from __future__ import annotations
+
+import os
+import resource
+from collections.abc import Generator
+
+import pytest  # neither pytest nor the two above load numpy
+
+for _variable in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ[_variable] = '1'
+
+_PHASE_START = pytest.StashKey[float]()
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption('--cpu-durations', type=int, default=None, metavar='N',
+                     help='list the N tests with the most CPU time (setup + call + teardown, '
+                          'this process and the children it waited for, e.g. node processes): '
+                          'on a shared machine wall times (--durations) measure the neighbours')
+
+
+def _cpu_s() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    report = yield
+    if item.config.getoption('cpu_durations') is not None:
+        start = item.stash.get(_PHASE_START, None)
+        if start is not None:
+            report.user_properties.append(('cpu_s', _cpu_s() - start))
+    return report
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    item.stash[_PHASE_START] = _cpu_s()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_call(item: pytest.Item) -> None:
+    item.stash[_PHASE_START] = _cpu_s()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_teardown(item: pytest.Item) -> None:
+    item.stash[_PHASE_START] = _cpu_s()
+
+
+_CPU_BY_TEST: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    for name, value in report.user_properties:
+        if name == 'cpu_s':
+            _CPU_BY_TEST[report.nodeid] = _CPU_BY_TEST.get(report.nodeid, 0.0) + float(value)
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
+                            config: pytest.Config) -> None:
+    count = config.getoption('cpu_durations')
+    if count is None or not _CPU_BY_TEST:
+        return
+    terminalreporter.write_sep('=', f'most CPU time: {count} of {len(_CPU_BY_TEST)} tests, '
+                                    f'{sum(_CPU_BY_TEST.values()):.1f} s in all')
+    for nodeid, seconds in sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])[:count]:
+        terminalreporter.write_line(f'{seconds:8.2f}s cpu  {nodeid}')
