@@ -78,3 +78,10 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
                                     f'{sum(_CPU_BY_TEST.values()):.1f} s in all')
     for nodeid, seconds in sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])[:count]:
         terminalreporter.write_line(f'{seconds:8.2f}s cpu  {nodeid}')
+    by_module: dict[str, float] = {}
+    for nodeid, seconds in _CPU_BY_TEST.items():
+        module = nodeid.split('::')[0]
+        by_module[module] = by_module.get(module, 0.0) + seconds
+    terminalreporter.write_sep('-', f'by module (one worker runs a module): {len(by_module)}')
+    for module, seconds in sorted(by_module.items(), key=lambda kv: -kv[1])[:count]:
+        terminalreporter.write_line(f'{seconds:8.2f}s cpu  {module}')
