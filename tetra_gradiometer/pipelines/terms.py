@@ -37,6 +37,7 @@ from ..core.identification.terms import (
     candidates_for,
     regional_columns,
     select_terms,
+    without_redundant,
 )
 from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
@@ -258,17 +259,27 @@ def terms_on(
             + f') need channels {data} lacks: '
             + '; '.join(f'{name} needs {what}' for name, what in lacking.items())
         )
-    candidates = [
-        replace(
-            c.select(used),
-            channel_noise=(
-                tuple(_series_noise(series[name]) for name in c.inputs)
-                if all(name in series for name in c.inputs)
-                else _regressor_noise(c.regressors)
-            ),
+    candidates, redundant = _independent(
+        [
+            replace(
+                c.select(used),
+                channel_noise=(
+                    tuple(_series_noise(series[name]) for name in c.inputs)
+                    if all(name in series for name in c.inputs)
+                    else _regressor_noise(c.regressors)
+                ),
+            )
+            for c in candidates
+        ],
+        lacking,
+    )
+    if choice.names is not None and set(choice.names) & set(lacking):
+        raise InputError(
+            f'effects asked for ({choice.source}) cannot be fitted on this window: '
+            + '; '.join(
+                f'{name} needs {lacking[name]}' for name in choice.names if name in lacking
+            )
         )
-        for c in candidates
-    ]
     regional = None if orientation_xyzw is None else regional_columns(orientation_xyzw, geometry)
     # Named effects are all kept (their tests are still reported); auto keeps what passes.
     strict = choice.automatic
@@ -281,7 +292,30 @@ def terms_on(
         min_gain=MIN_GAIN if strict else -np.inf,
     )
     chosen = selection.chosen
-    return WindowTerms(chosen, selection, lacking, found, (_note(choice, selection, lacking),))
+    notes = (_note(choice, selection, lacking), *redundant)
+    return WindowTerms(chosen, selection, lacking, found, notes)
+
+
+def _independent(
+    candidates: list[Candidate], lacking: dict[str, str]
+) -> tuple[list[Candidate], tuple[str, ...]]:
+    """The candidates without their redundant channels
+    (:func:`~tetra_gradiometer.core.identification.terms.without_redundant`: a constant
+    current, a battery current that is a constant plus the thrusters' it also records), and
+    the notes; a candidate left without a channel goes to ``lacking`` (needs a channel that
+    varies independently on the window)."""
+    out, notes = [], []
+    for candidate in candidates:
+        reduced, why = without_redundant(candidate)
+        notes += why
+        if reduced is None:
+            lacking[candidate.name] = (
+                f'a channel that varies on the window ({", ".join(candidate.inputs)}: '
+                'constant, or the sum of the others)'
+            )
+        else:
+            out.append(reduced)
+    return out, tuple(notes)
 
 
 def _pairs(fields: FloatArray, geometry: TetraGeometry) -> FloatArray:
