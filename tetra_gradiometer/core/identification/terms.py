@@ -481,6 +481,7 @@ def fit_with_terms(
     column = 4
     for candidate in chosen:
         coefficients = np.transpose(theta[column : column + candidate.size], (2, 1, 0))
+        fitted = x[usable, column : column + candidate.size]
         column += candidate.size
         terms.append(
             Term(
@@ -490,6 +491,8 @@ def fit_with_terms(
                 candidate.reference,
                 candidate.channel_noise,
                 dict(candidate.evidence),
+                tuple(np.mean(fitted, axis=0)),
+                tuple(map(tuple, np.atleast_2d(np.cov(fitted, rowvar=False, bias=True)))),
             )
         )
     order = _parameter_order([c.size for c in chosen])
