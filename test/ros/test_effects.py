@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from ros_helpers import REPO, ros_graph, wait_for, wait_matched
+from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io import conversions as cv
@@ -287,6 +287,115 @@ def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(of
     assert channel_status['level'] == 0, channel_status
     assert int(channel_status['sets dropped without reference_rate']) == len(offline.sets[0]) - len(offline.stamps)
     assert int(channel_status['replay_restarts']) == 0  # a new calibration: fresh history
+
+
+PLAYBACK = 'tetra/driver: playback'
+TRIM_RATE = 8.0
+
+
+def _play(probe, graph, count) -> None:
+    """Resume the driver and wait until it has finished and ``count()`` has not changed for
+    a second."""
+    reply = probe.call('driver/resume')
+    assert reply.success, reply.message
+    deadline = time.monotonic() + 120.0
+    last, since = -1, time.monotonic()
+    while probe.status(PLAYBACK).get('state') != 'finished' or time.monotonic() - since < 1.0:
+        assert time.monotonic() < deadline, f'{probe.status(PLAYBACK)}\n{graph.logs()}'
+        if count() != last:
+            last, since = count(), time.monotonic()
+        time.sleep(0.05)
+
+
+def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figures(offline, tmp_path):
+    """The whole chain on the bag as recorded: the driver replays it (magnetometers, ``/odom``,
+    the temperature and battery messages: nothing published by the test) into the tensor
+    node, the calibrator collects the trim (the driver stops at its end) and calibrates, the
+    compensator follows the latched calibration; a second driver replays the whole bag.
+    The calibration is the offline one and every compensated tensor within 1 % of the noise
+    floor of ``compensate``'s CSV."""
+    from sensor_msgs.msg import JointState
+
+    from tetra_gradiometer.nodes.common import derived_qos
+
+    calibration_file = tmp_path / 'calibration.yaml'
+    sigmas: dict[int, np.ndarray] = {}
+    stamps = offline.sets[0]
+    n_trim = int(np.sum(stamps - stamps[0] <= TRIM_S * 1e9))
+    driver = dict(mode='replay', bag=str(offline.bag), start_paused=True, min_subscribers=1,
+                  diagnostics_period_s=0.2)
+    with ros_graph() as (graph, probe, _):
+        probe.create_subscription(
+            JointState, 'gradient/sigma',
+            lambda msg: sigmas.__setitem__(cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg)),
+            derived_qos())
+        graph.start('tensor', sensor_positions=GEOMETRY.positions.reshape(-1).tolist(),
+                    diagnostics_period_s=0.2)
+        graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        # The trim at 8x real time (160 sets/s): the driver paces itself by the tensor node only,
+        # and the calibrator (its channels in their own callback group) takes that on a
+        # loaded machine.
+        graph.start('driver', max_duration_s=TRIM_S, rate=TRIM_RATE, **driver)
+        wait_for(lambda: probe.count_subscribers('/battery_state') >= 1
+                 and probe.count_publishers('/battery_state') >= 1
+                 and probe.count_subscribers('/tetra/gradient/raw') >= 3
+                 and probe.count_publishers('/tetra/gradient/raw') >= 2, 30, 'discovery', graph)
+        time.sleep(1.0)  # both sides of the tensor -> calibrator discovery (no probe end to ask)
+        wait_for(lambda: _received(probe, CALIBRATION, 'samples') == 0, 20, 'the calibrator', graph)
+        assert probe.call('calibrator/start').success
+        _play(probe, graph, lambda: _received(probe, CALIBRATION, 'samples'))
+        assert _received(probe, CALIBRATION, 'samples') == n_trim, graph.logs()
+        # Its channels (and odom) are served beside the samples (their own callback group).
+        wait_for(lambda: _received(probe, CALIBRATION, 'temperature messages') == n_trim
+                 and _received(probe, CALIBRATION, f'{BATTERY} messages') == n_trim, 20,
+                 "the calibrator to take the trim's channel messages", graph)
+        assert probe.call('calibrator/stop').success
+        reply = probe.call('calibrator/calibrate', timeout_s=60)
+        assert reply.success, reply.message
+        wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True'
+                 and probe.count_subscribers('/battery_state') >= 2
+                 and probe.count_subscribers('/tetra/temperature') >= 2, 20,
+                 'the compensator to follow the calibration and its channels', graph)
+        graph.stop('driver')
+
+        graph.start('driver', rate=0.0, max_in_flight=4, **driver)  # as fast as the chain goes
+        wait_for(lambda: probe.count_publishers('/battery_state') >= 1
+                 and probe.count_publishers('/tetra/temperature') >= 1, 30, 'the second driver', graph)
+        wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)
+        time.sleep(0.5)  # the driver's side of its channels' discovery (no probe subscription)
+        with probe.lock:
+            probe.collecting = True
+
+        def compensated() -> int:
+            with probe.lock:
+                return min(len(probe.tensors['gradient/compensated']), len(sigmas))
+
+        _play(probe, graph, compensated)
+        with probe.lock:
+            live = dict(probe.tensors['gradient/compensated'])
+        channel_status = dict(probe.status(CHANNELS))
+        logs = graph.logs()
+
+    saved, reference = load_calibration(calibration_file), load_calibration(offline.calibration)
+    assert [t.effect for t in saved.parameters.terms] == [t.effect for t in reference.parameters.terms]
+    sigma = np.sqrt(np.diag(reference.covariance))
+    worst_parameter = float(np.max(np.abs(saved.parameters.full_vector() - reference.parameters.full_vector()) / sigma))
+    assert worst_parameter < 1e-4, worst_parameter
+    assert saved.diagnostics['n_samples'] == reference.diagnostics['n_samples']
+
+    assert sorted(live) == offline.stamps.tolist(), (len(live), len(offline.stamps), logs)
+    tensors = np.array([live[s] for s in offline.stamps])
+    worst = float(np.max(np.abs(tensors - offline.tensors))) / offline.floor
+    worst_sigma = float(np.max(np.abs(np.array([sigmas[s] for s in offline.stamps]) - offline.sigmas))) / offline.floor
+    live_ratios, offline_ratios = offline.residuals(tensors), offline.residuals(offline.tensors)
+    print(f'\ndriver replay: parameters within {worst_parameter:.1e} of their sigma; over {len(live)} '
+          f'sets max |dG| {worst:.2e}, max |d sigma| {worst_sigma:.2e} x noise floor; residual / floor, '
+          f'trim and line: live {live_ratios[0]:.4f}, {live_ratios[1]:.4f}; offline '
+          f'{offline_ratios[0]:.4f}, {offline_ratios[1]:.4f}; channels: {channel_status.get("message")}')
+    assert worst <= 0.01 and worst_sigma <= 0.01
+    assert max(live_ratios) < 1.2
+    assert channel_status['level'] == 0, channel_status
 
 
 def test_a_missing_or_stale_channel_drops_the_sets_and_warns_naming_it(offline, tmp_path):

@@ -25,6 +25,18 @@ the input's storage) as ``/tetra/gradient/compensated`` (``/tetra/gradient/raw``
 ``--raw``): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp =
 the set's stamp (``conversions.tensor_msg``).
 
+``--allow-missing-channels``: a channel the calibration's terms read (a current, the
+temperature) that the bag lacks altogether is otherwise refused by name (never taken as
+zero); with the option the bag is compensated without it: each regressor column of the
+absent channel is held at its mean over the calibration window (the constant part ``b`` was
+fitted with stays), and the sigma columns are widened, in quadrature, by what those columns
+contributed over that window: ``sqrt(diag(L C L^T))`` per component, ``C`` their covariance
+on the window (stored in the calibration file's ``terms[].window``), ``L`` their map onto the
+component (the term's coefficients times ``a^-1``). This assumes the absent channel varies in
+the survey as it did on the calibration window. The CSV then starts with one ``#`` comment
+line saying so, and so does the summary. A channel that is recorded but stale in places
+still drops those sets (counted), with or without the option.
+
 ``--report DIR`` runs the health monitor (core/health.py) over the compensated sets and
 writes ``DIR/report.json`` (``alarms``: ``t_s`` seconds since the bag's first message,
 ``kind``, ``sensors`` 1-based, ``statistic``, ``threshold``; reports/health.py) and
@@ -116,6 +128,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=HealthConfig.false_alarms_per_hour,
         help='health monitor: design false-alarm rate (default %(default)g per hour)',
     )
+    parser.add_argument(
+        '--allow-missing-channels',
+        action='store_true',
+        help='compensate even when a channel the calibration terms read (a current, the '
+        'temperature) is absent from the bag: its terms held at their calibration-window mean, '
+        'the sigma widened by their spread there, the CSV and summary saying so',
+    )
     add_progress_arguments(parser)
 
 
@@ -154,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
         force=args.force,
         inputs=inputs,
+        allow_missing_channels=args.allow_missing_channels,
     )
     elapsed = time.perf_counter() - started
     kind = 'raw' if args.raw else 'compensated'
@@ -170,6 +190,8 @@ def run(args: argparse.Namespace) -> int:
         print(counts.skipped_summary)
     if counts.channel_summary:
         print(f'  {counts.channel_summary}')
+    if counts.held_summary:
+        print(f'  {counts.held_summary}')
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m; {_sigma_text(compensation)})')
     if args.out_bag is not None:

@@ -74,6 +74,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f'{MAX_FALSE_ALARMS_PER_HOUR:g} (default {DetectorSettings.false_alarms_per_hour:g})',
     )
     parser.add_argument('--no-plots', action='store_true', help='no map.png')
+    parser.add_argument(
+        '--allow-missing-channels',
+        action='store_true',
+        help='as compensate: a channel the calibration terms read that the bag lacks holds '
+        'its terms at their calibration-window mean (report.md and the output say so)',
+    )
     add_force_argument(parser, 'a previous targets folder at --out')
     add_progress_arguments(parser)
 
@@ -109,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
         timebase=timebase_from_args(args),
         progress=args.progress,
         on_stage=lambda text: print(f'{text} ...', file=sys.stderr, flush=True),
+        allow_missing_channels=args.allow_missing_channels,
     )
     out = write_locate_report(
         result, args.out, plots=not args.no_plots, force=args.force, inputs=inputs
@@ -121,5 +128,7 @@ def run(args: argparse.Namespace) -> int:
             f'{len(search.targets)} targets '
             f'({sum(not t.dipolar for t in search.targets)} not dipolar)'
         )
+    if result.held_summary:
+        print(result.held_summary)
     print(f'{time.perf_counter() - started:.1f} s; targets in {out}')
     return 0

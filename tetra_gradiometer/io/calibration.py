@@ -25,6 +25,9 @@ Format (version 1)::
                                       # eddy_current: the differentiation window, s)
         channel_noise: [0.01]         # RMS noise of each regressor, its unit
         evidence: {...}               # the selection's held-out test of the term
+        window: {mean: [...], covariance: [[...]]}   # optional: the regressors' mean and
+                                      # covariance (SI) over the fitted samples (compensate
+                                      # --allow-missing-channels holds and widens with them)
 
 The two optional keys give the compensated tensor its uncertainty
 (:mod:`~tetra_gradiometer.core.uncertainty`); files without them (older ones, or methods that

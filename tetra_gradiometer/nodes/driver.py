@@ -16,7 +16,11 @@ so in the suite's namespace (``/tetra/odom``), never the vehicle's own ``/odom``
 
 ``mode: replay`` plays a rosbag2 folder (sqlite3 or mcap): the magnetometer topics, and
 ``/tetra/gradient/truth`` and ``/odom`` when recorded (published as ``gradient/truth`` and
-``odom`` in the node's namespace), with their recorded stamps. A
+``odom`` in the node's namespace), with their recorded stamps; and the channels of the
+vehicle effects the bag records, on their own (absolute) topics as the calibrator and
+compensator read them: ``/tetra/temperature`` (sensor_msgs/Temperature) and every
+sensor_msgs/BatteryState topic (``/battery_state``, a thruster's), the latter carrying only
+``current`` (the rest NaN). A
 magnetometer message keeps its recorded covariance; one recorded without (all zero) gets
 ``diag(sensor_noise_t^2)``, or REP 145's unknown (-1 first) with ``sensor_noise_t`` 0.
 
@@ -45,7 +49,7 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState, MagneticField
+from sensor_msgs.msg import BatteryState, JointState, MagneticField, Temperature
 from std_srvs.srv import Trigger
 
 from ..core.units import NS_PER_S
@@ -66,7 +70,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
-from .replay import MAG, ODOM, TRUTH, Frame
+from .replay import CHANNEL, MAG, ODOM, TRUTH, Frame
 
 #: Why the driver refuses to configure without a ``mode``.
 MODE_UNSET = (
@@ -242,6 +246,12 @@ class DriverNode(ManagedNode):
         }
         self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
         self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos())
+        # A replayed bag's channels (nodes/replay.channel_topics), on the absolute topics the
+        # calibrator and compensator subscribe to (best effort: a reliable publisher matches).
+        channels = [t for t in str(self.info.get('channels', '')).split(', ') if t]
+        for i, topic in enumerate(channels):
+            kind = Temperature if topic == cv.TEMPERATURE_TOPIC else BatteryState
+            self._pubs[(CHANNEL, i)] = self.create_publisher(kind, topic, derived_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._clock_pub = (
             self.create_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
@@ -291,6 +301,7 @@ class DriverNode(ManagedNode):
         info = replay.describe_bag(path, remap)
         self.get_logger().info(
             f'replay: {path}: {info["messages"]} magnetometer messages; topics {info["topics"]}'
+            f'; channels published: {info["channels"] or "none"}'
         )
         frames = replay.iter_frames(
             path,

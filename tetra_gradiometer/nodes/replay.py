@@ -2,10 +2,16 @@
 frames of messages ready to publish (built with a :class:`~.conversions.MessageTypes`).
 
 * :func:`iter_frames` replays a bag: one frame per recorded message (the magnetometers, and
-  ``/tetra/gradient/truth`` and ``/odom`` when recorded), with its recorded header stamp,
-  paced by log time. It opens the bag in a ``with`` block, so closing the generator (or
-  exhausting it) closes the bag. A message that does not decode and an unreadable storage
-  chunk are skipped (as :meth:`~.bag.MagneticBag.iter_sets` does), counted and logged.
+  ``/tetra/gradient/truth`` and ``/odom`` when recorded, and the channels of the vehicle
+  effects: ``/tetra/temperature`` and every ``sensor_msgs/BatteryState`` topic, as
+  ``calibrate`` reads them), with its recorded header stamp, paced by log time. Messages of
+  one log time go channels first: a simulated bag records a set's temperature and currents
+  at the set's own instant, and the live compensator takes a channel's value from the
+  messages it has when the set arrives (nodes/channels.py), as a vehicle's channel measured
+  at that instant would be there before the set has gone through the tensor node. It opens
+  the bag in a ``with`` block, so closing the generator (or exhausting it) closes the bag.
+  A message that does not decode and an unreadable storage chunk are skipped (as
+  :meth:`~.bag.MagneticBag.iter_sets` does), counted and logged.
   A magnetometer message keeps its recorded ``magnetic_field_covariance`` when that is
   known (``conversions.known_covariance``: finite, not REP 145's -1, not all zero);
   otherwise it gets ``diag(sensor_noise_t^2)`` (REP 145's unknown, -1 first, when
@@ -40,8 +46,9 @@ LOG = logging.getLogger(__name__)
 if TYPE_CHECKING:
     from ..io.bag import MagneticBag
 
-#: Publisher keys of a frame's messages: magnetometer ``sensor`` 0..3, truth, odometry.
-MAG, TRUTH, ODOM = 'mag', 'truth', 'odom'
+#: Publisher keys of a frame's messages: magnetometer ``sensor`` 0..3, truth, odometry, and
+#: a vehicle effect's channel (``sensor``: its index in :func:`channel_topics`).
+MAG, TRUTH, ODOM, CHANNEL = 'mag', 'truth', 'odom', 'channel'
 
 #: Replayed topics -> (key, sensor).
 REPLAY_TOPICS: dict[str, tuple[str, int]] = {
@@ -67,7 +74,7 @@ class Frame:
     mag1_stamp : int or None
         Header stamp (ns) of magnetometer 1 when the frame holds its reading: one set.
     items : list of (key, sensor, message)
-        ``key`` is :data:`MAG`, :data:`TRUTH` or :data:`ODOM`.
+        ``key`` is :data:`MAG`, :data:`TRUTH`, :data:`ODOM` or :data:`CHANNEL`.
     """
 
     pace_ns: int
@@ -83,8 +90,9 @@ class Frame:
 def describe_bag(
     path: str | os.PathLike, remap: Mapping[str, str] | None = None
 ) -> dict[str, Any]:
-    """Check a bag's contract and describe it: ``messages`` (magnetometer messages) and
-    ``topics`` (the replayed topics present, comma separated, as recorded).
+    """Check a bag's contract and describe it: ``messages`` (magnetometer messages),
+    ``topics`` (the replayed topics present, comma separated, as recorded) and ``channels``
+    (the channel topics replayed, :func:`channel_topics`, comma separated, as published).
 
     ``remap``: the bag's topic -> the contract's (``conversions.parse_remap``).
 
@@ -95,10 +103,28 @@ def describe_bag(
     """
     with _open_bag(path, remap) as bag:
         count = bag.check_contract()
+        replayed = _replayed(bag)
         topics = sorted(
-            {c.topic for c in bag.reader.connections if bag.topic_of(c.topic) in REPLAY_TOPICS}
+            {c.topic for c in bag.reader.connections if bag.topic_of(c.topic) in replayed}
         )
-    return {'messages': count, 'topics': ', '.join(topics)}
+        channels = channel_topics(bag)
+    return {'messages': count, 'topics': ', '.join(topics), 'channels': ', '.join(channels)}
+
+
+def channel_topics(bag: MagneticBag) -> tuple[str, ...]:
+    """The channel topics of ``bag`` the driver replays, as the contract names them (after
+    ``remap``): ``/tetra/temperature`` when it holds ``sensor_msgs/Temperature``, then every
+    ``sensor_msgs/BatteryState`` topic (``/battery_state``, a thruster's: ``calibrate`` reads
+    them all), sorted."""
+    temperature = cv.TEMPERATURE_TOPIC in bag.topics_of_type(cv.TEMPERATURE)
+    return (cv.TEMPERATURE_TOPIC,) * temperature + bag.topics_of_type(cv.BATTERY_STATE)
+
+
+def _replayed(bag: MagneticBag) -> dict[str, tuple[str, int]]:
+    """Replayed topic (the contract's name) -> (key, sensor): :data:`REPLAY_TOPICS` and the
+    bag's channels."""
+    channels = {topic: (CHANNEL, i) for i, topic in enumerate(channel_topics(bag))}
+    return {**REPLAY_TOPICS, **channels}
 
 
 def iter_frames(
@@ -110,7 +136,8 @@ def iter_frames(
     skipped: list[SkippedMessage] | None = None,
     remap: Mapping[str, str] | None = None,
 ) -> Generator[Frame, None, None]:
-    """Yield one frame per recorded message of :data:`REPLAY_TOPICS`, in log-time order.
+    """Yield one frame per recorded message of :data:`REPLAY_TOPICS` and of the bag's
+    channels (:func:`channel_topics`), in log-time order (channels first within one log time).
 
     Parameters
     ----------
@@ -131,7 +158,8 @@ def iter_frames(
     with _open_bag(path, remap) as bag:
         bag.check_contract()
         reader = bag.reader
-        connections = [c for c in reader.connections if bag.topic_of(c.topic) in REPLAY_TOPICS]
+        replayed = _replayed(bag)
+        connections = [c for c in reader.connections if bag.topic_of(c.topic) in replayed]
 
         def on_skip(record: SkippedMessage) -> None:
             bag.record_skip(record)
@@ -145,32 +173,50 @@ def iter_frames(
 
         first = None
         default_covariance = cv.noise_covariance(sensor_noise_t)
+        held: list[Frame] = []  # the frames of one log time, yielded channels first
         try:
             for connection, log_ns, raw in guarded_messages(reader, connections, on_skip):
                 try:
                     msg: Any = reader.deserialize(raw, connection.msgtype)
-                    key, sensor = REPLAY_TOPICS[bag.topic_of(connection.topic)]
+                    topic = bag.topic_of(connection.topic)
+                    key, sensor = replayed[topic]
                     stamp = checked_stamp_ns(msg.header.stamp)
-                    frame_msg = _rebuild(types, key, msg, stamp, default_covariance)
+                    frame_msg = _rebuild(types, key, msg, stamp, default_covariance, topic)
                     log_ns = int(log_ns)
                 except Exception as error:  # a malformed message costs itself
                     on_skip(SkippedMessage(connection.topic, log_ns, skip_reason(error)))
                     continue
                 first = log_ns if first is None else first
                 if max_duration_s > 0 and (log_ns - first) * S_PER_NS > max_duration_s:
-                    return
+                    break
+                if held and held[0].clock_ns != log_ns:
+                    yield from _channels_first(held)
+                    held = []
                 mag1 = stamp if (key == MAG and sensor == 0) else None
-                yield Frame(log_ns - first, log_ns, 0, mag1, [(key, sensor, frame_msg)])
+                held.append(Frame(log_ns - first, log_ns, 0, mag1, [(key, sensor, frame_msg)]))
+            yield from _channels_first(held)
         finally:
             if bag.skipped:
                 LOG.warning('replay of %s: %s', path, bag.skipped_summary())
 
 
+def _channels_first(frames: list[Frame]) -> list[Frame]:
+    """``frames`` of one log time with the channels' first (else in recorded order)."""
+    return sorted(frames, key=lambda frame: frame.items[0][0] != CHANNEL)
+
+
 def _rebuild(
-    types: cv.MessageTypes, key: str, msg: Any, stamp: int, default_covariance: np.ndarray
+    types: cv.MessageTypes,
+    key: str,
+    msg: Any,
+    stamp: int,
+    default_covariance: np.ndarray,
+    topic: str,
 ) -> Any:
     """A recorded (rosbags) message as one of ``types``; a magnetometer without a usable
-    recorded covariance gets ``default_covariance`` (9,) T^2."""
+    recorded covariance gets ``default_covariance`` (9,) T^2. A channel keeps what the
+    effects read: a temperature (degC, its variance) or a BatteryState's ``current`` (A; the
+    rest unknown, NaN), with the recorded stamp and frame."""
     if key == MAG:
         covariance = cv.magnetic_field_covariance(msg)
         if not cv.known_covariance(covariance):
@@ -180,6 +226,14 @@ def _rebuild(
         )
     if key == TRUTH:
         return cv.tensor_msg(types, cv.tensor_from_msg(msg), stamp)
+    if key == CHANNEL:
+        if topic == cv.TEMPERATURE_TOPIC:
+            out = cv.temperature_msg(types, msg.temperature, stamp, msg.header.frame_id)
+            out.variance = float(msg.variance)
+            return out
+        out = cv.battery_msg(types, msg.current, stamp)
+        out.header.frame_id = msg.header.frame_id
+        return out
     p = msg.pose.pose.position
     return cv.odometry_msg(
         types,

@@ -15,7 +15,11 @@ printed exactly from the integer nanoseconds (9 decimals); ``gij = G_ij = dB_i/d
 decimals) from the sensor noise and the calibration's parameter covariance
 (:mod:`~tetra_gradiometer.core.uncertainty`, :func:`load_compensation` says which noise).
 Without a sensor-noise figure (the raw tensor without ``--sensor-noise-nt``) the nine
-``sigma_`` columns are left out.
+``sigma_`` columns are left out. Compensated without a channel (``allow_missing_channels``:
+a channel the calibration's terms read is absent from the bag), the CSV starts with one
+comment line, ``# compensated WITHOUT <channel> (<topic>): ...`` (:meth:`.terms.HeldTerms.
+text`), before the header: the terms reading it are held at their calibration-window mean
+and the sigma columns include their spread over that window.
 
 The output bag holds ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` for the raw
 tensor): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp = the
@@ -45,7 +49,7 @@ from ..io.bag import BagWriter, MagneticBag, SetCounters
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, atomic_output, check_output
 from .health import HealthRecorder
-from .terms import StreamRegressors
+from .terms import HeldTerms, StreamRegressors
 
 __all__ = [
     'COMPENSATED_TOPIC',
@@ -99,6 +103,9 @@ class CompensationCounts:
         Sets dropped because a channel the calibration's terms read was unknown there.
     channel_summary : str
         Which channel and when ('' when none).
+    held_summary : str
+        Compensated without an absent channel: which, and what was done instead ('' when
+        every channel was there).
     """
 
     n_sets: int
@@ -111,6 +118,7 @@ class CompensationCounts:
     skipped_summary: str = ''
     channel_dropped: int = 0
     channel_summary: str = ''
+    held_summary: str = ''
 
 
 @dataclass
@@ -291,6 +299,7 @@ def compensate_bag(
     progress: bool | None = None,
     force: bool = False,
     inputs: Iterable[PathLike] = (),
+    allow_missing_channels: bool = False,
 ) -> CompensationCounts:
     """Stream the bag's matched sets into the CSV ``csv`` and/or the new bag ``out_bag``.
 
@@ -311,11 +320,14 @@ def compensate_bag(
         ``fast`` False decodes with rosbags and matches message by message (same result)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force, inputs : as for :func:`~tetra_gradiometer.io.outputs.atomic_output`
+    allow_missing_channels : a channel the terms read that the bag lacks is not refused: its
+        terms are held (:class:`.terms.HeldTerms`; the CSV's first line and the counts'
+        ``held_summary`` say so)
 
     Raises
     ------
     BagError : the bag breaks the data contract, every set has a non-finite reading, or a
-        channel the terms read is not in the bag
+        channel the terms read is not in the bag (unless ``allow_missing_channels``)
     OutputError : an output is not ours to replace
     """
     inputs = tuple(inputs)
@@ -326,18 +338,20 @@ def compensate_bag(
     with ExitStack() as stack:
         bag = stack.enter_context(MagneticBag(bag_path))
         bag.check_contract()
+        terms = _stream_regressors(parameters, bag, bag_path, geometry, allow_missing_channels)
+        held = None if terms is None else terms.held
+        comment = '' if held is None else f'# {held.text()}\n'
         handle, writer = _open_outputs(
-            stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs
+            stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs, comment
         )
         sets = bag.iter_sets(timebase=timebase, progress=progress, fast=fast)
-        terms = _stream_regressors(parameters, bag, bag_path)
         for stamps, fields in sets:
             stamps, fields = _drop_implausible(stamps, fields, dropped)
             stamps, fields, x = _with_regressors(terms, stamps, fields)
             if not len(stamps):
                 continue
             raw, tensors = _tensors(fields, geometry, parameters, x)
-            sigmas = None if sigma is None or handle is None else sigma(fields[:, 0, :], x)
+            sigmas = None if handle is None else _sigmas(sigma, fields, x, held)
             _write(handle, writer, topic, stamps, tensors, sigmas)
             _feed(health, statistics, stamps, fields, raw, tensors, bag.reader.start_time)
             first = int(stamps[0]) if n_sets == 0 else first
@@ -348,12 +362,49 @@ def compensate_bag(
                 f'{Path(bag_path)}: every matched set has an implausible reading '
                 f'({dropped.text()})'
             )
-    span_s = (last - first) * S_PER_NS
+    return _counts(n_sets, dropped, (last - first) * S_PER_NS, topic, bag, terms)
+
+
+def _counts(
+    n_sets: int,
+    dropped: DroppedSets,
+    span_s: float,
+    topic: str,
+    bag: MagneticBag,
+    terms: StreamRegressors | None,
+) -> CompensationCounts:
+    """:func:`compensate_bag`'s counts, from the closed bag and the terms' stream."""
     skipped = bag.skipped_messages, bag.skipped_summary()
-    channel = (0, '') if terms is None else (sum(terms.unknown.values()), terms.text())
+    if terms is None:
+        return CompensationCounts(
+            n_sets, dropped, span_s, topic, bag.counters, bag.clocks, *skipped
+        )
     return CompensationCounts(
-        n_sets, dropped, span_s, topic, bag.counters, bag.clocks, *skipped, *channel
+        n_sets,
+        dropped,
+        span_s,
+        topic,
+        bag.counters,
+        bag.clocks,
+        *skipped,
+        sum(terms.unknown.values()),
+        terms.text(),
+        '' if terms.held is None else terms.held.text(),
     )
+
+
+def _sigmas(
+    sigma: SigmaModel | None,
+    fields: FloatArray,
+    regressors: FloatArray | None,
+    held: HeldTerms | None,
+) -> FloatArray | None:
+    """The chunk's 1-sigma (n, 3, 3) T/m, widened in quadrature by the held terms' spread
+    (None without a sigma model)."""
+    if sigma is None:
+        return None
+    sigmas = sigma(fields[:, 0, :], regressors)
+    return sigmas if held is None else np.sqrt(sigmas**2 + held.sigma_t_per_m**2)
 
 
 def _feed(
@@ -373,12 +424,19 @@ def _feed(
 
 
 def _stream_regressors(
-    parameters: InterferenceParameters | None, bag: MagneticBag, bag_path: PathLike
+    parameters: InterferenceParameters | None,
+    bag: MagneticBag,
+    bag_path: PathLike,
+    geometry: TetraGeometry,
+    allow_missing_channels: bool,
 ) -> StreamRegressors | None:
-    """The terms' regressors over the bag (None without terms)."""
+    """The terms' regressors over the bag (None without terms); an absent channel's terms
+    held with ``allow_missing_channels``."""
     if parameters is None or not parameters.terms:
         return None
-    return StreamRegressors(parameters.terms, bag, bag_path)
+    return StreamRegressors(
+        parameters.terms, bag, bag_path, geometry if allow_missing_channels else None
+    )
 
 
 def _with_regressors(
@@ -401,14 +459,15 @@ def _open_outputs(
     with_sigma: bool,
     force: bool,
     inputs: tuple[PathLike, ...],
+    comment: str = '',
 ) -> tuple[TextIO | None, BagWriter | None]:
-    """The CSV (header written) and the bag writer, each None when not asked for; both
-    closed (and moved into place) by ``stack``."""
+    """The CSV (``comment`` and the header written) and the bag writer, each None when not
+    asked for; both closed (and moved into place) by ``stack``."""
     handle = writer = None
     if csv is not None:
         tmp = stack.enter_context(atomic_output(csv, CSV, force=force, inputs=inputs))
         handle = stack.enter_context(open(tmp, 'w', encoding='ascii', newline='\n'))
-        handle.write((CSV_SIGMA_HEADER if with_sigma else CSV_HEADER) + '\n')
+        handle.write(comment + (CSV_SIGMA_HEADER if with_sigma else CSV_HEADER) + '\n')
     if out_bag is not None:
         storage = out_storage or input_storage(bag_path)
         writer = stack.enter_context(

@@ -41,12 +41,14 @@ class BagTargets:
     """:func:`locate_bag`'s result: the compensated search (``main``; the raw one when no
     calibration was given), the raw comparison (None when not asked for or when ``main``
     is raw), the absolute stamp of the first sample ``t0_stamp_s`` (Unix s), and the
-    recording's input counts (sets dropped, messages skipped)."""
+    recording's input counts (sets dropped, messages skipped); ``held_summary``: what was
+    done for a channel absent from the bag (``allow_missing_channels``; '' when none)."""
 
     main: Search
     comparison: Search | None
     t0_stamp_s: float
     input_counts: dict[str, int]
+    held_summary: str = ''
 
 
 def survey_of(recording: Recording, tensors: np.ndarray, where: str) -> Survey:
@@ -61,15 +63,20 @@ def survey_of(recording: Recording, tensors: np.ndarray, where: str) -> Survey:
 
 
 def _term_regressors(
-    bag: str | os.PathLike[str], parameters: InterferenceParameters, recording: Recording
-) -> np.ndarray | None:
-    """The calibration's terms' regressors on the recording's sets (None without terms);
-    NaN where a channel is unknown."""
+    bag: str | os.PathLike[str],
+    parameters: InterferenceParameters,
+    recording: Recording,
+    geometry: TetraGeometry | None,
+) -> tuple[np.ndarray | None, str]:
+    """The calibration's terms' regressors on the recording's sets (None without terms),
+    NaN where a channel is unknown; with ``geometry``, an absent channel's terms held
+    (:class:`~.terms.HeldTerms`) and what was done ('' otherwise)."""
     if not parameters.terms:
-        return None
+        return None, ''
     with MagneticBag(bag) as reader:
-        stream = StreamRegressors(parameters.terms, reader, bag)
-        return stream(recording.stamps_ns, recording.fields)
+        stream = StreamRegressors(parameters.terms, reader, bag, geometry)
+        x = stream(recording.stamps_ns, recording.fields)
+    return x, '' if stream.held is None else stream.held.text()
 
 
 def locate_bag(
@@ -82,9 +89,12 @@ def locate_bag(
     timebase: TimeBase = DEFAULT_TIMEBASE,
     progress: bool | None = None,
     on_stage: Callable[[str], None] | None = None,
+    allow_missing_channels: bool = False,
 ) -> BagTargets:
     """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
-    7, when None) and, with ``comparison``, the raw one too.
+    7, when None) and, with ``comparison``, the raw one too. ``allow_missing_channels``: a
+    channel the terms read that the bag lacks holds its terms at their calibration-window
+    mean instead of refusing (``compensate --allow-missing-channels``).
 
     Raises
     ------
@@ -98,8 +108,11 @@ def locate_bag(
     track = survey_of(recording, raw, str(bag))  # the pose once; each search its tensor
     searches: list[Search] = []
     kinds: list[tuple[str, np.ndarray]] = []
+    held = ''
     if parameters is not None:
-        x = _term_regressors(bag, parameters, recording)
+        x, held = _term_regressors(
+            bag, parameters, recording, geometry if allow_missing_channels else None
+        )
         b1 = recording.fields[:, 0, :]
         kinds.append(('compensated', compensate(raw, b1, parameters, geometry, x)))
     if parameters is None or comparison:
@@ -119,4 +132,5 @@ def locate_bag(
         searches[1] if len(searches) > 1 else None,
         float(recording.stamps_ns[0] * S_PER_NS),
         recording.input_counts(),
+        held,
     )

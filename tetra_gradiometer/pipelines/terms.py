@@ -37,8 +37,9 @@ from ..core.identification.terms import (
     candidates_for,
     regional_columns,
     select_terms,
+    without_redundant,
 )
-from ..core.units import S_PER_NS
+from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import BagError, InputError
 from ..io import conversions as cv
 from ..io.channels import TEMPERATURE as TEMPERATURE_CHANNEL
@@ -258,17 +259,27 @@ def terms_on(
             + f') need channels {data} lacks: '
             + '; '.join(f'{name} needs {what}' for name, what in lacking.items())
         )
-    candidates = [
-        replace(
-            c.select(used),
-            channel_noise=(
-                tuple(_series_noise(series[name]) for name in c.inputs)
-                if all(name in series for name in c.inputs)
-                else _regressor_noise(c.regressors)
-            ),
+    candidates, redundant = _independent(
+        [
+            replace(
+                c.select(used),
+                channel_noise=(
+                    tuple(_series_noise(series[name]) for name in c.inputs)
+                    if all(name in series for name in c.inputs)
+                    else _regressor_noise(c.regressors)
+                ),
+            )
+            for c in candidates
+        ],
+        lacking,
+    )
+    if choice.names is not None and set(choice.names) & set(lacking):
+        raise InputError(
+            f'effects asked for ({choice.source}) cannot be fitted on this window: '
+            + '; '.join(
+                f'{name} needs {lacking[name]}' for name in choice.names if name in lacking
+            )
         )
-        for c in candidates
-    ]
     regional = None if orientation_xyzw is None else regional_columns(orientation_xyzw, geometry)
     # Named effects are all kept (their tests are still reported); auto keeps what passes.
     strict = choice.automatic
@@ -281,7 +292,30 @@ def terms_on(
         min_gain=MIN_GAIN if strict else -np.inf,
     )
     chosen = selection.chosen
-    return WindowTerms(chosen, selection, lacking, found, (_note(choice, selection, lacking),))
+    notes = (_note(choice, selection, lacking), *redundant)
+    return WindowTerms(chosen, selection, lacking, found, notes)
+
+
+def _independent(
+    candidates: list[Candidate], lacking: dict[str, str]
+) -> tuple[list[Candidate], tuple[str, ...]]:
+    """The candidates without their redundant channels
+    (:func:`~tetra_gradiometer.core.identification.terms.without_redundant`: a constant
+    current, a battery current that is a constant plus the thrusters' it also records), and
+    the notes; a candidate left without a channel goes to ``lacking`` (needs a channel that
+    varies independently on the window)."""
+    out, notes = [], []
+    for candidate in candidates:
+        reduced, why = without_redundant(candidate)
+        notes += why
+        if reduced is None:
+            lacking[candidate.name] = (
+                f'a channel that varies on the window ({", ".join(candidate.inputs)}: '
+                'constant, or the sum of the others)'
+            )
+        else:
+            out.append(reduced)
+    return out, tuple(notes)
 
 
 def _pairs(fields: FloatArray, geometry: TetraGeometry) -> FloatArray:
@@ -303,31 +337,110 @@ def _note(choice: EffectsChoice, selection: Selection, lacking: dict[str, str]) 
     return '; '.join(parts)
 
 
+@dataclass(frozen=True)
+class HeldTerms:
+    """What compensating without a channel does (``--allow-missing-channels``): the
+    regressor columns of the absent channels held at their calibration-window mean, and the
+    1-sigma that adds.
+
+    Attributes
+    ----------
+    absent : the absent channels
+    columns : (h,) indices of the held columns among the terms' regressors (M)
+    values : (h,) their values, the window means, SI
+    sigma_t_per_m : (3, 3) 1-sigma per tensor component of what the held columns' terms
+        contributed over the window: ``sqrt(diag(L C L^T))`` per component, ``C`` the held
+        columns' covariance on the window (per term), ``L`` their map onto the component
+        (``W`` times ``a^-1``), T/m
+    """
+
+    absent: tuple[str, ...]
+    columns: npt.NDArray[np.intp]
+    values: FloatArray
+    sigma_t_per_m: FloatArray
+
+    def text(self) -> str:
+        """One line for the summary and the CSV's comment."""
+        names = ', '.join(f'{name} ({channel_topic(name)})' for name in self.absent)
+        return (
+            f'compensated WITHOUT {names}: absent from the bag; the terms reading it held at '
+            'their calibration-window mean and the 1-sigma widened by their spread over that '
+            f'window (up to {float(np.max(self.sigma_t_per_m)) * NT_PER_T:.3g} nT/m)'
+        )
+
+
+def held_terms(
+    terms: tuple[Term, ...], absent: tuple[str, ...], geometry: TetraGeometry, where: str
+) -> HeldTerms:
+    """:class:`HeldTerms` of the channels ``absent`` for the calibration's ``terms``.
+
+    Raises
+    ------
+    BagError
+        A term that reads an absent channel has no window statistics (a calibration made
+        before they were stored: calibrate again) or does not have one regressor per channel.
+    """
+    columns, values, variance = [], [], np.zeros((3, 3))
+    start = 0
+    for term in terms:
+        held = [j for j, name in enumerate(term.inputs) if name in absent]
+        if held and (not term.window_mean or term.size != len(term.inputs)):
+            raise BagError(
+                f'{where}: the calibration term {term.effect} reads {", ".join(absent)} but '
+                'carries no window statistics to compensate without it (calibrate again)'
+            )
+        if held:
+            # L[r, c, j] = sum over pairs of W[pair, r, j] a_inv[pair, c].
+            gain = np.einsum('prj,pc->rcj', term.coefficients[:, :, held], geometry.a_inv)
+            c = np.asarray(term.window_covariance)[np.ix_(held, held)]
+            variance += np.einsum('rcj,jk,rck->rc', gain, c, gain)
+            columns += [start + j for j in held]
+            values += [term.window_mean[j] for j in held]
+        start += term.size
+    return HeldTerms(
+        absent,
+        np.asarray(columns, dtype=np.intp),
+        np.asarray(values, dtype=float),
+        np.sqrt(np.maximum(variance, 0.0)),
+    )
+
+
 class StreamRegressors:
     """The terms' regressors over a bag's sets chunk by chunk (compensation), equal to
     :func:`~tetra_gradiometer.core.effects.term_regressors` on the whole run: an eddy term's
     rate takes the end of the previous chunk as its history. Counts the sets each channel
     left unknown (stale, or the first set's rate) and their time spans.
 
+    With ``geometry`` given (``--allow-missing-channels``), a channel the bag lacks
+    altogether is not refused: its columns are held (:attr:`held`, :func:`held_terms`).
+
     Raises
     ------
     BagError
-        (At construction) a channel the terms read is not in the bag at all.
+        (At construction) a channel the terms read is not in the bag at all (without
+        ``geometry``), or cannot be held.
     """
 
     def __init__(
-        self, terms: tuple[Term, ...], bag: MagneticBag, bag_path: str | os.PathLike[str]
+        self,
+        terms: tuple[Term, ...],
+        bag: MagneticBag,
+        bag_path: str | os.PathLike[str],
+        geometry: TetraGeometry | None = None,
     ) -> None:
         self.terms = terms
         names = terms_channels(terms)
         self.series = read_channels(bag, names)
-        missing = [name for name in names if name not in self.series]
-        if missing:
+        missing = tuple(name for name in names if name not in self.series)
+        self.held: HeldTerms | None = None
+        if missing and geometry is not None:
+            self.held = held_terms(terms, missing, geometry, str(bag_path))
+        elif missing:
             raise BagError(
                 f'{bag_path}: the calibration has terms that read '
                 + ', '.join(f'{name} ({channel_topic(name)})' for name in missing)
-                + ', which the bag lacks: a channel is never taken as zero (record it, or '
-                'calibrate with --effects none)'
+                + ', which the bag lacks: a channel is never taken as zero (record it, '
+                'calibrate with --effects none, or compensate with --allow-missing-channels)'
             )
         self.history_s = max(
             (term.reference[0] for term in terms if term.effect == 'eddy_current'), default=0.0
@@ -351,7 +464,11 @@ class StreamRegressors:
             stamps_all, b_all = stamps_ns, fields[:, 0, :]
         on_sets = {name: s.on(stamps_all) for name, s in self.series.items()}
         t_s = (stamps_all - self.origin_ns) * S_PER_NS
-        regressors = term_regressors(self.terms, Channels(t_s, b_all, on_sets))[prefix:]
+        absent = () if self.held is None else self.held.absent
+        every = {**on_sets, **{name: np.full(len(t_s), np.nan) for name in absent}}
+        regressors = term_regressors(self.terms, Channels(t_s, b_all, every))[prefix:]
+        if self.held is not None:
+            regressors[:, self.held.columns] = self.held.values
         keep = (stamps_all[-1] - stamps_all) * S_PER_NS < self.history_s + 1e-9
         self._tail = (stamps_all[keep], b_all[keep])
         self._count(stamps_ns, {name: v[prefix:] for name, v in on_sets.items()}, regressors)

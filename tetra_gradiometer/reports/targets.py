@@ -99,6 +99,8 @@ def report_markdown(result: BagTargets) -> str:
     if any(result.input_counts.values()):
         counts = ', '.join(f'{k} {v}' for k, v in result.input_counts.items() if v)
         lines += [f'Input not used: {counts}.', '']
+    if result.held_summary:
+        lines += [f'**{result.held_summary[0].upper()}{result.held_summary[1:]}.**', '']
     return '\n'.join(lines)
 
 

@@ -124,7 +124,7 @@ def term_to_dict(term: Term) -> dict[str, Any]:
     """The calibration file's form of a term: coefficients in the effect's file unit
     (``nT/A``, ``s``, ``nT/degC``) as ``[pair][axis][regressor]``, plain types."""
     spec = effect(term.effect)
-    return {
+    out = {
         'effect': term.effect,
         'inputs': list(term.inputs),
         'labels': list(spec.labels(term.inputs)),
@@ -134,6 +134,12 @@ def term_to_dict(term: Term) -> dict[str, Any]:
         'channel_noise': list(term.channel_noise),
         'evidence': term.evidence,
     }
+    if term.window_mean:
+        out['window'] = {
+            'mean': list(term.window_mean),
+            'covariance': [list(row) for row in term.window_covariance],
+        }
+    return out
 
 
 def term_from_dict(data: Any, where: str) -> Term:
@@ -150,7 +156,12 @@ def term_from_dict(data: Any, where: str) -> Term:
         coefficients = np.asarray(data['coefficients'], dtype=float) / spec.file_factor
         reference = tuple(float(v) for v in data.get('reference', ()))
         noise = tuple(float(v) for v in data.get('channel_noise', ()))
-    except (KeyError, TypeError, ValueError) as error:
+        window = data.get('window') or {}
+        window_mean = tuple(float(v) for v in window.get('mean', ()))
+        window_covariance = tuple(
+            tuple(float(v) for v in row) for row in window.get('covariance', ())
+        )
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
         raise InputError(f'{where} ({name}): not a term: {error}') from None
     labels = spec.labels(inputs)
     if coefficients.shape != (3, 3, len(labels)) or not np.all(np.isfinite(coefficients)):
@@ -159,4 +170,13 @@ def term_from_dict(data: Any, where: str) -> Term:
             f'[pair][axis][regressor], got {coefficients.shape}'
         )
     evidence = data.get('evidence', {})
-    return Term(name, inputs, coefficients, reference, noise, evidence if evidence else {})
+    return Term(
+        name,
+        inputs,
+        coefficients,
+        reference,
+        noise,
+        evidence if evidence else {},
+        window_mean,
+        window_covariance,
+    )

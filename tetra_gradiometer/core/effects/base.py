@@ -158,6 +158,10 @@ class Term:
     reference : the values fixed when it was fitted (e.g. the reference temperature)
     channel_noise : (m,) RMS noise of each regressor, its unit (enters the 1-sigma)
     evidence : how it was selected (held-out gaps with and without it, the test), plain types
+    window_mean : (m,) mean of each regressor over the samples it was fitted on, SI; ()
+        when unknown (older files). Compensating without a channel holds the regressor there
+    window_covariance : (m, m) covariance of the regressors over those samples, SI, as
+        nested tuples; () when unknown. It widens the 1-sigma of such a compensation
     """
 
     effect: str
@@ -166,6 +170,8 @@ class Term:
     reference: tuple[float, ...] = ()
     channel_noise: tuple[float, ...] = ()
     evidence: dict[str, Any] = field(default_factory=dict, compare=False)
+    window_mean: tuple[float, ...] = ()
+    window_covariance: tuple[tuple[float, ...], ...] = ()
 
     def __post_init__(self) -> None:
         coefficients = np.asarray(self.coefficients, dtype=float)
@@ -182,6 +188,17 @@ class Term:
         if len(noise) != self.size:
             raise InputError(f'{self.effect}: {len(noise)} channel noises for {self.size}')
         object.__setattr__(self, 'channel_noise', noise)
+        mean = tuple(float(v) for v in self.window_mean)
+        covariance = tuple(tuple(float(v) for v in row) for row in self.window_covariance)
+        if (mean and len(mean) != self.size) or (
+            covariance and np.shape(covariance) != (self.size, self.size)
+        ):
+            raise InputError(
+                f'{self.effect}: window mean {len(mean)} / covariance {np.shape(covariance)} '
+                f'for {self.size} regressors'
+            )
+        object.__setattr__(self, 'window_mean', mean)
+        object.__setattr__(self, 'window_covariance', covariance)
 
     @property
     def size(self) -> int:

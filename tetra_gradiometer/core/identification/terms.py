@@ -35,11 +35,12 @@ import numpy as np
 
 from ...errors import IdentifiabilityError
 from .._distributions import f_sf
-from ..effects import Channels, Term, effect
+from ..effects import Channels, Term, current_channel, effect
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters
 from ..types import FloatArray
 from ..units import NT_PER_T
+from ..vehicle_signals import BATTERY_TOPIC
 from .lstsq import REGIONAL_BASIS, _body_tensor, _orientations
 from .result import TensorCalibration
 
@@ -230,6 +231,80 @@ def candidates_for(
     return out, lacking
 
 
+#: A channel's column is redundant when what the constant and the columns before it leave
+#: of it is within this many times its own noise ...
+REDUNDANT_NOISE = 3.0
+#: ... or this fraction of its RMS (exact dependence: float32 BatteryState values carry
+#: ~1e-7 of relative rounding).
+REDUNDANT_RELATIVE = 1.0e-5
+
+
+def without_redundant(candidate: Candidate) -> tuple[Candidate | None, list[str]]:
+    """``candidate`` without the channels whose regressor column the constant (``b``'s) and
+    the candidate's earlier columns already span on the window, and a note on each.
+
+    A constant current (a hotel load alone, held on the trim) is hard iron: ``b`` takes
+    it; a battery current that is a constant hotel load plus the thrusters' currents it
+    also records is their sum. Fitted, such a column makes the joint solve (nearly)
+    singular: huge, cancelling coefficients, or an effect the selection cannot test. The
+    rows where every column is known decide; the residual of each column after least
+    squares on the constant and the columns kept before it must exceed
+    :data:`REDUNDANT_NOISE` times the channel's noise and :data:`REDUNDANT_RELATIVE` of the
+    column's RMS. The columns are taken in ``inputs`` order but the battery's
+    (``/battery_state``, the sum of the circuits) last, so that of a dependent set the sum
+    is the one left out. Only channel regressors (one column per input) are checked.
+    Returns None for the candidate when no column is left.
+    """
+    x = candidate.regressors
+    if not candidate.inputs or x.shape[1] != len(candidate.inputs):
+        return candidate, []
+    rows = x[np.all(np.isfinite(x), axis=1)]
+    if len(rows) < 2:
+        return candidate, []
+    noise = candidate.channel_noise or (0.0,) * x.shape[1]
+    kept: list[int] = []
+    notes = []
+    battery = current_channel(BATTERY_TOPIC)
+    order = sorted(range(len(candidate.inputs)), key=lambda j: candidate.inputs[j] == battery)
+    for j in order:
+        name = candidate.inputs[j]
+        basis = np.column_stack([np.ones(len(rows)), rows[:, kept]])
+        coefficients = np.linalg.lstsq(basis, rows[:, j], rcond=None)[0]
+        left = float(np.sqrt(np.mean((rows[:, j] - basis @ coefficients) ** 2)))
+        tolerance = max(
+            REDUNDANT_NOISE * noise[j], REDUNDANT_RELATIVE * np.sqrt(np.mean(rows[:, j] ** 2))
+        )
+        if left > tolerance:
+            kept.append(j)
+            continue
+        if kept:
+            terms = ' '.join(
+                f'{c:+.4g} x {candidate.inputs[k]}'
+                for c, k in zip(coefficients[1:], kept, strict=True)
+            )
+            notes.append(
+                f'{candidate.name}: {name} = {coefficients[0]:.4g} {terms} on the window '
+                f'(within {left:.2g}, its noise {noise[j]:.2g}): left out, the others and b '
+                'carry its field'
+            )
+        else:
+            notes.append(
+                f'{candidate.name}: {name} is constant on the window ({coefficients[0]:.4g}, '
+                f"within {left:.2g}; its noise {noise[j]:.2g}): its field is hard iron, b's; "
+                'left out'
+            )
+    if len(kept) == len(candidate.inputs):
+        return candidate, notes
+    if not kept:
+        return None, notes
+    kept.sort()
+    inputs = tuple(candidate.inputs[k] for k in kept)
+    channel_noise = tuple(noise[k] for k in kept)
+    return replace(
+        candidate, inputs=inputs, regressors=x[:, kept], channel_noise=channel_noise
+    ), notes
+
+
 def _known_rows(channels: Channels, inputs: tuple[str, ...]) -> np.ndarray:
     """The samples where every recorded channel of ``inputs`` is known."""
     known = np.ones(len(channels), dtype=bool)
@@ -406,6 +481,7 @@ def fit_with_terms(
     column = 4
     for candidate in chosen:
         coefficients = np.transpose(theta[column : column + candidate.size], (2, 1, 0))
+        fitted = x[usable, column : column + candidate.size]
         column += candidate.size
         terms.append(
             Term(
@@ -415,6 +491,8 @@ def fit_with_terms(
                 candidate.reference,
                 candidate.channel_noise,
                 dict(candidate.evidence),
+                tuple(np.mean(fitted, axis=0)),
+                tuple(map(tuple, np.atleast_2d(np.cov(fitted, rowvar=False, bias=True)))),
             )
         )
     order = _parameter_order([c.size for c in chosen])
