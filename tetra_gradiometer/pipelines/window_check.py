@@ -26,6 +26,7 @@ from ..core.identification import (
     FitConsistency,
     Options,
     TensorCalibration,
+    attitude_coverage,
     calibration_residual,
     fit_consistency,
     identify,
@@ -50,6 +51,15 @@ MIN_SUB_WINDOW_S = 30.0
 #: survey leg predicts ~7x and compensates at ~5x; a trim 1.0x; the guidance's "enough" is
 #: 1.1x). Loose on purpose: the prediction is linearised, the survey representative only.
 MAX_PREDICTED_RATIO = 2.0
+#: Seconds per block of the attitude-excitation segmentation (:func:`excited_spans`).
+EXCITATION_BLOCK_S = 10.0
+#: A block is manoeuvring when the body-frame direction of ``B_1'`` spreads more than this
+#: over it (``arccos |mean unit vector|``), degrees. Measured per 10 s: straight survey legs
+#: with sea-state sway 1.4-3.7 (the README mission, bags/survey), trim manoeuvres 14-27
+#: (the same, bags/trim); 6 sits between, above a +-5 deg sway's ~3.5.
+EXCITED_SPREAD_DEG = 6.0
+#: Candidate spans refitted when a window fails, at most (each is a solve).
+MAX_SPANS_TRIED = 4
 
 
 def orientation_at(
@@ -176,7 +186,7 @@ class WindowCheck:
             )
         return f'{shape}not a field but an effect of the vehicle the model lacks, or a bad stretch'
 
-    def text(self, sub_window: str = '--window {0:.0f}:{1:.0f}') -> str:
+    def text(self, sub_window: str = '--window {0:g}:{1:g}') -> str:
         """One line: the verdict with the figures, the failing part, the passing window
         (named by ``sub_window``, a format of its two ends in seconds)."""
         c = self.consistency
@@ -204,6 +214,70 @@ class WindowCheck:
         }
 
 
+def excited_spans(
+    t_s: FloatArray, b_reference: FloatArray, min_s: float = MIN_SUB_WINDOW_S
+) -> list[tuple[float, float]]:
+    """The spans of the samples where the vehicle manoeuvres: maximal runs of consecutive
+    :data:`EXCITATION_BLOCK_S` blocks whose ``B_1'`` direction spreads at least
+    :data:`EXCITED_SPREAD_DEG` (turns, roll, pitch; a straight leg does not), each at least
+    ``min_s`` long, as (first, last) sample times in the time base of ``t_s``, s.
+
+    ``t_s`` (n,) increasing, s; ``b_reference`` (n, 3), T (any unit: only its direction
+    counts). An empty block (a gap) ends a run.
+    """
+    if len(t_s) < 3:
+        return []
+    norms = np.linalg.norm(b_reference, axis=1, keepdims=True)
+    unit = np.divide(b_reference, norms, out=np.zeros_like(b_reference), where=norms > 0)
+    block = np.floor((t_s - t_s[0]) / EXCITATION_BLOCK_S).astype(np.int64)
+    n_blocks = int(block[-1]) + 1
+    counts = np.bincount(block, minlength=n_blocks)
+    mean = (
+        np.stack([np.bincount(block, unit[:, i], minlength=n_blocks) for i in range(3)], axis=1)
+        / np.maximum(counts, 1)[:, None]
+    )
+    spread = np.degrees(np.arccos(np.clip(np.linalg.norm(mean, axis=1), 0.0, 1.0)))
+    excited = (counts >= 3) & (spread >= EXCITED_SPREAD_DEG)
+    first = np.full(n_blocks, np.inf)
+    last = np.full(n_blocks, -np.inf)
+    np.minimum.at(first, block, t_s)
+    np.maximum.at(last, block, t_s)
+    spans = []
+    start = None
+    for index in range(n_blocks + 1):
+        on = index < n_blocks and bool(excited[index])
+        if on and start is None:
+            start = index
+        elif not on and start is not None:
+            span = (float(first[start]), float(last[index - 1]))
+            if span[1] - span[0] >= min_s:
+                spans.append(span)
+            start = None
+    return spans
+
+
+def _candidate_spans(
+    consistency: FitConsistency, t_s: FloatArray, b_reference: FloatArray
+) -> list[tuple[float, float]]:
+    """Sub-windows worth refitting when the window fails: the longest run of passing blocks,
+    then the manoeuvring spans (:func:`excited_spans`) best excited first (the attitude
+    coverage condition number over the square root of the samples: the parameters' error
+    grows with both), the window itself left out."""
+    spans = []
+    longest = consistency.longest_passing_span()
+    if longest is not None and longest[1] - longest[0] >= MIN_SUB_WINDOW_S:
+        spans.append(longest)
+
+    def score(span: tuple[float, float]) -> float:
+        inside = (t_s >= span[0]) & (t_s <= span[1])
+        return attitude_coverage(b_reference[inside]) / np.sqrt(inside.sum())
+
+    whole = (float(t_s[0]), float(t_s[-1]))
+    excited = [span for span in excited_spans(t_s, b_reference) if span != whole]
+    spans += [span for span in sorted(excited, key=score) if span not in spans]
+    return spans[:MAX_SPANS_TRIED]
+
+
 def _check_window(
     calibration: TensorCalibration,
     method: str,
@@ -221,32 +295,49 @@ def _check_window(
     ``b_reference`` (n, 3) T: the samples ``calibration`` was fitted on, with the attitude
     in ``options.orientation_xyzw`` when the regional gradient was fitted jointly.
     """
-    orientation = options.orientation_xyzw
     consistency, share = _consistency(
         calibration, stamps_ns, g_measured, b_reference, geometry, options, first_ns
     )
     passing = None
-    span = None if consistency.passed else consistency.longest_passing_span()
-    if span is not None and span[1] - span[0] >= MIN_SUB_WINDOW_S:
+    if not consistency.passed:
         t = (stamps_ns - first_ns) * S_PER_NS
-        keep = (t >= span[0]) & (t <= span[1])
-        # The sub-window is refitted and checked with the same terms.
-        sub = dataclasses.replace(
-            options,
-            orientation_xyzw=None if orientation is None else orientation[keep],
-            terms=tuple(term.select(keep) for term in options.terms),
-        )
-        g_kept, b_kept = g_measured[keep], b_reference[keep]
-        try:
-            refit = identify(method, g_kept, b_kept, geometry, sub)
-        except IdentifiabilityError:
-            refit = None
-        if isinstance(refit, TensorCalibration):
-            again, _ = _consistency(
-                refit, stamps_ns[keep], g_kept, b_kept, geometry, sub, first_ns
-            )
-            passing = span if again.passed else None
+        for span in _candidate_spans(consistency, t, b_reference):
+            keep = (t >= span[0]) & (t <= span[1])
+            if _passes_alone(
+                keep, method, stamps_ns, g_measured, b_reference, geometry, options, first_ns
+            ):
+                passing = span
+                break
     return WindowCheck(consistency, first_ns, passing, share)
+
+
+def _passes_alone(
+    keep: npt.NDArray[np.bool_],
+    method: str,
+    stamps_ns: IntArray,
+    g_measured: FloatArray,
+    b_reference: FloatArray,
+    geometry: TetraGeometry,
+    options: Options,
+    first_ns: int,
+) -> bool:
+    """Whether the samples ``keep`` (n,) pass the check when refitted alone, with the same
+    terms and attitude."""
+    orientation = options.orientation_xyzw
+    sub = dataclasses.replace(
+        options,
+        orientation_xyzw=None if orientation is None else orientation[keep],
+        terms=tuple(term.select(keep) for term in options.terms),
+    )
+    g_kept, b_kept = g_measured[keep], b_reference[keep]
+    try:
+        refit = identify(method, g_kept, b_kept, geometry, sub)
+    except IdentifiabilityError:
+        return False
+    if not isinstance(refit, TensorCalibration):
+        return False
+    again, _ = _consistency(refit, stamps_ns[keep], g_kept, b_kept, geometry, sub, first_ns)
+    return again.passed
 
 
 def _consistency(
@@ -359,7 +450,7 @@ def identify_checked(
     first_ns: int,
     force: bool = False,
     force_name: str = '--force',
-    sub_window: str = '--window {0:.0f}:{1:.0f}',
+    sub_window: str = '--window {0:g}:{1:g}',
     notes: tuple[str, ...] = (),
     assessment: TrimAssessment | None = None,
     lacking: dict[str, str] | None = None,
