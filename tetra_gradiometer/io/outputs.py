@@ -315,7 +315,7 @@ def remove_stale_temporaries(path: str | os.PathLike, kind: OutputKind) -> list[
     :data:`OWNER` file names this host, ``kind`` and a process that no longer runs."""
     path = Path(path)
     pattern = re.compile(rf'\.{re.escape(path.name)}\.[A-Za-z0-9_]{{8}}\.partial')
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(path.parent.iterdir())
     except OSError:

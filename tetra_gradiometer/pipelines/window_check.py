@@ -300,7 +300,7 @@ def _check_window(
     )
     passing = None
     if not consistency.passed:
-        t = (stamps_ns - first_ns) * S_PER_NS
+        t = ((stamps_ns - first_ns) * S_PER_NS).astype(np.float64)
         for span in _candidate_spans(consistency, t, b_reference):
             keep = (t >= span[0]) & (t <= span[1])
             if _passes_alone(

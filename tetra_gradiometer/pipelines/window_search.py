@@ -133,7 +133,7 @@ def rank_candidates(
 ) -> list[Candidate]:
     """The manoeuvring spans of ``sets`` (:func:`~.window_check.excited_spans`), best first
     (see :class:`Candidate`). Times are s from ``sets.first_ns``."""
-    t = (sets.stamps_ns - sets.first_ns) * S_PER_NS
+    t = ((sets.stamps_ns - sets.first_ns) * S_PER_NS).astype(np.float64)
     fields = sets.fields
     candidates = []
     for span in excited_spans(t, fields[:, 0]):
