@@ -5,10 +5,12 @@ a bag and writes them as a calibration file (:mod:`tetra_gradiometer.io.calibrat
 atomically.
 
 The window, in seconds from the bag's first matched set (``T0:T1``, either end may be
-left out; default the whole bag), is where the **true gradient is taken as zero**: a trim
-manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and ``paper_ga``
-do not use that assumption). ``--method`` is one of the registry's methods whose result is
-a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help`` describes them).
+left out; without it, the window is found in the bag:
+:mod:`tetra_gradiometer.pipelines.window_search`), is where the **true gradient is taken as
+zero**: a trim manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and
+``paper_ga`` do not use that assumption). ``--method`` is one of the registry's methods
+whose result is a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help``
+describes them).
 
 The work is :func:`tetra_gradiometer.pipelines.trim.calibrate_assessed` (``batch``
 calls it too): the window is read streaming, and thinned to at most ``--max-sets`` sets (the
@@ -73,7 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=window_arg,
         default=None,
         metavar='T0:T1',
-        help='seconds from the first set where the true gradient is zero (default: whole bag)',
+        help='seconds from the first set where the true gradient is zero (default: found in the '
+        'bag: the best manoeuvring span that passes the checks, printed with why)',
     )
     parser.add_argument(
         '--method',
