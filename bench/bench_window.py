@@ -58,6 +58,29 @@ SHUFFLED = {
 }
 
 
+#: A gentle trim (2 deg/s, roll +-8 deg, pitch +-6 deg) between two rough-sea lines (roll
+#: +-5 deg): the trim's spread is 1.5-2.5x the lines', not 10x.
+GENTLE = {
+    'description': 'a gentle trim between rough-sea lines',
+    'seed': 9,
+    'sample_rate_hz': 10,
+    'noise_nT': 0.05,
+    'geometry': {'regular_edge_m': 0.5},
+    'earth_field': {'enu_nT': [0.0, 15000.0, -48000.0]},
+    'dipoles': [{'position_m': [0.0, 10.0, -75.0], 'moment_Am2': [40000.0, 0.0, 30000.0]}],
+    'interference': {'random': {'k_scale': 0.01, 'b_scale_nT': 300}},
+    'segments': [
+        {'line': {'start_m': [-200.0, 0.0, -50.0], 'end_m': [200.0, 0.0, -50.0],
+                  'speed_m_s': 2.0, 'roll_amplitude_deg': 5.0, 'pitch_amplitude_deg': 3.0}},
+        {'trim': {'duration_s': 200, 'center_m': [3000.0, 3000.0, -50.0],
+                  'heading_rate_deg_s': 2.0, 'roll_amplitude_deg': 8.0, 'roll_period_s': 15.0,
+                  'pitch_amplitude_deg': 6.0, 'pitch_period_s': 23.0, 'speed_m_s': 1.0}},
+        {'line': {'start_m': [200.0, 20.0, -50.0], 'end_m': [-200.0, 20.0, -50.0],
+                  'speed_m_s': 2.0, 'roll_amplitude_deg': 5.0, 'pitch_amplitude_deg': 3.0}},
+    ],
+}
+
+
 def run(*args: str) -> str:
     done = subprocess.run([PY, '-m', 'tetra_gradiometer', *args], cwd=REPO, text=True,
                           capture_output=True, check=False)
@@ -103,11 +126,13 @@ def main() -> None:
     out = Path(parser.parse_args().out or tempfile.mkdtemp(prefix='bench_window_'))
     out.mkdir(parents=True, exist_ok=True)
     (out / 'shuffled.yaml').write_text(yaml.safe_dump(SHUFFLED), encoding='utf-8')
+    (out / 'gentle.yaml').write_text(yaml.safe_dump(GENTLE), encoding='utf-8')
     rows = []
     for name, scenario in (
         ('README mission', 'config/scenarios/realistic_mission.yaml'),
         ('README mission, sensor 1 dirty', 'config/scenarios/realistic_mission_dirty_reference.yaml'),
         ('shuffled (trim over the target first)', str(out / 'shuffled.yaml')),
+        ('gentle trim between rough-sea lines', str(out / 'gentle.yaml')),
     ):
         bag = out / Path(scenario).stem
         run('simulate', '--scenario', scenario, '--out', str(bag), '--force')

@@ -166,3 +166,22 @@ def test_the_checked_solve_names_the_passing_manoeuvre_it_holds(mission):
     far = t[segment == 3]
     assert far[0] - 0.05 <= t0 and t1 <= far[-1] + 0.05
     assert f'{t0:g}-{t1:g}' in checked.check.text('{0:g}-{1:g}')
+
+
+def test_a_gentle_trim_between_rough_sea_lines_is_one_span():
+    """Body-frame fields of an Earth field (inclination 73 deg) seen on straight legs rolling
+    +-5 deg and pitching +-3 deg (periods 8 and 11 s), and 100-300 s on a gentle trim
+    (2 deg/s heading, roll +-8 deg, pitch +-6 deg): its 30 s spread is ~2x the legs', not
+    10x. The span found is the trim's, to a block."""
+    from scipy.spatial.transform import Rotation
+
+    t = np.arange(0, 400, 0.1)
+    trim = (t >= 100) & (t < 300)
+    heading = np.where(trim, 2.0 * (t - 100), 0.0)
+    roll = np.where(trim, 8 * np.sin(2 * np.pi * t / 15), 5 * np.sin(2 * np.pi * t / 8))
+    pitch = np.where(trim, 6 * np.sin(2 * np.pi * t / 23), 3 * np.sin(2 * np.pi * t / 11))
+    body_to_world = Rotation.from_euler('ZYX', np.stack([heading, pitch, roll], 1), degrees=True)
+    b = body_to_world.inv().apply(np.array([0.0, 15000.0, -48000.0]) * 1e-9)
+    spans = excited_spans(t, b)
+    assert len(spans) == 1
+    assert abs(spans[0][0] - 100) <= 10 and abs(spans[0][1] - 299.9) <= 10

@@ -53,11 +53,22 @@ MIN_SUB_WINDOW_S = 30.0
 MAX_PREDICTED_RATIO = 2.0
 #: Seconds per block of the attitude-excitation segmentation (:func:`excited_spans`).
 EXCITATION_BLOCK_S = 10.0
-#: A block is manoeuvring when the body-frame direction of ``B_1'`` spreads more than this
-#: over it (``arccos |mean unit vector|``), degrees. Measured per 10 s: straight survey legs
-#: with sea-state sway 1.4-3.7 (the README mission, bags/survey), trim manoeuvres 14-27
-#: (the same, bags/trim); 6 sits between, above a +-5 deg sway's ~3.5.
-EXCITED_SPREAD_DEG = 6.0
+#: A block manoeuvres when the body-frame direction of ``B_1'`` spreads (``arccos |mean unit
+#: vector|``) over the 30 s centred on it at least ``QUIET_FACTOR`` times the bag's quiet
+#: level (the 20th percentile of those spreads: its straight legs' sway), and never less
+#: than this, degrees; the factor's threshold is capped at :data:`MAX_EXCITED_SPREAD_DEG`
+#: so that a bag that is all trim stays all manoeuvre. Measured over 30 s: straight legs
+#: 1.5 (README mission), 2.5 (bags/survey, +-3 deg roll), 4.1 (+-5 deg roll); trims 20-31
+#: (README mission), 6.2-9.9 (a gentle trim: 2 deg/s, roll +-8 deg, pitch +-6 deg).
+EXCITED_SPREAD_DEG = 5.0
+QUIET_FACTOR = 1.5
+MAX_EXCITED_SPREAD_DEG = 10.0
+#: A run's end block is dropped while its own 10 s spread is below this factor times the
+#: bag's 20th percentile of those (a straight leg's sway: README mission 1.5, +-5 deg roll
+#: 3.9; a gentle trim's 4.8-8.5), at least :data:`MIN_EDGE_SPREAD_DEG` and at most
+#: :data:`EXCITED_SPREAD_DEG`, degrees.
+EDGE_FACTOR = 1.25
+MIN_EDGE_SPREAD_DEG = 0.5
 #: Candidate spans refitted when a window fails, at most (each is a solve).
 MAX_SPANS_TRIED = 4
 
@@ -217,10 +228,12 @@ class WindowCheck:
 def excited_spans(
     t_s: FloatArray, b_reference: FloatArray, min_s: float = MIN_SUB_WINDOW_S
 ) -> list[tuple[float, float]]:
-    """The spans of the samples where the vehicle manoeuvres: maximal runs of consecutive
-    :data:`EXCITATION_BLOCK_S` blocks whose ``B_1'`` direction spreads at least
-    :data:`EXCITED_SPREAD_DEG` (turns, roll, pitch; a straight leg does not), each at least
-    ``min_s`` long, as (first, last) sample times in the time base of ``t_s``, s.
+    """The spans of the samples where the vehicle manoeuvres (turns, rolls, pitches; a
+    straight leg does not): maximal runs of consecutive :data:`EXCITATION_BLOCK_S` blocks
+    whose ``B_1'`` direction spreads over the 30 s around them (see
+    :data:`EXCITED_SPREAD_DEG`), the run's end blocks dropped while their own spread is at
+    the quiet level (the 30 s smear a run by one block), each run at least ``min_s`` long;
+    as (first, last) sample times in the time base of ``t_s``, s.
 
     ``t_s`` (n,) increasing, s; ``b_reference`` (n, 3), T (any unit: only its direction
     counts). An empty block (a gap) ends a run.
@@ -231,29 +244,50 @@ def excited_spans(
     unit = np.divide(b_reference, norms, out=np.zeros_like(b_reference), where=norms > 0)
     block = np.floor((t_s - t_s[0]) / EXCITATION_BLOCK_S).astype(np.int64)
     n_blocks = int(block[-1]) + 1
-    counts = np.bincount(block, minlength=n_blocks)
-    mean = (
-        np.stack([np.bincount(block, unit[:, i], minlength=n_blocks) for i in range(3)], axis=1)
-        / np.maximum(counts, 1)[:, None]
-    )
-    spread = np.degrees(np.arccos(np.clip(np.linalg.norm(mean, axis=1), 0.0, 1.0)))
-    excited = (counts >= 3) & (spread >= EXCITED_SPREAD_DEG)
+    counts = np.bincount(block, minlength=n_blocks).astype(float)
+    sums = np.stack([np.bincount(block, unit[:, i], minlength=n_blocks) for i in range(3)], 1)
+
+    def spread(total: FloatArray, n: FloatArray) -> FloatArray:
+        mean = np.linalg.norm(total, axis=1) / np.maximum(n, 1.0)
+        return np.degrees(np.arccos(np.clip(mean, 0.0, 1.0)))
+
+    own = spread(sums, counts)
+    around = spread(_neighbours(sums), _neighbours(counts[:, None])[:, 0])
+    valid = counts >= 3
+    if not valid.any():
+        return []
+    quiet = float(np.percentile(around[valid], 20))
+    threshold = max(EXCITED_SPREAD_DEG, min(QUIET_FACTOR * quiet, MAX_EXCITED_SPREAD_DEG))
+    # An end block at the quiet level of its own (10 s) spread is a straight leg's.
+    quiet_own = float(np.percentile(own[valid], 20)) * EDGE_FACTOR
+    quiet_own = min(max(quiet_own, MIN_EDGE_SPREAD_DEG), EXCITED_SPREAD_DEG)
+    excited = valid & (around >= threshold)
     first = np.full(n_blocks, np.inf)
     last = np.full(n_blocks, -np.inf)
     np.minimum.at(first, block, t_s)
     np.maximum.at(last, block, t_s)
     spans = []
-    start = None
-    for index in range(n_blocks + 1):
-        on = index < n_blocks and bool(excited[index])
-        if on and start is None:
-            start = index
-        elif not on and start is not None:
-            span = (float(first[start]), float(last[index - 1]))
-            if span[1] - span[0] >= min_s:
-                spans.append(span)
-            start = None
+    for start, stop in _runs(excited):
+        while start < stop and own[start] < quiet_own:
+            start += 1
+        while stop > start and own[stop - 1] < quiet_own:
+            stop -= 1
+        if stop > start and last[stop - 1] - first[start] >= min_s:
+            spans.append((float(first[start]), float(last[stop - 1])))
     return spans
+
+
+def _neighbours(values: FloatArray) -> FloatArray:
+    """Each row (blocks, k) summed with the rows before and after it."""
+    padded = np.pad(values, ((1, 1), (0, 0)))
+    return padded[:-2] + padded[1:-1] + padded[2:]
+
+
+def _runs(flags: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """(start, stop) of each run of True in ``flags`` (stop exclusive)."""
+    edges = np.diff(np.concatenate([[0], flags.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()
+    return list(zip(starts, stops, strict=True))
 
 
 def _candidate_spans(
