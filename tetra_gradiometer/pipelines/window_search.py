@@ -100,9 +100,9 @@ class FoundWindow:
         )
         return (
             f'window {self.chosen.text} s found in the bag: the best of '
-            f"{self.n_candidates} manoeuvring span(s) (B_1' direction spread >= "
-            f'{EXCITED_SPREAD_DEG:g} deg per 10 s) that passes the window check and the '
-            f'excitation check ({predicted})' + (f'; before it, {failed}' if failed else '')
+            f"{self.n_candidates} manoeuvring span(s) (B_1' turning in the body frame, "
+            f'not a straight leg) that passes the window check and the excitation check '
+            f'({predicted})' + (f'; before it, {failed}' if failed else '')
         )
 
     def diagnostics(self) -> dict[str, Any]:
@@ -282,9 +282,9 @@ def _whole_bag(
         if not tried and exclude is None:
             raise AssumptionError(
                 f"{error}; no span of the bag manoeuvres (the direction of B_1' in the body "
-                f'frame spreads less than {EXCITED_SPREAD_DEG:g} deg in every 10 s of '
-                f'{span_s:.0f} s): fly a trim manoeuvre (turns, roll and pitch) in a uniform '
-                'field, away from targets'
+                f'frame spreads less than {EXCITED_SPREAD_DEG:g} deg, or than 1.5x its '
+                f"straight legs' sway, in every 30 s of {span_s:.0f} s): fly a trim "
+                'manoeuvre (turns, roll and pitch) in a uniform field, away from targets'
             ) from None
         spans = '; '.join(f'{c.text} s: {reason}' for c, reason in tried)
         raise AssumptionError(
