@@ -244,8 +244,10 @@ def excited_spans(
     unit = np.divide(b_reference, norms, out=np.zeros_like(b_reference), where=norms > 0)
     block = np.floor((t_s - t_s[0]) / EXCITATION_BLOCK_S).astype(np.int64)
     n_blocks = int(block[-1]) + 1
-    counts = np.bincount(block, minlength=n_blocks).astype(float)
-    sums = np.stack([np.bincount(block, unit[:, i], minlength=n_blocks) for i in range(3)], 1)
+    counts: FloatArray = np.bincount(block, minlength=n_blocks).astype(np.float64)
+    sums: FloatArray = np.stack(
+        [np.bincount(block, unit[:, i], minlength=n_blocks) for i in range(3)], 1
+    ).astype(np.float64)
 
     def spread(total: FloatArray, n: FloatArray) -> FloatArray:
         mean = np.linalg.norm(total, axis=1) / np.maximum(n, 1.0)
