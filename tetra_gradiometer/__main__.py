@@ -92,6 +92,18 @@ def _quiet_stdout() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command ``argv`` names (default ``sys.argv[1:]``); its exit status."""
+    try:
+        try:
+            return _main(argv)
+        finally:  # --help and usage errors too: a closed pipe fails here, not at exit
+            sys.stdout.flush()
+    except BrokenPipeError:
+        _quiet_stdout()
+        return EXIT_SIGPIPE
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] in ('-h', '--help'):
         print(_usage())
@@ -108,16 +120,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv[1:])
     _install_signal_handlers()
     try:
-        code = int(module.run(args) or 0)
-        sys.stdout.flush()  # a closed pipe fails here, not in the interpreter's last flush
-        return code
+        return int(module.run(args) or 0)
     except TetraError as error:
         if os.environ.get('TETRA_DEBUG'):
             raise
         return _error_line(str(error))
-    except BrokenPipeError:
-        _quiet_stdout()
-        return EXIT_SIGPIPE
     except OSError as error:
         if error.errno not in STORAGE_FULL or os.environ.get('TETRA_DEBUG'):
             raise  # anything else is a bug, with its traceback

@@ -149,6 +149,19 @@ def test_a_closed_pipe_ends_quietly(tmp_path):
     assert (tmp_path / 'c.yaml').read_text().startswith('tetra_gradiometer_calibration:')
 
 
+@pytest.mark.parametrize('args, status', [
+    (('--help',), 141),
+    (('calibrate', '--help'), 0),  # argparse writes its help itself and swallows the OSError
+])
+def test_help_into_a_closed_pipe_ends_quietly(args, status):
+    read, write = os.pipe()
+    os.close(read)
+    done = subprocess.run(_command(*args), stdout=write, stderr=subprocess.PIPE, text=True,
+                          env=_env(), timeout=120)
+    os.close(write)
+    assert (done.returncode, done.stderr) == (status, '')
+
+
 def _start_and_catch_writing(args, folder: Path) -> subprocess.Popen:
     """Start the command and return once its temporary folder exists (it is writing)."""
     process = subprocess.Popen(_command(*args), env=_env(), stdout=subprocess.DEVNULL,
@@ -184,12 +197,15 @@ def test_sigterm_removes_the_temporaries_and_keeps_the_previous_output(
                        '--out-bag', out)[0] == 0
         before = snapshot(out)
         args = ('compensate', long_bag, '--params', params, '--raw', '--out-bag', out, '--force')
+    sidecars = [tmp_path / f'out.{end}' for end in ('params.yaml', 'truth.npz')]
+    sidecars_before = [p.read_bytes() if p.exists() else None for p in sidecars]
     process = _start_and_catch_writing(args, tmp_path)
     process.send_signal(signal.SIGTERM)
     assert process.wait(timeout=60) == 143
     assert process.stderr.read() == ''
     assert _partials(tmp_path) == []
-    assert snapshot(out) == before
+    assert snapshot(out) == before  # simulate: the bag and its sidecars, all previous
+    assert [p.read_bytes() if p.exists() else None for p in sidecars] == sidecars_before
 
 
 def test_the_next_run_removes_a_killed_runs_temporaries(scenarios, tmp_path):
@@ -199,7 +215,7 @@ def test_the_next_run_removes_a_killed_runs_temporaries(scenarios, tmp_path):
     process.kill()  # SIGKILL: nothing of the run can clean up
     process.wait(timeout=30)
     left = _partials(tmp_path)
-    assert len(left) == 1 and not out.exists()
+    assert left and not out.exists()  # the sidecars' and maybe the bag's
     (tmp_path / 'small.yaml').write_text(yaml.safe_dump(SMALL))
     done = subprocess.run(_command('simulate', '--scenario', tmp_path / 'small.yaml', '--out',
                                    out, '--mag-only'), env=_env(), capture_output=True, text=True)
