@@ -185,3 +185,16 @@ def test_a_gentle_trim_between_rough_sea_lines_is_one_span():
     spans = excited_spans(t, b)
     assert len(spans) == 1
     assert abs(spans[0][0] - 100) <= 10 and abs(spans[0][1] - 299.9) <= 10
+
+
+def test_batch_without_a_window_calibrates_on_the_window_found(tmp_path):
+    """batch's task without --window: as calibrate, the window found, named in the row."""
+    from pathlib import Path
+
+    from tetra_gradiometer.cli import fleet
+
+    repo = Path(__file__).resolve().parents[2]
+    bag = fleet.FleetBag('trim', repo / 'bags/trim', repo / 'bags/trim.yaml')
+    row = fleet.process_bag(fleet.make_job(bag, tmp_path / 'out', None, plots=False))
+    assert row['status'] == 'ok', row
+    assert row['window'] == '0:119.9 s'
