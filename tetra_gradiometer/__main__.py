@@ -6,14 +6,25 @@ Exit codes: 0 success, 1 bad input, data or output (a
 :class:`~tetra_gradiometer.errors.TetraError`: one ``error:`` line on stderr), 2 usage.
 Any other exception is a bug and keeps its traceback. Set ``TETRA_DEBUG=1`` for a traceback
 of a ``TetraError`` too.
+
+Signals and the system's limits, the same for every command: SIGTERM is handled as SIGINT
+(a ``KeyboardInterrupt``: outputs in progress remove their temporaries, previous outputs stay;
+exit 143, 130 for SIGINT); a reader that closes the pipe (``| head``) ends the command quietly
+with the shell's SIGPIPE status 141; a disk that is full (``ENOSPC``, ``EDQUOT``) or a file
+past ``ulimit -f`` (``EFBIG``: SIGXFSZ is ignored so the write fails instead of killing the
+process) is one ``error:`` line, exit 1. ROS commands install their own handlers over these.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
+import signal
 import sys
+import threading
+from types import FrameType
 
 from .errors import TetraError
 
@@ -48,7 +59,51 @@ def _usage() -> str:
     )
 
 
+#: Exit statuses of a command stopped by a signal: 128 + the signal's number, as a shell
+#: reports a process the signal killed.
+EXIT_SIGINT, EXIT_SIGPIPE, EXIT_SIGTERM = 130, 141, 143
+#: OSError numbers that say the storage is full, not that the program is wrong.
+STORAGE_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, so that it unwinds as after Ctrl-C."""
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    raise Terminated()
+
+
+def _install_signal_handlers() -> None:
+    if threading.current_thread() is not threading.main_thread():
+        return  # main() called from a thread (a test): signals are the caller's
+    signal.signal(signal.SIGTERM, _terminate)
+    if hasattr(signal, 'SIGXFSZ'):
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+
+def _quiet_stdout() -> None:
+    """After a broken pipe: stdout to /dev/null, so the interpreter's last flush is silent."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # no real stdout (captured by a test)
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command ``argv`` names (default ``sys.argv[1:]``); its exit status."""
+    try:
+        try:
+            return _main(argv)
+        finally:  # --help and usage errors too: a closed pipe fails here, not at exit
+            sys.stdout.flush()
+    except BrokenPipeError:
+        _quiet_stdout()
+        return EXIT_SIGPIPE
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] in ('-h', '--help'):
         print(_usage())
@@ -63,15 +118,31 @@ def main(argv: list[str] | None = None) -> int:
     )
     module.add_arguments(parser)
     args = parser.parse_args(argv[1:])
+    _install_signal_handlers()
     try:
         return int(module.run(args) or 0)
     except TetraError as error:
         if os.environ.get('TETRA_DEBUG'):
             raise
-        print(f'error: {error}', file=sys.stderr)
-        return 1
+        return _error_line(str(error))
+    except OSError as error:
+        if error.errno not in STORAGE_FULL or os.environ.get('TETRA_DEBUG'):
+            raise  # anything else is a bug, with its traceback
+        where = f' ({error.filename})' if error.filename else ''
+        return _error_line(f'{error.strerror or error}{where}: nothing was replaced')
+    except Terminated:
+        return EXIT_SIGTERM
     except KeyboardInterrupt:
-        return 130
+        return EXIT_SIGINT
+
+
+def _error_line(text: str) -> int:
+    """Print ``error: TEXT`` (one line) on stderr; exit status 1."""
+    try:
+        print(f'error: {text}', file=sys.stderr)
+    except BrokenPipeError:  # stderr closed as well: nothing more to say
+        pass
+    return 1
 
 
 if __name__ == '__main__':

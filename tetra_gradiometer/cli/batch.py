@@ -25,7 +25,7 @@ from typing import Any
 
 from .._optional import require
 from ..errors import InputError
-from ..io.outputs import BATCH, output_folder
+from ..io.outputs import BATCH, BATCH_BAG, output_folder, remove_stale_temporaries
 from ..io.progress import progress_bar
 from ._args import add_force_argument, add_progress_arguments, int_range, window_arg
 from .fleet import (
@@ -61,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=window_arg,
         default=None,
         metavar='T0:T1',
-        help='calibration window of every bag, seconds from its first set (default: whole bag)',
+        help='calibration window of every bag, seconds from its first set (default: found in '
+        'each bag, as calibrate does without --window)',
     )
     parser.add_argument(
         '--scheduler',
@@ -100,9 +101,14 @@ def run(args: argparse.Namespace) -> int:
     print(f'batch: {len(jobs)} bags in {args.folder}: {skipped}{len(todo)} to run')
     where = 'nothing to run'
     if todo:
-        with _client(args.scheduler, args.workers, len(todo)) as (client, where):
-            print(f'running on {where}')
-            _run_jobs(client, todo, rows, out, args.progress)
+        try:
+            with _client(args.scheduler, args.workers, len(todo)) as (client, where):
+                print(f'running on {where}')
+                _run_jobs(client, todo, rows, out, args.progress)
+        except KeyboardInterrupt:  # SIGINT, SIGTERM: the local workers are gone with the
+            for job in todo:  # cluster; what they were writing is removed (their own only)
+                remove_stale_temporaries(job.out_dir, BATCH_BAG)
+            raise
     counts = {s: sum(r['status'] == s for r in rows.values()) for s in STATUSES}
     print(
         f'batch: {len(rows)} bags: {counts["ok"]} ok, {counts["refused"]} refused, '

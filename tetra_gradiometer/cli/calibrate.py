@@ -5,10 +5,12 @@ a bag and writes them as a calibration file (:mod:`tetra_gradiometer.io.calibrat
 atomically.
 
 The window, in seconds from the bag's first matched set (``T0:T1``, either end may be
-left out; default the whole bag), is where the **true gradient is taken as zero**: a trim
-manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and ``paper_ga``
-do not use that assumption). ``--method`` is one of the registry's methods whose result is
-a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help`` describes them).
+left out; without it, the window is found in the bag:
+:mod:`tetra_gradiometer.pipelines.window_search`), is where the **true gradient is taken as
+zero**: a trim manoeuvre in a uniform field, away from targets (``constraint_lstsq`` and
+``paper_ga`` do not use that assumption). ``--method`` is one of the registry's methods
+whose result is a calibration file (``core.identification.CALIBRATION_METHODS``; ``--help``
+describes them).
 
 The work is :func:`tetra_gradiometer.pipelines.trim.calibrate_assessed` (``batch``
 calls it too): the window is read streaming, and thinned to at most ``--max-sets`` sets (the
@@ -26,6 +28,7 @@ import time
 import numpy as np
 
 from ..core.effects import EFFECTS, Term
+from ..core.geometry import TetraGeometry
 from ..core.identification import (
     CALIBRATION_METHODS,
     DEFAULT_METHOD,
@@ -34,11 +37,13 @@ from ..core.identification import (
 )
 from ..core.timebase import clocks_text
 from ..core.units import NT_PER_T
+from ..errors import AssumptionError, IdentifiabilityError
 from ..io.calibration import save_calibration
 from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.calibration import DEFAULT_MAX_SETS, MIN_SETS, BagCalibration
 from ..pipelines.trim import WindowAssessment, calibrate_assessed
+from ..pipelines.window_search import find_window
 from ..reports.calibration import write_calibration_report
 from ._args import (
     add_bag_arguments,
@@ -70,7 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=window_arg,
         default=None,
         metavar='T0:T1',
-        help='seconds from the first set where the true gradient is zero (default: whole bag)',
+        help='seconds from the first set where the true gradient is zero (default: found in the '
+        'bag: the best manoeuvring span that passes the checks, printed with why)',
     )
     parser.add_argument(
         '--method',
@@ -131,7 +137,6 @@ def _format_matrix(rows: np.ndarray, fmt: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    window = args.window  # (t0, t1) or None, checked by argparse (_args.window_arg)
     inputs = (args.bag, args.params)
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     if args.report is not None:  # nor over the calibration file it sits beside
@@ -139,24 +144,11 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     geometry = geometry_from_params(params, source=args.params)
     earth = earth_field_from_params(params, str(args.params))
-    result, window_assessment = calibrate_assessed(
-        args.bag,
-        geometry,
-        earth,
-        window=window,
-        method=args.method,
-        seed=args.seed,
-        generations=args.generations,
-        wide_bounds=args.wide_bounds,
-        max_coverage_condition=args.max_coverage_condition,
-        timebase=timebase_from_args(args),
-        max_sets=args.max_sets,
-        progress=args.progress,
-        force=args.force,
-        effects=effects_from_args(args),
-    )
+    result, window_assessment, why = _calibrate(args, geometry, earth)
     save_calibration(args.out, result.record, force=args.force, inputs=inputs)
     _print_summary(args, result)
+    if why:
+        print(f'  {why}')
     _print_assessment(window_assessment)
     written = [str(args.out)]
     if args.report is not None:
@@ -171,6 +163,50 @@ def run(args: argparse.Namespace) -> int:
         written.append(str(args.report))
     print(f'wrote {" and ".join(written)} in {time.perf_counter() - started:.1f} s')
     return 0
+
+
+def _calibrate(
+    args: argparse.Namespace, geometry: TetraGeometry, earth: np.ndarray | None
+) -> tuple[BagCalibration, WindowAssessment, str]:
+    """The calibration on ``--window``, or on the window found in the bag without one
+    (:func:`~tetra_gradiometer.pipelines.window_search.find_window`), with a line saying
+    which and why ('' for a given window). A given window that fails names the best passing
+    window of the bag; ``--force`` without a window and none passing calibrates the whole
+    bag, with the warning."""
+    options = dict(
+        method=args.method,
+        seed=args.seed,
+        generations=args.generations,
+        wide_bounds=args.wide_bounds,
+        max_coverage_condition=args.max_coverage_condition,
+        timebase=timebase_from_args(args),
+        max_sets=args.max_sets,
+        progress=args.progress,
+        effects=effects_from_args(args),
+    )
+    if args.window is None:
+        try:
+            found = find_window(args.bag, geometry, earth, **options)
+        except AssumptionError:
+            if not args.force:
+                raise
+        else:
+            return found.result, found.window, found.why
+    try:
+        result, assessment = calibrate_assessed(
+            args.bag, geometry, earth, window=args.window, force=args.force, **options
+        )
+    except (AssumptionError, IdentifiabilityError) as error:
+        if args.window is None:
+            raise
+        try:
+            found = find_window(args.bag, geometry, earth, exclude=args.window, **options)
+        except AssumptionError:
+            raise error from None
+        raise type(error)(
+            f'{error}; the best passing window in the bag: {found.chosen.option} ({found.why})'
+        ) from None
+    return result, assessment, ''
 
 
 def _print_assessment(window: WindowAssessment) -> None:

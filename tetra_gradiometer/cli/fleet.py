@@ -58,6 +58,7 @@ from ..pipelines.calibration import window_text
 from ..pipelines.compensation import TensorStatistics, compensate_bag, load_compensation
 from ..pipelines.discrepancy import analyze_bag
 from ..pipelines.trim import calibrate_assessed
+from ..pipelines.window_search import find_window
 from ..reports.discrepancy import write_report
 
 __all__ = [
@@ -364,12 +365,18 @@ def _site(job: BagJob, tmp: Path, row: Row) -> tuple[TetraGeometry, np.ndarray |
 def _calibrate(
     job: BagJob, tmp: Path, row: Row, geometry: TetraGeometry, earth: np.ndarray | None
 ) -> Path | None:
-    """``calibrate`` with its defaults on the window; the calibration file, or None when
-    the calibration refuses the window (the row is then ``refused``)."""
+    """``calibrate`` with its defaults on the window (without one, as ``calibrate``: the
+    window found in the bag, :func:`~tetra_gradiometer.pipelines.window_search.find_window`);
+    the calibration file, or None when the calibration refuses the window (the row is then
+    ``refused``)."""
     try:
-        result, _ = calibrate_assessed(
-            job.bag.bag, geometry, earth, window=job.window, progress=False
-        )
+        if job.window is None:
+            result = find_window(job.bag.bag, geometry, earth, progress=False).result
+            row['window'] = result.window
+        else:
+            result, _ = calibrate_assessed(
+                job.bag.bag, geometry, earth, window=job.window, progress=False
+            )
     except (AssumptionError, IdentifiabilityError) as error:
         row['status'] = 'refused'
         row['reason'] = f'calibrate: {_one_line(str(error))}'

@@ -19,13 +19,36 @@ def _yaml_problem(problem: yaml.YAMLError) -> str:
     return text
 
 
-def read_yaml(path: str | os.PathLike, what: str, error: type[ValueError]) -> Any:
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader refusing a mapping that repeats a key (PyYAML keeps the last
+    silently: a second ``sensor_positions`` would win without a word)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> Any:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                repeated = key in seen
+            except TypeError:  # an unhashable key: SafeLoader's own error says so
+                break
+            if repeated:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f'duplicate key {key!r}', key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(
+    path: str | os.PathLike, what: str, error: type[ValueError], unique_keys: bool = False
+) -> Any:
     """The parsed document at ``path``.
 
     Every failure is one ``error`` (e.g. ParamsError) whose one-line message names
     ``what`` (e.g. "params"), the file and the problem: not found, a directory, not
     readable (permission, I/O), not UTF-8 text, not valid YAML (with line and column),
-    or empty (nothing but whitespace and comments).
+    or empty (nothing but whitespace and comments); with ``unique_keys``, a mapping that
+    repeats a key (with its line and column).
     """
     path = Path(path)
     label = f'{what} file {path}'
@@ -45,7 +68,7 @@ def read_yaml(path: str | os.PathLike, what: str, error: type[ValueError]) -> An
     except OSError as problem:
         raise error(f'{label} cannot be read: {problem.strerror or problem}') from None
     try:
-        document = yaml.safe_load(text)
+        document = yaml.load(text, Loader=_UniqueKeyLoader if unique_keys else yaml.SafeLoader)
     except yaml.YAMLError as problem:
         raise error(f'{label} is not valid YAML: {_yaml_problem(problem)}') from None
     except RecursionError:

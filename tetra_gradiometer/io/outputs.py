@@ -17,7 +17,14 @@ Every file or folder a command writes goes through :func:`atomic_output`:
   target (``tempfile.mkdtemp``: two runs never share it), fsyncs it, checks the target
   again and moves it into place with one ``os.replace``. A folder that replaces a previous
   output is first moved aside into that temporary folder, then deleted. On any error (or a
-  kill) the target is as it was; a killed run may leave a ``.NAME.*.partial`` folder.
+  kill) the target is as it was; a run killed by SIGKILL (or a power cut) leaves its
+  ``.NAME.XXXXXXXX.partial`` folder, which the next run writing the same target as the same
+  kind removes: the temporary folder holds :data:`OWNER` (the run's host, pid, process start
+  time and output kind), and only a folder of a run that no longer exists on this host is
+  removed (never a concurrent run's, never one without that file).
+* **Disk full** (``ENOSPC``, ``EDQUOT``, ``EFBIG`` past a file-size limit) and sqlite3's
+  ``database or disk is full`` while filling the temporary path are an :class:`OutputError`
+  (one line), the temporary folder removed.
 * **Folders filled over time** (``batch``'s output folder): :func:`output_folder` refuses
   what :func:`check_output` refuses, continues a previous output of its kind (never replaces
   it) and marks a new one at once; each entry inside is its own atomic output.
@@ -27,7 +34,10 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import socket
+import sqlite3
 import tempfile
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
@@ -57,10 +67,18 @@ __all__ = [
     'atomic_write_text',
     'check_output',
     'output_folder',
+    'remove_stale_temporaries',
 ]
 
 #: Name of the marker file inside every folder this package writes (JSON: kind, command).
 MARKER = '.tetra_gradiometer_output'
+#: sqlite3's messages of a storage that cannot take more: a full disk or quota
+#: (``SQLITE_FULL``), a write refused by the system (``SQLITE_IOERR``: ``EFBIG`` past
+#: ``ulimit -f``, a failing disk).
+SQLITE_STORAGE_ERRORS = ('database or disk is full', 'disk I/O error')
+#: Name of the file in a run's temporary folder naming its owner (JSON: host, pid, start,
+#: kind), beside the output being filled (never inside it).
+OWNER = '.owner'
 
 
 def _starts_with(prefix: bytes) -> Callable[[Path], bool]:
@@ -234,7 +252,9 @@ def atomic_output(
     path = check_output(path, kind, force=force, inputs=inputs)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path, kind)
         work = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', suffix='.partial', dir=path.parent))
+        (work / OWNER).write_text(json.dumps(_owner(kind)), encoding='utf-8')
     except OSError as error:
         raise OutputError(f'cannot write {path}: {error.strerror or error}') from error
     try:
@@ -251,8 +271,69 @@ def atomic_output(
         raise OutputError(
             f'cannot write {path}: {error.strerror or error} (nothing was replaced)'
         ) from error
+    except sqlite3.OperationalError as error:  # rosbags' sqlite3 storage
+        if str(error) not in SQLITE_STORAGE_ERRORS:
+            raise  # not the storage failing (a locked or malformed input bag): its own error
+        raise OutputError(f'{error} while writing {path} (nothing was replaced)') from error
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _process_start(pid: int) -> str | None:
+    """The start time of process ``pid`` (Linux ``/proc``: clock ticks since boot), telling
+    a reused pid from the run that wrote an owner file; None where unknown."""
+    try:
+        with open(f'/proc/{pid}/stat', encoding='ascii', errors='replace') as handle:
+            return handle.read().rsplit(')', 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def _owner(kind: OutputKind) -> dict[str, object]:
+    pid = os.getpid()
+    return {
+        'host': socket.gethostname(),
+        'pid': pid,
+        'start': _process_start(pid),
+        'kind': kind.name,
+    }
+
+
+def _alive(pid: int, start: object) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive
+        return True
+    return start is None or _process_start(pid) in (None, start)
+
+
+def remove_stale_temporaries(path: str | os.PathLike, kind: OutputKind) -> list[Path]:
+    """Remove the temporary folders an earlier, killed run left beside ``path`` while
+    writing it as ``kind`` (see the module); return them. A folder is removed only when its
+    :data:`OWNER` file names this host, ``kind`` and a process that no longer runs."""
+    path = Path(path)
+    pattern = re.compile(rf'\.{re.escape(path.name)}\.[A-Za-z0-9_]{{8}}\.partial')
+    removed: list[Path] = []
+    try:
+        entries = list(path.parent.iterdir())
+    except OSError:
+        return removed
+    host = socket.gethostname()
+    for entry in entries:
+        if not pattern.fullmatch(entry.name) or entry.is_symlink() or not entry.is_dir():
+            continue
+        try:
+            owner = json.loads((entry / OWNER).read_text(encoding='utf-8'))
+            mine = owner['host'] == host and owner['kind'] == kind.name
+            stale = mine and not _alive(int(owner['pid']), owner.get('start'))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # no owner file (an older run's, or not ours): left alone
+        if stale:
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
+    return removed
 
 
 def output_folder(

@@ -21,6 +21,7 @@ Three outputs, each written atomically (temporary name, then rename):
 from __future__ import annotations
 
 import os
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -29,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import MissionData, Scenario, TrimManoeuvre, simulate
-from ..io.outputs import BAG, PARAMS, TRUTH, atomic_output, atomic_write_text, check_output
+from ..io.outputs import BAG, PARAMS, TRUTH, atomic_output, check_output
 from ..io.params import params_document
 from ..io.recording import mission_stamps_ns, write_mission_bag
 from ..io.scenario import load_scenario
@@ -108,35 +109,39 @@ def simulate_to_bag(
     for path, kind in ((out, BAG), (params_path, PARAMS), (truth_path, TRUTH)):
         check_output(path, kind, force=force, inputs=inputs)
     mission = simulate(scenario, np.random.default_rng(seed))
-    write_mission_bag(
-        out,
-        mission,
-        start_ns=start_ns,
-        storage=storage,
-        odom=not mag_only,
-        temperature=not mag_only,
-        battery=not mag_only,
-        progress=progress,
-        force=force,
-        inputs=inputs,
-        command='simulate',
-    )
     params = {
         'sensor_positions': scenario.geometry.to_flat(),
         'earth_field_enu': [float(v) for v in scenario.earth_field_enu],
     }
-    atomic_write_text(
-        params_path,
-        '# Written by "python -m tetra_gradiometer simulate" from '
-        f'{Path(scenario_path).name}\n' + params_document(params),
-        PARAMS,
-        force=force,
-        inputs=inputs,
-    )
-    stamps = mission_stamps_ns(mission, start_ns)
-    with atomic_output(truth_path, TRUTH, force=force, inputs=inputs) as tmp:
-        with open(tmp, 'wb') as handle:
-            _save_truth(handle, scenario, mission, stamps, seed)
+    # The sidecars are filled first and moved into place just after the bag: an interrupted
+    # run leaves the three previous outputs, never a new bag beside old sidecars.
+    with ExitStack() as stack:
+        params_tmp = stack.enter_context(
+            atomic_output(params_path, PARAMS, force=force, inputs=inputs)
+        )
+        params_tmp.write_text(
+            '# Written by "python -m tetra_gradiometer simulate" from '
+            f'{Path(scenario_path).name}\n' + params_document(params),
+            encoding='utf-8',
+        )
+        truth_tmp = stack.enter_context(
+            atomic_output(truth_path, TRUTH, force=force, inputs=inputs)
+        )
+        with open(truth_tmp, 'wb') as handle:
+            _save_truth(handle, scenario, mission, mission_stamps_ns(mission, start_ns), seed)
+        write_mission_bag(
+            out,
+            mission,
+            start_ns=start_ns,
+            storage=storage,
+            odom=not mag_only,
+            temperature=not mag_only,
+            battery=not mag_only,
+            progress=progress,
+            force=force,
+            inputs=inputs,
+            command='simulate',
+        )
     return SimulatedBag(out, params_path, truth_path, scenario, seed, mission)
 
 

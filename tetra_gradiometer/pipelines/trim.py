@@ -25,7 +25,13 @@ from ..io.bag import MagneticBag
 from .calibration import BagCalibration, calibrate_bag
 from .window_check import excitation_refusal, forced, orientation_at
 
-__all__ = ['WindowAssessment', 'assess_window', 'calibrate_assessed', 'check_excitation']
+__all__ = [
+    'WindowAssessment',
+    'assess_window',
+    'calibrate_assessed',
+    'check_excitation',
+    'odom_earth_field',
+]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -53,7 +59,7 @@ class WindowAssessment:
     notes: tuple[str, ...]
 
 
-def _odom_earth_field(orientation: FloatArray, b_reference: FloatArray) -> FloatArray | None:
+def odom_earth_field(orientation: FloatArray, b_reference: FloatArray) -> FloatArray | None:
     """The Earth field in ENU as the mean of ``R B_1'`` over the sets with an attitude (sensor
     1's own interference, a few hundred nT, biases it: negligible for the guidance)."""
     from scipy.spatial.transform import Rotation
@@ -98,7 +104,7 @@ def assess_window(
     if earth is not None:
         notes.append('Earth field from the params file (earth_field_enu)')
     elif orientation is not None:
-        earth = _odom_earth_field(orientation, fields[:, 0])
+        earth = odom_earth_field(orientation, fields[:, 0])
         if earth is not None:
             b_nt = ', '.join(f'{v * NT_PER_T:.0f}' for v in earth)
             notes.append(f"Earth field estimated from {cv.ODOM_TOPIC} and B_1': [{b_nt}] nT ENU")

@@ -26,6 +26,7 @@ from ..core.identification import (
     FitConsistency,
     Options,
     TensorCalibration,
+    attitude_coverage,
     calibration_residual,
     fit_consistency,
     identify,
@@ -50,6 +51,26 @@ MIN_SUB_WINDOW_S = 30.0
 #: survey leg predicts ~7x and compensates at ~5x; a trim 1.0x; the guidance's "enough" is
 #: 1.1x). Loose on purpose: the prediction is linearised, the survey representative only.
 MAX_PREDICTED_RATIO = 2.0
+#: Seconds per block of the attitude-excitation segmentation (:func:`excited_spans`).
+EXCITATION_BLOCK_S = 10.0
+#: A block manoeuvres when the body-frame direction of ``B_1'`` spreads (``arccos |mean unit
+#: vector|``) over the 30 s centred on it at least ``QUIET_FACTOR`` times the bag's quiet
+#: level (the 20th percentile of those spreads: its straight legs' sway), and never less
+#: than this, degrees; the factor's threshold is capped at :data:`MAX_EXCITED_SPREAD_DEG`
+#: so that a bag that is all trim stays all manoeuvre. Measured over 30 s: straight legs
+#: 1.5 (README mission), 2.5 (bags/survey, +-3 deg roll), 4.1 (+-5 deg roll); trims 20-31
+#: (README mission), 6.2-9.9 (a gentle trim: 2 deg/s, roll +-8 deg, pitch +-6 deg).
+EXCITED_SPREAD_DEG = 5.0
+QUIET_FACTOR = 1.5
+MAX_EXCITED_SPREAD_DEG = 10.0
+#: A run's end block is dropped while its own 10 s spread is below this factor times the
+#: bag's 20th percentile of those (a straight leg's sway: README mission 1.5, +-5 deg roll
+#: 3.9; a gentle trim's 4.8-8.5), at least :data:`MIN_EDGE_SPREAD_DEG` and at most
+#: :data:`EXCITED_SPREAD_DEG`, degrees.
+EDGE_FACTOR = 1.25
+MIN_EDGE_SPREAD_DEG = 0.5
+#: Candidate spans refitted when a window fails, at most (each is a solve).
+MAX_SPANS_TRIED = 4
 
 
 def orientation_at(
@@ -176,7 +197,7 @@ class WindowCheck:
             )
         return f'{shape}not a field but an effect of the vehicle the model lacks, or a bad stretch'
 
-    def text(self, sub_window: str = '--window {0:.0f}:{1:.0f}') -> str:
+    def text(self, sub_window: str = '--window {0:g}:{1:g}') -> str:
         """One line: the verdict with the figures, the failing part, the passing window
         (named by ``sub_window``, a format of its two ends in seconds)."""
         c = self.consistency
@@ -204,6 +225,95 @@ class WindowCheck:
         }
 
 
+def excited_spans(
+    t_s: FloatArray, b_reference: FloatArray, min_s: float = MIN_SUB_WINDOW_S
+) -> list[tuple[float, float]]:
+    """The spans of the samples where the vehicle manoeuvres (turns, rolls, pitches; a
+    straight leg does not): maximal runs of consecutive :data:`EXCITATION_BLOCK_S` blocks
+    whose ``B_1'`` direction spreads over the 30 s around them (see
+    :data:`EXCITED_SPREAD_DEG`), the run's end blocks dropped while their own spread is at
+    the quiet level (the 30 s smear a run by one block), each run at least ``min_s`` long;
+    as (first, last) sample times in the time base of ``t_s``, s.
+
+    ``t_s`` (n,) increasing, s; ``b_reference`` (n, 3), T (any unit: only its direction
+    counts). An empty block (a gap) ends a run.
+    """
+    if len(t_s) < 3:
+        return []
+    norms = np.linalg.norm(b_reference, axis=1, keepdims=True)
+    unit = np.divide(b_reference, norms, out=np.zeros_like(b_reference), where=norms > 0)
+    block = np.floor((t_s - t_s[0]) / EXCITATION_BLOCK_S).astype(np.int64)
+    n_blocks = int(block[-1]) + 1
+    counts: FloatArray = np.bincount(block, minlength=n_blocks).astype(np.float64)
+    sums: FloatArray = np.stack(
+        [np.bincount(block, unit[:, i], minlength=n_blocks) for i in range(3)], 1
+    ).astype(np.float64)
+
+    def spread(total: FloatArray, n: FloatArray) -> FloatArray:
+        mean = np.linalg.norm(total, axis=1) / np.maximum(n, 1.0)
+        return np.degrees(np.arccos(np.clip(mean, 0.0, 1.0)))
+
+    own = spread(sums, counts)
+    around = spread(_neighbours(sums), _neighbours(counts[:, None])[:, 0])
+    valid = counts >= 3
+    if not valid.any():
+        return []
+    quiet = float(np.percentile(around[valid], 20))
+    threshold = max(EXCITED_SPREAD_DEG, min(QUIET_FACTOR * quiet, MAX_EXCITED_SPREAD_DEG))
+    # An end block at the quiet level of its own (10 s) spread is a straight leg's.
+    quiet_own = float(np.percentile(own[valid], 20)) * EDGE_FACTOR
+    quiet_own = min(max(quiet_own, MIN_EDGE_SPREAD_DEG), EXCITED_SPREAD_DEG)
+    excited = valid & (around >= threshold)
+    first = np.full(n_blocks, np.inf)
+    last = np.full(n_blocks, -np.inf)
+    np.minimum.at(first, block, t_s)
+    np.maximum.at(last, block, t_s)
+    spans = []
+    for start, stop in _runs(excited):
+        while start < stop and own[start] < quiet_own:
+            start += 1
+        while stop > start and own[stop - 1] < quiet_own:
+            stop -= 1
+        if stop > start and last[stop - 1] - first[start] >= min_s:
+            spans.append((float(first[start]), float(last[stop - 1])))
+    return spans
+
+
+def _neighbours(values: FloatArray) -> FloatArray:
+    """Each row (blocks, k) summed with the rows before and after it."""
+    padded = np.pad(values, ((1, 1), (0, 0)))
+    return padded[:-2] + padded[1:-1] + padded[2:]
+
+
+def _runs(flags: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """(start, stop) of each run of True in ``flags`` (stop exclusive)."""
+    edges = np.diff(np.concatenate([[0], flags.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()
+    return list(zip(starts, stops, strict=True))
+
+
+def _candidate_spans(
+    consistency: FitConsistency, t_s: FloatArray, b_reference: FloatArray
+) -> list[tuple[float, float]]:
+    """Sub-windows worth refitting when the window fails: the longest run of passing blocks,
+    then the manoeuvring spans (:func:`excited_spans`) best excited first (the attitude
+    coverage condition number over the square root of the samples: the parameters' error
+    grows with both), the window itself left out."""
+    spans = []
+    longest = consistency.longest_passing_span()
+    if longest is not None and longest[1] - longest[0] >= MIN_SUB_WINDOW_S:
+        spans.append(longest)
+
+    def score(span: tuple[float, float]) -> float:
+        inside = (t_s >= span[0]) & (t_s <= span[1])
+        return attitude_coverage(b_reference[inside]) / np.sqrt(inside.sum())
+
+    whole = (float(t_s[0]), float(t_s[-1]))
+    excited = [span for span in excited_spans(t_s, b_reference) if span != whole]
+    spans += [span for span in sorted(excited, key=score) if span not in spans]
+    return spans[:MAX_SPANS_TRIED]
+
+
 def _check_window(
     calibration: TensorCalibration,
     method: str,
@@ -221,32 +331,49 @@ def _check_window(
     ``b_reference`` (n, 3) T: the samples ``calibration`` was fitted on, with the attitude
     in ``options.orientation_xyzw`` when the regional gradient was fitted jointly.
     """
-    orientation = options.orientation_xyzw
     consistency, share = _consistency(
         calibration, stamps_ns, g_measured, b_reference, geometry, options, first_ns
     )
     passing = None
-    span = None if consistency.passed else consistency.longest_passing_span()
-    if span is not None and span[1] - span[0] >= MIN_SUB_WINDOW_S:
-        t = (stamps_ns - first_ns) * S_PER_NS
-        keep = (t >= span[0]) & (t <= span[1])
-        # The sub-window is refitted and checked with the same terms.
-        sub = dataclasses.replace(
-            options,
-            orientation_xyzw=None if orientation is None else orientation[keep],
-            terms=tuple(term.select(keep) for term in options.terms),
-        )
-        g_kept, b_kept = g_measured[keep], b_reference[keep]
-        try:
-            refit = identify(method, g_kept, b_kept, geometry, sub)
-        except IdentifiabilityError:
-            refit = None
-        if isinstance(refit, TensorCalibration):
-            again, _ = _consistency(
-                refit, stamps_ns[keep], g_kept, b_kept, geometry, sub, first_ns
-            )
-            passing = span if again.passed else None
+    if not consistency.passed:
+        t = ((stamps_ns - first_ns) * S_PER_NS).astype(np.float64)
+        for span in _candidate_spans(consistency, t, b_reference):
+            keep = (t >= span[0]) & (t <= span[1])
+            if _passes_alone(
+                keep, method, stamps_ns, g_measured, b_reference, geometry, options, first_ns
+            ):
+                passing = span
+                break
     return WindowCheck(consistency, first_ns, passing, share)
+
+
+def _passes_alone(
+    keep: npt.NDArray[np.bool_],
+    method: str,
+    stamps_ns: IntArray,
+    g_measured: FloatArray,
+    b_reference: FloatArray,
+    geometry: TetraGeometry,
+    options: Options,
+    first_ns: int,
+) -> bool:
+    """Whether the samples ``keep`` (n,) pass the check when refitted alone, with the same
+    terms and attitude."""
+    orientation = options.orientation_xyzw
+    sub = dataclasses.replace(
+        options,
+        orientation_xyzw=None if orientation is None else orientation[keep],
+        terms=tuple(term.select(keep) for term in options.terms),
+    )
+    g_kept, b_kept = g_measured[keep], b_reference[keep]
+    try:
+        refit = identify(method, g_kept, b_kept, geometry, sub)
+    except IdentifiabilityError:
+        return False
+    if not isinstance(refit, TensorCalibration):
+        return False
+    again, _ = _consistency(refit, stamps_ns[keep], g_kept, b_kept, geometry, sub, first_ns)
+    return again.passed
 
 
 def _consistency(
@@ -359,7 +486,7 @@ def identify_checked(
     first_ns: int,
     force: bool = False,
     force_name: str = '--force',
-    sub_window: str = '--window {0:.0f}:{1:.0f}',
+    sub_window: str = '--window {0:g}:{1:g}',
     notes: tuple[str, ...] = (),
     assessment: TrimAssessment | None = None,
     lacking: dict[str, str] | None = None,
