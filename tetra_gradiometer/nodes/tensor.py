@@ -285,8 +285,10 @@ class TensorNode(ManagedNode):
 
     def _matcher_counts(self) -> dict[str, int]:
         """The stamp matcher's counters, including those of the matchers reset before."""
-        counters = {
-            key: value for key, value in asdict(self._matcher.counters).items()
+        counters = {  # the integer counts (the stream report is the offline reads')
+            key: value
+            for key, value in asdict(self._matcher.counters).items()
+            if isinstance(value, int)
         }
         return {key: value + self._earlier.get(key, 0) for key, value in counters.items()}
 
