@@ -68,6 +68,8 @@ MAGNITUDE_FACTOR = 4.0
 SENSOR_FACTOR = 30.0
 #: Readings per sensor the magnitude test waits for (a few spikes move no median).
 MAGNITUDE_SAMPLES = 20
+#: ... and the most it keeps per sensor (the first readings of the recording).
+MAGNITUDE_KEPT = 5000
 #: Scale factors of |B| against the expected field and the mistake each one looks like:
 #: a reading of 50 µT written as 50 (µT) is 1e6 times too large.
 UNIT_FACTORS = (
@@ -418,8 +420,10 @@ class StreamChecker:
             return
         for sensor, f in enumerate(fields):
             norms = np.linalg.norm(f, axis=1)
-            self._norms[sensor].extend(norms[np.isfinite(norms)][:MAGNITUDE_SAMPLES].tolist())
-            self._norm_stamps[sensor].extend(stamps[sensor][:MAGNITUDE_SAMPLES].tolist())
+            room = MAGNITUDE_KEPT - len(self._norms[sensor])
+            finite = np.isfinite(norms)
+            self._norms[sensor].extend(norms[finite][:room].tolist())
+            self._norm_stamps[sensor].extend(stamps[sensor][finite][:room].tolist())
         if any(len(n) < MAGNITUDE_SAMPLES for n in self._norms) and not final:
             return  # too few readings yet to tell a unit from a spike
         self._magnitudes_checked = True

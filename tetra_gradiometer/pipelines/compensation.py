@@ -291,6 +291,7 @@ def compensate_bag(
     progress: bool | None = None,
     force: bool = False,
     inputs: Iterable[PathLike] = (),
+    earth_field_t: float | None = None,
 ) -> CompensationCounts:
     """Stream the bag's matched sets into the CSV ``csv`` and/or the new bag ``out_bag``.
 
@@ -311,6 +312,8 @@ def compensate_bag(
         ``fast`` False decodes with rosbags and matches message by message (same result)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force, inputs : as for :func:`~tetra_gradiometer.io.outputs.atomic_output`
+    earth_field_t : the Earth field's |B|, T, for the streams' magnitude check (None: the
+        range over the globe; :mod:`~tetra_gradiometer.core.streams`)
 
     Raises
     ------
@@ -329,7 +332,9 @@ def compensate_bag(
         handle, writer = _open_outputs(
             stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs
         )
-        sets = bag.iter_sets(timebase=timebase, progress=progress, fast=fast)
+        sets = bag.iter_sets(
+            timebase=timebase, progress=progress, fast=fast, earth_field_t=earth_field_t
+        )
         terms = _stream_regressors(parameters, bag, bag_path)
         for stamps, fields in sets:
             stamps, fields = _drop_implausible(stamps, fields, dropped)
