@@ -239,7 +239,6 @@ class StreamChecker:
 
     def __init__(
         self,
-        *,
         earth_field_t: float | None = None,
         source: str = '',
         reference_rate_hz: float = 0.0,
@@ -531,37 +530,50 @@ class StreamChecker:
 
 class LiveStreamCheck:
     """The tensor node's per-message checks (drop and count, never raise): a zero stamp, a
-    stamp more than ``tolerance_s`` from the other sensors' latest (another epoch or clock,
-    a jump on one sensor), a repeated stamp with a different reading; and each sensor's
-    recent |B| against the Earth's range (:meth:`magnitude_text`).
+    stamp more than ``tolerance_s`` from the stamps the other sensors sent in the last
+    ``recent_s`` (another epoch or clock, a jump on one sensor: when every source jumps at
+    once, the others fall silent on the old clock and the new one is accepted after
+    ``recent_s``), a repeated stamp with another reading; and each sensor's recent |B|
+    against the Earth's range (:meth:`magnitude_text`).
 
     Counts per sensor in :attr:`dropped`: ``{'zero_stamp': n, 'other_clock': n,
-    'duplicate_stamp': n}``.
+    'duplicate_stamp': n}``. Times: stamps and ``now_ns`` (the node's clock) in ns.
     """
 
     KINDS = ('zero_stamp', 'other_clock', 'duplicate_stamp')
 
-    def __init__(self, tolerance_s: float = 60.0, history: int = 64) -> None:
+    def __init__(
+        self, tolerance_s: float = 10.0, recent_s: float = 2.0, history: int = 64
+    ) -> None:
         self.tolerance_ns = tolerance_s * NS_PER_S
+        self.recent_ns = recent_s * NS_PER_S
         self.dropped = [dict.fromkeys(self.KINDS, 0) for _ in range(4)]
-        self._last: list[tuple[int, tuple[float, float, float]] | None] = [None] * 4
         self._norms = [np.zeros(history) for _ in range(4)]
         self._filled = [0] * 4
+        self.reset()
 
-    def accept(self, sensor: int, stamp_ns: int, x: float, y: float, z: float) -> bool:
+    def reset(self) -> None:
+        """Forget the last stamps (the source restarted); the counts stay."""
+        # Per sensor: (stamp, arrival on the node's clock, reading) of its last accepted one.
+        self._last: list[tuple[int, int, tuple[float, float, float]] | None] = [None] * 4
+
+    def accept(
+        self, sensor: int, stamp_ns: int, now_ns: int, x: float, y: float, z: float
+    ) -> bool:
         """True if the reading may go on to the set former; else it was counted."""
         if stamp_ns == 0:
             return self._count(sensor, 'zero_stamp')
-        others = [e[0] for j, e in enumerate(self._last) if j != sensor and e is not None]
-        if len(others) >= 2 and abs(stamp_ns - float(np.median(others))) > self.tolerance_ns:
-            own = self._last[sensor]
-            if own is None or abs(stamp_ns - own[0]) < self.tolerance_ns:
-                # Not a restart of every source: this sensor alone is off the others.
-                return self._count(sensor, 'other_clock')
+        others = sorted(
+            e[0]
+            for j, e in enumerate(self._last)
+            if j != sensor and e is not None and now_ns - e[1] <= self.recent_ns
+        )
+        if others and abs(stamp_ns - others[len(others) // 2]) > self.tolerance_ns:
+            return self._count(sensor, 'other_clock')
         last = self._last[sensor]
-        if last is not None and stamp_ns == last[0] and last[1] != (x, y, z):
+        if last is not None and stamp_ns == last[0] and last[2] != (x, y, z):
             return self._count(sensor, 'duplicate_stamp')
-        self._last[sensor] = (stamp_ns, (x, y, z))
+        self._last[sensor] = (stamp_ns, now_ns, (x, y, z))
         norms = self._norms[sensor]
         norms[self._filled[sensor] % len(norms)] = (x * x + y * y + z * z) ** 0.5
         self._filled[sensor] += 1
@@ -580,8 +592,7 @@ class LiveStreamCheck:
         lo, hi = EARTH_RANGE_T
         if lo / MAGNITUDE_FACTOR <= median <= hi * MAGNITUDE_FACTOR or not np.isfinite(median):
             return ''
-        ratio = median / lo if median < lo else median / hi
         return (
-            f'median |B| {median:.4g}, {ratio:.3g}x the Earth field range '
-            f'({lo * 1e6:.0f}-{hi * 1e6:.0f} µT): {magnitude_mismatch(ratio)}'
+            f"median |B| {median:.4g} of the last {n} readings, outside the Earth field's "
+            f'{lo * 1e6:.0f}-{hi * 1e6:.0f} µT: {magnitude_mismatch(median / np.sqrt(lo * hi))}'
         )

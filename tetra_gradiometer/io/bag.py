@@ -228,32 +228,22 @@ class MagneticBag:
         as ``timebase`` says (default: resampled to sensor 1's stamps).
 
         ``window_s`` keeps sets whose stamp, in seconds from the first set's stamp, lies in
-        ``[t0, t1]``. Each chunk of the four streams is checked before sets are formed
-        (:class:`~tetra_gradiometer.core.streams.StreamChecker`, ``earth_field_t`` the
-        expected ``|B|``, T, or None). After the loop, ``self.counters`` holds the set former's
-        counts, ``self.streams`` the streams' faults and ``self.clocks`` the sensors' clocks.
-        ``fast=False`` forces the generic path (rosbags deserializer, one message at a time
-        through the matcher); both give the same sets. An undecodable message or unreadable
-        chunk is skipped and recorded in :attr:`skipped`.
+        ``[t0, t1]``. The streams are checked before sets are formed (core/streams.py;
+        ``earth_field_t``: the expected ``|B|``, T). After the loop, ``self.counters`` holds the
+        set former's counts (``.streams``: the streams' faults), ``self.clocks`` the clocks.
+        ``fast=False``: the generic path (rosbags, message by message), the same sets. An
+        undecodable message or unreadable chunk is skipped and recorded in :attr:`skipped`.
 
-        Raises
-        ------
-        BagError
-            Contract violations (see :meth:`check_contract`), no set could be matched, or
-            more than ``max_skipped_fraction`` of the magnetometer messages were skipped.
-        StreamError
-            A stream that cannot be used (zero stamps, another epoch, a unit factor).
+        Raises BagError: the contract broken (:meth:`check_contract`), no set formed, more than
+        ``max_skipped_fraction`` of the magnetometer messages skipped, or a stream that cannot
+        be used (``StreamError``: zero stamps, another epoch, a unit).
         """
         total = self.check_contract()
         if chunk_size < 1:
             raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
         form = set_former(timebase)
         self.counters, self.clocks = form.counters, None
-        checker = StreamChecker(
-            earth_field_t=earth_field_t,
-            source=str(self.path),
-            reference_rate_hz=timebase.reference_rate_hz,
-        )
+        checker = StreamChecker(earth_field_t, str(self.path), timebase.reference_rate_hz)
         index = {
             c.id: cv.BAG_MAG_TOPICS.index(self.topic_of(c.topic))
             for c in self.reader.connections
@@ -271,15 +261,10 @@ class MagneticBag:
             lost[0] += n if self.topic_of(record.topic) in cv.BAG_MAG_TOPICS else 0
 
         def flush(final: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-            decoded = [self._decode(raws[sensor], fast, on_skip) for sensor in range(4)]
+            batches = self._checked(raws, fast, on_skip, checker, final)
             raws[:] = [[] for _ in range(4)]
             self._check_skipped(lost[0], total, 'magnetometer')
-            stamps_in, fields_in, logs_in = (list(c) for c in zip(*decoded, strict=True))
-            checked = checker.check(stamps_in, fields_in, logs_in, final=final)
-            batches = list(zip(*checked, strict=True))
-            stamps, fields = form.add(batches, final=final, fast=fast)
-            if final:
-                form.finish()
+            stamps, fields = form.add(batches, final=final, fast=fast)  # final: form.finish()
             if len(stamps) and not first:
                 first.append(int(stamps[0]))
             if window_s is not None and len(stamps):
@@ -304,11 +289,23 @@ class MagneticBag:
             self.clocks = form.clocks()
             self.streams = form.counters.streams = checker.finish()
         if form.counters.sets == 0:
-            faults = self.streams.text()
             raise BagError(
                 f'{self.path}: no sample set could be formed ({timebase.text}): '
-                f'{form.counters.text()}' + (f'; {faults}' if faults else '')
+                f'{form.counters.text()}'
             )
+
+    def _checked(
+        self,
+        raws: list[list[tuple[Any, int, bytes]]],
+        fast: bool,
+        on_skip: Callable[[SkippedMessage], None],
+        checker: StreamChecker,
+        final: bool,
+    ) -> list[tuple[IntArray, FloatArray]]:
+        """Each sensor's items decoded and checked (core/streams): ``(stamps, fields)``."""
+        decoded = [self._decode(raws[sensor], fast, on_skip) for sensor in range(4)]
+        stamps, fields, logs = (list(c) for c in zip(*decoded, strict=True))
+        return list(zip(*checker.check(stamps, fields, logs, final=final), strict=True))
 
     def _decode(
         self,

@@ -248,6 +248,8 @@ class _BatchMatcher:
                 out_stamps.append(np.array([m[0] for m in matched], dtype=np.int64))
                 out_fields.append(np.array([m[1] for m in matched]))
             self.pending = [(p[0][:0], p[1][:0]) for p in self.pending]
+        if final:
+            self.finish()
         return _join(out_stamps, out_fields)
 
     def clocks(self) -> None:
@@ -277,6 +279,8 @@ class _BatchResampler:
         # Sensor 1 last: its stamps are the instants, resolved at once when the others
         # are in (not queued against max_pending while they are still to come).
         out = [self.resampler.add(sensor, *batches[sensor]) for sensor in (1, 2, 3, 0)]
+        if final:
+            self.finish()
         return _join([o[0] for o in out if len(o[0])], [o[1] for o in out if len(o[0])])
 
     def clocks(self) -> tuple[ClockEstimate, ...]:

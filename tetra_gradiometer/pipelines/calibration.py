@@ -234,6 +234,21 @@ def read_window(
     return WindowSets(*joined, span, counters, clocks, first or 0, *skipped)
 
 
+def _read_plausible(
+    bag_path: str | os.PathLike[str],
+    window: tuple[float, float] | None,
+    timebase: TimeBase,
+    progress: bool | None,
+    earth_field_t: float | None,
+) -> tuple[WindowSets, DroppedSets]:
+    """:func:`read_window` (the streams checked against ``earth_field_t``), then
+    :func:`_plausible`."""
+    sets = read_window(
+        bag_path, window, timebase=timebase, progress=progress, earth_field_t=earth_field_t
+    )
+    return _plausible(sets, bag_path)
+
+
 def _plausible(
     sets: WindowSets, bag_path: str | os.PathLike[str]
 ) -> tuple[WindowSets, DroppedSets]:
@@ -284,8 +299,7 @@ def calibrate_bag(
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force : keep a calibration that fails the window check (warning in its diagnostics)
     effects : the vehicle effects to fit (None: automatic selection)
-    earth_field_t : the Earth field's |B|, T (the params' ``earth_field_enu``), for the
-        streams' magnitude check (None: the range over the globe)
+    earth_field_t : |B| of the Earth field, T, for the streams' check (core/streams)
 
     Raises
     ------
@@ -295,12 +309,7 @@ def calibrate_bag(
     IdentifiabilityError : the window cannot identify the parameters (message names it)
     CalibrationFileError : the method gives no ``k, b`` calibration"""
     _check_limits(max_sets, generations)
-    sets, dropped = _plausible(
-        read_window(
-            bag_path, window, timebase=timebase, progress=progress, earth_field_t=earth_field_t
-        ),
-        bag_path,
-    )
+    sets, dropped = _read_plausible(bag_path, window, timebase, progress, earth_field_t)
     n_window = len(sets.stamps_ns)
     thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
     text = window_text(window)

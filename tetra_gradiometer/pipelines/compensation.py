@@ -312,8 +312,7 @@ def compensate_bag(
         ``fast`` False decodes with rosbags and matches message by message (same result)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force, inputs : as for :func:`~tetra_gradiometer.io.outputs.atomic_output`
-    earth_field_t : the Earth field's |B|, T, for the streams' magnitude check (None: the
-        range over the globe; :mod:`~tetra_gradiometer.core.streams`)
+    earth_field_t : |B| of the Earth field, T, for the streams' check (core/streams)
 
     Raises
     ------
@@ -348,17 +347,21 @@ def compensate_bag(
             first = int(stamps[0]) if n_sets == 0 else first
             last = int(stamps[-1])
             n_sets += len(stamps)
-        if n_sets == 0:
-            raise BagError(
-                f'{Path(bag_path)}: every matched set has an implausible reading '
-                f'({dropped.text()})'
-            )
+        _require_sets(n_sets, bag_path, dropped)
     span_s = (last - first) * S_PER_NS
     skipped = bag.skipped_messages, bag.skipped_summary()
     channel = (0, '') if terms is None else (sum(terms.unknown.values()), terms.text())
     return CompensationCounts(
         n_sets, dropped, span_s, topic, bag.counters, bag.clocks, *skipped, *channel
     )
+
+
+def _require_sets(n_sets: int, bag_path: PathLike, dropped: DroppedSets) -> None:
+    """BagError when no set was written: every matched set had an implausible reading."""
+    if n_sets == 0:
+        raise BagError(
+            f'{Path(bag_path)}: every matched set has an implausible reading ({dropped.text()})'
+        )
 
 
 def _feed(
