@@ -15,7 +15,8 @@ import yaml
 from cli_helpers import assert_refused, run_cli, snapshot
 from stream_faults import START_NS, short_mission, write_bag, write_params
 
-from tetra_gradiometer.core.streams import StreamChecker, StreamError, magnitude_mismatch
+from tetra_gradiometer.core.streams import StreamChecker, magnitude_mismatch
+from tetra_gradiometer.errors import StreamError
 
 GPS_UNIX_S = 315_964_800
 

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import BagError
+from ..errors import StreamError
 from .types import FloatArray
 from .units import NS_PER_S, S_PER_NS
 
@@ -51,7 +51,6 @@ __all__ = [
     'UNIT_FACTORS',
     'LiveStreamCheck',
     'StreamChecker',
-    'StreamError',
     'StreamFault',
     'StreamReport',
     'magnitude_mismatch',
@@ -97,11 +96,6 @@ KNOWN_OFFSETS_S = (
 )
 
 TOPICS = tuple(f'/tetra/mag{i + 1}' for i in range(4))
-
-
-class StreamError(BagError):
-    """A magnetometer stream cannot be used (its stamps or its unit), named with the sensor
-    and the time span."""
 
 
 @dataclass(frozen=True)
@@ -531,9 +525,9 @@ class StreamChecker:
 class LiveStreamCheck:
     """The tensor node's per-message checks (drop and count, never raise): a zero stamp, a
     stamp more than ``tolerance_s`` from the stamps the other sensors sent in the last
-    ``recent_s`` (another epoch or clock, a jump on one sensor: when every source jumps at
-    once, the others fall silent on the old clock and the new one is accepted after
-    ``recent_s``), a repeated stamp with another reading; and each sensor's recent |B|
+    ``recent_s``, accepted or not (another epoch or clock, a jump on one sensor; when every
+    source restarts, the median of the others is on the new clock once two have moved), a
+    repeated stamp with another reading; and each sensor's recent |B|
     against the Earth's range (:meth:`magnitude_text`).
 
     Counts per sensor in :attr:`dropped`: ``{'zero_stamp': n, 'other_clock': n,
@@ -554,8 +548,10 @@ class LiveStreamCheck:
 
     def reset(self) -> None:
         """Forget the last stamps (the source restarted); the counts stay."""
-        # Per sensor: (stamp, arrival on the node's clock, reading) of its last accepted one.
-        self._last: list[tuple[int, int, tuple[float, float, float]] | None] = [None] * 4
+        # Per sensor: the last stamp received (accepted or not) and its arrival on the node's
+        # clock: the others' reference; the last reading accepted: for repeated stamps.
+        self._seen: list[tuple[int, int] | None] = [None] * 4
+        self._last: list[tuple[int, tuple[float, float, float]] | None] = [None] * 4
 
     def accept(
         self, sensor: int, stamp_ns: int, now_ns: int, x: float, y: float, z: float
@@ -565,15 +561,16 @@ class LiveStreamCheck:
             return self._count(sensor, 'zero_stamp')
         others = sorted(
             e[0]
-            for j, e in enumerate(self._last)
+            for j, e in enumerate(self._seen)
             if j != sensor and e is not None and now_ns - e[1] <= self.recent_ns
         )
+        self._seen[sensor] = (stamp_ns, now_ns)  # a restart of every source moves them all
         if others and abs(stamp_ns - others[len(others) // 2]) > self.tolerance_ns:
             return self._count(sensor, 'other_clock')
         last = self._last[sensor]
-        if last is not None and stamp_ns == last[0] and last[2] != (x, y, z):
+        if last is not None and stamp_ns == last[0] and last[1] != (x, y, z):
             return self._count(sensor, 'duplicate_stamp')
-        self._last[sensor] = (stamp_ns, now_ns, (x, y, z))
+        self._last[sensor] = (stamp_ns, (x, y, z))
         norms = self._norms[sensor]
         norms[self._filled[sensor] % len(norms)] = (x * x + y * y + z * z) ** 0.5
         self._filled[sensor] += 1

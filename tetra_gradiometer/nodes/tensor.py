@@ -250,16 +250,16 @@ class TensorNode(ManagedNode):
             if self._warn():
                 self.get_logger().warning(f'dropped a malformed {cv.MAG_TOPICS[sensor]}: {error}')
             return
-        last = self._last_stamp[sensor]
-        if last is not None and stamp < last - self._jump_back_ns:
-            self._reset_matcher(sensor, last - stamp)
-        self._last_stamp[sensor] = stamp
         if not self._streams.accept(sensor, stamp, self._now_ns(), *reading[:3].tolist()):
             if self._warn():
                 self.get_logger().warning(
                     f'dropped a {cv.MAG_TOPICS[sensor]} reading: {self._stream_text(sensor)}'
                 )
-            return
+            return  # before the restart test: one sensor off the others is no restart
+        last = self._last_stamp[sensor]
+        if last is not None and stamp < last - self._jump_back_ns:
+            self._reset_matcher(sensor, last - stamp)
+        self._last_stamp[sensor] = stamp
         if sensor == 0:
             self._mag1_frame = frame_id
         sets: Iterable[tuple[int, np.ndarray]]
