@@ -151,6 +151,7 @@ MATCHER_KEYS = {
     'skipped_gap': 'sets_skipped_gap',
     'skipped_start': 'sets_skipped_start',
     'evicted': 'sets_evicted',
+    'skipped_end': 'sets_skipped_end',
 }
 
 
