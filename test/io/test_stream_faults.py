@@ -9,6 +9,8 @@ survey line at 10 Hz, simulated), the factor each fault was built with.
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -137,6 +139,12 @@ def test_a_sensor_that_stops_halfway_is_named_with_span_and_sets_lost(mission, p
     assert _csv_stamps(tmp_path / 'g.csv') == log[: n // 2].tolist()  # every set with all four
     assert f'{n - n // 2} sets skipped' in out and f'{n - n // 2} at stream ends' in out
     assert '/tetra/mag3 (sensor 3) stops at 24.9 s of 49.9 s: no data 24.9-49.9 s, 250 sets lost' in out
+    # ... in the output bag's metadata (rosbag2 custom_data) ...
+    code, out, err = run_cli(capsys, 'compensate', bag, '--params', params[0], '--raw', '--out-bag', tmp_path / 'out')
+    assert code == 0, err
+    metadata = yaml.safe_load((tmp_path / 'out' / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    faults = json.loads(metadata['custom_data']['tetra_gradiometer.stream_faults'])
+    assert faults['sets_lost_stream_faults'] == 250 and faults['stream_faults'][0]['topic'] == '/tetra/mag3'
     # ... and in the calibration file's diagnostics (the output's metadata).
     code, out, err = run_cli(capsys, 'calibrate', bag, '--params', params[0], '--out', tmp_path / 'c.yaml')
     assert code == 0, err

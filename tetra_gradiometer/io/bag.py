@@ -467,6 +467,10 @@ class BagWriter:
             connection, int(stamp_ns), self.store.serialize_cdr(msg, msg.__msgtype__)
         )
 
+    def set_custom_data(self, key: str, value: str) -> None:
+        """A key of the bag's ``metadata.yaml`` ``custom_data`` (rosbag2's free-form strings)."""
+        self._writer.set_custom_data(key, value)
+
     def write_raw(self, topic: str, msgtype: str, data: bytes, stamp_ns: int) -> None:
         """Write one already serialized (CDR) message, logged at ``stamp_ns``."""
         self._writer.write(self._connection(topic, msgtype), int(stamp_ns), data)

@@ -27,6 +27,7 @@ from ..core.odometry import (
     check_odometry,
 )
 from ..core.plausibility import DroppedSets, plausible_sets
+from ..core.streams import StreamReport
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.types import FloatArray
 from ..core.units import NS_PER_S, S_PER_NS
@@ -196,6 +197,7 @@ class Recording:
     missing : topic -> why it is unavailable
     dropped : sets dropped as implausible (:mod:`~tetra_gradiometer.core.plausibility`)
     skipped_messages : messages skipped as undecodable or unreadable (``MagneticBag.skipped``)
+    streams : the magnetometer streams' faults (:mod:`~tetra_gradiometer.core.streams`)
     """
 
     stamps_ns: np.ndarray
@@ -208,10 +210,17 @@ class Recording:
     missing: dict[str, str] = field(default_factory=dict)
     dropped: DroppedSets = field(default_factory=DroppedSets)
     skipped_messages: int = 0
+    streams: StreamReport = field(default_factory=StreamReport)
 
     def input_counts(self) -> dict[str, int]:
-        """What was not analysed, for reports: sets dropped by reason, messages skipped."""
-        return {**self.dropped.as_dict(), 'messages_skipped_undecodable': self.skipped_messages}
+        """What was not analysed, for reports: sets dropped by reason, messages skipped, sets
+        lost to the streams' faults."""
+        return {
+            **self.dropped.as_dict(),
+            'messages_skipped_undecodable': self.skipped_messages,
+            'stream_faults': len(self.streams.faults),
+            'sets_lost_stream_faults': self.streams.sets_lost,
+        }
 
     @property
     def t_s(self) -> np.ndarray:
@@ -266,7 +275,7 @@ def read_recording(
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
         currents = _extra_currents(bag, stamps, missing)
-        skipped = bag.skipped_messages
+        skipped, streams = bag.skipped_messages, bag.streams
     return Recording(
         stamps,
         fields,
@@ -274,6 +283,7 @@ def read_recording(
         missing=missing,
         dropped=dropped,
         skipped_messages=skipped,
+        streams=streams,
         **extras,
     )
 

@@ -24,6 +24,7 @@ set's stamp (``conversions.tensor_msg``).
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterable
 from contextlib import ExitStack
@@ -347,7 +348,7 @@ def compensate_bag(
             first = int(stamps[0]) if n_sets == 0 else first
             last = int(stamps[-1])
             n_sets += len(stamps)
-        _require_sets(n_sets, bag_path, dropped)
+        _close_read(n_sets, bag_path, dropped, bag, writer)
     span_s = (last - first) * S_PER_NS
     skipped = bag.skipped_messages, bag.skipped_summary()
     channel = (0, '') if terms is None else (sum(terms.unknown.values()), terms.text())
@@ -356,11 +357,22 @@ def compensate_bag(
     )
 
 
-def _require_sets(n_sets: int, bag_path: PathLike, dropped: DroppedSets) -> None:
-    """BagError when no set was written: every matched set had an implausible reading."""
+def _close_read(
+    n_sets: int,
+    bag_path: PathLike,
+    dropped: DroppedSets,
+    bag: MagneticBag,
+    writer: BagWriter | None,
+) -> None:
+    """BagError when no set was written (every matched set had an implausible reading); else
+    the streams' faults into the output bag's metadata (``custom_data``)."""
     if n_sets == 0:
         raise BagError(
             f'{Path(bag_path)}: every matched set has an implausible reading ({dropped.text()})'
+        )
+    if writer is not None and bag.streams.faults:
+        writer.set_custom_data(
+            'tetra_gradiometer.stream_faults', json.dumps(bag.streams.as_dict())
         )
 
 
