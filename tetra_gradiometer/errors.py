@@ -19,6 +19,7 @@ __all__ = [
     'OutputError',
     'ParamsError',
     'ScenarioError',
+    'StreamError',
     'TetraError',
 ]
 
@@ -58,6 +59,11 @@ class CalibrationFileError(InputError):
 
 class BagError(InputError):
     """A rosbag2 folder is missing, unreadable or does not follow the data contract."""
+
+
+class StreamError(BagError):
+    """A magnetometer stream cannot be used (its stamps or its unit): the message names the
+    sensor and the time span (core/streams.py)."""
 
 
 class ScenarioError(InputError):

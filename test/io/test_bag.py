@@ -82,7 +82,7 @@ def _irregular_streams(rng):
         if sensor == 3:
             stamps[2000:2100] += rng.integers(-800_000, 800_000, 100)   # jitter within 2 ms
             stamps[2200] += 4_000_000                          # beyond tolerance
-            stamps[2500] = stamps[2499]                        # repeated stamp (out of order)
+            stamps[2500] = stamps[2499]                        # repeated stamp, another reading
         streams.append((stamps[keep], rng.normal(0.0, 5e-5, (keep.sum(), 3))))
     return streams
 
@@ -123,7 +123,12 @@ def test_fast_reading_equals_the_generic_path(tmp_path, storage, sync):
     assert np.array_equal(stamps[:1500], streams[0][0][:1500])
     for sensor in range(4):
         assert np.array_equal(fields[:1500, sensor], streams[sensor][1][:1500])
-    assert counters.out_of_order == 1
+    # The repeated stamp carries another reading: both are dropped (which one is the sample at
+    # that stamp is unknowable), named as a stream fault of sensor 4 at 25.0 s.
+    assert counters.out_of_order == 0
+    (fault,) = counters.streams.faults
+    assert (fault.sensor, fault.kind, fault.messages) == (3, 'duplicate_stamps', 2)
+    assert fault.start_s == pytest.approx(24.99, abs=0.011)
     if sync == 'nearest':
         assert counters.dropped_messages > 0
     else:  # the lost message and the jitter are interpolated across: every instant but none

@@ -49,6 +49,8 @@ import argparse
 import time
 from pathlib import Path
 
+import numpy as np
+
 from ..core.geometry import TetraGeometry
 from ..core.health import HealthConfig
 from ..core.timebase import clocks_text
@@ -56,7 +58,7 @@ from ..core.units import NT_PER_T
 from ..errors import InputError
 from ..io.bag import STORAGES
 from ..io.outputs import HEALTH_REPORT, check_output
-from ..io.params import geometry_from_params, load_params
+from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.compensation import (
     Compensation,
     check_outputs,
@@ -151,7 +153,9 @@ def run(args: argparse.Namespace) -> int:
     check_outputs(args.csv, args.out_bag, force=args.force, inputs=inputs)
     if args.report is not None:
         check_output(args.report, HEALTH_REPORT, force=args.force, inputs=inputs)
-    geometry = geometry_from_params(load_params(args.params), source=args.params)
+    params = load_params(args.params)
+    geometry = geometry_from_params(params, source=args.params)
+    earth = earth_field_from_params(params, str(args.params))
     compensation = load_compensation(
         None if args.raw else args.calibration,
         geometry,
@@ -174,6 +178,7 @@ def run(args: argparse.Namespace) -> int:
         force=args.force,
         inputs=inputs,
         allow_missing_channels=args.allow_missing_channels,
+        earth_field_t=None if earth is None else float(np.linalg.norm(earth)),
     )
     elapsed = time.perf_counter() - started
     kind = 'raw' if args.raw else 'compensated'

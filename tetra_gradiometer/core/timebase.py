@@ -38,6 +38,7 @@ import numpy.typing as npt
 
 from ..errors import InputError
 from .plausibility import MAX_FIELD_T, plausible_reading, plausible_readings
+from .streams import StreamReport
 from .units import NS_PER_S, S_PER_NS
 
 IntArray = npt.NDArray[np.int64]
@@ -112,9 +113,12 @@ class ResampleCounters:
     sets : sets emitted
     skipped_gap : reference instants skipped: a sensor had a gap longer than the limit there
     skipped_start : reference instants before some sensor's first sample
+    skipped_end : reference instants after some sensor's last sample (a stream that stopped;
+        counted by :meth:`Resampler.finish` at the end of a recording)
     out_of_order : messages refused because their stamp did not increase on their sensor
     evicted : reference instants dropped unresolved because a sensor stayed silent for more
         than ``max_pending`` of them
+    streams : the streams' faults found before the sets were formed (offline reads)
     """
 
     sets: int = 0
@@ -122,26 +126,30 @@ class ResampleCounters:
     skipped_start: int = 0
     out_of_order: int = 0
     evicted: int = 0
+    skipped_end: int = 0
+    streams: StreamReport = field(default_factory=StreamReport)
 
     @property
     def skipped(self) -> int:
-        return self.skipped_gap + self.skipped_start + self.evicted
+        return self.skipped_gap + self.skipped_start + self.skipped_end + self.evicted
 
     def text(self) -> str:
-        """For summaries: '2 sets skipped (0 at gaps, 2 at stream starts, 0 evicted), 0 out
-        of order'."""
+        """For summaries: '2 sets skipped (0 at gaps, 2 at stream starts, 0 at stream ends,
+        0 evicted), 0 out of order'."""
         return (
             f'{self.skipped} sets skipped ({self.skipped_gap} at gaps, {self.skipped_start} at '
-            f'stream starts, {self.evicted} evicted), {self.out_of_order} out of order'
-        )
+            f'stream starts, {self.skipped_end} at stream ends, {self.evicted} evicted), '
+            f'{self.out_of_order} out of order'
+        ) + (f'; {self.streams.text()}' if self.streams.faults else '')
 
-    def as_dict(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, Any]:
         """Calibration-file diagnostics."""
-        return {
+        return self.streams.as_dict() | {
             'sets_resampled': self.sets,
             'sets_skipped_gap': self.skipped_gap,
             'sets_skipped_start': self.skipped_start,
             'sets_evicted': self.evicted,
+            'sets_skipped_end': self.skipped_end,
             'messages_out_of_order': self.out_of_order,
         }
 
@@ -501,6 +509,19 @@ class Resampler:
 
     def _grid_next_ns(self) -> float:
         return (self._grid_next or 0) * NS_PER_S / self.timebase.reference_rate_hz
+
+    def finish(self) -> None:
+        """The recording has ended: the reference instants still waiting (some sensor's stream
+        stopped before them) are counted in ``skipped_end`` and forgotten."""
+        self.counters.skipped_end += len(self._pending)
+        self._pending = np.zeros(0, np.int64)
+        lasts = [last for last in self._last if last is not None]
+        if self.timebase.reference_rate_hz and self._grid_next is not None and lasts:
+            period = NS_PER_S / self.timebase.reference_rate_hz
+            self.counters.skipped_end += max(
+                int(np.floor(max(lasts) / period)) + 1 - self._grid_next, 0
+            )
+            self._grid_next = int(np.floor(max(lasts) / period)) + 1
 
     # ----------------------------------------------------------------- reports
 

@@ -43,8 +43,9 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, ResampleCounters, Resampler, TimeBase
-from ..core.units import NS_PER_S, S_PER_NS
+from ..core.streams import StreamChecker, StreamReport
+from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, ResampleCounters, TimeBase
+from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
 from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEncoding: re-exported)
@@ -57,7 +58,7 @@ from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEnc
     skip_reason,
 )
 from .bag_skips import MAX_SKIPPED_FRACTION, SkippedMessage, guarded_messages, summary
-from .matching import MatchCounters, StampMatcher
+from .matching import MatchCounters, set_former
 from .outputs import BAG, atomic_output, check_output
 from .progress import progress_bar
 
@@ -69,104 +70,6 @@ IntArray = npt.NDArray[np.int64]
 SetCounters = MatchCounters | ResampleCounters
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
-
-
-class _BatchMatcher:
-    """Pairs per-sensor batches by stamp (``sync='nearest'``); equal-stamp runs with
-    arrays, the rest via StampMatcher.
-
-    Equivalent to feeding every message to the StampMatcher: a run is taken on the fast path
-    only when the matcher holds nothing and the next ``k`` stamps of all four sensors are
-    identical, strictly increasing and newer than each sensor's last accepted stamp; the
-    StampMatcher would emit exactly those ``k`` sets.
-    """
-
-    def __init__(self, matcher: StampMatcher) -> None:
-        self.matcher = matcher
-        self.counters = matcher.counters
-        self.pending: list[tuple[np.ndarray, np.ndarray]] = [
-            (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) for _ in range(4)
-        ]
-
-    def add(
-        self,
-        batches: list[tuple[np.ndarray, np.ndarray]],
-        *,
-        final: bool = False,
-        fast: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Add per-sensor ``(stamps, values)``; return the completed sets as arrays."""
-        self.pending = [
-            (np.concatenate([p[0], b[0]]), np.concatenate([p[1], b[1]]))
-            for p, b in zip(self.pending, batches, strict=True)
-        ]
-        out_stamps: list[np.ndarray] = []
-        out_fields: list[np.ndarray] = []
-        if fast and self.matcher.pending_oldest_ns() is None:
-            k = min(len(p[0]) for p in self.pending)
-            if k > 0:
-                reference = self.pending[0][0][:k]
-                same = all(np.array_equal(p[0][:k], reference) for p in self.pending[1:])
-                if same and self.matcher.take_run(reference):
-                    out_stamps.append(reference.copy())
-                    out_fields.append(np.stack([p[1][:k] for p in self.pending], axis=1))
-                    self.pending = [(p[0][k:], p[1][k:]) for p in self.pending]
-                    if not final:
-                        return _join(out_stamps, out_fields)
-        # Generic path: everything pending, in stamp order across sensors (as logged).
-        stamps = np.concatenate([p[0] for p in self.pending])
-        if len(stamps):
-            sensors = np.concatenate([np.full(len(p[0]), i) for i, p in enumerate(self.pending)])
-            values = np.concatenate([p[1] for p in self.pending])
-            order = np.argsort(stamps, kind='stable')
-            matched = []
-            for j in order:
-                matched.extend(self.matcher.add(int(sensors[j]), int(stamps[j]), values[j]))
-            if matched:
-                out_stamps.append(np.array([m[0] for m in matched], dtype=np.int64))
-                out_fields.append(np.array([m[1] for m in matched]))
-            self.pending = [(p[0][:0], p[1][:0]) for p in self.pending]
-        return _join(out_stamps, out_fields)
-
-    def clocks(self) -> None:
-        return None
-
-
-class _BatchResampler:
-    """Resamples per-sensor batches (``sync='interpolate'``); same interface as
-    :class:`_BatchMatcher`."""
-
-    def __init__(self, timebase: TimeBase) -> None:
-        self.resampler = Resampler(timebase)
-        self.counters = self.resampler.counters
-
-    def add(
-        self,
-        batches: list[tuple[np.ndarray, np.ndarray]],
-        *,
-        final: bool = False,
-        fast: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Add per-sensor ``(stamps, values)``; return the sets completed, in stamp order."""
-        # Sensor 1 last: its stamps are the instants, resolved at once when the others
-        # are in (not queued against max_pending while they are still to come).
-        out = [self.resampler.add(sensor, *batches[sensor]) for sensor in (1, 2, 3, 0)]
-        return _join([o[0] for o in out if len(o[0])], [o[1] for o in out if len(o[0])])
-
-    def clocks(self) -> tuple[ClockEstimate, ...]:
-        return self.resampler.clocks()
-
-
-def _set_former(timebase: TimeBase) -> _BatchMatcher | _BatchResampler:
-    if timebase.sync == 'nearest':
-        return _BatchMatcher(StampMatcher(int(round(timebase.tolerance_s * NS_PER_S))))
-    return _BatchResampler(timebase)
-
-
-def _join(stamps: list[np.ndarray], fields: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    if not stamps:
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 3))
-    return np.concatenate(stamps), np.concatenate(fields)
 
 
 def typestore() -> Any:
@@ -223,6 +126,7 @@ class MagneticBag:
         self.max_skipped_fraction = max_skipped_fraction
         self._reader: AnyReader | None = None
         self.counters: SetCounters = MatchCounters()
+        self.streams = StreamReport()
         self.clocks: tuple[ClockEstimate, ...] | None = None
         self.skipped: list[SkippedMessage] = []
         self._seen: set[SkippedMessage] = set()
@@ -318,28 +222,28 @@ class MagneticBag:
         window_s: tuple[float, float] | None = None,
         progress: bool | None = None,
         fast: bool = True,
+        earth_field_t: float | None = None,
     ) -> Generator[tuple[IntArray, FloatArray], None, None]:
         """Sample sets in chunks: ``(stamps_ns (n,) int64, fields (n, 4, 3) tesla)``, formed
         as ``timebase`` says (default: resampled to sensor 1's stamps).
 
         ``window_s`` keeps sets whose stamp, in seconds from the first set's stamp, lies in
-        ``[t0, t1]``. After the loop, ``self.counters`` holds the set former's counts and
-        ``self.clocks`` the sensors' clocks.
-        ``fast=False`` forces the generic path (rosbags deserializer, one message at a time
-        through the matcher); both give the same sets. An undecodable message or unreadable
-        chunk is skipped and recorded in :attr:`skipped`.
+        ``[t0, t1]``. The streams are checked before sets are formed (core/streams.py;
+        ``earth_field_t``: the expected ``|B|``, T). After the loop, ``self.counters`` holds the
+        set former's counts (``.streams``: the streams' faults), ``self.clocks`` the clocks.
+        ``fast=False``: the generic path (rosbags, message by message), the same sets. An
+        undecodable message or unreadable chunk is skipped and recorded in :attr:`skipped`.
 
-        Raises
-        ------
-        BagError
-            Contract violations (see :meth:`check_contract`), no set could be matched, or
-            more than ``max_skipped_fraction`` of the magnetometer messages were skipped.
+        Raises BagError: the contract broken (:meth:`check_contract`), no set formed, more than
+        ``max_skipped_fraction`` of the magnetometer messages skipped, or a stream that cannot
+        be used (``StreamError``: zero stamps, another epoch, a unit).
         """
         total = self.check_contract()
         if chunk_size < 1:
             raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
-        form = _set_former(timebase)
+        form = set_former(timebase)
         self.counters, self.clocks = form.counters, None
+        checker = StreamChecker(earth_field_t, str(self.path), timebase.reference_rate_hz)
         index = {
             c.id: cv.BAG_MAG_TOPICS.index(self.topic_of(c.topic))
             for c in self.reader.connections
@@ -357,10 +261,10 @@ class MagneticBag:
             lost[0] += n if self.topic_of(record.topic) in cv.BAG_MAG_TOPICS else 0
 
         def flush(final: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-            batches = [self._decode(raws[sensor], fast, on_skip) for sensor in range(4)]
+            batches = self._checked(raws, fast, on_skip, checker, final)
             raws[:] = [[] for _ in range(4)]
             self._check_skipped(lost[0], total, 'magnetometer')
-            stamps, fields = form.add(batches, final=final, fast=fast)
+            stamps, fields = form.add(batches, final=final, fast=fast)  # final: form.finish()
             if len(stamps) and not first:
                 first.append(int(stamps[0]))
             if window_s is not None and len(stamps):
@@ -383,27 +287,44 @@ class MagneticBag:
         finally:  # also when the caller stops early (generator closed)
             bar.close()
             self.clocks = form.clocks()
+            self.streams = form.counters.streams = checker.finish()
         if form.counters.sets == 0:
             raise BagError(
                 f'{self.path}: no sample set could be formed ({timebase.text}): '
                 f'{form.counters.text()}'
             )
 
+    def _checked(
+        self,
+        raws: list[list[tuple[Any, int, bytes]]],
+        fast: bool,
+        on_skip: Callable[[SkippedMessage], None],
+        checker: StreamChecker,
+        final: bool,
+    ) -> list[tuple[IntArray, FloatArray]]:
+        """Each sensor's items decoded and checked (core/streams): ``(stamps, fields)``."""
+        decoded = [self._decode(raws[sensor], fast, on_skip) for sensor in range(4)]
+        stamps, fields, logs = (list(c) for c in zip(*decoded, strict=True))
+        return list(zip(*checker.check(stamps, fields, logs, final=final), strict=True))
+
     def _decode(
         self,
         items: list[tuple[Any, int, bytes]],
         fast: bool,
         on_skip: Callable[[SkippedMessage], None],
-    ) -> tuple[IntArray, FloatArray]:
-        """One sensor's ``(connection, log_ns, raw)`` items -> stamps, fields; the malformed
-        ones go to ``on_skip``."""
+    ) -> tuple[IntArray, FloatArray, IntArray]:
+        """One sensor's ``(connection, log_ns, raw)`` items -> stamps, fields, log times;
+        the malformed ones go to ``on_skip``."""
         if fast:
             stamps, values, bad = decode_checked([r for _, _, r in items])
         else:
             stamps, values, bad = self._deserialize(items)
+        good = np.ones(len(items), bool)
         for i, reason in bad:
             on_skip(SkippedMessage(items[i][0].topic, items[i][1], reason))
-        return stamps, values
+            good[i] = False
+        log_ns = np.fromiter((log for _, log, _ in items), np.int64, len(items))[good]
+        return stamps, values, log_ns
 
     def _deserialize(
         self, items: list[tuple[Any, int, bytes]]
@@ -545,6 +466,10 @@ class BagWriter:
         self._writer.write(
             connection, int(stamp_ns), self.store.serialize_cdr(msg, msg.__msgtype__)
         )
+
+    def set_custom_data(self, key: str, value: str) -> None:
+        """A key of the bag's ``metadata.yaml`` ``custom_data`` (rosbag2's free-form strings)."""
+        self._writer.set_custom_data(key, value)
 
     def write_raw(self, topic: str, msgtype: str, data: bytes, stamp_ns: int) -> None:
         """Write one already serialized (CDR) message, logged at ``stamp_ns``."""

@@ -11,12 +11,15 @@ match any more (another sensor has already moved past it) is dropped and counted
 from __future__ import annotations
 
 from collections import OrderedDict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from ..core.streams import StreamReport
+from ..core.timebase import ClockEstimate, Resampler, TimeBase
+from ..core.units import NS_PER_S
 from ..errors import InputError
 
 IntArray = npt.NDArray[np.int64]
@@ -41,12 +44,15 @@ class MatchCounters:
         another sensor stayed silent for that long.
     out_of_order : int
         Messages refused because their stamp did not increase on their sensor.
+    streams : StreamReport
+        The streams' faults found before the sets were formed (offline reads).
     """
 
     matched: int = 0
     dropped_messages: int = 0
     evicted_messages: int = 0
     out_of_order: int = 0
+    streams: StreamReport = field(default_factory=StreamReport)
 
     @property
     def sets(self) -> int:
@@ -57,11 +63,11 @@ class MatchCounters:
         return (
             f'{self.dropped_messages} messages unmatched ({self.evicted_messages} evicted '
             f'from a full queue), {self.out_of_order} out of order'
-        )
+        ) + (f'; {self.streams.text()}' if self.streams.faults else '')
 
-    def as_dict(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, Any]:
         """Calibration-file diagnostics."""
-        return {
+        return self.streams.as_dict() | {
             'sets_matched': self.matched,
             'messages_unmatched': self.dropped_messages,
             'messages_evicted': self.evicted_messages,
@@ -117,6 +123,14 @@ class StampMatcher:
                 self._queues[int(np.argmin(stamps))].popleft()
                 self.counters.dropped_messages += 1
         return completed
+
+    def finish(self) -> None:
+        """The recording has ended: the messages still queued can never match (another
+        sensor's stream stopped); they are counted as unmatched and forgotten."""
+        left = sum(len(q) for q in self._queues)
+        self.counters.dropped_messages += left
+        for queue in self._queues:
+            queue.clear()
 
     def pending_oldest_ns(self) -> int | None:
         """Oldest stamp still waiting, or None."""
@@ -177,3 +191,113 @@ class StampPairer:
     def clear(self) -> None:
         """Forget the incomplete stamps (:attr:`evicted` keeps counting)."""
         self._pending.clear()
+
+
+class _BatchMatcher:
+    """Pairs per-sensor batches by stamp (``sync='nearest'``); equal-stamp runs with
+    arrays, the rest via StampMatcher.
+
+    Equivalent to feeding every message to the StampMatcher: a run is taken on the fast path
+    only when the matcher holds nothing and the next ``k`` stamps of all four sensors are
+    identical, strictly increasing and newer than each sensor's last accepted stamp; the
+    StampMatcher would emit exactly those ``k`` sets.
+    """
+
+    def __init__(self, matcher: StampMatcher) -> None:
+        self.matcher = matcher
+        self.counters = matcher.counters
+        self.pending: list[tuple[np.ndarray, np.ndarray]] = [
+            (np.zeros(0, dtype=np.int64), np.zeros((0, 3))) for _ in range(4)
+        ]
+
+    def add(
+        self,
+        batches: list[tuple[np.ndarray, np.ndarray]],
+        *,
+        final: bool = False,
+        fast: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Add per-sensor ``(stamps, values)``; return the completed sets as arrays."""
+        self.pending = [
+            (np.concatenate([p[0], b[0]]), np.concatenate([p[1], b[1]]))
+            for p, b in zip(self.pending, batches, strict=True)
+        ]
+        out_stamps: list[np.ndarray] = []
+        out_fields: list[np.ndarray] = []
+        if fast and self.matcher.pending_oldest_ns() is None:
+            k = min(len(p[0]) for p in self.pending)
+            if k > 0:
+                reference = self.pending[0][0][:k]
+                same = all(np.array_equal(p[0][:k], reference) for p in self.pending[1:])
+                if same and self.matcher.take_run(reference):
+                    out_stamps.append(reference.copy())
+                    out_fields.append(np.stack([p[1][:k] for p in self.pending], axis=1))
+                    self.pending = [(p[0][k:], p[1][k:]) for p in self.pending]
+                    if not final:
+                        return _join(out_stamps, out_fields)
+        # Generic path: everything pending, in stamp order across sensors (as logged).
+        stamps = np.concatenate([p[0] for p in self.pending])
+        if len(stamps):
+            sensors = np.concatenate([np.full(len(p[0]), i) for i, p in enumerate(self.pending)])
+            values = np.concatenate([p[1] for p in self.pending])
+            order = np.argsort(stamps, kind='stable')
+            matched = []
+            for j in order:
+                matched.extend(self.matcher.add(int(sensors[j]), int(stamps[j]), values[j]))
+            if matched:
+                out_stamps.append(np.array([m[0] for m in matched], dtype=np.int64))
+                out_fields.append(np.array([m[1] for m in matched]))
+            self.pending = [(p[0][:0], p[1][:0]) for p in self.pending]
+        if final:
+            self.finish()
+        return _join(out_stamps, out_fields)
+
+    def clocks(self) -> None:
+        return None
+
+    def finish(self) -> None:
+        """Count what can no longer match (:meth:`StampMatcher.finish`)."""
+        self.matcher.finish()
+
+
+class _BatchResampler:
+    """Resamples per-sensor batches (``sync='interpolate'``); same interface as
+    :class:`_BatchMatcher`."""
+
+    def __init__(self, timebase: TimeBase) -> None:
+        self.resampler = Resampler(timebase)
+        self.counters = self.resampler.counters
+
+    def add(
+        self,
+        batches: list[tuple[np.ndarray, np.ndarray]],
+        *,
+        final: bool = False,
+        fast: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Add per-sensor ``(stamps, values)``; return the sets completed, in stamp order."""
+        # Sensor 1 last: its stamps are the instants, resolved at once when the others
+        # are in (not queued against max_pending while they are still to come).
+        out = [self.resampler.add(sensor, *batches[sensor]) for sensor in (1, 2, 3, 0)]
+        if final:
+            self.finish()
+        return _join([o[0] for o in out if len(o[0])], [o[1] for o in out if len(o[0])])
+
+    def clocks(self) -> tuple[ClockEstimate, ...]:
+        return self.resampler.clocks()
+
+    def finish(self) -> None:
+        """Count the instants no stream end can resolve (:meth:`Resampler.finish`)."""
+        self.resampler.finish()
+
+
+def set_former(timebase: TimeBase) -> _BatchMatcher | _BatchResampler:
+    if timebase.sync == 'nearest':
+        return _BatchMatcher(StampMatcher(int(round(timebase.tolerance_s * NS_PER_S))))
+    return _BatchResampler(timebase)
+
+
+def _join(stamps: list[np.ndarray], fields: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    if not stamps:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 3))
+    return np.concatenate(stamps), np.concatenate(fields)

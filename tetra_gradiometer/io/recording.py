@@ -18,8 +18,18 @@ import numpy as np
 
 from ..core import MissionData, SensorStream
 from ..core.geometry import interp_orientation
+from ..core.odometry import (
+    COSTS,
+    UNTESTED_ATTITUDE,
+    OdometryCheck,
+    agreement_fault,
+    attitude_agreement,
+    check_odometry,
+)
 from ..core.plausibility import DroppedSets, plausible_sets
+from ..core.streams import StreamReport
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
+from ..core.types import FloatArray
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
@@ -187,6 +197,7 @@ class Recording:
     missing : topic -> why it is unavailable
     dropped : sets dropped as implausible (:mod:`~tetra_gradiometer.core.plausibility`)
     skipped_messages : messages skipped as undecodable or unreadable (``MagneticBag.skipped``)
+    streams : the magnetometer streams' faults (:mod:`~tetra_gradiometer.core.streams`)
     """
 
     stamps_ns: np.ndarray
@@ -199,10 +210,17 @@ class Recording:
     missing: dict[str, str] = field(default_factory=dict)
     dropped: DroppedSets = field(default_factory=DroppedSets)
     skipped_messages: int = 0
+    streams: StreamReport = field(default_factory=StreamReport)
 
     def input_counts(self) -> dict[str, int]:
-        """What was not analysed, for reports: sets dropped by reason, messages skipped."""
-        return {**self.dropped.as_dict(), 'messages_skipped_undecodable': self.skipped_messages}
+        """What was not analysed, for reports: sets dropped by reason, messages skipped, sets
+        lost to the streams' faults."""
+        return {
+            **self.dropped.as_dict(),
+            'messages_skipped_undecodable': self.skipped_messages,
+            'stream_faults': len(self.streams.faults),
+            'sets_lost_stream_faults': self.streams.sets_lost,
+        }
 
     @property
     def t_s(self) -> np.ndarray:
@@ -219,12 +237,18 @@ def read_recording(
     timebase: TimeBase = DEFAULT_TIMEBASE,
     window_s: tuple[float, float] | None = None,
     progress: bool | None = None,
+    uses: str = 'discrepancy',
+    earth_field_t: float | None = None,
 ) -> Recording:
     """Read a bag per the data contract into a :class:`Recording` (whole, in memory).
 
     Optional topics are interpolated onto the set stamps (slerp for orientation, linear for
     positions and scalars, held at the ends); an absent topic is named in ``missing``. Sets with an
-    implausible reading are dropped and counted in ``dropped``.
+    implausible reading are dropped and counted in ``dropped``. The streams are checked as
+    they are read (``earth_field_t``: the expected ``|B|``, T; :mod:`~tetra_gradiometer.core.
+    streams`) and ``/odom`` before it is used (:func:`odometry_at`; ``uses`` names the
+    command, for what going without it costs): an unusable pose is left out and named in
+    ``missing``.
     """
     with MagneticBag(path) as bag:
         stamps, fields = bag.read_sets(timebase=timebase, window_s=window_s, progress=progress)
@@ -232,10 +256,15 @@ def read_recording(
         if not keep.any():
             raise BagError(f'{path}: every set has an implausible reading ({dropped.text()})')
         stamps, fields = stamps[keep], fields[keep]
-        extras: dict[str, np.ndarray | None] = {}
+        odometry = odometry_at(bag, stamps, fields[:, 0], uses)
+        extras: dict[str, np.ndarray | None] = {
+            'orientation_xyzw': odometry.orientation_xyzw,
+            'position_m': odometry.position_m,
+        }
         missing: dict[str, str] = {}
+        if odometry.orientation_xyzw is None or odometry.position_m is None:
+            missing[cv.ODOM_TOPIC] = odometry.reason
         for name, topic in (
-            ('orientation_xyzw', cv.ODOM_TOPIC),
             ('temperature_c', cv.TEMPERATURE_TOPIC),
             ('current_a', cv.BATTERY_TOPIC),
         ):
@@ -243,19 +272,10 @@ def read_recording(
             if series is None:
                 extras[name] = None
                 missing[topic] = f'{topic} is not in the bag'
-            elif name == 'orientation_xyzw':
-                pose = series.values
-                extras[name] = interp_orientation(
-                    series.stamps_ns, pose[:, cv.POSE_ORIENTATION], stamps
-                )
-                extras['position_m'] = np.stack(
-                    [np.interp(stamps, series.stamps_ns, c) for c in pose[:, cv.POSE_POSITION].T],
-                    axis=1,
-                )
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
         currents = _extra_currents(bag, stamps, missing)
-        skipped = bag.skipped_messages
+        skipped, streams = bag.skipped_messages, bag.streams
     return Recording(
         stamps,
         fields,
@@ -263,6 +283,7 @@ def read_recording(
         missing=missing,
         dropped=dropped,
         skipped_messages=skipped,
+        streams=streams,
         **extras,
     )
 
@@ -283,3 +304,67 @@ def _extra_currents(
             continue
         out[topic] = np.interp(stamps, series.stamps_ns[known], series.values[known, 0])
     return out
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """``/odom`` on the set stamps, after its check (:mod:`~tetra_gradiometer.core.odometry`).
+
+    Attributes
+    ----------
+    orientation_xyzw : (N, 4) body -> ENU, or None when absent or unusable
+    position_m : (N, 3) m, ENU, or None when absent or unusable
+    notes : what was found and what going without it costs, one line each
+    check : the checked messages (None without ``/odom``)
+    """
+
+    orientation_xyzw: FloatArray | None
+    position_m: FloatArray | None
+    notes: tuple[str, ...] = ()
+    check: OdometryCheck | None = None
+
+    @property
+    def reason(self) -> str:
+        """Why the pose (or part of it) is not used, for ``Recording.missing``."""
+        return '; '.join(self.notes) or f'{cv.ODOM_TOPIC} is not in the bag'
+
+
+def odometry_at(
+    bag: MagneticBag, stamps_ns: np.ndarray, body_field_t: FloatArray | None, command: str
+) -> Odometry:
+    """``/odom``'s pose on ``stamps_ns`` (N,) ns, checked: zero-norm quaternions dropped,
+    unnormalized ones normalized, a frozen orientation or position left out, and the
+    orientation compared with ``body_field_t`` (N, 3) T, sensor 1's field (None: not
+    compared). ``command`` names what going without costs (``core.odometry.COSTS``)."""
+    series = bag.read_series(cv.ODOM_TOPIC)
+    cost = COSTS.get(command, '')
+    if series is None:
+        return Odometry(None, None, (f'no {cv.ODOM_TOPIC} in the bag: {cost}',))
+    check = check_odometry(series.stamps_ns, series.values)
+    notes = list(check.faults)
+    orientation = position = None
+    if check.orientation_ok:
+        orientation = interp_orientation(
+            check.stamps_ns, check.pose[:, cv.POSE_ORIENTATION], stamps_ns
+        )
+        if body_field_t is not None:
+            unexplained = attitude_agreement(orientation, body_field_t)
+            fault = agreement_fault(unexplained)
+            if np.isnan(unexplained):
+                notes.append(UNTESTED_ATTITUDE)
+            if fault is not None:
+                notes.append(fault)
+                orientation = None
+    if check.position_ok:
+        position = np.stack(
+            [np.interp(stamps_ns, check.stamps_ns, c) for c in check.pose[:, cv.POSE_POSITION].T],
+            axis=1,
+        )
+    if orientation is None or position is None:
+        unused = ' and '.join(
+            what
+            for what, value in (('orientation', orientation), ('position', position))
+            if value is None
+        )
+        notes.append(f'{cv.ODOM_TOPIC} {unused} not used: {cost}')
+    return Odometry(orientation, position, tuple(notes), check)

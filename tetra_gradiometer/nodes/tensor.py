@@ -35,6 +35,7 @@ from sensor_msgs.msg import JointState, MagneticField
 
 from ..core import TetraGeometry, difference_tensor
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
+from ..core.streams import LiveStreamCheck
 from ..core.timebase import SYNC_METHODS, Resampler, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import MessageError
@@ -150,6 +151,7 @@ MATCHER_KEYS = {
     'skipped_gap': 'sets_skipped_gap',
     'skipped_start': 'sets_skipped_start',
     'evicted': 'sets_evicted',
+    'skipped_end': 'sets_skipped_end',
 }
 
 
@@ -179,6 +181,7 @@ class TensorNode(ManagedNode):
         self._max_pending = int(p['max_pending'])
         self._jump_back_ns = int(round(p['jump_back_s'] * NS_PER_S))
         self._matcher = self._new_former()
+        self._streams = LiveStreamCheck()  # stamps and units, before the set former
         self._earlier: dict[str, int] = {}  # counts of the matchers reset before
         self._last_stamp: list[int | None] = [None] * 4
         self.resets = 0
@@ -248,6 +251,12 @@ class TensorNode(ManagedNode):
             if self._warn():
                 self.get_logger().warning(f'dropped a malformed {cv.MAG_TOPICS[sensor]}: {error}')
             return
+        if not self._streams.accept(sensor, stamp, self._now_ns(), *reading[:3].tolist()):
+            if self._warn():
+                self.get_logger().warning(
+                    f'dropped a {cv.MAG_TOPICS[sensor]} reading: {self._stream_text(sensor)}'
+                )
+            return  # before the restart test: one sensor off the others is no restart
         last = self._last_stamp[sensor]
         if last is not None and stamp < last - self._jump_back_ns:
             self._reset_matcher(sensor, last - stamp)
@@ -277,6 +286,7 @@ class TensorNode(ManagedNode):
         self._earlier = self._matcher_counts()
         self._matcher = self._new_former()
         self._last_stamp = [None] * 4
+        self._streams.reset()
         self.resets += 1
         self.get_logger().warning(
             f'{cv.MAG_TOPICS[sensor]} jumped back {jump_ns * S_PER_NS:.3g} s in time: '
@@ -285,7 +295,11 @@ class TensorNode(ManagedNode):
 
     def _matcher_counts(self) -> dict[str, int]:
         """The stamp matcher's counters, including those of the matchers reset before."""
-        counters = {key: value for key, value in asdict(self._matcher.counters).items()}
+        counters = {  # the integer counts (the stream report is the offline reads')
+            key: value
+            for key, value in asdict(self._matcher.counters).items()
+            if isinstance(value, int)
+        }
         return {key: value + self._earlier.get(key, 0) for key, value in counters.items()}
 
     def _emit(self, stamp_ns: int, fields: np.ndarray, covariance: np.ndarray) -> None:
@@ -319,6 +333,23 @@ class TensorNode(ManagedNode):
         )
         self.sets_published += 1
 
+    def _now_ns(self) -> int:
+        return int(self.get_clock().now().nanoseconds)
+
+    def _stream_text(self, sensor: int) -> str:
+        """The sensor's stream faults (core/streams.LiveStreamCheck), '' when none."""
+        counts = self._streams.dropped[sensor]
+        what = {
+            'zero_stamp': 'with header stamp 0',
+            'other_clock': "stamped off the other sensors' clock (another epoch, a jump)",
+            'duplicate_stamp': 'repeating a stamp with another reading',
+        }
+        parts = [f'{n} {what[kind]}' for kind, n in counts.items() if n]
+        magnitude = self._streams.magnitude_text(sensor)
+        return '; '.join(
+            ([f'dropped {", ".join(parts)}'] if parts else []) + [magnitude] * bool(magnitude)
+        )
+
     def _now_s(self) -> float:
         """The node's clock, s: ROS time, i.e. ``/clock`` under ``use_sim_time`` (a replay at
         10x real time, or paused, shows the bag's rates and staleness, not the wall clock's)."""
@@ -336,6 +367,31 @@ class TensorNode(ManagedNode):
             self._rate = [(c - m) / (now - mark_time) for c, m in pairs]
         self._rate_mark = (now, list(self._received))
 
+    def _sensor_status(self, s: int, now: float, stale: bool, clocks: dict[str, float]) -> Any:
+        """One sensor's DiagnosticStatus: stale (ERROR), dropped readings or a stream fault
+        (WARN: core/streams.LiveStreamCheck), else OK."""
+        staleness = now - self._last_arrival[s]
+        invalid, streams = self._invalid[s], self._stream_text(s)
+        if stale:
+            level, text = ERROR, 'no data received'
+            if self._ever[s]:
+                text = f'stale: silent for {staleness:.2f} s (> {self._stale_timeout:g} s)'
+        elif invalid or streams:
+            level = WARN
+            readings = f'{invalid} non-finite, implausible or malformed readings' * bool(invalid)
+            text = '; '.join(part for part in (readings, streams) if part)
+        else:
+            level, text = OK, 'ok'
+        values = {
+            'rate_hz': float(self._rate[s]),
+            'staleness_s': float(staleness),
+            'received': self._received[s],
+            'dropped_invalid': invalid,
+            **{f'dropped_{k}': n for k, n in self._streams.dropped[s].items()},
+            **clocks,
+        }
+        return status(self, cv.MAG_TOPICS[s], level, text, cv.MAG_FRAMES[s], values)
+
     def _publish_diagnostics(self) -> None:
         """Per-sensor rate, staleness and drops; the matching counters."""
         now = self._now_s()
@@ -349,39 +405,8 @@ class TensorNode(ManagedNode):
             ]
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
-        invalid = self._invalid
-        for s, topic in enumerate(cv.MAG_TOPICS):
-            staleness = now - self._last_arrival[s]
-            if s in stale:
-                level, text = (
-                    ERROR,
-                    (
-                        f'stale: silent for {staleness:.2f} s (> {self._stale_timeout:g} s)'
-                        if self._ever[s]
-                        else 'no data received'
-                    ),
-                )
-            elif invalid[s]:
-                level = WARN
-                text = f'{invalid[s]} non-finite, implausible or malformed readings'
-            else:
-                level, text = OK, 'ok'
-            array.status.append(
-                status(
-                    self,
-                    topic,
-                    level,
-                    text,
-                    cv.MAG_FRAMES[s],
-                    {
-                        'rate_hz': float(self._rate[s]),
-                        'staleness_s': float(staleness),
-                        'received': self._received[s],
-                        'dropped_invalid': invalid[s],
-                        **clocks[s],
-                    },
-                )
-            )
+        for s in range(len(cv.MAG_TOPICS)):
+            array.status.append(self._sensor_status(s, now, s in stale, clocks[s]))
         counts = self._matcher_counts()
         dropped = sum(counts.get(k, 0) for k in ('dropped_messages', 'skipped_gap', 'evicted'))
         level = ERROR if stale else (WARN if self.sets_invalid or dropped else OK)

@@ -37,6 +37,7 @@ from ..errors import BagError, InputError
 from ..io import conversions as cv
 from ..io.bag import MagneticBag, SetCounters
 from ..io.calibration import CalibrationFile
+from ..io.recording import odometry_at
 from .terms import EffectsChoice, WindowTerms, window_terms
 from .window_check import (
     KNOWN_GRADIENT_METHODS,
@@ -189,6 +190,7 @@ def read_window(
     *,
     timebase: TimeBase,
     progress: bool | None = None,
+    earth_field_t: float | None = None,
 ) -> WindowSets:
     """The matched sets of ``window`` (seconds from the first set; None: the whole bag).
 
@@ -204,7 +206,7 @@ def read_window(
     first: int | None = None
     last = 0
     with MagneticBag(bag_path) as bag:
-        sets = bag.iter_sets(timebase=timebase, progress=progress)
+        sets = bag.iter_sets(timebase=timebase, progress=progress, earth_field_t=earth_field_t)
         for chunk_stamps, chunk_fields in sets:
             first = int(chunk_stamps[0]) if first is None else first
             last = int(chunk_stamps[-1])
@@ -230,6 +232,21 @@ def read_window(
         )
     joined = np.concatenate(stamps), np.concatenate(fields)
     return WindowSets(*joined, span, counters, clocks, first or 0, *skipped)
+
+
+def _read_plausible(
+    bag_path: str | os.PathLike[str],
+    window: tuple[float, float] | None,
+    timebase: TimeBase,
+    progress: bool | None,
+    earth_field_t: float | None,
+) -> tuple[WindowSets, DroppedSets]:
+    """:func:`read_window` (the streams checked against ``earth_field_t``), then
+    :func:`_plausible`."""
+    sets = read_window(
+        bag_path, window, timebase=timebase, progress=progress, earth_field_t=earth_field_t
+    )
+    return _plausible(sets, bag_path)
 
 
 def _plausible(
@@ -261,6 +278,7 @@ def calibrate_bag(
     progress: bool | None = None,
     force: bool = False,
     effects: EffectsChoice | None = None,
+    earth_field_t: float | None = None,
 ) -> BagCalibration:
     """Identify the interference of the array ``geometry`` on a window of the bag.
 
@@ -281,6 +299,7 @@ def calibrate_bag(
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
     force : keep a calibration that fails the window check (warning in its diagnostics)
     effects : the vehicle effects to fit (None: automatic selection)
+    earth_field_t : |B| of the Earth field, T, for the streams' check (core/streams)
 
     Raises
     ------
@@ -290,9 +309,7 @@ def calibrate_bag(
     IdentifiabilityError : the window cannot identify the parameters (message names it)
     CalibrationFileError : the method gives no ``k, b`` calibration"""
     _check_limits(max_sets, generations)
-    sets, dropped = _plausible(
-        read_window(bag_path, window, timebase=timebase, progress=progress), bag_path
-    )
+    sets, dropped = _read_plausible(bag_path, window, timebase, progress, earth_field_t)
     n_window = len(sets.stamps_ns)
     thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
     text = window_text(window)
@@ -342,7 +359,7 @@ def _solve(
     """The checked solve (:func:`~.window_check.identify_checked`) on every ``thinned``-th
     set of ``sets``, with the ``/odom`` attitude and the vehicle effects' terms."""
     stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
-    options, note = _with_attitude(options, method, bag_path, stamps)
+    options, note = _with_attitude(options, method, bag_path, stamps, fields[:, 0])
     terms = _terms(bag_path, sets, thinned, geometry, method, effects, options)
     options = dataclasses.replace(options, terms=terms.candidates)
     checked = identify_checked(
@@ -398,14 +415,18 @@ def _check_limits(max_sets: int, generations: int | None) -> None:
 
 
 def _with_attitude(
-    options: Options, method: str, bag_path: str | os.PathLike[str], stamps_ns: IntArray
+    options: Options,
+    method: str,
+    bag_path: str | os.PathLike[str],
+    stamps_ns: IntArray,
+    body_field_t: FloatArray,
 ) -> tuple[Options, tuple[str, ...]]:
     """Known-gradient methods: the ``/odom`` attitude of each set, for the joint regional
-    gradient (none without ``/odom``: assumed zero, as the note says)."""
+    gradient (none without a usable ``/odom``: assumed zero, as the notes say)."""
     if method not in KNOWN_GRADIENT_METHODS:
         return options, ()
-    orientation, note = odom_orientation(bag_path, stamps_ns)
-    return dataclasses.replace(options, orientation_xyzw=orientation), (note,)
+    orientation, notes = odom_orientation(bag_path, stamps_ns, body_field_t)
+    return dataclasses.replace(options, orientation_xyzw=orientation), notes
 
 
 def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -432,19 +453,20 @@ def _clock_diagnostics(clocks: tuple[ClockEstimate, ...] | None) -> dict[str, An
 
 
 def odom_orientation(
-    bag_path: str | os.PathLike[str], stamps_ns: IntArray
-) -> tuple[FloatArray | None, str]:
-    """``/odom``'s orientation slerped onto ``stamps_ns`` (n, 4), or None, with a note why.
+    bag_path: str | os.PathLike[str], stamps_ns: IntArray, body_field_t: FloatArray | None = None
+) -> tuple[FloatArray | None, tuple[str, ...]]:
+    """``/odom``'s orientation slerped onto ``stamps_ns`` (n, 4), or None, with notes why.
 
-    None when the bag has no ``/odom`` or some set lies further than ``MAX_ODOM_GAP_S`` from
-    every ``/odom`` message (the joint solve needs every attitude).
+    None when the bag has no usable ``/odom`` (checked: :func:`~tetra_gradiometer.io.
+    recording.odometry_at`, the attitude against ``body_field_t`` (n, 3) T, sensor 1's
+    field) or some set lies further than ``MAX_ODOM_GAP_S`` from every ``/odom`` message
+    (the joint solve needs every attitude).
     """
     with MagneticBag(bag_path) as bag:
-        series = bag.read_series(cv.ODOM_TOPIC)
-    if series is None or len(series.stamps_ns) < 2:
-        return None, (
-            f'no {cv.ODOM_TOPIC} in the bag: a regional gradient cannot be told from the '
-            'interference without the attitude, and is assumed zero'
-        )
-    orientation = series.values[:, cv.POSE_ORIENTATION]
-    return joint_attitude(orientation_at(series.stamps_ns, orientation, stamps_ns))
+        odometry = odometry_at(bag, stamps_ns, body_field_t, 'calibrate')
+    check = odometry.check
+    if odometry.orientation_xyzw is None or check is None:
+        return None, odometry.notes
+    orientation = orientation_at(check.stamps_ns, check.pose[:, cv.POSE_ORIENTATION], stamps_ns)
+    attitude, note = joint_attitude(orientation)
+    return attitude, (*odometry.notes, note)

@@ -28,6 +28,7 @@ set's stamp (``conversions.tensor_msg``).
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterable
 from contextlib import ExitStack
@@ -300,6 +301,7 @@ def compensate_bag(
     force: bool = False,
     inputs: Iterable[PathLike] = (),
     allow_missing_channels: bool = False,
+    earth_field_t: float | None = None,
 ) -> CompensationCounts:
     """Stream the bag's matched sets into the CSV ``csv`` and/or the new bag ``out_bag``.
 
@@ -323,6 +325,7 @@ def compensate_bag(
     allow_missing_channels : a channel the terms read that the bag lacks is not refused: its
         terms are held (:class:`.terms.HeldTerms`; the CSV's first line and the counts'
         ``held_summary`` say so)
+    earth_field_t : |B| of the Earth field, T, for the streams' check (core/streams)
 
     Raises
     ------
@@ -344,7 +347,9 @@ def compensate_bag(
         handle, writer = _open_outputs(
             stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs, comment
         )
-        sets = bag.iter_sets(timebase=timebase, progress=progress, fast=fast)
+        sets = bag.iter_sets(
+            timebase=timebase, progress=progress, fast=fast, earth_field_t=earth_field_t
+        )
         for stamps, fields in sets:
             stamps, fields = _drop_implausible(stamps, fields, dropped)
             stamps, fields, x = _with_regressors(terms, stamps, fields)
@@ -357,11 +362,7 @@ def compensate_bag(
             first = int(stamps[0]) if n_sets == 0 else first
             last = int(stamps[-1])
             n_sets += len(stamps)
-        if n_sets == 0:
-            raise BagError(
-                f'{Path(bag_path)}: every matched set has an implausible reading '
-                f'({dropped.text()})'
-            )
+        _close_read(n_sets, bag_path, dropped, bag, writer)
     return _counts(n_sets, dropped, (last - first) * S_PER_NS, topic, bag, terms)
 
 
@@ -405,6 +406,25 @@ def _sigmas(
         return None
     sigmas = sigma(fields[:, 0, :], regressors)
     return sigmas if held is None else np.sqrt(sigmas**2 + held.sigma_t_per_m**2)
+
+
+def _close_read(
+    n_sets: int,
+    bag_path: PathLike,
+    dropped: DroppedSets,
+    bag: MagneticBag,
+    writer: BagWriter | None,
+) -> None:
+    """BagError when no set was written (every matched set had an implausible reading); else
+    the streams' faults into the output bag's metadata (``custom_data``)."""
+    if n_sets == 0:
+        raise BagError(
+            f'{Path(bag_path)}: every matched set has an implausible reading ({dropped.text()})'
+        )
+    if writer is not None and bag.streams.faults:
+        writer.set_custom_data(
+            'tetra_gradiometer.stream_faults', json.dumps(bag.streams.as_dict())
+        )
 
 
 def _feed(

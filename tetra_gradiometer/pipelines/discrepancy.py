@@ -51,7 +51,10 @@ def analyze_bag(
     BagError
         The bag breaks the data contract, or every set has an implausible reading.
     """
-    recording = read_recording(bag_path, timebase=timebase, progress=progress)
+    earth_t = None if earth_field_enu is None else float(np.linalg.norm(earth_field_enu))
+    recording = read_recording(
+        bag_path, timebase=timebase, progress=progress, earth_field_t=earth_t
+    )
     run = RecordedRun(
         recording.t_s,
         recording.fields,

@@ -54,9 +54,10 @@ class BagTargets:
 def survey_of(recording: Recording, tensors: np.ndarray, where: str) -> Survey:
     """The :class:`Survey` of a recording's samples with ``tensors`` (N, 3, 3) T/m."""
     if recording.position_m is None or recording.orientation_xyzw is None:
+        reason = recording.missing.get(cv.ODOM_TOPIC, f'no {cv.ODOM_TOPIC} in the bag')
         raise BagError(
-            f'{where}: no {cv.ODOM_TOPIC} in the bag: targets are located on the track, which '
-            'needs the pose (record the navigation odometry with the magnetometers)'
+            f'{where}: {reason}: targets are located on the track, which needs the pose '
+            '(record the navigation odometry with the magnetometers)'
         )
     rotations = Rotation.from_quat(recording.orientation_xyzw).as_matrix()
     return Survey(recording.t_s, recording.position_m, rotations, tensors)
@@ -103,7 +104,7 @@ def locate_bag(
     InputError
         No straight leg to search (:func:`~tetra_gradiometer.core.targets.detect`).
     """
-    recording = read_recording(bag, timebase=timebase, progress=progress)
+    recording = read_recording(bag, timebase=timebase, progress=progress, uses='locate')
     raw = difference_tensor(recording.fields, geometry)
     track = survey_of(recording, raw, str(bag))  # the pose once; each search its tensor
     searches: list[Search] = []

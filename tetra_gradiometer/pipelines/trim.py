@@ -22,6 +22,7 @@ from ..core.guidance import TrimAssessment, assess, trim_statistics
 from ..core.units import NT_PER_T, S_PER_NS
 from ..io import conversions as cv
 from ..io.bag import MagneticBag
+from ..io.recording import odometry_at
 from .calibration import BagCalibration, calibrate_bag
 from .window_check import excitation_refusal, forced, orientation_at
 
@@ -90,16 +91,15 @@ def assess_window(
     notes: list[str] = []
     orientation = result.orientation_xyzw  # read for the joint fit: every set has one
     if orientation is None:  # not read, or some sets lack one: the coverage takes the rest
-        with MagneticBag(bag_path) as bag:
-            series = bag.read_series(cv.ODOM_TOPIC)
-        if series is not None:
+        with MagneticBag(bag_path) as bag:  # checked (io/recording.odometry_at)
+            odometry = odometry_at(bag, stamps, fields[:, 0], 'calibrate')
+        if odometry.orientation_xyzw is not None and odometry.check is not None:
+            check = odometry.check
             orientation = orientation_at(
-                series.stamps_ns, series.values[:, cv.POSE_ORIENTATION], stamps
+                check.stamps_ns, check.pose[:, cv.POSE_ORIENTATION], stamps
             )
     if orientation is None:
-        notes.append(
-            f'no {cv.ODOM_TOPIC} in the bag: coverage is of the body-frame field direction'
-        )
+        notes.append(f'no usable {cv.ODOM_TOPIC}: coverage is of the body-frame field direction')
     earth = earth_field_enu
     if earth is not None:
         notes.append('Earth field from the params file (earth_field_enu)')
@@ -174,6 +174,7 @@ def calibrate_assessed(
     BagError, IdentifiabilityError, InputError, CalibrationFileError : as
         :func:`calibrate_bag`
     """
-    result = calibrate_bag(bag_path, geometry, force=force, **options)
+    earth_t = None if earth_field_enu is None else float(np.linalg.norm(earth_field_enu))
+    result = calibrate_bag(bag_path, geometry, force=force, earth_field_t=earth_t, **options)
     window = assess_window(result, bag_path, geometry, earth_field_enu)
     return check_excitation(result, window, force), window

@@ -400,7 +400,7 @@ def _regional_calibration(
         raise IdentifiabilityError(
             f'{method}: the attitudes cannot separate a regional gradient from the '
             f'interference (rank {solution.rank} of {m - 5} + 5 parameters); roll and pitch '
-            'more, or fit without orientation_xyzw'
+            'more in the window (--window a span of the trim manoeuvre)'
         )
     n_par = m - 5
     parameters = InterferenceParameters.from_vector(solution.theta[:n_par], symmetric=symmetric)

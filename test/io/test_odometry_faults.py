@@ -1,0 +1,143 @@
+"""Fault table, odometry (issue 30): ``/odom`` is checked before use (core/odometry.py through
+io/recording.odometry_at). Zero-norm quaternions, a frozen pose and an attitude that does not
+agree with the magnetometers are named; ``calibrate`` and ``discrepancy`` go on without
+``/odom`` and say what that costs, ``locate`` refuses with one line (no track, no targets).
+
+Truth: the simulator's attitudes (a right one explains the body field's rotation; a reversed,
+frozen, identity or wrongly framed one does not), the pose written, the bag's bytes.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from cli_helpers import assert_refused, run_cli, snapshot
+from scipy.spatial.transform import Rotation
+from stream_faults import short_mission, write_bag, write_params
+
+from tetra_gradiometer.core.odometry import MAX_UNEXPLAINED, attitude_agreement, check_odometry
+
+
+@pytest.fixture(scope='module')
+def mission():
+    return short_mission(trim_s=40.0, survey_s=20.0)
+
+
+@pytest.fixture(scope='module')
+def params(tmp_path_factory):
+    return write_params(tmp_path_factory.mktemp('params') / 'params.yaml')
+
+
+@pytest.fixture(scope='module')
+def good_calibration(mission, params, tmp_path_factory):
+    root = tmp_path_factory.mktemp('good')
+    bag = write_bag(root / 'bag', mission)
+    from tetra_gradiometer.__main__ import main
+    assert main(['calibrate', str(bag), '--params', str(params), '--out', str(root / 'c.yaml')]) == 0
+    return yaml.safe_load((root / 'c.yaml').read_text())
+
+
+def _calibrate(capsys, tmp_path, bag, params):
+    code, out, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--out', tmp_path / 'c.yaml')
+    assert code == 0 and 'Traceback' not in err, err
+    return out, yaml.safe_load((tmp_path / 'c.yaml').read_text())
+
+
+COST = '/odom orientation and position not used: no regional gradient (assumed zero)'
+
+
+def test_zero_norm_quaternions_calibrate_without_odom_and_say_so(mission, params, tmp_path, capsys):
+    n = len(mission.t)
+    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=np.zeros((n, 4)))
+    before = snapshot(bag)
+    out, calibration = _calibrate(capsys, tmp_path, bag, params)
+    assert f'{n} of {n} /odom messages have a zero-norm or non-finite pose' in out and COST in out
+    assert 'regional gradient estimated jointly' not in out
+    assert any('zero-norm' in note for note in calibration['diagnostics']['notes'])
+    assert snapshot(bag) == before
+
+
+def test_some_zero_norm_quaternions_are_dropped_and_the_rest_used(mission, params, tmp_path, capsys,
+                                                                   good_calibration):
+    q = mission.orientation_xyzw.copy()
+    q[100:104] = 0.0  # 0.4 s of unfilled orientations inside the trim (within MAX_ODOM_GAP_S)
+    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=q)
+    out, calibration = _calibrate(capsys, tmp_path, bag, params)
+    assert '4 of 600 /odom messages have a zero-norm or non-finite pose' in out and '(an unfilled orientation; ' \
+           '10.0-10.3 s): dropped' in out
+    assert 'regional gradient estimated jointly' in out
+    # The attitude across the hole is slerped: the parameters are those of the whole /odom.
+    assert np.allclose(calibration['k_soft'], good_calibration['k_soft'], atol=1e-7)
+
+
+def test_unnormalized_quaternions_are_normalized(mission, params, tmp_path, capsys, good_calibration):
+    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=mission.orientation_xyzw * 3.0)
+    out, calibration = _calibrate(capsys, tmp_path, bag, params)
+    assert '600 /odom orientations are not unit quaternions (norm 3-3): normalized' in out
+    assert np.allclose(calibration['k_soft'], good_calibration['k_soft'], atol=1e-12)
+    assert np.allclose(calibration['b_hard_T'], good_calibration['b_hard_T'], atol=1e-18)
+
+
+def test_a_frozen_odom_is_not_used_and_locate_refuses(mission, params, tmp_path, capsys):
+    n = len(mission.t)
+    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=np.repeat(mission.orientation_xyzw[:1], n, axis=0),
+                    odom_position=np.repeat(mission.position_enu[:1], n, axis=0))
+    before = snapshot(bag)
+    out, _ = _calibrate(capsys, tmp_path, bag, params)
+    assert 'the /odom orientation is frozen (unchanged over 59.9 s, 600 messages)' in out and COST in out
+    assert_refused(run_cli(capsys, 'locate', bag, '--params', params, '--raw', '--out', tmp_path / 'targets'),
+                   'the /odom position is frozen (unchanged over 59.9 s, 600 messages)', 'no targets',
+                   'needs the pose')
+    assert snapshot(bag) == before and not (tmp_path / 'targets').exists()
+
+
+@pytest.mark.parametrize('wrong', ['reversed in time', 'body frame FRD'])
+def test_an_attitude_that_disagrees_with_the_magnetometers_is_not_used(mission, params, tmp_path, capsys, wrong):
+    q = mission.orientation_xyzw
+    if wrong == 'reversed in time':
+        q = q[::-1].copy()
+    else:  # a body frame x forward, y right, z down (not REP 103's)
+        q = (Rotation.from_quat(q) * Rotation.from_matrix(np.diag([1.0, -1.0, -1.0]))).as_quat()
+    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=q)
+    out, _ = _calibrate(capsys, tmp_path, bag, params)
+    assert 'the /odom orientation does not agree with the magnetometers' in out
+    assert '/odom orientation not used: no regional gradient (assumed zero)' in out
+
+
+def test_discrepancy_with_zero_norm_quaternions_goes_on_without_odom(mission, params, tmp_path, capsys):
+    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=np.zeros((len(mission.t), 4)))
+    code, out, err = run_cli(capsys, 'discrepancy', bag, '--params', params, '--out', tmp_path / 'report')
+    assert code == 0 and 'Traceback' not in err, err
+    assert 'no /odom' in out  # B^b falls back to B_1' (what going without costs)
+    report = (tmp_path / 'report' / 'report.json').read_text()
+    assert 'zero-norm' in report
+
+
+# ----------------------------------------------------------------------------- the core tests
+
+
+def test_the_attitude_test_separates_right_from_wrong(mission):
+    b = mission.fields_measured[:, 0]
+    q = mission.orientation_xyzw
+    right = attitude_agreement(q, b)
+    assert right < 0.01  # noise and the vehicle's induced field only
+    noise = Rotation.from_rotvec(np.random.default_rng(1).normal(0, 1e-3, (len(q), 3))).as_quat()
+    world_ned = (Rotation.from_matrix([[0, 1, 0], [1, 0, 0], [0, 0, -1]]) * Rotation.from_quat(q)).as_quat()
+    assert attitude_agreement(world_ned, b) < 0.01  # a constant world rotation: the field is steady
+    for wrong in (q[::-1], noise, np.roll(q, 150, axis=0)):
+        assert attitude_agreement(wrong, b) > MAX_UNEXPLAINED
+    survey = slice(400, None)  # a straight line: the field does not turn, nothing to test
+    assert np.isnan(attitude_agreement(q[survey], b[survey]))
+
+
+def test_check_odometry_counts_what_it_changes():
+    stamps = np.arange(10, dtype=np.int64) * 10**8
+    pose = np.zeros((10, 7))
+    pose[:, 6] = 1.0
+    pose[:, 0] = np.arange(10.0)
+    pose[3, 3:] = 0.0
+    pose[5, 3:] *= 2.0
+    check = check_odometry(stamps, pose)
+    assert len(check.stamps_ns) == 9 and np.allclose(np.linalg.norm(check.pose[:, 3:], axis=1), 1.0)
+    assert check.orientation_ok is False and check.position_ok is True  # the identity does not turn
+    assert check.faults[0].startswith('1 of 10 /odom messages have a zero-norm')
