@@ -299,3 +299,28 @@ def set_parameter(probe: Any, graph: Graph, node: str, name: str, value: str | f
     future = client.call_async(SetParameters.Request(parameters=[Parameter(name=name, value=parameter_value)]))
     wait_for(future.done, 10, 'set_parameters', graph)
     return future.result().results[0]
+
+
+def change_state(probe: Any, node: str, transition: str, timeout_s: float = 30.0) -> bool:
+    """Ask ``<node>/change_state`` (lifecycle_msgs) for ``transition`` by label; its success."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+
+    client = probe.create_client(ChangeState, f'{node}/change_state')
+    try:
+        assert client.wait_for_service(timeout_sec=timeout_s), f'{node}/change_state'
+        future = client.call_async(ChangeState.Request(transition=Transition(label=transition)))
+        wait_for(future.done, timeout_s, f'{node}/change_state {transition}')
+        return bool(future.result().success)
+    finally:
+        probe.destroy_client(client)
+
+
+def reconfigure(probe: Any, graph: Graph, node: str, **params: Any) -> None:
+    """Set parameters that a configured node refuses (``LOCKED``): deactivate, cleanup, set
+    them, configure, activate, through the lifecycle services."""
+    assert change_state(probe, node, 'deactivate') and change_state(probe, node, 'cleanup')
+    for name, value in params.items():
+        result = set_parameter(probe, graph, node, name, value)
+        assert result.successful, result.reason
+    assert change_state(probe, node, 'configure') and change_state(probe, node, 'activate')

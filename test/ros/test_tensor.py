@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from ros_helpers import ros_graph, set_parameter, uniform_gradient_fields, wait_connected, wait_for, wait_matched
+from ros_helpers import reconfigure, ros_graph, set_parameter, uniform_gradient_fields, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 
@@ -124,4 +124,9 @@ def test_a_bad_value_set_at_run_time_is_refused():
         graph.start('tensor')
         result = set_parameter(probe, graph, 'tensor', 'stale_timeout_s', -0.5)
         assert not result.successful and 'stale_timeout_s' in result.reason
-        assert set_parameter(probe, graph, 'tensor', 'stale_timeout_s', 2.0).successful
+        # How data is judged is read-only while configured (issue 34): only after cleanup.
+        result = set_parameter(probe, graph, 'tensor', 'stale_timeout_s', 2.0)
+        assert not result.successful and 'read-only while tensor is configured' in result.reason
+        for name, value in (('max_field_t', 5e-4), ('use_sim_time', True)):
+            assert not set_parameter(probe, graph, 'tensor', name, value).successful, name
+        reconfigure(probe, graph, 'tensor', stale_timeout_s=2.0)  # asserts each step

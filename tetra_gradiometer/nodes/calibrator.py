@@ -120,6 +120,10 @@ from .solve_worker import SolveWorker
 
 #: Period of the trim guidance on ``~/guidance`` while samples arrive, s (the issue's ~1 Hz).
 GUIDANCE_PERIOD_S = 1.0
+#: How a refusal names the override, and how the note of a calibration kept by it starts
+#: (pipelines/window_check.forced).
+FORCE_NAME = 'force:=true'
+FORCED = f'WARNING ({FORCE_NAME})'
 #: How ``~/calibrate`` names a passing part of the samples (times from the first one, s).
 SUB_WINDOW = 'the samples {0:.0f}-{1:.0f} s after the first'
 
@@ -133,6 +137,7 @@ class CalibratorNode(ManagedNode):
         *('ga_seed', 'ga_generations', 'max_solve_s', 'earth_field_enu', 'sensor_noise_t'),
         'effects',
     )
+    LOCKED = ('method', 'min_samples', 'max_samples', 'max_coverage_condition', 'force', 'effects')
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('calibrator', **kwargs)
@@ -158,6 +163,7 @@ class CalibratorNode(ManagedNode):
         self._state = 'idle'
         self._last_result = 'no calibration yet'
         self._last_ok: bool | None = None
+        self._forced = ''  # the warning of the current calibration, written with force:=true
         self._calibrations = 0
         # The solve: off the executor, one at a time, cancellable.
         self._worker = SolveWorker('calibrator_solve', on_start=self._publish_diagnostics)
@@ -176,7 +182,7 @@ class CalibratorNode(ManagedNode):
         self._assessment: TrimAssessment | None = None
 
         self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
         gated = self.when_active
         self.create_subscription(JointState, 'gradient/raw', gated(self._on_raw), derived_qos())
         self.create_subscription(
@@ -189,7 +195,7 @@ class CalibratorNode(ManagedNode):
             Trigger, '~/calibrate', gated(self._on_calibrate), callback_group=control
         )
         self.create_service(Trigger, '~/cancel', gated(self._on_cancel), callback_group=control)
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self._guidance_pub = self.create_publisher(String, '~/guidance', latched_qos())
         # Each beside the samples: the guidance's work, and odom never behind a burst.
         guidance, odom = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
@@ -313,13 +319,15 @@ class CalibratorNode(ManagedNode):
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
+            discarded = len(self._g)
             self._g, self._b, self._q, self._t = deque(), deque(), deque(), deque()
             self._pairer.clear()
             self._reset_guidance()
             self._epoch += 1
             self._collecting = True
         self._state = 'collecting'
-        response.success, response.message = True, 'collecting (earlier samples discarded)'
+        response.success = True
+        response.message = f'collecting ({discarded} earlier samples discarded)'
         self.get_logger().info(response.message)
         self._publish_diagnostics()
         return response
@@ -420,7 +428,7 @@ class CalibratorNode(ManagedNode):
                 window=f'the {len(t)} samples since ~/start',
                 first_ns=int(t[0]),
                 force=bool(self.get_parameter('force').value),
-                force_name='force:=true',
+                force_name=FORCE_NAME,
                 sub_window=SUB_WINDOW,
                 notes=(*notes, *terms.notes),
                 assessment=self._assessment,  # the guidance's, at its last tick
@@ -475,6 +483,7 @@ class CalibratorNode(ManagedNode):
         except (OSError, OutputError) as error:
             return False, f'solved, but cannot write {path}: {error}'
         self._cal_pub.publish(String(data=calibration.to_yaml()))
+        self._forced = next((n for n in checked.notes if n.startswith(FORCED)), '')
         self._calibrations += 1
         self._state = 'calibrated' if not self._collecting else 'collecting'
         s = result.summary()
@@ -490,10 +499,12 @@ class CalibratorNode(ManagedNode):
         )
 
     def _publish_diagnostics(self) -> None:
-        level = WARN if self._last_ok is False else OK
+        level = WARN if self._last_ok is False or self._forced else OK
         running = self._worker.running_s
         state, elapsed = self._state, self._worker.last_s
         message = f'{state}: {self._last_result}'
+        if self._forced:  # until a calibration that passed its checks replaces it
+            message = f'{message}; the calibration in use was forced: {self._forced}'
         if running is not None:
             state, elapsed = 'solving', running
             budget = self.get_parameter('max_solve_s').value

@@ -77,7 +77,7 @@ from .common import (
     resolve_node_path,
     status,
 )
-from .managed import ManagedNode
+from .managed import ManagedNode, steady_clock
 from .process import spin_node
 
 PARAMETERS = [
@@ -175,7 +175,7 @@ class CompensatorNode(ManagedNode):
         self._sigma_pub = self.create_publisher(JointState, 'gradient/sigma', derived_qos())
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
@@ -192,8 +192,8 @@ class CompensatorNode(ManagedNode):
             JointState, 'gradient/truth', gated(self._on_truth), derived_qos(), raw=True
         )
         self.create_service(Trigger, '~/reset_metrics', gated(self._on_reset))
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
-        self.create_timer(HEALTH_PERIOD_S, self._feed_health)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.create_timer(HEALTH_PERIOD_S, self._feed_health, clock=steady_clock())  # not /clock's
 
     # ----------------------------------------------------------------- calibration
 

@@ -242,7 +242,7 @@ class DriverNode(ManagedNode):
         }
         self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
         self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
         self._clock_pub = (
             self.create_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
         )
@@ -258,7 +258,7 @@ class DriverNode(ManagedNode):
         # for it when the launch gives every node use_sim_time.
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(max(period, 0.002), 0.05), self._tick, clock=steady)
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
 
     def _open_source(
         self, p: dict[str, Any]

@@ -222,14 +222,14 @@ class TargetNode(ManagedNode):
         self._markers_pub = self.create_publisher(MarkerArray, MARKERS_TOPIC, latched_qos())
         self._json_pub = self.create_publisher(String, JSON_TOPIC, latched_qos())
         self._detections_pub = self.create_publisher(PoseArray, DETECTIONS_TOPIC, latched_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
         gated = self.when_active
         self.create_subscription(
             JointState, cv.COMPENSATED_NODE_TOPIC, gated(self._on_tensor), derived_qos(), raw=True
         )
         self.create_subscription(Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos())
         self.create_timer(TICK_S, self._tick)
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
 
     def activated(self) -> None:
         self._last_start = self._now_s()

@@ -157,11 +157,10 @@ class TensorNode(ManagedNode):
     """Matches the four magnetometers by stamp and publishes ``G_m`` and ``B_1'``."""
 
     PARAMETERS = PARAMETERS
-    DYNAMIC = ('max_field_t', 'stale_timeout_s')
+    DYNAMIC = LOCKED = ('max_field_t', 'stale_timeout_s')
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('tensor', **kwargs)
-        self.add_post_set_parameters_callback(self._on_parameters)
 
     def configure(self, p: dict[str, Any]) -> None:
         """The set former, publishers and subscriptions from the parameters ``p``."""
@@ -200,7 +199,7 @@ class TensorNode(ManagedNode):
         self._raw_cdr = cv.TensorCdr(self._array_frame)
         self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
         self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
         qos = sensor_qos(p['sensor_queue_depth'])
         self._subs = [
             self.create_subscription(
@@ -208,7 +207,9 @@ class TensorNode(ManagedNode):
             )
             for i, topic in enumerate(cv.MAG_TOPICS)
         ]
-        self._diag_timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self._diag_timer = self.create_diagnostics_timer(
+            p['diagnostics_period_s'], self._publish_diagnostics
+        )
         self.get_logger().info(
             f'sets of {", ".join(cv.MAG_TOPICS)}: {self._timebase.text}; '
             f'array condition number {self._geometry.condition_number:.3g}'
@@ -219,19 +220,6 @@ class TensorNode(ManagedNode):
         self._last_arrival = [self._now_s()] * 4
 
     # ----------------------------------------------------------------- callbacks
-
-    def _on_parameters(self, parameters: list) -> None:
-        """Take validated run-time changes of ``max_field_t`` and ``stale_timeout_s`` (an
-        unconfigured node reads them when it is configured)."""
-        if not self._configured:
-            return
-        for parameter in parameters:
-            if parameter.name == 'max_field_t':
-                self._max_field = float(parameter.value)
-                if isinstance(self._matcher, Resampler):
-                    self._matcher.max_field_t = self._max_field
-            elif parameter.name == 'stale_timeout_s':
-                self._stale_timeout = float(parameter.value)
 
     def _on_mag(self, sensor: int, data: bytes) -> None:
         """One serialized MagneticField (T): queue its reading; publish every set it completes.
