@@ -66,7 +66,7 @@ def test_compensator_transitions_through_the_lifecycle_services(tmp_path):
     g, b, exact = interference_set(40, rng=np.random.default_rng(3), directions='rich')
     assert np.abs(g).max() > 50 * NT  # the interference is there to be removed
     with ros_graph() as (graph, probe, feeder):
-        process = graph.start('compensator', autostart=False, calibration_file=str(calibration_file))
+        process = graph.start('compensator', autostart=False, calibration_publisher='test_feeder', calibration_file=str(calibration_file))
         assert state(probe, 'compensator') == 'unconfigured'
         assert probe.count_publishers('/tetra/gradient/compensated') == 0
 

@@ -92,9 +92,10 @@ from ..core.plausibility import plausible_readings
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
-from ..io.calibration import CalibrationFile, CalibrationFileError, save_calibration
+from ..io.calibration import CalibrationFile, CalibrationFileError
 from ..io.channels import TEMPERATURE, current_channels
 from ..io.matching import StampPairer
+from ..io.outputs import CALIBRATION, atomic_write_text
 from ..pipelines.terms import EffectsChoice, WindowTerms
 from ..pipelines.window_check import (
     KNOWN_GRADIENT_METHODS,
@@ -103,6 +104,7 @@ from ..pipelines.window_check import (
     identify_checked,
     joint_attitude,
 )
+from .authentication import key_id, node_key, sign
 from .calibrator_params import DEFAULT_NOISE_T, PARAMETERS
 from .channels import ChannelHistory, channel_message, sample_terms, subscribe_channels
 from .common import (
@@ -116,6 +118,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
+from .publishers import InputPublishers
 from .solve_worker import SolveWorker
 
 #: Period of the trim guidance on ``~/guidance`` while samples arrive, s (the issue's ~1 Hz).
@@ -151,6 +154,8 @@ class CalibratorNode(ManagedNode):
             )
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._calibration_path = resolve_node_path(p['calibration_file'])
+        self._key = node_key(p['calibration_key_file'])  # signs what is written and published
+        self._watch = InputPublishers(self)
         self._lock = threading.Lock()
         self._collecting = False
         # Deques: dropping the oldest sample beyond max_samples is O(1).
@@ -477,12 +482,13 @@ class CalibratorNode(ManagedNode):
             'effects': terms.diagnostics(),
         }
         calibration = dataclasses.replace(calibration, diagnostics=diagnostics)
-        path = self._calibration_path
-        try:
-            save_calibration(path, calibration, force=True)  # replaces only a previous calibration
+        path, text = self._calibration_path, calibration.to_yaml()
+        text = text if self._key is None else sign(text, self._key)
+        try:  # replaces only a previous calibration
+            atomic_write_text(path, text, CALIBRATION, force=True)
         except (OSError, OutputError) as error:
             return False, f'solved, but cannot write {path}: {error}'
-        self._cal_pub.publish(String(data=calibration.to_yaml()))
+        self._cal_pub.publish(String(data=text))
         self._forced = next((n for n in checked.notes if n.startswith(FORCED)), '')
         self._calibrations += 1
         self._state = 'calibrated' if not self._collecting else 'collecting'
@@ -529,10 +535,15 @@ class CalibratorNode(ManagedNode):
                     'effects': self.get_parameter('effects').value,
                     **{f'{n} messages': count for n, count in self._channels.counts().items()},
                     'calibration_file': str(self._calibration_path),
+                    'authentication': 'none: unsigned (no calibration_key_file)'
+                    if self._key is None
+                    else f'HMAC-SHA256, key id {key_id(self._key)}',
                     **self._guidance_values(),
                 },
             )
         )
+        self._watch.check()
+        array.status.append(self._watch.status())
         self._diag_pub.publish(array)
 
 

@@ -17,6 +17,7 @@ from ..core.identification import (
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..errors import InputError
 from ..pipelines.terms import EffectsChoice
+from .authentication import key_file_spec
 from .common import (
     POSITIONS_SPEC,
     ParamSpec,
@@ -152,5 +153,6 @@ PARAMETERS = [
         absolute_topics,
         string_array=True,
     ),
+    key_file_spec('signs'),
     diagnostics_period_spec(),
 ]

@@ -35,6 +35,7 @@ for it), counted per channel, and ``/diagnostics`` goes WARN naming the channel.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,7 @@ from ..io.calibration import (
     load_calibration,
 )
 from ..io.matching import StampPairer
+from .authentication import CalibrationGate, Refused, key_file_spec, node_key
 from .channels import LiveEffects, channel_message, subscribe_channels
 from .common import (
     ARRAY_FRAME_SPEC,
@@ -79,6 +81,7 @@ from .common import (
 )
 from .managed import ManagedNode, steady_clock
 from .process import spin_node
+from .publishers import InputPublishers, resolve_node_name
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -89,6 +92,16 @@ PARAMETERS = [
         'a relative path is under $ROS_HOME (default ~/.ros). Missing: run uncompensated until '
         'the calibration topic brings one; corrupt or of another array: configure refused.',
     ),
+    ParamSpec(
+        'calibration_publisher',
+        'calibrator',
+        'The node whose calibrations the calibration topic may bring (a relative name is in '
+        "this node's namespace: /tetra/calibrator); one that arrives while another node "
+        'publishes the topic is refused (WARN naming it). Read-only.',
+        lambda name: None if name.strip('/') and ' ' not in name else 'must name a node',
+        read_only=True,
+    ),
+    key_file_spec('verifies'),
     ParamSpec(
         'max_pending',
         1000,
@@ -146,6 +159,14 @@ class CompensatorNode(ManagedNode):
         self._interference: InterferenceParameters | None = None
         self._source = ''
         self._problem = 'no calibration loaded yet'
+        self._created = ''  # created_utc of the calibration in use
+        topic = self.resolve_topic_name('calibration')
+        publisher = resolve_node_name(self, p['calibration_publisher'])
+        self._watch = InputPublishers(self, {topic: publisher})
+        self._gate = CalibrationGate(
+            self._watch, topic, publisher, node_key(p['calibration_key_file'])
+        )
+        self._waiting: tuple[float, str] | None = None  # (arrival, text): publisher unnamed yet
         self._noise = float(p['sensor_noise_t'])
         self._sigma: SigmaModel | None = None
         self._sigma_text = ''
@@ -194,6 +215,7 @@ class CompensatorNode(ManagedNode):
         self.create_service(Trigger, '~/reset_metrics', gated(self._on_reset))
         self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self.create_timer(HEALTH_PERIOD_S, self._feed_health, clock=steady_clock())  # not /clock's
+        self.create_timer(0.2, self._judge_waiting, clock=steady_clock())
 
     # ----------------------------------------------------------------- calibration
 
@@ -212,14 +234,33 @@ class CompensatorNode(ManagedNode):
         if not path.exists():
             self._refuse(f'no calibration file {path} yet (waiting for the calibration topic)')
             return
-        self._apply(load_calibration(path), f'file {path}')
+        calibration = load_calibration(path)
+        self._gate.check_file(path.read_text(encoding='utf-8'), str(path))  # with a key
+        self._apply(calibration, f'file {path}')
 
     def _on_calibration(self, msg: String) -> None:
+        self._judge(msg.data, time.monotonic())
+
+    def _judge_waiting(self) -> None:
+        if self._waiting is not None:
+            self._judge(self._waiting[1], self._waiting[0])
+
+    def _judge(self, text: str, arrived: float) -> None:
+        """Adopt a calibration from the topic when the gate admits it (its publisher, its
+        signature) and it is not older than the one in use under a key (a replay)."""
+        self._waiting = None
         try:
-            self._apply(
-                CalibrationFile.from_yaml(msg.data, source='the calibration topic'),
-                'topic calibration',
-            )
+            if not self._gate.admit(text, time.monotonic() - arrived):
+                self._waiting = (arrived, text)  # the graph has not named the publisher yet
+                return
+            calibration = CalibrationFile.from_yaml(text, source='the calibration topic')
+            if self._gate.key is not None and calibration.created_utc < self._created:
+                raise Refused(
+                    f'a signed calibration from {self._gate.publisher} created '
+                    f'{calibration.created_utc}, before the one in use ({self._created}): '
+                    'a replay'
+                )
+            self._apply(calibration, f'topic calibration from {self._gate.publisher}')
         except CalibrationFileError as error:
             self._refuse(str(error))
 
@@ -231,6 +272,7 @@ class CompensatorNode(ManagedNode):
         self._interference = calibration.parameters
         self._follow_channels(calibration)
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
+        self._created = calibration.created_utc
         self._problem = ''
         self._reset_metrics()
         self.get_logger().info(f'compensating with {self._source}')
@@ -440,6 +482,8 @@ class CompensatorNode(ManagedNode):
             text = f'compensating with {self._source}' + (
                 f'; refused a newer one: {self._problem}' if self._problem else ''
             )
+            if self._gate.key is None:
+                text += '; unauthenticated (no calibration_key_file)'
             if channel_level == WARN:
                 level, text = WARN, f'{text}; {channel_text}'
         else:
@@ -463,9 +507,13 @@ class CompensatorNode(ManagedNode):
                     'scored_samples': self._eps_count,
                     'unpaired_evicted': self._inputs.evicted,
                     'unscored_evicted': self._truth.evicted,
+                    'authentication': self._gate.authentication,
+                    'calibration_publisher': self._gate.publisher,
                 },
             )
         )
+        self._watch.check()
+        array.status.append(self._watch.status())
         array.status.append(
             status(self, 'channels', channel_level, channel_text, '', channel_values)
         )
