@@ -118,7 +118,6 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
-from .publishers import InputPublishers
 from .solve_worker import SolveWorker
 
 #: Period of the trim guidance on ``~/guidance`` while samples arrive, s (the issue's ~1 Hz).
@@ -155,7 +154,6 @@ class CalibratorNode(ManagedNode):
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._calibration_path = resolve_node_path(p['calibration_file'])
         self._key = node_key(p['calibration_key_file'])  # signs what is written and published
-        self._watch = InputPublishers(self)
         self._lock = threading.Lock()
         self._collecting = False
         # Deques: dropping the oldest sample beyond max_samples is O(1).
@@ -542,8 +540,6 @@ class CalibratorNode(ManagedNode):
                 },
             )
         )
-        self._watch.check()
-        array.status.append(self._watch.status())
         self._diag_pub.publish(array)
 
 

@@ -196,7 +196,7 @@ class CompensatorNode(ManagedNode):
         self._sigma_pub = self.create_publisher(JointState, 'gradient/sigma', derived_qos())
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
-        self._diag_pub = self.diagnostics_publisher()
+        self._diag_pub = self.diagnostics_publisher(self._watch)
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
@@ -512,8 +512,6 @@ class CompensatorNode(ManagedNode):
                 },
             )
         )
-        self._watch.check()
-        array.status.append(self._watch.status())
         array.status.append(
             status(self, 'channels', channel_level, channel_text, '', channel_values)
         )

@@ -48,6 +48,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 
 from ..errors import TetraError
 from .common import NAMESPACE, WARN, ParamSpec, declare_parameters
+from .publishers import InputPublishers
 
 AUTOSTART_SPEC = ParamSpec(
     'autostart',
@@ -194,13 +195,14 @@ class ManagedNode(LifecycleNode):
         self._always.add(timer)
         return timer
 
-    def diagnostics_publisher(self) -> DiagnosticsPublisher:
-        """``/diagnostics``, with every status WARN ``inactive: ...`` while inactive."""
+    def diagnostics_publisher(self, inputs: InputPublishers | None = None) -> DiagnosticsPublisher:
+        """``/diagnostics``, with every status WARN ``inactive: ...`` while inactive and the
+        ``inputs`` status (who publishes the node's input topics; default: one watch of all
+        its subscriptions) appended to every array."""
         from diagnostic_msgs.msg import DiagnosticArray
 
-        return DiagnosticsPublisher(
-            self, self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        )
+        publisher = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        return DiagnosticsPublisher(self, publisher, inputs or InputPublishers(self))
 
     def publish_diagnostics_now(self) -> None:
         """The node's ``_publish_diagnostics`` (when it has one), at a state change."""
@@ -370,11 +372,14 @@ class DiagnosticsPublisher:
     with its message prefixed ``inactive:`` (the node's own values kept), so a monitor sees
     a deactivated node instead of its last OK."""
 
-    def __init__(self, node: ManagedNode, publisher: Any) -> None:
+    def __init__(self, node: ManagedNode, publisher: Any, inputs: InputPublishers) -> None:
         self._node = node
         self.publisher = publisher
+        self.inputs = inputs
 
     def publish(self, array: Any) -> None:
+        self.inputs.check()
+        array.status.append(self.inputs.status())
         if not self._node.active:
             for item in array.status:
                 item.level = bytes([max(item.level[0], WARN)])

@@ -75,7 +75,6 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
-from .publishers import InputPublishers
 from .track import SurveyTrack, TrackSnapshot
 
 #: The outputs (relative: ``/tetra/targets`` ...).
@@ -224,7 +223,6 @@ class TargetNode(ManagedNode):
         self._json_pub = self.create_publisher(String, JSON_TOPIC, latched_qos())
         self._detections_pub = self.create_publisher(PoseArray, DETECTIONS_TOPIC, latched_qos())
         self._diag_pub = self.diagnostics_publisher()
-        self._watch = InputPublishers(self)  # a second publisher on an input: WARN
         gated = self.when_active
         self.create_subscription(
             JointState, cv.COMPENSATED_NODE_TOPIC, gated(self._on_tensor), derived_qos(), raw=True
@@ -371,8 +369,6 @@ class TargetNode(ManagedNode):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(status(self, 'targets', level, text, '', values))
-        self._watch.check()
-        array.status.append(self._watch.status())
         self._diag_pub.publish(array)
 
 

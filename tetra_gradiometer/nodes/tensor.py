@@ -59,7 +59,6 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
-from .publishers import InputPublishers
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -201,7 +200,6 @@ class TensorNode(ManagedNode):
         self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
         self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
         self._diag_pub = self.diagnostics_publisher()
-        self._watch = InputPublishers(self)  # a second publisher on an input: WARN
         qos = sensor_qos(p['sensor_queue_depth'])
         self._subs = [
             self.create_subscription(
@@ -398,8 +396,6 @@ class TensorNode(ManagedNode):
                 },
             )
         )
-        self._watch.check()
-        array.status.append(self._watch.status())
         self._diag_pub.publish(array)
         silent = [
             s for s in stale if self._ever[s]
