@@ -182,7 +182,16 @@ def _feeder_class() -> type:
             self.mags = [self.create_publisher(MagneticField, t, 100) for t in cv.MAG_TOPICS]
             self.raw = self.create_publisher(JointState, 'gradient/raw', derived_qos())
             self.reference = self.create_publisher(MagneticField, 'reference_field', derived_qos())
-            self.calibration = self.create_publisher(String, 'calibration', latched_qos())
+            self._calibration: Any = None
+
+        @property
+        def calibration(self) -> Any:
+            """The publisher on ``calibration``, created when a test first uses it: a compensator
+            refuses calibrations while a node other than its calibration_publisher publishes
+            there (issue 34)."""
+            if self._calibration is None:
+                self._calibration = self.create_publisher(String, 'calibration', latched_qos())
+            return self._calibration
 
         def publish_set(self, stamp_ns: int, fields: np.ndarray, skip: tuple[int, ...] = ()) -> None:
             """Fields (4, 3) T at ``stamp_ns``; sensors in ``skip`` stay silent."""

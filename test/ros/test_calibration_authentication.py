@@ -129,7 +129,6 @@ def test_the_calibrator_signs_what_it_writes_and_publishes_and_the_compensator_a
     calibration_file = tmp_path / 'calibration.yaml'
     g, b, exact = interference_set(300, rng, 'rich')
     with ros_graph() as (graph, probe, feeder):
-        feeder.destroy_publisher(feeder.calibration)  # the calibrator alone publishes it
         graph.start('calibrator', calibration_file=str(calibration_file), calibration_key_file=str(key_file))
         graph.start('compensator', calibration_file=str(tmp_path / 'compensator.yaml'),
                     calibration_key_file=str(key_file), diagnostics_period_s=0.2)
