@@ -98,6 +98,8 @@ class InputPublishers:
         """``<node>: inputs``: WARN naming the unexpected publishers, else OK."""
         values = {f'{topic} publishers': n for topic, n in sorted(self.counts.items())}
         if not self.unexpected:
-            return status(self.node, 'inputs', OK, 'no unexpected publisher on the input topics', '', values)
+            return status(
+                self.node, 'inputs', OK, 'no unexpected publisher on the input topics', '', values
+            )
         text = '; '.join(self.describe(t, names) for t, names in sorted(self.unexpected.items()))
         return status(self.node, 'inputs', WARN, text, '', values)
