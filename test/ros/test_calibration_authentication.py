@@ -15,7 +15,7 @@ from ros_helpers import interference_set, ros_graph, wait_for, wait_matched
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile
 
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 KEY = bytes(range(40, 80))
 COMPENSATION = 'tetra/compensator: compensation'

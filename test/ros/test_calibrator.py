@@ -12,7 +12,7 @@ from ros_helpers import interference_set, reconfigure, ros_graph, set_parameter,
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import load_calibration
 
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 CALIBRATION = 'tetra/calibrator: calibration'
 

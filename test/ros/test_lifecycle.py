@@ -14,7 +14,7 @@ from ros_helpers import interference_set, ros_graph, unique_domain, wait_for, wa
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile, save_calibration
 
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 NT = 1e-9
 GEOMETRY = core.TetraGeometry.regular(0.5)
 

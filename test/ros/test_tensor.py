@@ -10,7 +10,7 @@ from ros_helpers import reconfigure, ros_graph, set_parameter, uniform_gradient_
 from tetra_gradiometer import core
 
 NT = 1e-9
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 B0 = np.array([12e-6, -20e-6, 43e-6])
 G_KNOWN = np.array([[120.0, 35.0, -12.0], [35.0, -80.0, 22.0], [-12.0, 22.0, -40.0]]) * NT  # symmetric, traceless

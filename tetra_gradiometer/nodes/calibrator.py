@@ -186,6 +186,7 @@ class CalibratorNode(ManagedNode):
 
         self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
         self._diag_pub = self.diagnostics_publisher()
+        self._horizon = self._diag_pub.inputs.watch_stamps(p['max_stamp_ahead_s'])
         gated = self.when_active
         self.create_subscription(JointState, 'gradient/raw', gated(self._on_raw), derived_qos())
         self.create_subscription(
@@ -218,6 +219,8 @@ class CalibratorNode(ManagedNode):
         self._add(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
 
     def _add(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
+        if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
+            return
         if not self._collecting:
             return
         with self._lock:
@@ -240,7 +243,9 @@ class CalibratorNode(ManagedNode):
                 self._t.popleft()
 
     def _on_odom(self, msg: Odometry) -> None:
-        self._odom.add(cv.stamp_to_ns(msg.header.stamp), cv.odometry_orientation(msg))
+        stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        if not self._horizon.refuse(cv.ODOM_NODE_TOPIC, stamp_ns):
+            self._odom.add(stamp_ns, cv.odometry_orientation(msg))
 
     def _on_channel(self, name: str, msg: Any) -> None:
         """A temperature or current message: kept whether or not collecting, as odom."""

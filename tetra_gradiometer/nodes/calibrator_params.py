@@ -27,6 +27,7 @@ from .common import (
     one_of,
     positive,
 )
+from .stamps import AHEAD_SPEC
 
 #: Bounds of ``max_samples`` and ``ga_generations`` (see their descriptions).
 MAX_SAMPLES = 500_000
@@ -154,5 +155,6 @@ PARAMETERS = [
         string_array=True,
     ),
     key_file_spec('signs'),
+    AHEAD_SPEC,
     diagnostics_period_spec(),
 ]

@@ -82,6 +82,7 @@ from .common import (
 from .managed import ManagedNode, steady_clock
 from .process import spin_node
 from .publishers import InputPublishers, resolve_node_name
+from .stamps import AHEAD_SPEC
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -132,6 +133,7 @@ PARAMETERS = [
     ),
     ARRAY_FRAME_SPEC,
     WARN_THROTTLE_SPEC,
+    AHEAD_SPEC,
     diagnostics_period_spec(),
 ]
 #: Seconds between feeds of the health monitor (it works on chunks; ~1 ms per call).
@@ -197,6 +199,7 @@ class CompensatorNode(ManagedNode):
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
         self._diag_pub = self.diagnostics_publisher(self._watch)
+        self._horizon = self._watch.watch_stamps(p['max_stamp_ahead_s'], p['warn_throttle_s'])
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
@@ -393,6 +396,8 @@ class CompensatorNode(ManagedNode):
         self._pair(1, stamp_ns, reading[:3])
 
     def _pair(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
+        if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
+            return
         pair = self._inputs.add(stream, stamp_ns, value)
         if pair is not None:
             self._compensate(stamp_ns, *pair)
@@ -447,7 +452,8 @@ class CompensatorNode(ManagedNode):
             stamp_ns, g_true = self._cdr.read(data)
         except MessageError:
             return
-        self._pair_truth(1, stamp_ns, g_true)
+        if not self._horizon.refuse('gradient/truth', stamp_ns):
+            self._pair_truth(1, stamp_ns, g_true)
 
     def _pair_truth(self, stream: int, stamp_ns: int, value: Any) -> None:
         """Join ``(G_m, G)`` (stream 0) with ``gradient/truth`` (stream 1) and score the pair."""

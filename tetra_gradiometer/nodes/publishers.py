@@ -54,6 +54,15 @@ class InputPublishers:
         self._reported: set[tuple[str, str]] = set()
         self.unexpected: dict[str, list[str]] = {}
         self.counts: dict[str, int] = {}
+        self.horizon: Any = None  # the node's StampHorizon (nodes/stamps.py), if it has one
+        self._refused_reported = 0
+
+    def watch_stamps(self, tolerance_s: float, warn_throttle_s: float = 5.0) -> Any:
+        """A :class:`~.stamps.StampHorizon` of the node, its refusals in :meth:`status`."""
+        from .stamps import StampHorizon
+
+        self.horizon = StampHorizon(self.node, tolerance_s, warn_throttle_s)
+        return self.horizon
 
     def publishers(self, topic: str) -> list[str]:
         """Fully qualified names of the nodes publishing ``topic`` (one per publisher)."""
@@ -95,8 +104,25 @@ class InputPublishers:
         return f'{len(others)} publishers on {topic}: {", ".join(others)} (one expected)'
 
     def status(self) -> Any:
-        """``<node>: inputs``: WARN naming the unexpected publishers, else OK."""
-        values = {f'{topic} publishers': n for topic, n in sorted(self.counts.items())}
+        """``<node>: inputs``: WARN naming the unexpected publishers, or while messages
+        stamped ahead of the clock are refused (since the last report), else OK."""
+        values: dict[str, Any] = {f'{t} publishers': n for t, n in sorted(self.counts.items())}
+        if self.horizon is not None:
+            values.update(self.horizon.values())
+            refused = sum(self.horizon.refused.values())
+            new, self._refused_reported = refused - self._refused_reported, refused
+            if new > 0:
+                topics = ', '.join(sorted(self.horizon.refused))
+                text = (
+                    f'{new} messages stamped more than {self.horizon.tolerance_s:g} s ahead of '
+                    f'the clock refused since the last report ({topics}): a wrong clock or '
+                    'another publisher'
+                )
+                if self.unexpected:
+                    text = f'{text}; ' + '; '.join(
+                        self.describe(t, names) for t, names in sorted(self.unexpected.items())
+                    )
+                return status(self.node, 'inputs', WARN, text, '', values)
         if not self.unexpected:
             return status(
                 self.node, 'inputs', OK, 'no unexpected publisher on the input topics', '', values

@@ -59,6 +59,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
+from .stamps import AHEAD_SPEC
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -135,6 +136,7 @@ PARAMETERS = [
     ),
     ARRAY_FRAME_SPEC,
     WARN_THROTTLE_SPEC,
+    AHEAD_SPEC,
     diagnostics_period_spec(),
 ]
 
@@ -200,6 +202,9 @@ class TensorNode(ManagedNode):
         self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
         self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
         self._diag_pub = self.diagnostics_publisher()
+        self._horizon = self._diag_pub.inputs.watch_stamps(
+            p['max_stamp_ahead_s'], p['warn_throttle_s']
+        )
         qos = sensor_qos(p['sensor_queue_depth'])
         self._subs = [
             self.create_subscription(
@@ -235,6 +240,8 @@ class TensorNode(ManagedNode):
             self._invalid[sensor] += 1
             if self._warn():
                 self.get_logger().warning(f'dropped a malformed {cv.MAG_TOPICS[sensor]}: {error}')
+            return
+        if self._horizon.refuse(cv.MAG_TOPICS[sensor], stamp):  # never into the set former
             return
         last = self._last_stamp[sensor]
         if last is not None and stamp < last - self._jump_back_ns:
