@@ -126,6 +126,8 @@ def test_one_publisher_per_input_and_only_the_operator_changes_state(graph):
     for sensor in range(1, 5):
         assert publishers[f'/tetra/mag{sensor}'] == {'/tetra_gradiometer/driver'}
     assert publishers['/tetra/calibration'] == {'/tetra_gradiometer/calibrator'}
+    # /diagnostics statuses are trusted only from the suite's own enclaves.
+    assert publishers['/diagnostics'] == {f'/tetra_gradiometer/{name}' for name in NODES}
     # Every service a node serves that changes it: only the operator may call it.
     changing = {service for name in NODES for service in graph[name]['reply']
                 if service.rsplit('/', 1)[1] in ('start', 'stop', 'calibrate', 'cancel', 'reset_metrics',
