@@ -146,6 +146,10 @@ def test_the_calibrator_signs_what_it_writes_and_publishes_and_the_compensator_a
         assert reply.success, reply.message
         wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True', 10, 'adopted', graph)
         assert 'topic calibration from /tetra/calibrator' in probe.status(COMPENSATION)['message']
+        output = graph.processes['calibrator'].output()  # state-changing calls logged at WARN
+        for line in ('~/start called: done: collecting (0 earlier samples discarded)',
+                     '~/stop called: done: stopped with 300 samples', '~/calibrate called: done: '):
+            assert any('WARN' in row and line in row for row in output.splitlines()), line
         text = calibration_file.read_text()
         body, _, _ = text.partition('signature:\n')
         assert yaml.safe_load(text)['signature'] == yaml.safe_load(_signed(body))['signature']

@@ -6,6 +6,7 @@ working. A deactivated node keeps publishing WARN ``inactive`` statuses on the s
 invalid transition over the service keeps running."""
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -126,17 +127,25 @@ def test_every_transition_from_every_state_is_answered_and_the_node_keeps_workin
     assert answered == 4 * len(_cases('active'))
 
 
-def _statuses_while(node: Any, listener: Any, executor: Any, seconds: float) -> list:
-    from diagnostic_msgs.msg import DiagnosticArray
+class _Listener:
+    """Every status on /diagnostics named with ``prefix``, from its creation on."""
 
-    seen: list = []
-    subscription = listener.create_subscription(
-        DiagnosticArray, '/diagnostics', lambda msg: seen.extend(msg.status), 10)
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
-    listener.destroy_subscription(subscription)
-    return seen
+    def __init__(self, node: Any, executor: Any, prefix: str) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.seen: list = []
+        self.executor = executor
+        node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: self.seen.extend(s for s in msg.status if s.name.startswith(prefix)), 100)
+
+    def during(self, seconds: float) -> list:
+        """The statuses received while spinning ``seconds`` (and any received just before)."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.05)
+        seen, self.seen = self.seen, []
+        return seen
 
 
 @pytest.mark.parametrize('name', ['compensator', 'tensor'])
@@ -146,8 +155,8 @@ def test_a_deactivated_node_keeps_reporting_inactive_on_the_steady_clock(name, t
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=unique_domain())
+    context = rclpy.Context()  # a namespace of its own: another test's nodes on the domain differ
+    rclpy.init(context=context, domain_id=unique_domain(), args=['--ros-args', '-r', f'__ns:=/steady{os.getpid()}'])
     executor = SingleThreadedExecutor(context=context)
     nodes: list = []
     try:
@@ -157,17 +166,27 @@ def test_a_deactivated_node_keeps_reporting_inactive_on_the_steady_clock(name, t
         nodes = [node, listener]
         for each in nodes:
             executor.add_node(each)
+        statuses = _Listener(listener, executor, node.get_fully_qualified_name().lstrip('/') + ': ')
         node.bring_up()
         assert node.get_clock().now().nanoseconds == 0  # sim time, no /clock: frozen
-        active = _statuses_while(node, listener, executor, 1.5)
+        statuses.during(0.3)  # those of the configuration (inactive) still in flight
+        active = statuses.during(1.5)
         assert len({s.name for s in active}) >= 1 and len(active) >= 5, active
         assert not any(s.message.startswith('inactive') for s in active)
         node.trigger_deactivate()
-        inactive = _statuses_while(node, listener, executor, 1.5)
+        statuses.during(0.3)  # the last active ones still in flight
+        inactive = statuses.during(1.5)
         names = {s.name for s in active}
-        assert len(inactive) >= 5 * len(names)  # 15 periods of 0.1 s, every status
+        assert len(inactive) >= 5 * len(names)  # 15 periods of 0.1 s, each with every status
         assert {s.name for s in inactive} == names
         assert all(s.level[0] >= 1 and s.message.startswith('inactive: ') for s in inactive), inactive
+        # Shut down: the statuses' last word is WARN 'finalized', then nothing more comes.
+        statuses.during(0.3)
+        node.trigger_shutdown()
+        last = {s.name: s for s in statuses.during(0.5)}  # (earlier ones may still be queued)
+        assert set(last) == names and all(
+            s.level[0] >= 1 and s.message.startswith('finalized (shut down): ') for s in last.values()), last
+        assert statuses.during(0.5) == []
     finally:
         executor.shutdown(timeout_sec=2)
         for each in nodes:

@@ -2,6 +2,7 @@
 bad readings dropped and counted, a silent sensor reported, run-time parameter validation."""
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -130,3 +131,6 @@ def test_a_bad_value_set_at_run_time_is_refused():
         for name, value in (('max_field_t', 5e-4), ('use_sim_time', True)):
             assert not set_parameter(probe, graph, 'tensor', name, value).successful, name
         reconfigure(probe, graph, 'tensor', stale_timeout_s=2.0)  # asserts each step
+        output = graph.processes['tensor'].output()  # each change logged at WARN
+        assert re.search(r'WARN.*parameter stale_timeout_s set to 2\.0 \(unconfigured\)', output), output
+        assert re.search(r'WARN.*change_state: cleanup requested in inactive: done, now unconfigured', output)

@@ -139,7 +139,9 @@ class CalibratorNode(ManagedNode):
         *('ga_seed', 'ga_generations', 'max_solve_s', 'earth_field_enu', 'sensor_noise_t'),
         'effects',
     )
-    LOCKED = ('method', 'min_samples', 'max_samples', 'max_coverage_condition', 'force', 'effects')
+    # What is written and how the samples are judged (the guidance's noise and field feed the
+    # excitation refusal): all but the solve's time budget.
+    LOCKED = tuple(name for name in DYNAMIC if name != 'max_solve_s')
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('calibrator', **kwargs)

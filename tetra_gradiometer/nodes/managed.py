@@ -115,6 +115,7 @@ class ManagedNode(LifecycleNode):
         self._base = self._entities()  # the node's own: parameter and lifecycle services
         self._raising = False  # bring_up raises the refusal: the log line would repeat it
         self._always: set[Any] = set()  # timers that run while inactive too (diagnostics)
+        self.diagnostics_state = 'inactive'  # how a status reads while the node is not active
         self._service_change_state.callback = self._on_change_state
         self.add_post_set_parameters_callback(self._log_parameters)
         if p['autostart']:
@@ -338,16 +339,32 @@ class ManagedNode(LifecycleNode):
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._last_statuses('unconfigured (cleaned up)')
         self._release()
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._last_statuses('finalized (shut down)')
         self._release()
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._last_statuses('unconfigured (after an error)')
         self._release()
         return TransitionCallbackReturn.SUCCESS  # back to unconfigured
+
+    def _last_statuses(self, state: str) -> None:
+        """Before ``/diagnostics`` goes with the rest: every status WARN ``<state>: ...``, so
+        an aggregator is not left holding the node's last OK."""
+        self.active = False
+        self.diagnostics_state = state
+        try:
+            self.publish_diagnostics_now()
+        except Exception:  # a bug: never in the way of the transition
+            self.get_logger().error(f'last diagnostics failed:\n{traceback.format_exc()}')
+        finally:
+            self.diagnostics_state = 'inactive'
+
 
     def stop_work(self) -> None:
         """Stop the node's long work (a solve, an open bag) when it is configured: before its
@@ -383,5 +400,5 @@ class DiagnosticsPublisher:
         if not self._node.active:
             for item in array.status:
                 item.level = bytes([max(item.level[0], WARN)])
-                item.message = f'inactive: {item.message}'
+                item.message = f'{self._node.diagnostics_state}: {item.message}'
         self.publisher.publish(array)
