@@ -38,9 +38,11 @@ def _signed(text: str, key: bytes = KEY) -> str:
     return text + yaml.safe_dump({'signature': signature}, sort_keys=False)
 
 
-def _calibration(parameters, created: str = '2026-11-26T09:00:00Z', noise: float | None = None) -> str:
+def _calibration(parameters, created: str = '2026-11-26T09:00:00Z', noise: float | None = None,
+                 notes: tuple[str, ...] = ()) -> str:
     return CalibrationFile(parameters=parameters, method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat(),
-                           created_utc=created, sensor_noise_t=noise).to_yaml()
+                           created_utc=created, sensor_noise_t=noise,
+                           diagnostics={'notes': list(notes)} if notes else {}).to_yaml()
 
 
 def test_forged_calibrations_on_the_topic_are_refused_naming_the_publisher(tmp_path):
@@ -83,10 +85,18 @@ def test_forged_calibrations_on_the_topic_are_refused_naming_the_publisher(tmp_p
             publisher.publish(String(data=_signed(_calibration(exact))))
             wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True', 10, 'adopted', graph)
             assert 'topic calibration from /tetra/calibrator' in probe.status(COMPENSATION)['message']
+            assert probe.status(COMPENSATION)['level'] == 0
+            # A calibration written with force:=true: adopted (signed), but the status stays WARN.
+            forced_note = 'WARNING (force:=true): the samples do not fit the model'
+            publisher.publish(String(data=_signed(_calibration(exact, created='2026-11-26T09:30:00Z',
+                                                               notes=(forced_note,)))))
+            wait_for(lambda: 'the calibration was forced' in probe.status(COMPENSATION).get('message', ''), 10,
+                     'forced', graph)
+            assert probe.status(COMPENSATION)['level'] == 1 and forced_note in probe.status(COMPENSATION)['message']
             publisher.publish(String(data=_signed(_calibration(forged, created='2026-11-25T09:00:00Z'))))
             wait_for(lambda: 'a replay' in probe.status(COMPENSATION).get('message', ''), 10, 'replay', graph)
             assert probe.status(COMPENSATION)['level'] == 1
-            assert '2026-11-26T09:00:00Z' in probe.status(COMPENSATION)['message']  # kept the exact one
+            assert '2026-11-26T09:30:00Z' in probe.status(COMPENSATION)['message']  # kept the one in use
         finally:
             spoof.destroy_node()
         assert process.alive()

@@ -162,6 +162,7 @@ class CompensatorNode(ManagedNode):
         self._source = ''
         self._problem = 'no calibration loaded yet'
         self._created = ''  # created_utc of the calibration in use
+        self._forced = ''  # its warning when it was written with force
         topic = self.resolve_topic_name('calibration')
         publisher = resolve_node_name(self, p['calibration_publisher'])
         self._watch = InputPublishers(self, {topic: publisher})
@@ -276,6 +277,8 @@ class CompensatorNode(ManagedNode):
         self._follow_channels(calibration)
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
         self._created = calibration.created_utc
+        notes = calibration.diagnostics.get('notes') or []
+        self._forced = next((str(n) for n in notes if str(n).startswith('WARNING (')), '')
         self._problem = ''
         self._reset_metrics()
         self.get_logger().info(f'compensating with {self._source}')
@@ -490,6 +493,8 @@ class CompensatorNode(ManagedNode):
             )
             if self._gate.key is None:
                 text += '; unauthenticated (no calibration_key_file)'
+            if self._forced:  # written although its samples failed a check (force)
+                level, text = WARN, f'{text}; the calibration was forced: {self._forced}'
             if channel_level == WARN:
                 level, text = WARN, f'{text}; {channel_text}'
         else:
