@@ -165,3 +165,34 @@ def test_the_calibrator_signs_what_it_writes_and_publishes_and_the_compensator_a
         assert yaml.safe_load(text)['signature'] == yaml.safe_load(_signed(body))['signature']
         saved = CalibrationFile.from_yaml(text)
         np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
+
+
+def test_without_a_key_a_second_node_under_the_calibrators_name_is_refused(tmp_path):
+    """Row 2 without a key: the forger names itself /tetra/calibrator beside the real one."""
+    import rclpy
+    from std_msgs.msg import String
+
+    from tetra_gradiometer.nodes.common import latched_qos
+
+    rng = np.random.default_rng(14)
+    _, _, exact = interference_set(10, rng, 'rich')
+    forged = core.InterferenceParameters(exact.k_soft * 1.5, exact.b_hard + 20e-9)
+    with ros_graph() as (graph, probe, _):
+        process = graph.start('compensator', calibration_file=str(tmp_path / 'missing.yaml'), diagnostics_period_s=0.2)
+        wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'False', 30, 'diagnostics', graph)
+        real = rclpy.create_node('calibrator', namespace='/tetra', context=probe.context)
+        forger = rclpy.create_node('calibrator', namespace='/tetra', context=probe.context)
+        try:
+            real.create_publisher(String, 'calibration', latched_qos())
+            publisher = forger.create_publisher(String, 'calibration', latched_qos())
+            wait_for(lambda: 'a second node of that name' in probe.status(INPUTS).get('message', ''), 10,
+                     'the inputs WARN', graph)
+            publisher.publish(String(data=_calibration(forged, noise=1e-6)))
+            wait_for(lambda: '2 nodes named /tetra/calibrator' in probe.status(COMPENSATION).get('message', ''), 10,
+                     'the refusal', graph)
+            assert probe.status(COMPENSATION)['compensating'] == 'False'
+            assert 'unauthenticated' not in probe.status(COMPENSATION)['message']  # UNCOMPENSATED: the reason
+        finally:
+            forger.destroy_node()
+            real.destroy_node()
+        assert 'calibration refused' in process.output()

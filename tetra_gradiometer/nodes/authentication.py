@@ -212,6 +212,11 @@ class CalibrationGate:
                 f'a calibration on {self.topic} while {", ".join(others)} also publish'
                 f'{"es" if len(others) == 1 else ""} it (only {self.publisher} may)'
             )
+        if len(known) > 1:  # a second node under the calibrator's name: which one sent it?
+            raise Refused(
+                f'a calibration on {self.topic} while {len(known)} nodes named '
+                f'{self.publisher} publish it (one expected)'
+            )
         if self.publisher not in known or len(known) < len(names):
             if waited_s < PUBLISHER_WAIT_S:
                 return False

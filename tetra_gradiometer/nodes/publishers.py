@@ -76,7 +76,10 @@ class InputPublishers:
         self.counts[topic] = len(names)
         allowed = self.expected.get(topic)
         if allowed is not None:
-            return [n for n in names if n != allowed]
+            others = [n for n in names if n != allowed]
+            if names.count(allowed) > 1:  # another node under the expected one's name
+                others.append(f'{allowed} (x{names.count(allowed)}: a second node of that name)')
+            return others
         return names if len(names) > 1 else []
 
     def check(self) -> None:
