@@ -93,7 +93,7 @@ from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
 from ..io.calibration import CalibrationFile, CalibrationFileError
-from ..io.channels import TEMPERATURE, current_channels
+from ..io.channels import TEMPERATURE, channel_topic, current_channels
 from ..io.matching import StampPairer
 from ..io.outputs import CALIBRATION, atomic_write_text
 from ..pipelines.terms import EffectsChoice, WindowTerms
@@ -251,8 +251,8 @@ class CalibratorNode(ManagedNode):
 
     def _on_channel(self, name: str, msg: Any) -> None:
         """A temperature or current message: kept whether or not collecting, as odom."""
-        if self.active:
-            stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        if self.active and not self._horizon.refuse(channel_topic(name), stamp_ns):
             self._channels.add(name, stamp_ns, channel_message(name, msg))
 
     # ----------------------------------------------------------------- guidance

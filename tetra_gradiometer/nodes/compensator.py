@@ -59,6 +59,7 @@ from ..io.calibration import (
     check_positions,
     load_calibration,
 )
+from ..io.channels import channel_topic
 from ..io.matching import StampPairer
 from .authentication import CalibrationGate, Refused, key_file_spec, node_key
 from .channels import LiveEffects, channel_message, subscribe_channels
@@ -306,7 +307,8 @@ class CompensatorNode(ManagedNode):
         """A channel message (ignored while inactive, as the sets are)."""
         if self.active and self._effects is not None and name in self._effects.channels:
             stamp_ns = cv.stamp_to_ns(msg.header.stamp)
-            self._effects.add(name, stamp_ns, channel_message(name, msg))
+            if not self._horizon.refuse(channel_topic(name), stamp_ns):  # a later stamp
+                self._effects.add(name, stamp_ns, channel_message(name, msg))  # would reset it
 
     def _set_sigma(self, calibration: CalibrationFile | None) -> None:
         """The 1-sigma model of ``calibration`` (None: the raw tensor's) and its description."""
