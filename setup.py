@@ -15,6 +15,7 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/config/scenarios', glob('config/scenarios/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+        ('share/' + package_name + '/security', glob('security/*.xml')),
         ('share/' + package_name + '/bags', glob('bags/*.yaml')),
     ],
     install_requires=['setuptools'],

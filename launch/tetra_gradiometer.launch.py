@@ -3,7 +3,8 @@
 ``ros2 launch tetra_gradiometer tetra_gradiometer.launch.py [mode:=sim|replay] [bag:=PATH]
 [params_file:=FILE] [namespace:=NS] [use_sim_time:=true|false] [nodes:=a,b,...]
 [autostart:=true|false] [static_transforms:=true|false] [rate:=R] [scenario:=YAML]
-[calibration_file:=FILE]`` (``--show-args`` lists them with their defaults).
+[calibration_file:=FILE] [enclaves:=true|false]`` (``--show-args`` lists them with their
+defaults).
 
 Nodes. The four managed (lifecycle) nodes ``tensor``, ``calibrator``, ``compensator`` and
 ``driver`` (the console scripts of the same names), or the subset named by ``nodes``, which
@@ -53,6 +54,12 @@ without a leading ``/`` are refused (the message names the file and the key). Wi
 ``static_transforms`` false nothing is published: the vehicle's URDF
 (robot_state_publisher) provides these frames. ``odom`` -> ``base_link`` is the vehicle
 navigation's; the driver only publishes ``/odom`` messages, no transform.
+
+SROS2 (docs/ros.md, *Security*). With ``enclaves`` true every node gets ``--enclave
+/tetra_gradiometer/<node>`` (the static transform publishers ``/tetra_gradiometer/
+static_transforms``), the enclaves of the installed ``security/policy.xml``; whether DDS
+security is enforced is the environment's (``ROS_SECURITY_KEYSTORE``,
+``ROS_SECURITY_ENABLE``, ``ROS_SECURITY_STRATEGY=Enforce``).
 
 The launch arguments are read when the launch runs (an ``OpaqueFunction``), so a bad value is
 refused with one message naming the argument before any node starts.
@@ -133,7 +140,18 @@ ARGUMENTS = (
     ('rate', '', 'driver speed, multiple of real time (0: as fast as the graph takes it)'),
     ('scenario', '', 'sim: scenario YAML, relative to the working directory'),
     ('calibration_file', '', 'calibration file of the calibrator and the compensator'),
+    (
+        'enclaves',
+        'false',
+        'true: run each node in its SROS2 enclave /tetra_gradiometer/<node> (security/policy.xml; '
+        'enforcement needs a keystore and a security-enabled DDS)',
+    ),
 )
+
+#: The SROS2 enclaves (security/policy.xml): ``/tetra_gradiometer/<node>``, and one for the
+#: static transform publishers.
+ENCLAVE_ROOT = '/tetra_gradiometer'
+TRANSFORMS_ENCLAVE = f'{ENCLAVE_ROOT}/static_transforms'
 
 
 def generate_launch_description():
@@ -157,6 +175,7 @@ def launch_setup(context, *args, **kwargs):
     names = selected_nodes(values['nodes'])
     autostart = as_bool('autostart', values['autostart'])
     use_sim_time = as_bool('use_sim_time', values['use_sim_time'])
+    enclaves = as_bool('enclaves', values['enclaves'])
     # The nodes never configure themselves here: the sequence below (or a manager) does.
     common = {'use_sim_time': use_sim_time, 'autostart': False}
     params_file = values['params_file']
@@ -169,7 +188,7 @@ def launch_setup(context, *args, **kwargs):
     if as_bool('static_transforms', values['static_transforms']):
         frames = static_frames(params_file, values['namespace'])
         publishers = [
-            _transform_publisher(suffix, frame, values['namespace'], use_sim_time)
+            _transform_publisher(suffix, frame, values['namespace'], use_sim_time, enclaves)
             for suffix, frame in zip(TRANSFORMS, frames, strict=True)
         ]
     end_launch = end_launch_once()
@@ -182,6 +201,7 @@ def launch_setup(context, *args, **kwargs):
             parameters=[*files, {**common, **node_overrides(name, names, values)}],
             output='screen',
             on_exit=end_launch,
+            **enclave_arguments(f'{ENCLAVE_ROOT}/{name}', enclaves),
         )
         for name in names
     }
@@ -382,7 +402,12 @@ def _frame_id(params_file, key, value):
     return value
 
 
-def _transform_publisher(suffix, frame, namespace, use_sim_time):
+def enclave_arguments(enclave, enabled):
+    """``Node`` keyword arguments that run the node in SROS2 ``enclave`` when ``enabled``."""
+    return {'ros_arguments': ['--enclave', enclave]} if enabled else {}
+
+
+def _transform_publisher(suffix, frame, namespace, use_sim_time, enclaves=False):
     """A tf2_ros static_transform_publisher of ``frame`` (identity rotation), not managed:
     no lifecycle, and its exit leaves the launch running (default ``on_exit``)."""
     parent, child, (x, y, z) = frame
@@ -398,6 +423,7 @@ def _transform_publisher(suffix, frame, namespace, use_sim_time):
         ],
         parameters=[{'use_sim_time': use_sim_time}],
         output='screen',
+        **enclave_arguments(TRANSFORMS_ENCLAVE, enclaves),
     )
 
 

@@ -115,6 +115,7 @@ class Node:
         parameters: list[Any] | None = None,
         remappings: list[tuple[str, str]] | None = None,
         arguments: list[str] | None = None,
+        ros_arguments: list[str] | None = None,
         output: str = 'log',
         on_exit: Any = None,
     ) -> None:
@@ -125,6 +126,7 @@ class Node:
         self.parameters = parameters
         self.remappings = remappings
         self.arguments = arguments
+        self.ros_arguments = ros_arguments
         self.output = output
         self.on_exit = on_exit
 

@@ -31,6 +31,7 @@ LAUNCH_FILE = REPO / 'launch' / 'tetra_gradiometer.launch.py'
 PACKAGE = 'tetra_gradiometer'
 #: bringup's order (cli/bringup.create_nodes): the driver last.
 ORDER = ('tensor', 'calibrator', 'compensator', 'driver')
+ORDER_WITH_TARGET = ('tensor', 'calibrator', 'compensator', 'target', 'driver')
 SCRIPT_DIR = '$base/lib/' + PACKAGE
 
 #: Third-party imports that are pure-Python packages: their rosdep key, or None where
@@ -297,6 +298,23 @@ def test_driver_arguments_become_its_parameters_as_bringup_passes_them(launch, a
     assert rate is None or type(rate) is float  # the node refuses an integer for a double
     for name in ('tensor', 'calibrator', 'compensator'):
         assert run.node(name).parameters[-1] == {'use_sim_time': False, 'autostart': False}
+
+
+@pytest.mark.parametrize('word', ['true', '1'])
+def test_enclaves_true_runs_every_node_in_its_sros2_enclave_and_false_in_none(launch, word):
+    """Issue 34: one enclave per node, as security/policy.xml names them."""
+    import xml.etree.ElementTree as ET
+
+    run = launch(mode='sim', nodes='tensor,calibrator,compensator,target,driver', enclaves=word)
+    assert {node.name: node.ros_arguments for node in run.nodes} == {
+        name: ['--enclave', f'/tetra_gradiometer/{name}'] for name in ORDER_WITH_TARGET}
+    assert all(node.ros_arguments == ['--enclave', '/tetra_gradiometer/static_transforms']
+               for node in run.plain_nodes)
+    policy = ET.parse(REPO / 'security' / 'policy.xml').getroot()
+    paths = {enclave.get('path') for enclave in policy.iter('enclave')}
+    assert {args[1] for args in (n.ros_arguments for n in [*run.nodes, *run.plain_nodes])} <= paths
+    default = launch(mode='sim')
+    assert all(node.ros_arguments is None for node in [*default.nodes, *default.plain_nodes])
 
 
 def test_calibration_file_goes_to_calibrator_and_compensator_only(launch):

@@ -389,11 +389,15 @@ check "ros2 topic info -v /tetra/mag1: driver publishes RELIABLE, tensor subscri
   "$(echo "$out" | grep -A12 'Node name: driver' | grep -q 'Reliability: RELIABLE' && echo "$out" | grep -A12 'Node name: tensor' | grep -q 'Reliability: BEST_EFFORT'; echo $?)"
 
 # parameters: run-time, range, type, read-only
-o1=$(timeout 30 ros2 param get /tetra/tensor stale_timeout_s 2>&1)
-o2=$(timeout 30 ros2 param set /tetra/tensor stale_timeout_s 2.0 2>&1)
-o3=$(timeout 30 ros2 param get /tetra/tensor stale_timeout_s 2>&1)
-check "ros2 param get/set a run-time parameter (tensor stale_timeout_s 1.0 -> 2.0)" \
-  "$([ "$o1" = 'Double value is: 1.0' ] && [ "$o2" = 'Set parameter successful' ] && [ "$o3" = 'Double value is: 2.0' ]; echo $?)" "$o1 | $o2 | $o3"
+o1=$(timeout 30 ros2 param get /tetra/calibrator max_solve_s 2>&1)
+o2=$(timeout 30 ros2 param set /tetra/calibrator max_solve_s 30.0 2>&1)
+o3=$(timeout 30 ros2 param get /tetra/calibrator max_solve_s 2>&1)
+check "ros2 param get/set a run-time parameter (calibrator max_solve_s 60.0 -> 30.0)" \
+  "$([ "$o1" = 'Double value is: 60.0' ] && [ "$o2" = 'Set parameter successful' ] && [ "$o3" = 'Double value is: 30.0' ]; echo $?)" "$o1 | $o2 | $o3"
+o1=$(timeout 30 ros2 param set /tetra/tensor stale_timeout_s 2.0 2>&1)
+o2=$(timeout 30 ros2 param set /tetra/calibrator force true 2>&1)
+check "ros2 param set refuses judging parameters while configured (tensor stale_timeout_s, calibrator force; issue 34)" \
+  "$(echo "$o1" | grep -q 'read-only while tensor is configured' && echo "$o2" | grep -q 'read-only while calibrator is configured'; echo $?)" "$o1 | $o2"
 o1=$(timeout 30 ros2 param set /tetra/tensor stale_timeout_s -1.0 2>&1)
 o2=$(timeout 30 ros2 param set /tetra/tensor stale_timeout_s 2 2>&1)
 check "ros2 param set refuses out of range and int-for-double" \

@@ -198,7 +198,16 @@ def _feeder_class() -> type:
             self.mags = [self.create_publisher(MagneticField, t, 100) for t in cv.MAG_TOPICS]
             self.raw = self.create_publisher(JointState, 'gradient/raw', derived_qos())
             self.reference = self.create_publisher(MagneticField, 'reference_field', derived_qos())
-            self.calibration = self.create_publisher(String, 'calibration', latched_qos())
+            self._calibration: Any = None
+
+        @property
+        def calibration(self) -> Any:
+            """The publisher on ``calibration``, created when a test first uses it: a compensator
+            refuses calibrations while a node other than its calibration_publisher publishes
+            there (issue 34)."""
+            if self._calibration is None:
+                self._calibration = self.create_publisher(String, 'calibration', latched_qos())
+            return self._calibration
 
         def publish_set(self, stamp_ns: int, fields: np.ndarray, skip: tuple[int, ...] = ()) -> None:
             """Fields (4, 3) T at ``stamp_ns``; sensors in ``skip`` stay silent."""
@@ -315,3 +324,28 @@ def set_parameter(probe: Any, graph: Graph, node: str, name: str, value: str | f
     future = client.call_async(SetParameters.Request(parameters=[Parameter(name=name, value=parameter_value)]))
     wait_for(future.done, 10, 'set_parameters', graph)
     return future.result().results[0]
+
+
+def change_state(probe: Any, node: str, transition: str, timeout_s: float = 30.0) -> bool:
+    """Ask ``<node>/change_state`` (lifecycle_msgs) for ``transition`` by label; its success."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+
+    client = probe.create_client(ChangeState, f'{node}/change_state')
+    try:
+        assert client.wait_for_service(timeout_sec=timeout_s), f'{node}/change_state'
+        future = client.call_async(ChangeState.Request(transition=Transition(label=transition)))
+        wait_for(future.done, timeout_s, f'{node}/change_state {transition}')
+        return bool(future.result().success)
+    finally:
+        probe.destroy_client(client)
+
+
+def reconfigure(probe: Any, graph: Graph, node: str, **params: Any) -> None:
+    """Set parameters that a configured node refuses (``LOCKED``): deactivate, cleanup, set
+    them, configure, activate, through the lifecycle services."""
+    assert change_state(probe, node, 'deactivate') and change_state(probe, node, 'cleanup')
+    for name, value in params.items():
+        result = set_parameter(probe, graph, node, name, value)
+        assert result.successful, result.reason
+    assert change_state(probe, node, 'configure') and change_state(probe, node, 'activate')

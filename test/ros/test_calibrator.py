@@ -7,12 +7,12 @@ import re
 import time
 
 import numpy as np
-from ros_helpers import interference_set, ros_graph, set_parameter, wait_for, wait_matched
+from ros_helpers import interference_set, reconfigure, ros_graph, set_parameter, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import load_calibration
 
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 CALIBRATION = 'tetra/calibrator: calibration'
 
@@ -63,10 +63,17 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
         np.testing.assert_allclose(saved.parameters.b_hard, exact.b_hard, rtol=0, atol=1e-15)
 
-        # The paper's objective on the same samples (method changed at run time): the
-        # compensated training tensors become symmetric and traceless, as eqs. 21-22 ask.
+        # The paper's objective on the same samples: the compensated training tensors become
+        # symmetric and traceless, as eqs. 21-22 ask. The method decides what is written:
+        # refused while configured (issue 34), set after cleanup, the samples fed again.
         result = set_parameter(probe, graph, 'calibrator', 'method', 'constraint_lstsq')
-        assert result.successful, result.reason
+        assert not result.successful and 'read-only while calibrator is configured' in result.reason
+        reconfigure(probe, graph, 'calibrator', method='constraint_lstsq')
+        time.sleep(1.0)  # the new subscriptions matched by the feeder
+        wait_matched(feeder.raw, 1)
+        wait_matched(feeder.reference, 1)
+        assert probe.call('calibrator/start').success
+        _feed_and_stop(probe, feeder, graph, g, b_faulty, first=2000, kept=299)
         reply = probe.call('calibrator/calibrate')
         assert reply.success and reply.message.startswith('constraint_lstsq'), reply.message
         paper = load_calibration(calibration_file)
@@ -296,9 +303,18 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
         assert re.search(r'does not fit the model \(.*\): .*x the noise.*force:=true', reply.message), \
             reply.message
         assert not calibration_file.exists()
-        assert set_parameter(probe, graph, 'calibrator', 'force', True).successful
+        refused = set_parameter(probe, graph, 'calibrator', 'force', True)  # issue 34
+        assert not refused.successful and 'read-only while calibrator is configured' in refused.reason
+        reconfigure(probe, graph, 'calibrator', force=True)
+        time.sleep(1.0)  # the new subscriptions matched by the feeder and odom
+        for publisher in (feeder.raw, feeder.reference, odom):
+            wait_matched(publisher, 1)
+        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
         reply = probe.call('calibrator/calibrate')
         assert reply.success and 'WARNING (force:=true)' in reply.message, reply.message
+        # A forced calibration keeps the calibrator at WARN, saying so.
+        wait_for(lambda: 'forced' in probe.status(CALIBRATION).get('message', ''), 5, 'forced', graph)
+        assert probe.status(CALIBRATION)['level'] == 1
         diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
         assert diagnostics['window_check']['passed'] is False
         assert any(note.startswith('WARNING (force:=true)') for note in diagnostics['notes'])

@@ -12,7 +12,7 @@ from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile
 
 NT = 1e-9
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 
 
@@ -35,7 +35,7 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
     rng = np.random.default_rng(5)
     g, b, exact = interference_set(20, rng, 'rich')
     with ros_graph() as (graph, probe, feeder):
-        compensator = graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        compensator = graph.start('compensator', calibration_publisher='test_feeder', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
         wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'False',
                  30, 'compensator diagnostics', graph)
         status = _diag(probe, 'tetra/compensator: compensation')
@@ -129,7 +129,7 @@ def test_gradient_sigma_follows_the_calibration_and_is_absent_while_the_noise_is
     noise, covariance = 0.1 * NT, _covariance(rng)
     status = 'tetra/compensator: compensation'
     with ros_graph() as (graph, probe, feeder):
-        graph.start('compensator', calibration_file=str(tmp_path / 'missing.yaml'), diagnostics_period_s=0.2)
+        graph.start('compensator', calibration_publisher='test_feeder', calibration_file=str(tmp_path / 'missing.yaml'), diagnostics_period_s=0.2)
         sigmas = _sigma_subscription(probe)
         wait_for(lambda: _diag(probe, status).get('sigma', '').startswith('none: sensor noise unknown'),
                  30, 'compensator diagnostics', graph)
@@ -178,7 +178,7 @@ def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibra
     noise = 0.2 * NT
     status = 'tetra/compensator: compensation'
     with ros_graph() as (graph, probe, feeder):
-        graph.start('compensator', calibration_file=str(tmp_path / 'missing.yaml'), sensor_noise_t=noise,
+        graph.start('compensator', calibration_publisher='test_feeder', calibration_file=str(tmp_path / 'missing.yaml'), sensor_noise_t=noise,
                     diagnostics_period_s=0.2)
         sigmas = _sigma_subscription(probe)
         wait_for(lambda: 'raw tensor' in _diag(probe, status).get('sigma', ''), 30, 'compensator diagnostics', graph)

@@ -14,7 +14,7 @@ from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io.bag import BagWriter
 
 NT = 1e-9
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 FIELDS = uniform_gradient_fields(GEOMETRY.positions, np.array([12e-6, -20e-6, 43e-6]),
                                  np.array([[120.0, 35.0, -12.0], [35.0, -80.0, 22.0], [-12.0, 22.0, -40.0]]) * NT)

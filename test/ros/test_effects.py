@@ -483,6 +483,7 @@ def test_the_calibrator_reads_the_further_current_topics_and_refuses_a_bad_effec
         assert probe.status(CALIBRATION)['effects'] == 'none'
         refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal')
         assert not refused.successful and 'unknown thermal' in refused.reason
-        assert set_parameter(probe, graph, 'calibrator', 'effects', 'thermal_drift').successful
+        refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal_drift')  # issue 34
+        assert not refused.successful and 'read-only while calibrator is configured' in refused.reason
         refused = set_parameter(probe, graph, 'calibrator', 'current_topics', '/x')
         assert not refused.successful

@@ -35,7 +35,7 @@ from ros_helpers import PARAMS, REPO, child_env, interference_set, ros_graph, wa
 STOP_S = 3.0  # first signal to exit, the bound docs/ros.md states
 STARTING_S = 60.0  # a signal during start-up: the rest of the start (a loaded machine), then STOP_S
 SECOND_SIGNAL_S = 0.1
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 NODES = ('driver', 'tensor', 'calibrator', 'compensator', 'target')
 SIGNALS = ('INT', 'INT INT', 'TERM')
 #: Signals while the node's modules are imported (numpy mapped, rclpy not yet initialised);

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.nodes import target_messages as tm
 
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 PERIOD_NS = 10**8  # 10 Hz, the node's default sample rate: one sample per bin
 
 
@@ -116,7 +116,7 @@ def test_pose_array_marker_array_and_json_string_read_back_through_rclpy():
     text = _round_trip(String(data=located.document)).data
     document = json.loads(text, parse_constant=lambda name: pytest.fail(f'{name} in the JSON'))
     assert (document['frame'], document['tensor'], document['detections']) == (FRAME, 'compensated', 2)
-    assert document['t0_stamp_s'] == pytest.approx(1_800_000_000.03, abs=1e-6)
+    assert document['t0_stamp_s'] == pytest.approx(1_700_000_000.03, abs=1e-6)
     assert len(document['targets']) == 2
     for entry, position, moment in zip(document['targets'], located.positions, located.moments):
         assert set(TARGET_KEYS) <= set(entry)

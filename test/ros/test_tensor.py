@@ -2,15 +2,16 @@
 bad readings dropped and counted, a silent sensor reported, run-time parameter validation."""
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
-from ros_helpers import ros_graph, set_parameter, uniform_gradient_fields, wait_connected, wait_for, wait_matched
+from ros_helpers import reconfigure, ros_graph, set_parameter, uniform_gradient_fields, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 
 NT = 1e-9
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 B0 = np.array([12e-6, -20e-6, 43e-6])
 G_KNOWN = np.array([[120.0, 35.0, -12.0], [35.0, -80.0, 22.0], [-12.0, 22.0, -40.0]]) * NT  # symmetric, traceless
@@ -124,4 +125,12 @@ def test_a_bad_value_set_at_run_time_is_refused():
         graph.start('tensor')
         result = set_parameter(probe, graph, 'tensor', 'stale_timeout_s', -0.5)
         assert not result.successful and 'stale_timeout_s' in result.reason
-        assert set_parameter(probe, graph, 'tensor', 'stale_timeout_s', 2.0).successful
+        # How data is judged is read-only while configured (issue 34): only after cleanup.
+        result = set_parameter(probe, graph, 'tensor', 'stale_timeout_s', 2.0)
+        assert not result.successful and 'read-only while tensor is configured' in result.reason
+        for name, value in (('max_field_t', 5e-4), ('use_sim_time', True)):
+            assert not set_parameter(probe, graph, 'tensor', name, value).successful, name
+        reconfigure(probe, graph, 'tensor', stale_timeout_s=2.0)  # asserts each step
+        output = graph.processes['tensor'].output()  # each change logged at WARN
+        assert re.search(r'WARN.*parameter stale_timeout_s set to 2\.0 \(unconfigured\)', output), output
+        assert re.search(r'WARN.*change_state: cleanup requested in inactive: done, now unconfigured', output)

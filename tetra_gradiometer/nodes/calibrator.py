@@ -92,9 +92,10 @@ from ..core.plausibility import plausible_readings
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
-from ..io.calibration import CalibrationFile, CalibrationFileError, save_calibration
-from ..io.channels import TEMPERATURE, current_channels
+from ..io.calibration import CalibrationFile, CalibrationFileError
+from ..io.channels import TEMPERATURE, channel_topic, current_channels
 from ..io.matching import StampPairer
+from ..io.outputs import CALIBRATION, atomic_write_text
 from ..pipelines.terms import EffectsChoice, WindowTerms
 from ..pipelines.window_check import (
     KNOWN_GRADIENT_METHODS,
@@ -103,6 +104,7 @@ from ..pipelines.window_check import (
     identify_checked,
     joint_attitude,
 )
+from .authentication import key_id, node_key, sign
 from .calibrator_params import DEFAULT_NOISE_T, PARAMETERS
 from .channels import ChannelHistory, channel_message, sample_terms, subscribe_channels
 from .common import (
@@ -120,6 +122,10 @@ from .solve_worker import SolveWorker
 
 #: Period of the trim guidance on ``~/guidance`` while samples arrive, s (the issue's ~1 Hz).
 GUIDANCE_PERIOD_S = 1.0
+#: How a refusal names the override, and how the note of a calibration kept by it starts
+#: (pipelines/window_check.forced).
+FORCE_NAME = 'force:=true'
+FORCED = f'WARNING ({FORCE_NAME})'
 #: How ``~/calibrate`` names a passing part of the samples (times from the first one, s).
 SUB_WINDOW = 'the samples {0:.0f}-{1:.0f} s after the first'
 
@@ -133,6 +139,9 @@ class CalibratorNode(ManagedNode):
         *('ga_seed', 'ga_generations', 'max_solve_s', 'earth_field_enu', 'sensor_noise_t'),
         'effects',
     )
+    # What is written and how the samples are judged (the guidance's noise and field feed the
+    # excitation refusal): all but the solve's time budget.
+    LOCKED = tuple(name for name in DYNAMIC if name != 'max_solve_s')
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('calibrator', **kwargs)
@@ -146,6 +155,7 @@ class CalibratorNode(ManagedNode):
             )
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._calibration_path = resolve_node_path(p['calibration_file'])
+        self._key = node_key(p['calibration_key_file'])  # signs what is written and published
         self._lock = threading.Lock()
         self._collecting = False
         # Deques: dropping the oldest sample beyond max_samples is O(1).
@@ -158,6 +168,7 @@ class CalibratorNode(ManagedNode):
         self._state = 'idle'
         self._last_result = 'no calibration yet'
         self._last_ok: bool | None = None
+        self._forced = ''  # the warning of the current calibration, written with force:=true
         self._calibrations = 0
         # The solve: off the executor, one at a time, cancellable.
         self._worker = SolveWorker('calibrator_solve', on_start=self._publish_diagnostics)
@@ -176,7 +187,8 @@ class CalibratorNode(ManagedNode):
         self._assessment: TrimAssessment | None = None
 
         self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
+        self._horizon = self._diag_pub.inputs.watch_stamps(p['max_stamp_ahead_s'])
         gated = self.when_active
         self.create_subscription(JointState, 'gradient/raw', gated(self._on_raw), derived_qos())
         self.create_subscription(
@@ -189,7 +201,7 @@ class CalibratorNode(ManagedNode):
             Trigger, '~/calibrate', gated(self._on_calibrate), callback_group=control
         )
         self.create_service(Trigger, '~/cancel', gated(self._on_cancel), callback_group=control)
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self._guidance_pub = self.create_publisher(String, '~/guidance', latched_qos())
         # Each beside the samples: the guidance's work, and odom never behind a burst.
         guidance, odom = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
@@ -209,6 +221,8 @@ class CalibratorNode(ManagedNode):
         self._add(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
 
     def _add(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
+        if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
+            return
         if not self._collecting:
             return
         with self._lock:
@@ -231,12 +245,14 @@ class CalibratorNode(ManagedNode):
                 self._t.popleft()
 
     def _on_odom(self, msg: Odometry) -> None:
-        self._odom.add(cv.stamp_to_ns(msg.header.stamp), cv.odometry_orientation(msg))
+        stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        if not self._horizon.refuse(cv.ODOM_NODE_TOPIC, stamp_ns):
+            self._odom.add(stamp_ns, cv.odometry_orientation(msg))
 
     def _on_channel(self, name: str, msg: Any) -> None:
         """A temperature or current message: kept whether or not collecting, as odom."""
-        if self.active:
-            stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        if self.active and not self._horizon.refuse(channel_topic(name), stamp_ns):
             self._channels.add(name, stamp_ns, channel_message(name, msg))
 
     # ----------------------------------------------------------------- guidance
@@ -313,13 +329,15 @@ class CalibratorNode(ManagedNode):
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
+            discarded = len(self._g)
             self._g, self._b, self._q, self._t = deque(), deque(), deque(), deque()
             self._pairer.clear()
             self._reset_guidance()
             self._epoch += 1
             self._collecting = True
         self._state = 'collecting'
-        response.success, response.message = True, 'collecting (earlier samples discarded)'
+        response.success = True
+        response.message = f'collecting ({discarded} earlier samples discarded)'
         self.get_logger().info(response.message)
         self._publish_diagnostics()
         return response
@@ -420,7 +438,7 @@ class CalibratorNode(ManagedNode):
                 window=f'the {len(t)} samples since ~/start',
                 first_ns=int(t[0]),
                 force=bool(self.get_parameter('force').value),
-                force_name='force:=true',
+                force_name=FORCE_NAME,
                 sub_window=SUB_WINDOW,
                 notes=(*notes, *terms.notes),
                 assessment=self._assessment,  # the guidance's, at its last tick
@@ -469,12 +487,14 @@ class CalibratorNode(ManagedNode):
             'effects': terms.diagnostics(),
         }
         calibration = dataclasses.replace(calibration, diagnostics=diagnostics)
-        path = self._calibration_path
-        try:
-            save_calibration(path, calibration, force=True)  # replaces only a previous calibration
+        path, text = self._calibration_path, calibration.to_yaml()
+        text = text if self._key is None else sign(text, self._key)
+        try:  # replaces only a previous calibration
+            atomic_write_text(path, text, CALIBRATION, force=True)
         except (OSError, OutputError) as error:
             return False, f'solved, but cannot write {path}: {error}'
-        self._cal_pub.publish(String(data=calibration.to_yaml()))
+        self._cal_pub.publish(String(data=text))
+        self._forced = next((n for n in checked.notes if n.startswith(FORCED)), '')
         self._calibrations += 1
         self._state = 'calibrated' if not self._collecting else 'collecting'
         s = result.summary()
@@ -490,10 +510,12 @@ class CalibratorNode(ManagedNode):
         )
 
     def _publish_diagnostics(self) -> None:
-        level = WARN if self._last_ok is False else OK
+        level = WARN if self._last_ok is False or self._forced else OK
         running = self._worker.running_s
         state, elapsed = self._state, self._worker.last_s
         message = f'{state}: {self._last_result}'
+        if self._forced:  # until a calibration that passed its checks replaces it
+            message = f'{message}; the calibration in use was forced: {self._forced}'
         if running is not None:
             state, elapsed = 'solving', running
             budget = self.get_parameter('max_solve_s').value
@@ -518,6 +540,9 @@ class CalibratorNode(ManagedNode):
                     'effects': self.get_parameter('effects').value,
                     **{f'{n} messages': count for n, count in self._channels.counts().items()},
                     'calibration_file': str(self._calibration_path),
+                    'authentication': 'none: unsigned (no calibration_key_file)'
+                    if self._key is None
+                    else f'HMAC-SHA256, key id {key_id(self._key)}',
                     **self._guidance_values(),
                 },
             )

@@ -17,6 +17,7 @@ from ..core.identification import (
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..errors import InputError
 from ..pipelines.terms import EffectsChoice
+from .authentication import key_file_spec
 from .common import (
     POSITIONS_SPEC,
     ParamSpec,
@@ -26,6 +27,7 @@ from .common import (
     one_of,
     positive,
 )
+from .stamps import AHEAD_SPEC
 
 #: Bounds of ``max_samples`` and ``ga_generations`` (see their descriptions).
 MAX_SAMPLES = 500_000
@@ -152,5 +154,7 @@ PARAMETERS = [
         absolute_topics,
         string_array=True,
     ),
+    key_file_spec('signs'),
+    AHEAD_SPEC,
     diagnostics_period_spec(),
 ]

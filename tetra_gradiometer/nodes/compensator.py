@@ -35,6 +35,7 @@ for it), counted per channel, and ``/diagnostics`` goes WARN naming the channel.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +59,9 @@ from ..io.calibration import (
     check_positions,
     load_calibration,
 )
+from ..io.channels import channel_topic
 from ..io.matching import StampPairer
+from .authentication import CalibrationGate, Refused, key_file_spec, node_key
 from .channels import LiveEffects, channel_message, subscribe_channels
 from .common import (
     ARRAY_FRAME_SPEC,
@@ -77,8 +80,10 @@ from .common import (
     resolve_node_path,
     status,
 )
-from .managed import ManagedNode
+from .managed import ManagedNode, steady_clock
 from .process import spin_node
+from .publishers import InputPublishers, resolve_node_name
+from .stamps import AHEAD_SPEC
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -89,6 +94,16 @@ PARAMETERS = [
         'a relative path is under $ROS_HOME (default ~/.ros). Missing: run uncompensated until '
         'the calibration topic brings one; corrupt or of another array: configure refused.',
     ),
+    ParamSpec(
+        'calibration_publisher',
+        'calibrator',
+        'The node whose calibrations the calibration topic may bring (a relative name is in '
+        "this node's namespace: /tetra/calibrator); one that arrives while another node "
+        'publishes the topic is refused (WARN naming it). Read-only.',
+        lambda name: None if name.strip('/') and ' ' not in name else 'must name a node',
+        read_only=True,
+    ),
+    key_file_spec('verifies'),
     ParamSpec(
         'max_pending',
         1000,
@@ -119,6 +134,7 @@ PARAMETERS = [
     ),
     ARRAY_FRAME_SPEC,
     WARN_THROTTLE_SPEC,
+    AHEAD_SPEC,
     diagnostics_period_spec(),
 ]
 #: Seconds between feeds of the health monitor (it works on chunks; ~1 ms per call).
@@ -146,6 +162,15 @@ class CompensatorNode(ManagedNode):
         self._interference: InterferenceParameters | None = None
         self._source = ''
         self._problem = 'no calibration loaded yet'
+        self._created = ''  # created_utc of the calibration in use
+        self._forced = ''  # its warning when it was written with force
+        topic = self.resolve_topic_name('calibration')
+        publisher = resolve_node_name(self, p['calibration_publisher'])
+        self._watch = InputPublishers(self, {topic: publisher})
+        self._gate = CalibrationGate(
+            self._watch, topic, publisher, node_key(p['calibration_key_file'])
+        )
+        self._waiting: tuple[float, str] | None = None  # (arrival, text): publisher unnamed yet
         self._noise = float(p['sensor_noise_t'])
         self._sigma: SigmaModel | None = None
         self._sigma_text = ''
@@ -175,7 +200,8 @@ class CompensatorNode(ManagedNode):
         self._sigma_pub = self.create_publisher(JointState, 'gradient/sigma', derived_qos())
         self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
         self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher(self._watch)
+        self._horizon = self._watch.watch_stamps(p['max_stamp_ahead_s'], p['warn_throttle_s'])
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
@@ -190,8 +216,9 @@ class CompensatorNode(ManagedNode):
             JointState, 'gradient/truth', gated(self._on_truth), derived_qos(), raw=True
         )
         self.create_service(Trigger, '~/reset_metrics', gated(self._on_reset))
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
-        self.create_timer(HEALTH_PERIOD_S, self._feed_health)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.create_timer(HEALTH_PERIOD_S, self._feed_health, clock=steady_clock())  # not /clock's
+        self.create_timer(0.2, self._judge_waiting, clock=steady_clock())
 
     # ----------------------------------------------------------------- calibration
 
@@ -210,14 +237,33 @@ class CompensatorNode(ManagedNode):
         if not path.exists():
             self._refuse(f'no calibration file {path} yet (waiting for the calibration topic)')
             return
-        self._apply(load_calibration(path), f'file {path}')
+        calibration = load_calibration(path)
+        self._gate.check_file(path.read_text(encoding='utf-8'), str(path))  # with a key
+        self._apply(calibration, f'file {path}')
 
     def _on_calibration(self, msg: String) -> None:
+        self._judge(msg.data, time.monotonic())
+
+    def _judge_waiting(self) -> None:
+        if self._waiting is not None:
+            self._judge(self._waiting[1], self._waiting[0])
+
+    def _judge(self, text: str, arrived: float) -> None:
+        """Adopt a calibration from the topic when the gate admits it (its publisher, its
+        signature) and it is not older than the one in use under a key (a replay)."""
+        self._waiting = None
         try:
-            self._apply(
-                CalibrationFile.from_yaml(msg.data, source='the calibration topic'),
-                'topic calibration',
-            )
+            if not self._gate.admit(text, time.monotonic() - arrived):
+                self._waiting = (arrived, text)  # the graph has not named the publisher yet
+                return
+            calibration = CalibrationFile.from_yaml(text, source='the calibration topic')
+            if self._gate.key is not None and calibration.created_utc < self._created:
+                raise Refused(
+                    f'a signed calibration from {self._gate.publisher} created '
+                    f'{calibration.created_utc}, before the one in use ({self._created}): '
+                    'a replay'
+                )
+            self._apply(calibration, f'topic calibration from {self._gate.publisher}')
         except CalibrationFileError as error:
             self._refuse(str(error))
 
@@ -229,6 +275,9 @@ class CompensatorNode(ManagedNode):
         self._interference = calibration.parameters
         self._follow_channels(calibration)
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
+        self._created = calibration.created_utc
+        notes = calibration.diagnostics.get('notes') or []
+        self._forced = next((str(n) for n in notes if str(n).startswith('WARNING (')), '')
         self._problem = ''
         self._reset_metrics()
         self.get_logger().info(f'compensating with {self._source}')
@@ -256,7 +305,8 @@ class CompensatorNode(ManagedNode):
         """A channel message (ignored while inactive, as the sets are)."""
         if self.active and self._effects is not None and name in self._effects.channels:
             stamp_ns = cv.stamp_to_ns(msg.header.stamp)
-            self._effects.add(name, stamp_ns, channel_message(name, msg))
+            if not self._horizon.refuse(channel_topic(name), stamp_ns):  # a later stamp
+                self._effects.add(name, stamp_ns, channel_message(name, msg))  # would reset it
 
     def _set_sigma(self, calibration: CalibrationFile | None) -> None:
         """The 1-sigma model of ``calibration`` (None: the raw tensor's) and its description."""
@@ -349,6 +399,8 @@ class CompensatorNode(ManagedNode):
         self._pair(1, stamp_ns, reading[:3])
 
     def _pair(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
+        if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
+            return
         pair = self._inputs.add(stream, stamp_ns, value)
         if pair is not None:
             self._compensate(stamp_ns, *pair)
@@ -403,7 +455,8 @@ class CompensatorNode(ManagedNode):
             stamp_ns, g_true = self._cdr.read(data)
         except MessageError:
             return
-        self._pair_truth(1, stamp_ns, g_true)
+        if not self._horizon.refuse('gradient/truth', stamp_ns):
+            self._pair_truth(1, stamp_ns, g_true)
 
     def _pair_truth(self, stream: int, stamp_ns: int, value: Any) -> None:
         """Join ``(G_m, G)`` (stream 0) with ``gradient/truth`` (stream 1) and score the pair."""
@@ -438,6 +491,10 @@ class CompensatorNode(ManagedNode):
             text = f'compensating with {self._source}' + (
                 f'; refused a newer one: {self._problem}' if self._problem else ''
             )
+            if self._gate.key is None:
+                text += '; unauthenticated (no calibration_key_file)'
+            if self._forced:  # written although its samples failed a check (force)
+                level, text = WARN, f'{text}; the calibration was forced: {self._forced}'
             if channel_level == WARN:
                 level, text = WARN, f'{text}; {channel_text}'
         else:
@@ -461,6 +518,8 @@ class CompensatorNode(ManagedNode):
                     'scored_samples': self._eps_count,
                     'unpaired_evicted': self._inputs.evicted,
                     'unscored_evicted': self._truth.evicted,
+                    'authentication': self._gate.authentication,
+                    'calibration_publisher': self._gate.publisher,
                 },
             )
         )

@@ -252,7 +252,7 @@ class DriverNode(ManagedNode):
         for i, topic in enumerate(channels):
             kind = Temperature if topic == cv.TEMPERATURE_TOPIC else BatteryState
             self._pubs[(CHANNEL, i)] = self.create_publisher(kind, topic, derived_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
         self._clock_pub = (
             self.create_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
         )
@@ -268,7 +268,22 @@ class DriverNode(ManagedNode):
         # for it when the launch gives every node use_sim_time.
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(max(period, 0.002), 0.05), self._tick, clock=steady)
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+
+    def _sim_start_ns(self, scenario: str, max_duration_s: float) -> int:
+        """The stamp of the first simulated sample: now (system time even under use_sim_time:
+        the driver is /clock), or, played faster than real time, now minus the mission's
+        duration, so that no stamp is ever ahead of the clock (the nodes refuse stamps from
+        the future: nodes/stamps.py)."""
+        from ..io.scenario import load_scenario_or_default  # as replay.simulate imports it
+
+        now = time.time_ns()
+        if 0 < self._rate <= 1:
+            return now
+        duration_s = load_scenario_or_default(scenario)[0].duration_s
+        if max_duration_s > 0:
+            duration_s = min(duration_s, max_duration_s)
+        return now - int(round(duration_s * NS_PER_S))
 
     def _open_source(
         self, p: dict[str, Any]
@@ -276,7 +291,7 @@ class DriverNode(ManagedNode):
         """The frames to play (nodes/replay.py), their description and the tick period, s."""
         types = self._types
         if self._mode == 'sim':
-            start_ns = time.time_ns()  # system time even under use_sim_time: the driver is /clock
+            start_ns = self._sim_start_ns(p['scenario'], float(p['max_duration_s']))
             frames, info = replay.simulate(
                 p['scenario'],
                 p['seed'],

@@ -17,6 +17,19 @@ States and what each node does in them (docs/ros.md, *Lifecycle*):
 * ``on_cleanup`` / ``on_shutdown`` / ``on_error``: everything ``configure`` created is
   destroyed and the node's long work is stopped (:meth:`ManagedNode.released` hook).
 
+Lifecycle requests (``~/change_state``) cannot end the process: a request that is not a
+valid transition from the current state (``activate`` while active, any request once
+finalized, an unknown id or label) is answered ``success=false`` and logged at WARN with
+the reason and the valid transitions; a valid one is logged at WARN with what it changed
+(rclpy's own handler raised from the service callback, which ended the process).
+
+While configured, the node's ``/diagnostics`` timer runs on the steady clock (``use_sim_time``
+without ``/clock`` cannot freeze it) also while inactive: every status is then WARN, its
+message prefixed ``inactive:`` (a deactivated node never leaves its last OK standing).
+The parameters named in :attr:`ManagedNode.LOCKED` and ``use_sim_time`` can be set only
+while unconfigured (cleanup, set, configure): they decide what is written or how data is
+judged; every accepted parameter change is logged at WARN.
+
 ``autostart`` (default true): the constructor configures and activates the node, so
 ``ros2 run tetra_gradiometer tensor`` works on its own (a refusal is then raised from the
 constructor: the process ends with ``cannot start:``). ``bringup`` and the launch file set it
@@ -30,10 +43,12 @@ import traceback
 from collections.abc import Callable
 from typing import Any, ClassVar
 
+from rclpy.clock import Clock, ClockType
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from ..errors import TetraError
-from .common import NAMESPACE, ParamSpec, declare_parameters
+from .common import NAMESPACE, WARN, ParamSpec, declare_parameters
+from .publishers import InputPublishers
 
 AUTOSTART_SPEC = ParamSpec(
     'autostart',
@@ -53,6 +68,26 @@ _ENTITIES = {
     'guards': 'destroy_guard_condition',
 }
 
+#: The transitions a client may request (lifecycle_msgs/Transition ids): configure, cleanup,
+#: activate, deactivate and the three shutdowns; the others (create, destroy, the
+#: callbacks' results) belong to the state machine itself.
+_REQUESTABLE = {
+    1: 'configure',
+    2: 'cleanup',
+    3: 'activate',
+    4: 'deactivate',
+    5: 'shutdown',
+    6: 'shutdown',
+    7: 'shutdown',
+}
+#: Set while unconfigured only (as :attr:`ManagedNode.LOCKED`): rclpy declares it itself.
+LOCKED_BUILTINS = ('use_sim_time',)
+
+
+def steady_clock() -> Clock:
+    """The steady clock, for the timers that must run whatever ``/clock`` does."""
+    return Clock(clock_type=ClockType.STEADY_TIME)
+
 
 class ManagedNode(LifecycleNode):
     """A lifecycle node whose ``configure`` creates everything and whose other transitions
@@ -61,17 +96,28 @@ class ManagedNode(LifecycleNode):
     service callbacks in :meth:`when_active`."""
 
     PARAMETERS: ClassVar[list[ParamSpec]] = []
+    #: Parameters that may be set after start-up (the others are read-only)...
     DYNAMIC: ClassVar[tuple[str, ...]] = ()
+    #: ... of which these only while unconfigured: they decide what is written or how data is
+    #: judged (with ``use_sim_time``), so a configured node refuses them.
+    LOCKED: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, node_name: str, **kwargs: Any) -> None:
         kwargs.setdefault('namespace', NAMESPACE)
         super().__init__(node_name, **kwargs)
+        # Before the validators' callback (rclpy runs the last added first): a bad value is
+        # refused with the validator's reason, a good one then by this rule.
+        self.add_on_set_parameters_callback(self._refuse_while_configured)
         p = declare_parameters(self, [*self.PARAMETERS, AUTOSTART_SPEC], self.DYNAMIC)
         self.active = False
         self._configured = False
         self._refusal: BaseException | None = None
         self._base = self._entities()  # the node's own: parameter and lifecycle services
         self._raising = False  # bring_up raises the refusal: the log line would repeat it
+        self._always: set[Any] = set()  # timers that run while inactive too (diagnostics)
+        self.diagnostics_state = 'inactive'  # how a status reads while the node is not active
+        self._service_change_state.callback = self._on_change_state
+        self.add_post_set_parameters_callback(self._log_parameters)
         if p['autostart']:
             try:
                 self.bring_up()
@@ -119,19 +165,121 @@ class ManagedNode(LifecycleNode):
 
     def when_active(self, callback: Callable[..., Any]) -> Callable[..., Any]:
         """``callback`` that runs only while active: a subscription's message is ignored, a
-        ``std_srvs/Trigger`` service answers ``success=false`` with the state."""
+        ``std_srvs/Trigger`` service answers ``success=false`` with the state. Every service
+        call (each changes the node's state: start, stop, calibrate, cancel, reset_metrics,
+        resume, pause) is logged at WARN with its reply, named after the callback
+        (``_on_start``: ``~/start``)."""
+
+        service = '~/' + getattr(callback, '__name__', 'service').removeprefix('_on_')
 
         def gated(*args: Any) -> Any:
+            if len(args) != 2:  # a message
+                return callback(*args) if self.active else None
+            response = args[1]  # a service: (request, response); each changes the node's state
             if self.active:
-                return callback(*args)
-            if len(args) == 2:  # a service: (request, response)
-                response = args[1]
+                response = callback(*args)
+            else:
                 response.success = False
                 response.message = f'{self.get_name()} is inactive: activate it first'
-                return response
-            return None
+            self.get_logger().warning(
+                f'{service} called: {"done" if response.success else "refused"}: '
+                f'{response.message}'
+            )
+            return response
 
         return gated
+
+    def create_diagnostics_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
+        """A timer on the steady clock that runs while configured, inactive too (see
+        :class:`DiagnosticsPublisher`)."""
+        timer = self.create_timer(period_s, callback, clock=steady_clock())
+        self._always.add(timer)
+        return timer
+
+    def diagnostics_publisher(self, inputs: InputPublishers | None = None) -> DiagnosticsPublisher:
+        """``/diagnostics``, with every status WARN ``inactive: ...`` while inactive and the
+        ``inputs`` status (who publishes the node's input topics; default: one watch of all
+        its subscriptions) appended to every array."""
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        publisher = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        return DiagnosticsPublisher(self, publisher, inputs or InputPublishers(self))
+
+    def publish_diagnostics_now(self) -> None:
+        """The node's ``_publish_diagnostics`` (when it has one), at a state change."""
+        publish = getattr(self, '_publish_diagnostics', None)
+        if self._configured and publish is not None:
+            publish()
+
+    # ------------------------------------------------------------------ control surface
+
+    def _on_change_state(self, request: Any, response: Any) -> Any:
+        """``~/change_state``: any request is answered, none ends the process."""
+        before = self.state_label
+        try:
+            transition_id, reason = self._requested(request.transition)
+            if transition_id is None:
+                self.get_logger().warning(f'change_state refused: {reason}')
+                response.success = False
+                return response
+            outcome = self._run_transition(transition_id)
+        except Exception:  # a bug: keep the node, say what happened
+            self.get_logger().error(f'change_state failed:\n{traceback.format_exc()}')
+            response.success = False
+            return response
+        response.success = outcome == TransitionCallbackReturn.SUCCESS
+        self.get_logger().warning(
+            f'change_state: {_REQUESTABLE[transition_id]} requested in {before}: '
+            f'{"done" if response.success else "failed"}, now {self.state_label}'
+        )
+        return response
+
+    def _requested(self, transition: Any) -> tuple[int | None, str]:
+        """The id of the requested transition when it is valid from the current state, else
+        (None, why)."""
+        state = self.state_label
+        available = {t[0]: t[1] for t in self._state_machine.available_transitions}
+        valid = ', '.join(f'{label} ({tid})' for tid, label in available.items()) or 'none'
+        asked = f'{transition.label!r}' if transition.label else f'id {transition.id}'
+        if transition.label:
+            matches = [tid for tid, label in available.items() if label == transition.label]
+        else:
+            matches = [transition.id] if transition.id in available else []
+        matches = [tid for tid in matches if tid in _REQUESTABLE]
+        if not matches:
+            return None, f'transition {asked} is not valid from state {state} (valid: {valid})'
+        return matches[0], ''
+
+    def _run_transition(self, transition_id: int) -> TransitionCallbackReturn:
+        trigger = {
+            'configure': self.trigger_configure,
+            'cleanup': self.trigger_cleanup,
+            'activate': self.trigger_activate,
+            'deactivate': self.trigger_deactivate,
+            'shutdown': self.trigger_shutdown,
+        }[_REQUESTABLE[transition_id]]
+        return trigger()
+
+    def _refuse_while_configured(self, parameters: list) -> Any:
+        from rcl_interfaces.msg import SetParametersResult
+
+        locked = set(self.LOCKED) | set(LOCKED_BUILTINS)
+        if getattr(self, '_configured', False):
+            for parameter in parameters:
+                if parameter.name in locked:
+                    return SetParametersResult(
+                        successful=False,
+                        reason=f'{parameter.name}: read-only while {self.get_name()} is '
+                        f'configured ({self.state_label}): deactivate, cleanup, set it, configure',
+                    )
+        return SetParametersResult(successful=True)
+
+    def _log_parameters(self, parameters: list) -> None:
+        """Every accepted change at WARN (a parameter decides what the node does)."""
+        for parameter in parameters:
+            self.get_logger().warning(
+                f'parameter {parameter.name} set to {parameter.value!r} ({self.state_label})'
+            )
 
     def _entities(self) -> dict[str, set[Any]]:
         return {kind: set(getattr(self, kind)) for kind in _ENTITIES}
@@ -150,6 +298,7 @@ class ManagedNode(LifecycleNode):
                 destroy = getattr(self, _ENTITIES[kind])
                 for entity in entities:
                     destroy(entity)
+            self._always.clear()
 
     # ------------------------------------------------------------------ transitions
 
@@ -168,7 +317,7 @@ class ManagedNode(LifecycleNode):
             self._refusal = error
             self._release()
             return TransitionCallbackReturn.ERROR
-        for timer in self._new_entities()['timers']:
+        for timer in self._new_entities()['timers'] - self._always:
             timer.cancel()
         self._configured = True
         return TransitionCallbackReturn.SUCCESS
@@ -176,28 +325,46 @@ class ManagedNode(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.activated()
         self.active = True
-        for timer in self._new_entities()['timers']:
+        for timer in self._new_entities()['timers'] - self._always:
             timer.reset()
+        self.publish_diagnostics_now()
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.active = False
-        for timer in self._new_entities()['timers']:
+        for timer in self._new_entities()['timers'] - self._always:
             timer.cancel()
         self.deactivated()
+        self.publish_diagnostics_now()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._last_statuses('unconfigured (cleaned up)')
         self._release()
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._last_statuses('finalized (shut down)')
         self._release()
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._last_statuses('unconfigured (after an error)')
         self._release()
         return TransitionCallbackReturn.SUCCESS  # back to unconfigured
+
+    def _last_statuses(self, state: str) -> None:
+        """Before ``/diagnostics`` goes with the rest: every status WARN ``<state>: ...``, so
+        an aggregator is not left holding the node's last OK."""
+        self.active = False
+        self.diagnostics_state = state
+        try:
+            self.publish_diagnostics_now()
+        except Exception:  # a bug: never in the way of the transition
+            self.get_logger().error(f'last diagnostics failed:\n{traceback.format_exc()}')
+        finally:
+            self.diagnostics_state = 'inactive'
+
 
     def stop_work(self) -> None:
         """Stop the node's long work (a solve, an open bag) when it is configured: before its
@@ -215,3 +382,23 @@ class ManagedNode(LifecycleNode):
     def state_label(self) -> str:
         """The lifecycle state: ``unconfigured``, ``inactive``, ``active``, ``finalized``."""
         return str(self._state_machine.current_state[1])
+
+
+class DiagnosticsPublisher:
+    """``/diagnostics`` of a managed node: while it is not active every status goes out WARN
+    with its message prefixed ``inactive:`` (the node's own values kept), so a monitor sees
+    a deactivated node instead of its last OK."""
+
+    def __init__(self, node: ManagedNode, publisher: Any, inputs: InputPublishers) -> None:
+        self._node = node
+        self.publisher = publisher
+        self.inputs = inputs
+
+    def publish(self, array: Any) -> None:
+        self.inputs.check()
+        array.status.append(self.inputs.status())
+        if not self._node.active:
+            for item in array.status:
+                item.level = bytes([max(item.level[0], WARN)])
+                item.message = f'{self._node.diagnostics_state}: {item.message}'
+        self.publisher.publish(array)

@@ -75,6 +75,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
+from .stamps import AHEAD_SPEC
 from .track import SurveyTrack, TrackSnapshot
 
 #: The outputs (relative: ``/tetra/targets`` ...).
@@ -116,6 +117,7 @@ PARAMETERS = [
         float_range=(0.0, 3600.0),
     ),
     WARN_THROTTLE_SPEC,
+    AHEAD_SPEC,
     diagnostics_period_spec(),
 ]
 
@@ -222,14 +224,17 @@ class TargetNode(ManagedNode):
         self._markers_pub = self.create_publisher(MarkerArray, MARKERS_TOPIC, latched_qos())
         self._json_pub = self.create_publisher(String, JSON_TOPIC, latched_qos())
         self._detections_pub = self.create_publisher(PoseArray, DETECTIONS_TOPIC, latched_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
+        self._horizon = self._diag_pub.inputs.watch_stamps(
+            p['max_stamp_ahead_s'], p['warn_throttle_s']
+        )
         gated = self.when_active
         self.create_subscription(
             JointState, cv.COMPENSATED_NODE_TOPIC, gated(self._on_tensor), derived_qos(), raw=True
         )
         self.create_subscription(Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos())
         self.create_timer(TICK_S, self._tick)
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
 
     def activated(self) -> None:
         self._last_start = self._now_s()
@@ -250,12 +255,17 @@ class TargetNode(ManagedNode):
             self.dropped_malformed += 1
             self._warn_drop(f'a malformed {cv.COMPENSATED_NODE_TOPIC} ({error})')
             return
+        if self._horizon.refuse(cv.COMPENSATED_NODE_TOPIC, stamp_ns):
+            return
         reason = self._track.add_tensor(stamp_ns, g)
         if reason is not None:
             self._warn_drop(f'{reason} at stamp {stamp_ns} ns')
 
     def _on_odom(self, msg: Odometry) -> None:
-        reason = self._track.add_odom(cv.stamp_to_ns(msg.header.stamp), cv.odometry_pose(msg))
+        stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        if self._horizon.refuse(cv.ODOM_NODE_TOPIC, stamp_ns):
+            return
+        reason = self._track.add_odom(stamp_ns, cv.odometry_pose(msg))
         if reason is not None:
             self._warn_drop(reason)
         elif msg.header.frame_id:

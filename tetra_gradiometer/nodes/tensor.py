@@ -60,6 +60,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
+from .stamps import AHEAD_SPEC
 
 PARAMETERS = [
     POSITIONS_SPEC,
@@ -136,6 +137,7 @@ PARAMETERS = [
     ),
     ARRAY_FRAME_SPEC,
     WARN_THROTTLE_SPEC,
+    AHEAD_SPEC,
     diagnostics_period_spec(),
 ]
 
@@ -159,11 +161,10 @@ class TensorNode(ManagedNode):
     """Matches the four magnetometers by stamp and publishes ``G_m`` and ``B_1'``."""
 
     PARAMETERS = PARAMETERS
-    DYNAMIC = ('max_field_t', 'stale_timeout_s')
+    DYNAMIC = LOCKED = ('max_field_t', 'stale_timeout_s')
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('tensor', **kwargs)
-        self.add_post_set_parameters_callback(self._on_parameters)
 
     def configure(self, p: dict[str, Any]) -> None:
         """The set former, publishers and subscriptions from the parameters ``p``."""
@@ -203,7 +204,10 @@ class TensorNode(ManagedNode):
         self._raw_cdr = cv.TensorCdr(self._array_frame)
         self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
         self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._diag_pub = self.diagnostics_publisher()
+        self._horizon = self._diag_pub.inputs.watch_stamps(
+            p['max_stamp_ahead_s'], p['warn_throttle_s']
+        )
         qos = sensor_qos(p['sensor_queue_depth'])
         self._subs = [
             self.create_subscription(
@@ -211,7 +215,9 @@ class TensorNode(ManagedNode):
             )
             for i, topic in enumerate(cv.MAG_TOPICS)
         ]
-        self._diag_timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
+        self._diag_timer = self.create_diagnostics_timer(
+            p['diagnostics_period_s'], self._publish_diagnostics
+        )
         self.get_logger().info(
             f'sets of {", ".join(cv.MAG_TOPICS)}: {self._timebase.text}; '
             f'array condition number {self._geometry.condition_number:.3g}'
@@ -222,19 +228,6 @@ class TensorNode(ManagedNode):
         self._last_arrival = [self._now_s()] * 4
 
     # ----------------------------------------------------------------- callbacks
-
-    def _on_parameters(self, parameters: list) -> None:
-        """Take validated run-time changes of ``max_field_t`` and ``stale_timeout_s`` (an
-        unconfigured node reads them when it is configured)."""
-        if not self._configured:
-            return
-        for parameter in parameters:
-            if parameter.name == 'max_field_t':
-                self._max_field = float(parameter.value)
-                if isinstance(self._matcher, Resampler):
-                    self._matcher.max_field_t = self._max_field
-            elif parameter.name == 'stale_timeout_s':
-                self._stale_timeout = float(parameter.value)
 
     def _on_mag(self, sensor: int, data: bytes) -> None:
         """One serialized MagneticField (T): queue its reading; publish every set it completes.
@@ -250,6 +243,8 @@ class TensorNode(ManagedNode):
             self._invalid[sensor] += 1
             if self._warn():
                 self.get_logger().warning(f'dropped a malformed {cv.MAG_TOPICS[sensor]}: {error}')
+            return
+        if self._horizon.refuse(cv.MAG_TOPICS[sensor], stamp):  # never into the set former
             return
         if not self._streams.accept(sensor, stamp, self._now_ns(), *reading[:3].tolist()):
             if self._warn():
