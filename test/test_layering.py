@@ -28,7 +28,10 @@ ALLOWED = {
 }
 NODES = ('driver', 'tensor', 'calibrator', 'compensator', 'target')
 #: Packages a rosdep install of package.xml does not have, and one no node should load.
-OFFLINE_ONLY = ('rosbags', 'ppigrf', 'dask', 'distributed', 'matplotlib')
+OFFLINE_ONLY = (
+    'rosbags', 'ppigrf', 'dask', 'distributed', 'matplotlib',
+    'verde', 'xarray', 'h5netcdf', 'rioxarray', 'rasterio', 'pyproj', 'plotly',
+)
 
 
 def _layer(module: str) -> str:
