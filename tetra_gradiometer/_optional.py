@@ -4,8 +4,8 @@ A vehicle computer installs with rosdep, which knows ``numpy``, ``scipy``, ``yam
 ROS packages but not ``rosbags``, ``ppigrf``, ``dask`` or the survey's ``verde``,
 ``xarray``, ``h5netcdf``, ``rioxarray``, ``pyproj``, ``plotly`` (package.xml). The
 on-vehicle nodes never import these; a path that does (the driver's replay, a scenario's
-IGRF field, ``batch``, ``survey``) calls :func:`require` first, so a missing package is one ``error:`` line naming
-the package and the pip command, not a traceback.
+IGRF field, ``batch``, ``survey``) calls :func:`require` first, so a missing package is
+one ``error:`` line naming the package and the pip command, not a traceback.
 """
 
 from __future__ import annotations
