@@ -23,6 +23,7 @@ import sys
 import time
 
 from ..core.targets import DetectorSettings
+from ..errors import InputError
 from ..io.calibration import load_calibration
 from ..io.geo import parse_origin
 from ..io.outputs import SURVEY, check_output
@@ -42,6 +43,13 @@ from ._args import (
 )
 
 
+def _origin(text: str) -> tuple[float, float, float]:
+    try:
+        return parse_origin(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bag_arguments(parser)
     parser.add_argument('--calibration', required=True, help='calibration YAML (from "calibrate")')
@@ -49,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     place = parser.add_mutually_exclusive_group(required=True)
     place.add_argument(
         '--origin',
-        type=parse_origin,
+        type=_origin,
         help='LAT,LON[,ALT]: the odom origin (odom axes E, N, U there)',
     )
     place.add_argument(

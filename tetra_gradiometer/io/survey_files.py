@@ -125,8 +125,12 @@ def dataset(grids: Any, crs: str, attrs: Mapping[str, Any]) -> Any:
         ),
     }
     ds = xr.Dataset(variables, coords=coords, attrs=dict(attrs))
-    ds = ds.rio.write_crs(crs, grid_mapping_name='spatial_ref')
-    return ds.rio.write_coordinate_system()
+    ds = ds.rio.write_crs(crs, grid_mapping_name='spatial_ref').rio.write_coordinate_system()
+    for name in ds.data_vars:  # rioxarray keeps it in .encoding, which write_netcdf replaces
+        ds[name].encoding.pop('grid_mapping', None)
+        ds[name].attrs['grid_mapping'] = 'spatial_ref'
+    ds['spatial_ref'].attrs['long_name'] = f'coordinate reference system {crs}'
+    return ds
 
 
 def write_netcdf(ds: Any, path: Path) -> None:
@@ -137,6 +141,7 @@ def write_netcdf(ds: Any, path: Path) -> None:
         if name not in ('mask', 'spatial_ref')
     }
     encoding['mask'] = {'_FillValue': None, 'compression': 'gzip', 'compression_opts': 4}
+    encoding['spatial_ref'] = {'dtype': 'int32'}  # CF: no 64-bit integers
     encoding['x'] = {'_FillValue': None}
     encoding['y'] = {'_FillValue': None}
     ds.to_netcdf(path, engine='h5netcdf', encoding=encoding)
