@@ -6,6 +6,7 @@ the GeoJSON targets against targets.json through pyproj's ECEF (and back, 1 mm),
 netCDF against the IOOS compliance checker (CF-1.8), the GeoTIFFs through rasterio, and
 report.html in headless Chromium (no console error, the targets drawn)."""
 import json
+import re
 import shutil
 import subprocess
 
@@ -15,6 +16,7 @@ import yaml
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from tetra_gradiometer.core.targets import DetectorSettings, legs
 from tetra_gradiometer.io.recording import read_recording
 from tetra_gradiometer.io.targets import read_targets
 from tetra_gradiometer.pipelines.survey_grid import COMPONENTS, GridSettings, grid_track
@@ -61,31 +63,34 @@ def grids(surveyed):
         return ds.load()
 
 
-def _world_truth(tmp):
-    """The simulator's true eq. 7 tensor (body) rotated to ENU with the recorded attitude."""
+def _gridded_truth(tmp):
+    """The gridded samples (the straight legs') placed in UTM 31N with pyproj's own
+    topocentric inverse (the odom frame is ENU at ORIGIN), and the simulator's true eq. 7
+    tensor there (body) rotated to ENU with the recorded attitude."""
+    pyproj = pytest.importorskip('pyproj')
     recording = read_recording(tmp / 'mission')
     truth = np.load(tmp / 'mission.truth.npz')
     index = np.searchsorted(truth['stamps_ns'], recording.stamps_ns)
     assert np.array_equal(truth['stamps_ns'][index], recording.stamps_ns)
     rotations = Rotation.from_quat(recording.orientation_xyzw).as_matrix()
     world = np.einsum('nij,njk,nlk->nil', rotations, truth['g_true'][index], rotations)
-    return recording, world
-
-
-def test_gridded_components_match_the_grid_of_the_true_tensor_within_3_sigma(surveyed, grids):
-    pyproj = pytest.importorskip('pyproj')
-    tmp, _ = surveyed
-    recording, world = _world_truth(tmp)
-    # The odom frame is ENU at ORIGIN: place the track with pyproj's own topocentric inverse.
+    track_legs = legs(recording.t_s, recording.position_m, rotations, DetectorSettings())
+    assert len(track_legs) == 3
+    on_legs = np.concatenate([np.arange(a, b) for a, b in track_legs])
     to_geodetic = pyproj.Transformer.from_pipeline(
         f'+proj=pipeline +step +inv +proj=topocentric +ellps=WGS84 +lat_0={ORIGIN[0]} '
         f'+lon_0={ORIGIN[1]} +h_0={ORIGIN[2]} +step +inv +proj=cart +ellps=WGS84')
-    lon, lat, _ = to_geodetic.transform(*recording.position_m.T)
+    lon, lat, _ = to_geodetic.transform(*recording.position_m[on_legs].T)
     x, y = pyproj.Transformer.from_crs('EPSG:4326', 'EPSG:32631', always_xy=True).transform(lon, lat)
+    return np.column_stack([x, y]), world[on_legs]
+
+
+def test_gridded_components_match_the_grid_of_the_true_tensor_within_3_sigma(surveyed, grids):
+    tmp, _ = surveyed
+    xy, world = _gridded_truth(tmp)
     zeros = np.zeros_like(world)
     settings = GridSettings(grids.attrs['cell_m'], grids.attrs['max_distance_m'])
-    truth = grid_track(np.column_stack([x, y]), world, zeros, zeros, legs=[], array_size_m=0.8,
-                       settings=settings)
+    truth = grid_track(xy, world, zeros, zeros, legs=[], array_size_m=0.8, settings=settings)
     np.testing.assert_allclose(truth.x, grids.x, atol=1e-6)
     np.testing.assert_allclose(truth.y, grids.y, atol=1e-6)
     gridded = grids['mask'].values == 1
@@ -108,19 +113,24 @@ def test_cells_far_from_every_sample_are_masked_never_extrapolated(surveyed, gri
     track = json.loads((tmp / 'survey' / 'track.geojson').read_text())
     assert track['type'] == 'FeatureCollection' and track['features']
     assert all(f['geometry']['type'] == 'LineString' for f in track['features'])
-    recording, _ = _world_truth(tmp)
-    pyproj = pytest.importorskip('pyproj')
-    to_geodetic = pyproj.Transformer.from_pipeline(
-        f'+proj=pipeline +step +inv +proj=topocentric +ellps=WGS84 +lat_0={ORIGIN[0]} '
-        f'+lon_0={ORIGIN[1]} +h_0={ORIGIN[2]} +step +inv +proj=cart +ellps=WGS84')
-    lon, lat, _ = to_geodetic.transform(*recording.position_m.T)
-    x, y = pyproj.Transformer.from_crs('EPSG:4326', 'EPSG:32631', always_xy=True).transform(lon, lat)
+    xy, _ = _gridded_truth(tmp)
     gx, gy = np.meshgrid(grids.x.values, grids.y.values)
-    distance, _ = cKDTree(np.column_stack([x, y])).query(np.column_stack([gx.ravel(), gy.ravel()]))
+    distance, _ = cKDTree(xy).query(np.column_stack([gx.ravel(), gy.ravel()]))
     near = (distance <= grids.attrs['max_distance_m']).reshape(gx.shape)
     np.testing.assert_array_equal(grids['mask'].values == 1, near)
     assert np.all(np.isnan(grids['gzz'].values[~near])) and np.all(np.isfinite(grids['gzz'].values[near]))
-    assert (~near).sum() > near.sum()  # the trim's square and the corners: most of the box
+    assert near.sum() > 500
+    # a mask distance under half the line spacing (16 m): the cells between lines go
+    _, world = _gridded_truth(tmp)
+    zeros = np.zeros_like(world)
+    tight = grid_track(xy, world, zeros, zeros, legs=[], array_size_m=0.8,
+                       settings=GridSettings(grids.attrs['cell_m'], 5.0))
+    gx, gy = np.meshgrid(tight.x, tight.y)
+    distance, _ = cKDTree(xy).query(np.column_stack([gx.ravel(), gy.ravel()]))
+    near = (distance <= 5.0).reshape(gx.shape)
+    np.testing.assert_array_equal(tight.mask, near)
+    assert 0.2 < near.mean() < 0.9
+    assert np.all(np.isnan(tight.values['gzz'][~near])) and np.all(np.isnan(tight.sigmas['nss'][~near]))
 
 
 def _ecef_enu(origin):
@@ -234,3 +244,47 @@ def test_the_command_reports_the_placement_the_grid_and_the_legs(surveyed):
     assert out.stdout.count('leg ') == 3
     for stage in ('reading the bag', 'gridding', 'locating targets', 'writing the products'):
         assert stage in out.stderr
+
+
+CHROMIUM_FLAGS = ('--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking',
+                  '--disable-component-update', '--disable-sync', '--no-first-run',
+                  '--enable-logging=stderr', '--v=0', '--virtual-time-budget=10000')
+
+
+def chromium(tmp, page, *args):
+    """Headless Chromium (Debian's package, installed by `make setup`) on a file, in a new
+    profile; its stderr carries the page's console messages as 'CONSOLE' lines."""
+    binary = shutil.which('chromium') or shutil.which('chromium-browser')
+    assert binary, 'headless Chromium is missing: `make setup` installs it (apt-get install chromium)'
+    profile = tmp / f'profile-{len(list(tmp.glob("profile-*")))}'
+    return subprocess.run([binary, *CHROMIUM_FLAGS, f'--user-data-dir={profile}', *args, page.as_uri()],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_report_html_is_self_contained_and_renders_the_map_with_the_targets(surveyed, tmp_path):
+    tmp, _ = surveyed
+    page = tmp / 'survey' / 'report.html'
+    html = page.read_text()
+    # nothing loaded from elsewhere: no script, stylesheet, image or frame by reference
+    assert not re.findall(r'<(?:script|link|img|iframe)\b[^>]*\b(?:src|href)\s*=', html)
+    assert len(html) > 3_000_000  # plotly.js itself is inlined
+    # the console detector works: a page with an error shows it
+    bad = tmp_path / 'bad.html'
+    bad.write_text('<html><body><script>console.error("boom"); missing();</script></body></html>')
+    assert 'CONSOLE' in chromium(tmp_path, bad, '--dump-dom').stderr
+    dom = chromium(tmp_path, page, '--dump-dom')
+    console = [line for line in dom.stderr.splitlines() if 'CONSOLE' in line]
+    assert not console, console
+    assert 'class="main-svg"' in dom.stdout and 'updatemenu' in dom.stdout  # drawn, with the selector
+    shot = tmp_path / 'map.png'
+    chromium(tmp_path, page, '--window-size=1400,900', f'--screenshot={shot}')
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(shot).convert('RGB')).astype(int)
+    magenta = (np.abs(pixels - [255, 0, 255]).max(axis=2) <= 30)
+    # the two target markers (16 px discs, TARGET_COLOUR) on the map (the left 60 %; the
+    # legend's marker is on the right)
+    on_map = magenta[:, : int(0.6 * pixels.shape[1])]
+    assert on_map.sum() > 2 * 100, on_map.sum()
+    columns = np.flatnonzero(on_map.any(axis=0))
+    assert np.ptp(columns) > 50  # two discs apart, not one

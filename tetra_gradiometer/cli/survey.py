@@ -79,6 +79,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help='mask cells farther than this from every sample, m (default: 0.75 line spacing)',
     )
     parser.add_argument(
+        '--all-samples',
+        action='store_true',
+        help='grid every sample, not only the straight legs (turns, trim and transits)',
+    )
+    parser.add_argument(
         '--sensor-noise-nt',
         type=positive_float(1000.0, 'nT'),
         default=None,
@@ -110,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         origin=args.origin,
         navsat_topic=args.navsat_topic,
         crs=args.crs,
-        grid=GridSettings(args.cell_m, args.max_distance_m),
+        grid=GridSettings(args.cell_m, args.max_distance_m, all_samples=args.all_samples),
         detector=DetectorSettings(false_alarms_per_hour=args.false_alarms_per_hour),
         timebase=timebase_from_args(args),
         progress=args.progress,

@@ -45,7 +45,7 @@ from .health import HealthRecorder
 from .survey_grid import GridSettings, SurveyGrids, grid_track
 from .terms import StreamRegressors
 
-__all__ = ['LegResidual', 'Span', 'SurveyResult', 'SurveyTrack', 'survey_bag']
+__all__ = ['LegResidual', 'Span', 'SurveyResult', 'SurveyTrack', 'gridded_samples', 'survey_bag']
 
 #: A gap between sets of more than this many median periods is a lost span.
 LOST_PERIODS = 3.0
@@ -160,12 +160,13 @@ def survey_bag(
     timings['compensate'] = time.perf_counter() - clock
     clock = time.perf_counter()
     _stage(on_stage, 'gridding')
+    index, leg_index = gridded_samples(track.legs, len(track.t_s), (grid or GridSettings()))
     grids = grid_track(
-        track.xy_m,
-        track.tensors,
-        track.sigma_noise,
-        track.sigma_calibration,
-        legs=track.legs,
+        track.xy_m[index],
+        track.tensors[index],
+        track.sigma_noise[index],
+        track.sigma_calibration[index],
+        legs=leg_index,
         array_size_m=_array_size(geometry),
         settings=grid,
     )
@@ -191,6 +192,19 @@ def survey_bag(
         recording.input_counts(),
         timings,
     )
+
+
+def gridded_samples(
+    track_legs: list[tuple[int, int]], n: int, settings: GridSettings
+) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The samples that are gridded (indices) and the legs as ranges of them: the straight
+    legs' samples (turns, the trim and transits are not survey data), or every sample with
+    ``settings.all_samples`` or when the track has no straight leg."""
+    if settings.all_samples or not track_legs:
+        return np.arange(n), list(track_legs)
+    index = np.concatenate([np.arange(a, b) for a, b in track_legs])
+    ends = np.cumsum([b - a for a, b in track_legs])
+    return index, [(int(e - (b - a)), int(e)) for e, (a, b) in zip(ends, track_legs, strict=True)]
 
 
 def _track(

@@ -72,11 +72,13 @@ class GridSettings:
     max_distance_m : mask distance from the nearest sample, m (default: max(0.75 line
         spacing, 3 cells))
     neighbours : block means averaged per cell (verde's ``k``)
+    all_samples : grid every sample, not only the straight legs' (the survey lines)
     """
 
     cell_m: float | None = None
     max_distance_m: float | None = None
     neighbours: int = 4
+    all_samples: bool = False
 
     def __post_init__(self) -> None:
         for name in ('cell_m', 'max_distance_m'):

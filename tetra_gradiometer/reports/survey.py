@@ -156,19 +156,30 @@ def _thinned(values: np.ndarray, step: int) -> list[Any]:
     return [[None if not np.isfinite(v) else round(float(v), 6) for v in row] for row in part]
 
 
+def _gridded_box(result: SurveyResult) -> tuple[slice, slice]:
+    """Rows and columns of the grid that hold gridded cells (the report's view)."""
+    rows = np.flatnonzero(result.grids.mask.any(axis=1))
+    columns = np.flatnonzero(result.grids.mask.any(axis=0))
+    if not len(rows):
+        return slice(None), slice(None)
+    return slice(rows[0], rows[-1] + 1), slice(columns[0], columns[-1] + 1)
+
+
 def _map_traces(result: SurveyResult) -> list[dict[str, Any]]:
-    """One heatmap per quantity (the first visible), nT/m units."""
+    """One heatmap per quantity (the first visible) over the gridded cells, file units."""
     grids = result.grids
-    step = max(1, int(np.ceil(max(grids.mask.shape) / REPORT_CELLS)))
+    rows, columns = _gridded_box(result)
+    shape = grids.mask[rows, columns].shape
+    step = max(1, int(np.ceil(max(shape) / REPORT_CELLS)))
     traces = []
     for n, name in enumerate(('nss', *COMPONENTS, *DERIVED[:3])):
         unit, factor = files.UNITS[name]
         traces.append(
             {
                 'type': 'heatmap',
-                'x': grids.x[::step].tolist(),
-                'y': grids.y[::step].tolist(),
-                'z': _thinned(grids.values[name] * factor, step),
+                'x': grids.x[columns][::step].tolist(),
+                'y': grids.y[rows][::step].tolist(),
+                'z': _thinned(grids.values[name][rows, columns] * factor, step),
                 'colorscale': 'Viridis' if name == 'nss' else 'RdBu',
                 'reversescale': name != 'nss',
                 'zmid': None if name == 'nss' else 0.0,
@@ -336,14 +347,20 @@ def report_html(result: SurveyResult, records: list[dict[str, Any]]) -> str:
     ]
     figure = go.Figure(data=maps + rest + _legs_traces(result))
     geo = result.georeference
+    rows, columns = _gridded_box(result)
+    margin = 2 * result.grids.cell_m
+    x_range = [result.grids.x[columns][0] - margin, result.grids.x[columns][-1] + margin]
+    y_range = [result.grids.y[rows][0] - margin, result.grids.y[rows][-1] + margin]
     figure.update_layout(
         title={
             'text': f'Survey: {len(result.targets)} targets, cell {result.grids.cell_m:.2f} m, '
             f'{result.crs}; {geo.describe()}',
             'font': {'size': 13},
+            'x': 0.16,
+            'xanchor': 'left',
         },
-        xaxis={'domain': [0.0, 0.6], 'title': {'text': f'x (m, {result.crs})'}},
-        yaxis={'title': {'text': 'y (m)'}, 'scaleanchor': 'x', 'scaleratio': 1},
+        xaxis={'domain': [0.0, 0.6], 'title': {'text': f'x (m, {result.crs})'}, 'range': x_range},
+        yaxis={'title': {'text': 'y (m)'}, 'scaleanchor': 'x', 'scaleratio': 1, 'range': y_range},
         xaxis2={'domain': [0.72, 1.0], 'anchor': 'y2', 'title': {'text': 'leg'}},
         yaxis2={'anchor': 'x2', 'title': {'text': 'nT/m'}},
         updatemenus=[
