@@ -288,3 +288,23 @@ def test_report_html_is_self_contained_and_renders_the_map_with_the_targets(surv
     assert on_map.sum() > 2 * 100, on_map.sum()
     columns = np.flatnonzero(on_map.any(axis=0))
     assert np.ptp(columns) > 50  # two discs apart, not one
+
+
+def test_batch_writes_the_same_survey_products_per_bag_when_asked(surveyed, tmp_path, monkeypatch):
+    from tetra_gradiometer.cli import fleet
+    from tetra_gradiometer.cli.fleet import FleetBag, make_job, process_bag
+
+    # the discrepancy step takes minutes on this bag and is test_batch's; the survey's here
+    monkeypatch.setattr(fleet, '_discrepancy', lambda *args: None)
+    tmp, _ = surveyed
+    bag = FleetBag('mission', tmp / 'mission', tmp / 'mission.params.yaml')
+    job = make_job(bag, tmp_path / 'batch', (0.0, 119.95), plots=False, survey=(ORIGIN, None))
+    assert job.fingerprint['survey'] == [list(ORIGIN), None]
+    row = process_bag(job)
+    assert row['status'] == 'ok', row
+    folder = tmp_path / 'batch' / 'mission' / 'survey'
+    for name in ('survey.nc', 'targets.geojson', 'track.geojson', 'report.html', 'geotiff/gzz.tif'):
+        assert (folder / name).is_file(), name
+    ours = json.loads((folder / 'targets.geojson').read_text())['features']
+    command = json.loads((tmp / 'survey' / 'targets.geojson').read_text())['features']
+    assert [f['geometry'] for f in ours] == [f['geometry'] for f in command]

@@ -43,7 +43,9 @@ from ._args import (
 )
 
 
-def _origin(text: str) -> tuple[float, float, float]:
+def origin_arg(text: str) -> tuple[float, float, float]:
+    """``--origin``'s type: :func:`~tetra_gradiometer.io.geo.parse_origin`, its error as a
+    usage error."""
     try:
         return parse_origin(text)
     except InputError as error:
@@ -57,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     place = parser.add_mutually_exclusive_group(required=True)
     place.add_argument(
         '--origin',
-        type=_origin,
+        type=origin_arg,
         help='LAT,LON[,ALT]: the odom origin (odom axes E, N, U there)',
     )
     place.add_argument(
