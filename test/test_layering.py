@@ -20,7 +20,8 @@ ALLOWED = {
     'core': {'core', 'errors'},
     'io': {'core', 'io', 'errors', '_optional'},
     'pipelines': {'core', 'io', 'pipelines', 'errors', '_optional'},
-    'reports': {'core', 'io', 'pipelines', 'reports', 'errors'},
+    # _optional: the survey report's plotly
+    'reports': {'core', 'io', 'pipelines', 'reports', 'errors', '_optional'},
     'nodes': {'core', 'io', 'pipelines', 'nodes', 'errors', '_optional'},
     'cli': {'core', 'io', 'pipelines', 'reports', 'nodes', 'cli', 'errors', '_optional'},
     '__main__': {'cli', 'errors'},

@@ -37,7 +37,6 @@ from ._args import (
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
-    finite_float,
     positive_float,
     timebase_from_args,
 )
@@ -70,13 +69,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         '--cell-m',
-        type=finite_float(0.0, 10_000.0, 'm'),
+        type=positive_float(10_000.0, 'm'),
         default=None,
         help='grid cell, m (default: line spacing / 4, at least the array size)',
     )
     parser.add_argument(
         '--max-distance-m',
-        type=finite_float(0.0, 100_000.0, 'm'),
+        type=positive_float(100_000.0, 'm'),
         default=None,
         help='mask cells farther than this from every sample, m (default: 0.75 line spacing)',
     )

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict
 from pathlib import Path
@@ -30,7 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from .. import __version__
 from .._optional import require
 from ..io import survey_files as files
 from ..io.outputs import SURVEY, atomic_output
@@ -39,6 +39,10 @@ from ..pipelines.survey import SurveyResult
 from ..pipelines.survey_grid import COMPONENTS, DERIVED
 
 __all__ = ['TARGET_COLOUR', 'report_html', 'write_survey']
+
+#: The package's version for the files' metadata (the package is loaded: this module is in
+#: it; read from there rather than imported upwards).
+__version__ = str(getattr(sys.modules[__name__.split('.')[0]], '__version__', 'unknown'))
 
 #: The targets' marker colour in report.html (no colour scale of the maps contains it).
 TARGET_COLOUR = '#ff00ff'
