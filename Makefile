@@ -7,9 +7,17 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-.PHONY: setup check demo test test-noble paper bench bags clean
+.PHONY: setup browser check demo test test-noble paper bench bags clean
 
-setup: $(STAMP)
+setup: $(STAMP) browser
+
+# The survey report's browser test (test/reports/test_survey_report.py) loads report.html in
+# headless Chromium from Debian's packages: installed here when missing and we are root with
+# apt-get (idempotent: nothing is done when it is there); elsewhere that test names what to install.
+browser:
+	@command -v chromium >/dev/null 2>&1 || ! command -v apt-get >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] \
+	  || (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) >/dev/null 2>&1 \
+	  || echo 'warning: apt-get install chromium failed: the survey report browser test will fail'
 
 $(STAMP): requirements.txt requirements-dev.txt constraints.txt setup.py setup.cfg package.xml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)

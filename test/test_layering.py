@@ -20,7 +20,8 @@ ALLOWED = {
     'core': {'core', 'errors'},
     'io': {'core', 'io', 'errors', '_optional'},
     'pipelines': {'core', 'io', 'pipelines', 'errors', '_optional'},
-    'reports': {'core', 'io', 'pipelines', 'reports', 'errors'},
+    # _optional: the survey report's plotly
+    'reports': {'core', 'io', 'pipelines', 'reports', 'errors', '_optional'},
     'nodes': {'core', 'io', 'pipelines', 'nodes', 'errors', '_optional'},
     'cli': {'core', 'io', 'pipelines', 'reports', 'nodes', 'cli', 'errors', '_optional'},
     '__main__': {'cli', 'errors'},
@@ -28,7 +29,10 @@ ALLOWED = {
 }
 NODES = ('driver', 'tensor', 'calibrator', 'compensator', 'target')
 #: Packages a rosdep install of package.xml does not have, and one no node should load.
-OFFLINE_ONLY = ('rosbags', 'ppigrf', 'dask', 'distributed', 'matplotlib')
+OFFLINE_ONLY = (
+    'rosbags', 'ppigrf', 'dask', 'distributed', 'matplotlib',
+    'verde', 'xarray', 'h5netcdf', 'rioxarray', 'rasterio', 'pyproj', 'plotly',
+)
 
 
 def _layer(module: str) -> str:

@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'compensate': ('tetra_gradiometer.cli.compensate', 'compensate a bag into CSV (and a bag)'),
     'discrepancy': ('tetra_gradiometer.cli.discrepancy', 'find the physics the model is missing'),
     'locate': ('tetra_gradiometer.cli.locate', 'detect and locate magnetic targets along a bag'),
+    'survey': ('tetra_gradiometer.cli.survey', 'grid, georeference and report a survey bag'),
     'batch': (
         'tetra_gradiometer.cli.batch',
         'calibrate, compensate and analyse a folder of bags on a Dask cluster',

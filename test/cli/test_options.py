@@ -25,6 +25,7 @@ REQUIRED = {
     'simulate': ['--scenario', 'S.yaml', '--out', 'OUT'],
     'discrepancy': ['BAG', '--params', 'P.yaml', '--out', 'OUT'],
     'batch': ['DIR', '--out', 'OUT'],
+    'survey': ['BAG', '--params', 'P.yaml', '--calibration', 'C.yaml', '--out', 'OUT', '--origin', '43,5'],
     'paper': ['--out', 'OUT'],
     'bringup': [],
     'record': ['--out', 'OUT', '--duration', '5'],
@@ -39,13 +40,13 @@ BAD = [
     # --tolerance-ms (calibrate, compensate, discrepancy): the cases
     *[
         (command, '--tolerance-ms', value, TOLERANCE)
-        for command in ('compensate', 'calibrate', 'discrepancy')
+        for command in ('compensate', 'calibrate', 'discrepancy', 'survey')
         for value in ('inf', 'nan', '-1', '1e9', '0', 'abc', '1000.001')
     ],
     # how sets are formed (calibrate, compensate, discrepancy)
     *[
         (command, option, value, fragment)
-        for command in ('compensate', 'calibrate', 'discrepancy')
+        for command in ('compensate', 'calibrate', 'discrepancy', 'survey')
         for option, fragment, values in (
             ('--reference-rate-hz', ('0 <= x <= 10000 Hz',), ('-1', 'nan', 'inf', '10001', 'x')),
             ('--max-gap-periods', ('1 <= x <= 1000',), ('0.5', 'nan', 'inf', '1001', 'x')),
@@ -94,6 +95,15 @@ BAD = [
     # batch
     ('batch', '--window', '3:1', ('0 <= T0 < T1',)),
     *[('batch', '--workers', value, ('1 <= n <= 256',)) for value in ('0', '257', '1.5', 'x')],
+    *[('batch', '--survey-origin', value, fragment)
+      for value, fragment in (('95,5', ('latitude',)), ('43', ('LAT,LON',)), ('0,nan', ('LAT,LON',)))],
+    # survey
+    *[('survey', '--origin', value, fragment)
+      for value, fragment in (('95,5', ('latitude',)), ('0,181', ('longitude',)), ('x,y', ('LAT,LON',)))],
+    *[('survey', '--cell-m', value, ('0 < x <= 10000 m',)) for value in ('0', '-1', 'nan', 'inf', '1e5', 'x')],
+    *[('survey', '--max-distance-m', value, ('0 < x <= 100000 m',)) for value in ('0', 'nan', '1e6')],
+    *[('survey', '--sensor-noise-nt', value, ('0 < x <= 1000 nT',)) for value in ('0', 'nan', '1001')],
+    *[('survey', '--false-alarms-per-hour', value, ('0 < x <= 60 /h',)) for value in ('0', 'nan', '61')],
     # paper
     ('paper', '--generations', '0', ('1 <= n <= 100000',)),
     ('paper', '--seed', str(2**31), SEED),

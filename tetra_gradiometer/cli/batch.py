@@ -39,6 +39,7 @@ from .fleet import (
     task_error_row,
     write_summary,
 )
+from .survey import origin_arg
 
 #: ``--workers``: LocalCluster worker processes.
 MAX_WORKERS = 256
@@ -81,6 +82,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         '--no-plots', action='store_true', help="write the discrepancy reports' JSON and MD only"
     )
+    place = parser.add_mutually_exclusive_group()
+    place.add_argument(
+        '--survey-origin',
+        type=origin_arg,
+        default=None,
+        metavar='LAT,LON[,ALT]',
+        help="also write each bag's survey products (OUT/NAME/survey/), odom ENU at this point",
+    )
+    place.add_argument(
+        '--survey-navsat-topic',
+        default=None,
+        help="also write each bag's survey products, placed by this NavSatFix topic",
+    )
     add_force_argument(
         parser, "the outputs of bags already done (they are redone; OUT's other content stays)"
     )
@@ -92,7 +106,12 @@ def run(args: argparse.Namespace) -> int:
     bags = find_bags(args.folder, exclude=(args.out,))
     inputs = [path for bag in bags for path in (bag.bag, bag.params)]
     out = output_folder(args.out, BATCH, inputs=inputs, command='batch')  # refused: no work
-    jobs = [make_job(bag, out, args.window, plots=not args.no_plots) for bag in bags]
+    survey = None
+    if args.survey_origin is not None or args.survey_navsat_topic is not None:
+        survey = (args.survey_origin, args.survey_navsat_topic)
+    jobs = [
+        make_job(bag, out, args.window, plots=not args.no_plots, survey=survey) for bag in bags
+    ]
     previous = {} if args.force else {job.bag.name: done_row(job) for job in jobs}
     rows = {name: row for name, row in previous.items() if row is not None}
     todo = [job for job in jobs if job.bag.name not in rows]

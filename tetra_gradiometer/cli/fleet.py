@@ -17,7 +17,10 @@ figures are theirs:
 3. *compensate* the whole bag (:func:`~.bag_compensation.compensate_bag`) into
    ``compensated.csv``;
 4. *discrepancy* analysis of the whole bag (:func:`~.bag_discrepancy.analyze_bag`) into the
-   report folder ``discrepancy/``.
+   report folder ``discrepancy/``;
+5. *survey*, when asked (``batch --survey-origin`` or ``--survey-navsat-topic``): the
+   ``survey`` command's products (:func:`~.pipelines.survey.survey_bag`) into ``survey/``,
+   after a calibration that was not refused.
 
 A ``TetraError`` in a step makes the row ``failed`` with ``STEP: message`` as its reason and
 ends the bag; any other exception is a bug: also ``failed``, its traceback in ``error.txt``.
@@ -114,6 +117,7 @@ PARAMS_FILE = 'params.yaml'
 CALIBRATION_FILE = 'calibration.yaml'
 CSV_FILE = 'compensated.csv'
 REPORT_FOLDER = 'discrepancy'
+SURVEY_FOLDER = 'survey'
 _ROW_FORMAT = 'tetra_gradiometer_batch_row'
 
 Row = dict[str, Any]
@@ -145,6 +149,8 @@ class BagJob:
         ``row.json`` for :func:`done_row`.
     plots : bool
         Write the discrepancy report's plots.
+    survey : (origin (lat, lon, h) or None, NavSatFix topic or None), or None
+        Also write the survey products, placed by the origin or the topic (step 5).
     """
 
     bag: FleetBag
@@ -152,6 +158,7 @@ class BagJob:
     window: tuple[float, float] | None = None
     fingerprint: dict[str, Any] = field(default_factory=dict)
     plots: bool = True
+    survey: tuple[tuple[float, float, float] | None, str | None] | None = None
 
 
 def find_bags(
@@ -218,10 +225,14 @@ def make_job(
     window: tuple[float, float] | None,
     *,
     plots: bool = True,
+    survey: tuple[tuple[float, float, float] | None, str | None] | None = None,
 ) -> BagJob:
     """The job of ``bag`` with its outputs in ``out/NAME`` and its inputs' fingerprint now."""
     out_dir = Path(out).absolute() / bag.name
-    return BagJob(bag, out_dir, window, _fingerprint(bag, window), plots)
+    fingerprint = _fingerprint(bag, window)
+    if survey is not None:  # a survey asked for: a previous row without it is not done
+        fingerprint['survey'] = [None if survey[0] is None else list(survey[0]), survey[1]]
+    return BagJob(bag, out_dir, window, fingerprint, plots, survey)
 
 
 def done_row(job: BagJob) -> Row | None:
@@ -321,6 +332,9 @@ def _run_steps(job: BagJob, tmp: Path, row: Row) -> None:
             _compensate(job, tmp, row, geometry, calibration)
         step = 'discrepancy'
         _discrepancy(job, tmp, row, geometry, earth)
+        if calibration is not None and job.survey is not None:
+            step = 'survey'
+            _survey(job, tmp, geometry, calibration)
     except TetraError as error:
         _fail(row, f'{step}: {error}')
     except Exception as error:  # a bug: the batch goes on, the row says so and where to look
@@ -437,6 +451,21 @@ def _discrepancy(
         discrepancy_noise_floor_nT=report.noise_floor_nT,
         adequate=bool(report.adequate),
     )
+
+
+def _survey(job: BagJob, tmp: Path, geometry: TetraGeometry, calibration: Path) -> None:
+    """``survey`` with its defaults into ``survey/`` (step 5)."""
+    from ..pipelines.survey import survey_bag
+    from ..reports.survey import write_survey
+
+    assert job.survey is not None
+    origin, topic = job.survey
+    compensation = load_compensation(calibration, geometry, target=str(job.bag.params))
+    result = survey_bag(
+        job.bag.bag, geometry, compensation, origin=origin, navsat_topic=topic, progress=False
+    )
+    metadata = {'calibration': str(job.out_dir / CALIBRATION_FILE), 'bag': str(job.bag.bag)}
+    write_survey(result, tmp / SURVEY_FOLDER, metadata=metadata, inputs=(job.bag.bag,))
 
 
 def _json_scalar(value: Any) -> Any:

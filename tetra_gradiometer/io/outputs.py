@@ -61,6 +61,7 @@ __all__ = [
     'PAPER',
     'PARAMS',
     'REPORT',
+    'SURVEY',
     'TARGETS',
     'TRUTH',
     'atomic_output',
@@ -144,6 +145,8 @@ PAPER = OutputKind('paper reproduction folder', folder=True)
 DEMO = OutputKind('demo folder', folder=True)
 #: ``locate --out``: targets.json, the raw comparison, the map and report.md.
 TARGETS = OutputKind('targets folder', folder=True)
+#: ``survey --out``: grids (netCDF, GeoTIFF), targets and track (GeoJSON), report.html.
+SURVEY = OutputKind('survey folder', folder=True)
 #: ``batch --out``: the fleet's folder (``summary.csv`` and one :data:`BATCH_BAG` per bag).
 BATCH = OutputKind('batch folder', folder=True)
 #: ``batch``: one bag's outputs (calibration, CSV, report, ``row.json``), written as a whole.

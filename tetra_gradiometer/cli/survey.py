@@ -1,0 +1,144 @@
+"""``python -m tetra_gradiometer survey BAG --params FILE --calibration CALIB --out DIR
+(--origin LAT,LON[,ALT] | --navsat-topic TOPIC) [--crs EPSG:NNNN] [--cell-m C]
+[--max-distance-m D] [--sensor-noise-nt S] [--force]``.
+
+Survey products of a recorded survey: the compensated tensor along the ``/odom`` track in
+the world frame (E, N, U), placed on the Earth (``--origin``: the odom frame is ENU at that
+point; ``--navsat-topic``: fitted to the bag's surface fixes, residual reported), gridded
+in the survey's UTM zone (``--crs`` for any other) with verde, the targets located, and
+written as one folder (:mod:`tetra_gradiometer.reports.survey`): ``survey.nc`` (CF),
+``geotiff/<var>.tif``, ``targets.json``, ``targets.geojson``, ``targets.csv``,
+``track.geojson``, ``report.html`` (self-contained) and ``survey.json``.
+
+The default cell is a quarter of the line spacing (never below the array's size); cells
+farther than ``--max-distance-m`` (default 0.75 line spacing, at least 3 cells) from every
+sample are masked, never extrapolated. The 1-sigma of each cell is propagated from each
+sample's (the calibration's sensor noise, or ``--sensor-noise-nt``, and its covariance).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from ..core.targets import DetectorSettings
+from ..errors import InputError
+from ..io.calibration import load_calibration
+from ..io.geo import parse_origin
+from ..io.outputs import SURVEY, check_output
+from ..io.params import geometry_from_params, load_params
+from ..pipelines.compensation import load_compensation
+from ..pipelines.survey import survey_bag
+from ..pipelines.survey_grid import GridSettings
+from ..reports.survey import residual_table, write_survey
+from ._args import (
+    MAX_FALSE_ALARMS_PER_HOUR,
+    add_bag_arguments,
+    add_force_argument,
+    add_progress_arguments,
+    positive_float,
+    timebase_from_args,
+)
+
+
+def origin_arg(text: str) -> tuple[float, float, float]:
+    """``--origin``'s type: :func:`~tetra_gradiometer.io.geo.parse_origin`, its error as a
+    usage error."""
+    try:
+        return parse_origin(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_bag_arguments(parser)
+    parser.add_argument('--calibration', required=True, help='calibration YAML (from "calibrate")')
+    parser.add_argument('--out', required=True, help='output folder (survey.nc, report.html, ...)')
+    place = parser.add_mutually_exclusive_group(required=True)
+    place.add_argument(
+        '--origin',
+        type=origin_arg,
+        help='LAT,LON[,ALT]: the odom origin (odom axes E, N, U there)',
+    )
+    place.add_argument(
+        '--navsat-topic', help='sensor_msgs/NavSatFix topic of surface fixes to fit odom to'
+    )
+    parser.add_argument(
+        '--crs', default=None, help="the grids' projected CRS (default: the survey's UTM zone)"
+    )
+    parser.add_argument(
+        '--cell-m',
+        type=positive_float(10_000.0, 'm'),
+        default=None,
+        help='grid cell, m (default: line spacing / 4, at least the array size)',
+    )
+    parser.add_argument(
+        '--max-distance-m',
+        type=positive_float(100_000.0, 'm'),
+        default=None,
+        help='mask cells farther than this from every sample, m (default: 0.75 line spacing)',
+    )
+    parser.add_argument(
+        '--all-samples',
+        action='store_true',
+        help='grid every sample, not only the straight legs (turns, trim and transits)',
+    )
+    parser.add_argument(
+        '--sensor-noise-nt',
+        type=positive_float(1000.0, 'nT'),
+        default=None,
+        help="per-axis sensor noise for the 1-sigma (default: the calibration's estimate)",
+    )
+    parser.add_argument(
+        '--false-alarms-per-hour',
+        type=positive_float(MAX_FALSE_ALARMS_PER_HOUR, '/h'),
+        default=DetectorSettings.false_alarms_per_hour,
+        help="the target detector's false-alarm rate on noise, per hour of straight legs",
+    )
+    add_force_argument(parser, 'a previous survey folder at --out')
+    add_progress_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
+    inputs = [args.bag, args.params, args.calibration]
+    check_output(args.out, SURVEY, force=args.force, inputs=inputs)  # refuse before the work
+    geometry = geometry_from_params(load_params(args.params), str(args.params))
+    compensation = load_compensation(
+        args.calibration, geometry, target=str(args.params), sensor_noise_nt=args.sensor_noise_nt
+    )
+    calibration = load_calibration(args.calibration)
+    result = survey_bag(
+        args.bag,
+        geometry,
+        compensation,
+        origin=args.origin,
+        navsat_topic=args.navsat_topic,
+        crs=args.crs,
+        grid=GridSettings(args.cell_m, args.max_distance_m, all_samples=args.all_samples),
+        detector=DetectorSettings(false_alarms_per_hour=args.false_alarms_per_hour),
+        timebase=timebase_from_args(args),
+        progress=args.progress,
+        on_stage=lambda text: print(f'{text} ...', file=sys.stderr, flush=True),
+    )
+    print('writing the products ...', file=sys.stderr, flush=True)
+    metadata = {
+        'calibration': args.calibration,
+        'calibration_method': calibration.method,
+        'effects': ','.join(term.effect for term in calibration.parameters.terms) or 'none',
+        'sensor_noise': compensation.noise_source,
+        'bag': args.bag,
+    }
+    out = write_survey(result, args.out, metadata=metadata, force=args.force, inputs=inputs)
+    grids = result.grids
+    print(result.georeference.describe())
+    print(
+        f'{result.crs}: {grids.mask.shape[1]} x {grids.mask.shape[0]} cells of '
+        f'{grids.cell_m:.2f} m '
+        f'({int(grids.mask.sum())} gridded, masked beyond {grids.max_distance_m:.1f} m); '
+        f'{len(result.targets)} targets; {len(result.health["alarms"])} health alarms'
+    )
+    print(residual_table(result))
+    print(f'{time.perf_counter() - started:.1f} s; survey in {out}')
+    return 0
