@@ -285,7 +285,9 @@ class TensorNode(ManagedNode):
 
     def _matcher_counts(self) -> dict[str, int]:
         """The stamp matcher's counters, including those of the matchers reset before."""
-        counters = {key: value for key, value in asdict(self._matcher.counters).items()}
+        counters = {
+            key: value for key, value in asdict(self._matcher.counters).items()
+        }
         return {key: value + self._earlier.get(key, 0) for key, value in counters.items()}
 
     def _emit(self, stamp_ns: int, fields: np.ndarray, covariance: np.ndarray) -> None:
