@@ -71,6 +71,7 @@ bench: setup
 	$(PY) bench/bench_openworld.py
 	$(PY) bench/bench_health.py
 	$(PY) bench/bench_targets.py --speed
+	$(PY) bench/bench_window.py
 
 clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants

@@ -1,8 +1,9 @@
 """Every command line the README, docs/offline.md and bags/README.md show is run as written
 (issue 30): each ```sh block is marked, the line before it, as run by this test or not run
 (with why); the run blocks are executed by bash, each in its own temporary folder holding
-the repository's .venv and config and a copy of bags/, all at once (about a minute on two
-cores: the README's mission is 900 s of data)."""
+the repository's .venv and config and a copy of bags/, all at once (the README's block is
+~25 s of CPU, batch's ~20 s; measured 163-246 s wall while other jobs held the shared
+2-core machine at load 11-15)."""
 import re
 import shutil
 import subprocess

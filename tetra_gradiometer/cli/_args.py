@@ -268,7 +268,7 @@ def add_effects_arguments(parser: argparse.ArgumentParser) -> None:
         '--effects-from',
         default=None,
         metavar='REPORT',
-        help='fit the effects a discrepancy report.json named (those of the registry)',
+        help="fit the effects a discrepancy report.json named (those of the registry)",
     )
     add_current_topics_argument(parser)
 

@@ -202,7 +202,9 @@ class MagneticBag:
         if missing:
             present = sorted({c.topic for c in self.reader.connections})
             hint = f'; remapped: {self.remap}' if self.remap else ' (a topic map: remap)'
-            raise BagError(f'{self.path}: missing topic(s) {missing} (present: {present}){hint}')
+            raise BagError(
+                f'{self.path}: missing topic(s) {missing} (present: {present}){hint}'
+            )
         for topic in cv.BAG_MAG_TOPICS:
             wrong = [c.msgtype for c in self._connections(topic) if c.msgtype != cv.MAGNETIC_FIELD]
             if wrong:

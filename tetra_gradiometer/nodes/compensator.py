@@ -205,7 +205,9 @@ class CompensatorNode(ManagedNode):
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
-        self.create_subscription(String, 'calibration', gated(self._on_calibration), latched_qos())
+        self.create_subscription(
+            String, 'calibration', gated(self._on_calibration), latched_qos()
+        )
         self.create_subscription(
             JointState, 'gradient/raw', gated(self._on_raw), derived_qos(), raw=True
         )
