@@ -315,7 +315,7 @@ class MagneticBag:
     ) -> tuple[IntArray, FloatArray, IntArray]:
         """One sensor's ``(connection, log_ns, raw)`` items -> stamps, fields, log times;
         the malformed ones go to ``on_skip``."""
-        _, logs, raws = zip(*items) if items else ((), (), ())  # one pass, in C
+        _, logs, raws = zip(*items, strict=True) if items else ((), (), ())  # one pass, in C
         if fast:
             stamps, values, bad = decode_checked(list(raws))
         else:
