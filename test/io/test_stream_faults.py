@@ -229,3 +229,25 @@ def test_checker_raises_the_one_error_class_and_names_the_sensor():
     fields[2] = fields[2] * 1e4
     with pytest.raises(StreamError, match=r'/tetra/mag3 \(sensor 3\).*Gauss written as tesla'):
         StreamChecker().check(stamps, fields, final=True)
+
+
+def test_a_stuck_sensor_is_dropped_and_named(mission, params, tmp_path, capsys):
+    fields = mission.fields_measured.copy()
+    fields[200:320, 2] = fields[199, 2]  # sensor 3 repeats its 19.9 s reading for 12 s
+    bag = write_bag(tmp_path / 'bag', mission, fields=fields)
+    code, out, err = _compensate(capsys, bag, params[0], tmp_path / 'g.csv')
+    assert code == 0, err
+    assert '/tetra/mag3 (sensor 3): 120 readings repeating the one before exactly (stuck) dropped (20.0-31.9 s)' in out
+    assert '/tetra/mag3 (sensor 3) falls silent: no data 19.9-32.0 s' in out
+    stamps = _csv_stamps(tmp_path / 'g.csv')
+    log = _log(mission)
+    assert not set(log[200:320].tolist()) & set(stamps) and int(log[199]) in stamps
+
+
+@pytest.mark.parametrize('value,fragment', [(np.nan, 'every reading is NaN or inf (0.0-49.9 s)'),
+                                            (0.0, 'it reads 0 (a sensor not connected?)')])
+def test_a_dead_sensor_is_refused_and_named(mission, params, tmp_path, capsys, value, fragment):
+    fields = mission.fields_measured.copy()
+    fields[:, 1] = value
+    bag = write_bag(tmp_path / 'bag', mission, fields=fields)
+    _refused(capsys, tmp_path, bag, params[0], '/tetra/mag2 (sensor 2)', fragment)
