@@ -229,3 +229,45 @@ def test_checker_raises_the_one_error_class_and_names_the_sensor():
     fields[2] = fields[2] * 1e4
     with pytest.raises(StreamError, match=r'/tetra/mag3 \(sensor 3\).*Gauss written as tesla'):
         StreamChecker().check(stamps, fields, final=True)
+
+
+def test_a_stuck_sensor_is_dropped_and_named(mission, params, tmp_path, capsys):
+    fields = mission.fields_measured.copy()
+    fields[200:320, 2] = fields[199, 2]  # sensor 3 repeats its 19.9 s reading for 12 s
+    bag = write_bag(tmp_path / 'bag', mission, fields=fields)
+    code, out, err = _compensate(capsys, bag, params[0], tmp_path / 'g.csv')
+    assert code == 0, err
+    assert '/tetra/mag3 (sensor 3): 120 readings repeating the one before exactly (stuck) dropped (20.0-31.9 s)' in out
+    assert '/tetra/mag3 (sensor 3) falls silent: no data 19.9-32.0 s' in out
+    stamps = _csv_stamps(tmp_path / 'g.csv')
+    log = _log(mission)
+    assert not set(log[200:320].tolist()) & set(stamps) and int(log[199]) in stamps
+
+
+@pytest.mark.parametrize('value,fragment', [(np.nan, 'every reading is NaN or inf (0.0-49.9 s)'),
+                                            (0.0, 'it reads 0 (a sensor not connected?)')])
+def test_a_dead_sensor_is_refused_and_named(mission, params, tmp_path, capsys, value, fragment):
+    fields = mission.fields_measured.copy()
+    fields[:, 1] = value
+    bag = write_bag(tmp_path / 'bag', mission, fields=fields)
+    _refused(capsys, tmp_path, bag, params[0], '/tetra/mag2 (sensor 2)', fragment)
+
+
+def test_live_check_drops_one_sensor_off_the_clock_but_follows_a_restart_of_all():
+    from tetra_gradiometer.core.live_streams import LiveStreamCheck
+    check = LiveStreamCheck(tolerance_s=10.0, recent_s=2.0)
+    reading = (0.0, 2e-5, -4.5e-5)
+    t, now = START_NS, 0
+    for i in range(10):  # four sensors on one clock
+        assert all(check.accept(s, t + i * 10**8, now + i * 10**8, *reading) for s in range(4))
+    now += 10**9
+    assert not check.accept(2, t + 10**9 - GPS_UNIX_S * 10**9, now, *reading)  # sensor 3 on GPS time
+    assert check.dropped[2]['other_clock'] == 1
+    check = LiveStreamCheck(tolerance_s=10.0, recent_s=2.0)
+    for s in range(4):
+        assert check.accept(s, t + 10**9, now, *reading)
+    restart = t - 3600 * 10**9  # every source restarts an hour earlier (a replay from its start)
+    accepted = [check.accept(s, restart, now + 10**6, *reading) for s in range(4)]
+    assert accepted == [False, False, True, True]  # once two have moved, the others' median has
+    assert check.accept(0, restart + 10**8, now + 10**8, *reading)
+    assert not check.accept(1, 0, now + 10**8, *reading) and check.dropped[1]['zero_stamp'] == 1

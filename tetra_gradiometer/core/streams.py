@@ -1,7 +1,7 @@
 """Stream health: each magnetometer stream checked before sets are formed, its faults named
 with the sensor and the time span. The one place for these checks, offline (the bag readers,
 chunk by chunk: :class:`StreamChecker`) and live (the tensor node, message by message:
-:class:`LiveStreamCheck`).
+:class:`~.live_streams.LiveStreamCheck`, on the same bounds).
 
 A stream is ``stamps_ns`` (n,) int64 header stamps, ``fields`` (n, 3) tesla and, from a bag,
 ``log_ns`` (n,) the recorder's log times. What is checked, and what follows:
@@ -49,7 +49,6 @@ __all__ = [
     'EARTH_RANGE_T',
     'MAGNITUDE_FACTOR',
     'UNIT_FACTORS',
-    'LiveStreamCheck',
     'StreamChecker',
     'StreamFault',
     'StreamReport',
@@ -65,6 +64,9 @@ MAGNITUDE_FACTOR = 4.0
 #: One sensor's median |B| beyond this factor from the other three's is refused: a sensor
 #: beside a thruster may read three times the others, a unit mistake is >= 1e3.
 SENSOR_FACTOR = 30.0
+#: A sensor repeating its reading exactly this many times in a row is stuck (a fluxgate's
+#: noise never repeats three components; 5 s at 10 Hz).
+STUCK_READINGS = 50
 #: Readings per sensor the magnitude test waits for (a few spikes move no median).
 MAGNITUDE_SAMPLES = 20
 #: ... and the most it keeps per sensor (the first readings of the recording).
@@ -168,6 +170,8 @@ def _name(sensor: int | None) -> str:
 def magnitude_mismatch(ratio: float) -> str:
     """What a ratio |B| measured / |B| expected looks like: a unit mistake from
     :data:`UNIT_FACTORS` within half a decade, or 'no unit factor explains it'."""
+    if not ratio > 0:
+        return 'it reads 0 (a sensor not connected?)'
     decades = np.log10(ratio)
     for factor, mistake in UNIT_FACTORS:
         if abs(decades - np.log10(factor)) < UNIT_MATCH_DECADES:
@@ -272,6 +276,7 @@ class StreamChecker:
         keep = [np.ones(len(s), bool) for s in stamps]
         self._zero_stamps(stamps, logs, keep)
         self._duplicates(stamps, fields, logs, keep)
+        self._stuck(stamps, fields, keep)
         if log_ns is not None:
             self._clock_jumps(stamps, log_ns, keep)
         stamps = [s[k] for s, k in zip(stamps, keep, strict=True)]
@@ -351,6 +356,31 @@ class StreamChecker:
             keep[sensor][order[conflicting | repeated]] = False
             self._drop(sensor, 'duplicate_stamps', s[order[conflicting]])
 
+    def _stuck(
+        self, stamps: list[np.ndarray], fields: list[FloatArray], keep: list[np.ndarray]
+    ) -> None:
+        """Runs of :data:`STUCK_READINGS` or more readings equal to the one before, on some
+        sensors but not all (all four repeating is a vehicle at rest read coarsely): the
+        repeats are dropped (the first of a run was a reading)."""
+        runs: dict[int, list[np.ndarray]] = {}
+        for sensor, (s, f) in enumerate(zip(stamps, fields, strict=True)):
+            index = np.flatnonzero(keep[sensor])
+            order = index[np.argsort(s[index], kind='stable')]
+            same = np.all(f[order][1:] == f[order][:-1], axis=1)
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], same.astype(int), [0]])))
+            starts, ends = edges[::2], edges[1::2]
+            runs[sensor] = [
+                order[a + 1 : b + 1]
+                for a, b in zip(starts, ends, strict=True)
+                if b - a >= STUCK_READINGS - 1
+            ]
+        if all(runs.values()):
+            return
+        for sensor, repeats in runs.items():
+            for index in repeats:
+                keep[sensor][index] = False
+                self._drop(sensor, 'stuck', stamps[sensor][index])
+
     def _clock_jumps(
         self, stamps: list[np.ndarray], logs: list[np.ndarray], keep: list[np.ndarray]
     ) -> None:
@@ -420,6 +450,14 @@ class StreamChecker:
         if any(len(n) < MAGNITUDE_SAMPLES for n in self._norms) and not final:
             return  # too few readings yet to tell a unit from a spike
         self._magnitudes_checked = True
+        for sensor, sensor_stamps in enumerate(stamps):
+            if len(sensor_stamps) and not self._norms[sensor]:
+                span = _span_text(
+                    self._seconds(sensor_stamps[0]), self._seconds(sensor_stamps[-1])
+                )
+                raise StreamError(
+                    f'{self.source}{_name(sensor)}: every reading is NaN or inf ({span})'
+                )
         stamps = [np.asarray(s, np.int64) for s in self._norm_stamps]
         medians = {s: float(np.median(n)) for s, n in enumerate(self._norms) if n}
         if self.earth_field_t:
@@ -482,6 +520,7 @@ class StreamChecker:
                 'zero_stamps': f'{n} messages with header stamp 0 dropped (log times',
                 'duplicate_stamps': f'{n} messages sharing a stamp with another reading dropped (',
                 'clock_jump': f'{n} messages whose stamps jumped {jump} on it alone dropped (',
+                'stuck': f'{n} readings repeating the one before exactly (stuck) dropped (',
             }[kind]
             # The sets lost are counted once, by the coverage faults below.
             text = f'{_name(sensor)}: {what}{_span_text(*span)})'
@@ -520,76 +559,3 @@ class StreamChecker:
                 f'{text}, {lost} sets lost',
             )
             self.report.faults.append(fault)
-
-
-class LiveStreamCheck:
-    """The tensor node's per-message checks (drop and count, never raise): a zero stamp, a
-    stamp more than ``tolerance_s`` from the stamps the other sensors sent in the last
-    ``recent_s``, accepted or not (another epoch or clock, a jump on one sensor; when every
-    source restarts, the median of the others is on the new clock once two have moved), a
-    repeated stamp with another reading; and each sensor's recent |B|
-    against the Earth's range (:meth:`magnitude_text`).
-
-    Counts per sensor in :attr:`dropped`: ``{'zero_stamp': n, 'other_clock': n,
-    'duplicate_stamp': n}``. Times: stamps and ``now_ns`` (the node's clock) in ns.
-    """
-
-    KINDS = ('zero_stamp', 'other_clock', 'duplicate_stamp')
-
-    def __init__(
-        self, tolerance_s: float = 10.0, recent_s: float = 2.0, history: int = 64
-    ) -> None:
-        self.tolerance_ns = tolerance_s * NS_PER_S
-        self.recent_ns = recent_s * NS_PER_S
-        self.dropped = [dict.fromkeys(self.KINDS, 0) for _ in range(4)]
-        self._norms = [np.zeros(history) for _ in range(4)]
-        self._filled = [0] * 4
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget the last stamps (the source restarted); the counts stay."""
-        # Per sensor: the last stamp received (accepted or not) and its arrival on the node's
-        # clock: the others' reference; the last reading accepted: for repeated stamps.
-        self._seen: list[tuple[int, int] | None] = [None] * 4
-        self._last: list[tuple[int, tuple[float, float, float]] | None] = [None] * 4
-
-    def accept(
-        self, sensor: int, stamp_ns: int, now_ns: int, x: float, y: float, z: float
-    ) -> bool:
-        """True if the reading may go on to the set former; else it was counted."""
-        if stamp_ns == 0:
-            return self._count(sensor, 'zero_stamp')
-        others = sorted(
-            e[0]
-            for j, e in enumerate(self._seen)
-            if j != sensor and e is not None and now_ns - e[1] <= self.recent_ns
-        )
-        self._seen[sensor] = (stamp_ns, now_ns)  # a restart of every source moves them all
-        if others and abs(stamp_ns - others[len(others) // 2]) > self.tolerance_ns:
-            return self._count(sensor, 'other_clock')
-        last = self._last[sensor]
-        if last is not None and stamp_ns == last[0] and last[1] != (x, y, z):
-            return self._count(sensor, 'duplicate_stamp')
-        self._last[sensor] = (stamp_ns, (x, y, z))
-        norms = self._norms[sensor]
-        norms[self._filled[sensor] % len(norms)] = (x * x + y * y + z * z) ** 0.5
-        self._filled[sensor] += 1
-        return True
-
-    def _count(self, sensor: int, kind: str) -> bool:
-        self.dropped[sensor][kind] += 1
-        return False
-
-    def magnitude_text(self, sensor: int) -> str:
-        """'' or what the sensor's recent median |B| looks like against the Earth's range."""
-        n = min(self._filled[sensor], len(self._norms[sensor]))
-        if not n:
-            return ''
-        median = float(np.median(self._norms[sensor][:n]))
-        lo, hi = EARTH_RANGE_T
-        if lo / MAGNITUDE_FACTOR <= median <= hi * MAGNITUDE_FACTOR or not np.isfinite(median):
-            return ''
-        return (
-            f"median |B| {median:.4g} of the last {n} readings, outside the Earth field's "
-            f'{lo * 1e6:.0f}-{hi * 1e6:.0f} µT: {magnitude_mismatch(median / np.sqrt(lo * hi))}'
-        )

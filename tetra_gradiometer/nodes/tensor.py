@@ -34,8 +34,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState, MagneticField
 
 from ..core import TetraGeometry, difference_tensor
+from ..core.live_streams import LiveStreamCheck
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
-from ..core.streams import LiveStreamCheck
 from ..core.timebase import SYNC_METHODS, Resampler, TimeBase
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import MessageError
@@ -332,7 +332,7 @@ class TensorNode(ManagedNode):
         return int(self.get_clock().now().nanoseconds)
 
     def _stream_text(self, sensor: int) -> str:
-        """The sensor's stream faults (core/streams.LiveStreamCheck), '' when none."""
+        """The sensor's stream faults (core/live_streams.LiveStreamCheck), '' when none."""
         counts = self._streams.dropped[sensor]
         what = {
             'zero_stamp': 'with header stamp 0',
@@ -364,7 +364,7 @@ class TensorNode(ManagedNode):
 
     def _sensor_status(self, s: int, now: float, stale: bool, clocks: dict[str, float]) -> Any:
         """One sensor's DiagnosticStatus: stale (ERROR), dropped readings or a stream fault
-        (WARN: core/streams.LiveStreamCheck), else OK."""
+        (WARN: core/live_streams.LiveStreamCheck), else OK."""
         staleness = now - self._last_arrival[s]
         invalid, streams = self._invalid[s], self._stream_text(s)
         if stale:
