@@ -45,7 +45,15 @@ from .health import HealthRecorder
 from .survey_grid import GridSettings, SurveyGrids, grid_track
 from .terms import StreamRegressors
 
-__all__ = ['LegResidual', 'Span', 'SurveyResult', 'SurveyTrack', 'gridded_samples', 'survey_bag']
+__all__ = [
+    'LegResidual',
+    'Span',
+    'SurveyResult',
+    'SurveyTrack',
+    'georeference_of',
+    'gridded_samples',
+    'survey_bag',
+]
 
 #: A gap between sets of more than this many median periods is a lost span.
 LOST_PERIODS = 3.0
@@ -148,7 +156,7 @@ def survey_bag(
     timings['read'] = time.perf_counter() - clock
     clock = time.perf_counter()
     _stage(on_stage, 'compensating and placing the track')
-    georeference = _georeference(bag, recording, origin, navsat_topic)
+    georeference = georeference_of(bag, recording, origin, navsat_topic)
     crs = crs or georeference.default_crs()
     rotations = Rotation.from_quat(recording.orientation_xyzw).as_matrix()
     body, sigma_noise, sigma_cal = _compensated(bag, recording, geometry, compensation)
@@ -237,12 +245,14 @@ def _array_size(geometry: TetraGeometry) -> float:
     return float(np.max(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)))
 
 
-def _georeference(
+def georeference_of(
     bag: str | os.PathLike[str],
     recording: Recording,
     origin: tuple[float, float, float] | None,
     navsat_topic: str | None,
 ) -> Georeference:
+    """The placement of the recording's odom frame: at ``origin``, or fitted to the fixes
+    of ``navsat_topic`` that fall within the recording (odom interpolated at their stamps)."""
     if (origin is None) == (navsat_topic is None):
         raise InputError(
             'place the survey with --origin LAT,LON[,ALT] or --navsat-topic TOPIC (one of them)'
