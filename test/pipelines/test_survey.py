@@ -44,3 +44,16 @@ def test_a_survey_is_placed_by_the_fixes_of_its_navsatfix_topic(tmp_path):
     assert error.max() * 111_000 < 0.5  # degrees -> m (upper bound in longitude)
     with pytest.raises(InputError, match='one of them'):
         georeference_of(tmp_path / 'bag', recording, (43.0, 5.0, 0.0), '/fix')
+
+
+def test_lost_and_refused_spans_along_the_track():
+    from tetra_gradiometer.pipelines.survey import Span, track_spans
+
+    t = np.r_[np.arange(0.0, 10.0, 0.1), np.arange(12.0, 20.0, 0.1)]  # 2 s lost after 9.9 s
+    known = np.ones(len(t), bool)
+    known[150:160] = False  # no compensated tensor from 17.0 to 17.9 s
+    spans = track_spans(t, known)
+    assert [s.kind for s in spans] == ['lost', 'refused']
+    assert spans[0] == Span('lost', pytest.approx(9.9), pytest.approx(12.0))
+    assert spans[1].start_s == pytest.approx(17.0) and spans[1].stop_s == pytest.approx(17.9)
+    assert track_spans(np.arange(0.0, 5.0, 0.1), np.ones(50, bool)) == []

@@ -52,6 +52,7 @@ __all__ = [
     'SurveyTrack',
     'georeference_of',
     'gridded_samples',
+    'track_spans',
     'survey_bag',
 ]
 
@@ -195,7 +196,7 @@ def survey_bag(
         detected.settings.false_alarms_per_hour,
         float(recording.stamps_ns[0] * S_PER_NS),
         health,
-        _spans(track.t_s, known),
+        track_spans(track.t_s, known),
         _leg_residuals(track),
         recording.input_counts(),
         timings,
@@ -325,7 +326,7 @@ def _health(
     return recorder.document()
 
 
-def _spans(t_s: FloatArray, known: np.ndarray) -> list[Span]:
+def track_spans(t_s: FloatArray, known: np.ndarray) -> list[Span]:
     """Lost spans (gaps over :data:`LOST_PERIODS` median periods) and refused ones (runs of
     sets without a compensated tensor)."""
     out = []
