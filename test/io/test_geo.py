@@ -100,3 +100,4 @@ def test_navsatfix_topic_is_read_from_a_bag_without_the_no_fix_ones(tmp_path):
     np.testing.assert_allclose(fixes.lat_deg, [43.0, 43.0001, 43.0003, 43.0004])
     with pytest.raises(BagError, match='no /gps'):
         read_fixes(tmp_path / 'bag', '/gps')
+

@@ -27,6 +27,7 @@ import csv
 import io
 import json
 import math
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -161,7 +162,11 @@ def write_geotiffs(ds: Any, folder: Path) -> list[Path]:
         else:
             array = array.rio.write_nodata(np.nan, encoded=False)
         path = folder / f'{name}.tif'
-        array.rio.to_raster(path, compress='DEFLATE')
+        with warnings.catch_warnings():  # rioxarray 0.19 multiplies affine's matrices with *
+            warnings.filterwarnings(
+                'ignore', category=PendingDeprecationWarning, module='rioxarray'
+            )
+            array.rio.to_raster(path, compress='DEFLATE')
         out.append(path)
     return out
 

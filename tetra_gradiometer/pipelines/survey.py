@@ -45,7 +45,16 @@ from .health import HealthRecorder
 from .survey_grid import GridSettings, SurveyGrids, grid_track
 from .terms import StreamRegressors
 
-__all__ = ['LegResidual', 'Span', 'SurveyResult', 'SurveyTrack', 'gridded_samples', 'survey_bag']
+__all__ = [
+    'LegResidual',
+    'Span',
+    'SurveyResult',
+    'SurveyTrack',
+    'georeference_of',
+    'gridded_samples',
+    'track_spans',
+    'survey_bag',
+]
 
 #: A gap between sets of more than this many median periods is a lost span.
 LOST_PERIODS = 3.0
@@ -148,7 +157,7 @@ def survey_bag(
     timings['read'] = time.perf_counter() - clock
     clock = time.perf_counter()
     _stage(on_stage, 'compensating and placing the track')
-    georeference = _georeference(bag, recording, origin, navsat_topic)
+    georeference = georeference_of(bag, recording, origin, navsat_topic)
     crs = crs or georeference.default_crs()
     rotations = Rotation.from_quat(recording.orientation_xyzw).as_matrix()
     body, sigma_noise, sigma_cal = _compensated(bag, recording, geometry, compensation)
@@ -187,7 +196,7 @@ def survey_bag(
         detected.settings.false_alarms_per_hour,
         float(recording.stamps_ns[0] * S_PER_NS),
         health,
-        _spans(track.t_s, known),
+        track_spans(track.t_s, known),
         _leg_residuals(track),
         recording.input_counts(),
         timings,
@@ -237,12 +246,14 @@ def _array_size(geometry: TetraGeometry) -> float:
     return float(np.max(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)))
 
 
-def _georeference(
+def georeference_of(
     bag: str | os.PathLike[str],
     recording: Recording,
     origin: tuple[float, float, float] | None,
     navsat_topic: str | None,
 ) -> Georeference:
+    """The placement of the recording's odom frame: at ``origin``, or fitted to the fixes
+    of ``navsat_topic`` that fall within the recording (odom interpolated at their stamps)."""
     if (origin is None) == (navsat_topic is None):
         raise InputError(
             'place the survey with --origin LAT,LON[,ALT] or --navsat-topic TOPIC (one of them)'
@@ -315,7 +326,7 @@ def _health(
     return recorder.document()
 
 
-def _spans(t_s: FloatArray, known: np.ndarray) -> list[Span]:
+def track_spans(t_s: FloatArray, known: np.ndarray) -> list[Span]:
     """Lost spans (gaps over :data:`LOST_PERIODS` median periods) and refused ones (runs of
     sets without a compensated tensor)."""
     out = []
