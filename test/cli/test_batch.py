@@ -337,7 +337,9 @@ def test_default_local_cluster_rerun_and_force(fleet_dir, tmp_path, capsys):
     assert 'running on a LocalCluster of 2 workers' in text
     rows = _summary(out)
     assert {n: r['status'] for n, r in rows.items()} == {'sim3': 'ok', 'truncated': 'failed'}
-    assert rows['sim3']['window'] == 'whole bag'
+    # Without --window the trim is found: the simulated 60 s manoeuvre at 10 Hz (sets 0-59.9 s),
+    # not the 20 s line after it.
+    assert rows['sim3']['window'] == '0:59.9 s'
     assert (out / 'sim3' / 'discrepancy' / 'gap.png').exists()  # plots by default
     _assert_bitwise_with_one_blas_thread(small / 'sim3', small / 'sim3.yaml', out / 'sim3',
                                          tmp_path / 'ref')

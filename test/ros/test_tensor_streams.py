@@ -13,7 +13,7 @@ from tetra_gradiometer import core
 from tetra_gradiometer.io import conversions as cv
 
 NT = 1e-9
-T0 = 1_800_000_000 * 10**9
+T0 = 1_700_000_000 * 10**9  # in the past: stamps ahead of the clock are refused (max_stamp_ahead_s)
 GPS_UNIX_NS = 315_964_800 * 10**9
 GEOMETRY = core.TetraGeometry.regular(0.5)
 B0 = np.array([12e-6, -20e-6, 43e-6])

@@ -28,8 +28,8 @@ from ..core.identification import attitude_coverage
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.units import S_PER_NS
 from ..errors import AssumptionError, IdentifiabilityError
-from ..io import conversions as cv
 from ..io.bag import MagneticBag
+from ..io.recording import odometry_at
 from .calibration import BagCalibration, WindowSets, read_window
 from .trim import (
     DEFAULT_SENSOR_NOISE_T,
@@ -37,7 +37,7 @@ from .trim import (
     calibrate_assessed,
     odom_earth_field,
 )
-from .window_check import EXCITED_SPREAD_DEG, excitation_refusal, excited_spans, orientation_at
+from .window_check import EXCITED_SPREAD_DEG, excitation_refusal, excited_spans
 
 __all__ = ['MAX_CANDIDATES', 'Candidate', 'FoundWindow', 'find_window', 'rank_candidates']
 
@@ -116,12 +116,13 @@ class FoundWindow:
         }
 
 
-def _orientation(bag_path: str | os.PathLike[str], stamps_ns: np.ndarray) -> np.ndarray | None:
+def _orientation(bag_path: str | os.PathLike[str], sets: WindowSets) -> np.ndarray | None:
+    """``/odom``'s attitude on the sets, checked as every command checks it
+    (:func:`~tetra_gradiometer.io.recording.odometry_at`); None when absent or unusable (the
+    calibration of the chosen window says so)."""
     with MagneticBag(bag_path) as bag:
-        series = bag.read_series(cv.ODOM_TOPIC)
-    if series is None or len(series.stamps_ns) < 2:
-        return None
-    return orientation_at(series.stamps_ns, series.values[:, cv.POSE_ORIENTATION], stamps_ns)
+        odometry = odometry_at(bag, sets.stamps_ns, sets.fields[:, 0], 'calibrate')
+    return odometry.orientation_xyzw
 
 
 def rank_candidates(
@@ -196,8 +197,15 @@ def find_window(
         the bag holds none
     BagError : as :func:`~.calibration.read_window`
     """
-    sets = read_window(bag_path, None, timebase=timebase, progress=options.get('progress'))
-    orientation = _orientation(bag_path, sets.stamps_ns)
+    earth_norm = None if earth_field_enu is None else float(np.linalg.norm(earth_field_enu))
+    sets = read_window(
+        bag_path,
+        None,
+        timebase=timebase,
+        progress=options.get('progress'),
+        earth_field_t=earth_norm,
+    )
+    orientation = _orientation(bag_path, sets)
     earth = earth_field_enu
     if earth is None and orientation is not None:
         earth = odom_earth_field(orientation, sets.fields[:, 0])
