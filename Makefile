@@ -27,11 +27,11 @@ check: setup
 	$(VENV)/bin/mypy
 	$(PY) scripts/check_sizes.py tetra_gradiometer
 
-# The tests on one pytest-xdist worker per core (TEST_WORKERS=0: one process, e.g. for pdb),
-# a whole test module to one worker (module-scoped fixtures built once; docs/testing.md).
+# The tests on one pytest-xdist worker per core (TEST_WORKERS=0: one process, e.g. for pdb);
+# a whole test module goes to one worker (pytest.ini, docs/testing.md).
 TEST_WORKERS ?= $(shell nproc)
 test: setup check
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -n $(TEST_WORKERS)
 
 # The suite against Ubuntu Noble's numpy 1.26.4 and scipy 1.11.4 (what a ROS 2 Jazzy install
 # has): a second venv with the main pins but the deviations of constraints-noble.txt
