@@ -67,8 +67,9 @@ bench: setup
 clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants
 
-# Mutation smoke check (not in CI, a few minutes): mutmut (requirements-dev.txt) mutates
-# core/metrics.py, geometry.py and fields.py and runs their tests (config: setup.cfg [mutmut]).
+# Mutation smoke check (not in CI): mutmut (requirements-dev.txt) mutates core/metrics.py,
+# geometry.py, fields.py, core/effects/, core/identification/terms.py and
+# pipelines/window_check.py and runs their direct tests (config: setup.cfg [mutmut]).
 # Survivors are listed at the end; `.venv/bin/mutmut show NAME` prints one.
 .PHONY: mutation
 mutation: setup
