@@ -49,7 +49,7 @@ $(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraint
 
 test-noble: $(NOBLE_STAMP)
 	$(NOBLE_PY) -c 'import numpy, scipy; print("numpy", numpy.__version__, "scipy", scipy.__version__)'
-	$(NOBLE_PY) -m pytest
+	$(NOBLE_PY) -m pytest -n $(TEST_WORKERS)
 
 paper: setup
 	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper --force
