@@ -35,11 +35,11 @@ check: setup
 	$(VENV)/bin/mypy
 	$(PY) scripts/check_sizes.py tetra_gradiometer
 
-# The tests on one pytest-xdist worker per core (TEST_WORKERS=0: one process, e.g. for pdb),
-# a whole test module to one worker (module-scoped fixtures built once; docs/testing.md).
+# The tests on one pytest-xdist worker per core (TEST_WORKERS=0: one process, e.g. for pdb);
+# a whole test module goes to one worker (pytest.ini, docs/testing.md).
 TEST_WORKERS ?= $(shell nproc)
 test: setup check
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -n $(TEST_WORKERS)
 
 # The suite against Ubuntu Noble's numpy 1.26.4 and scipy 1.11.4 (what a ROS 2 Jazzy install
 # has): a second venv with the main pins but the deviations of constraints-noble.txt
@@ -57,7 +57,7 @@ $(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraint
 
 test-noble: $(NOBLE_STAMP)
 	$(NOBLE_PY) -c 'import numpy, scipy; print("numpy", numpy.__version__, "scipy", scipy.__version__)'
-	$(NOBLE_PY) -m pytest
+	$(NOBLE_PY) -m pytest -n $(TEST_WORKERS)
 
 paper: setup
 	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper --force
@@ -76,11 +76,15 @@ bench: setup
 clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants
 
-# Mutation smoke check (not in CI, a few minutes): mutmut (requirements-dev.txt) mutates
-# core/metrics.py, geometry.py and fields.py and runs their tests (config: setup.cfg [mutmut]).
+# Mutation smoke check (not in CI): mutmut (requirements-dev.txt) mutates core/metrics.py,
+# geometry.py, fields.py, core/effects/, core/identification/terms.py and
+# pipelines/window_check.py and runs their direct tests (config: setup.cfg [mutmut]).
 # Survivors are listed at the end; `.venv/bin/mutmut show NAME` prints one.
+# MUTANTS='tetra_gradiometer.core.effects*' runs only the mutants whose names match (the whole
+# set takes over 30 min on two loaded cores).
+MUTANTS ?=
 .PHONY: mutation
 mutation: setup
 	rm -rf mutants
-	$(VENV)/bin/mutmut run --max-children 2
+	$(VENV)/bin/mutmut run --max-children 2 $(MUTANTS)
 	$(VENV)/bin/mutmut results

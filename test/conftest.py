@@ -20,6 +20,42 @@ for _variable in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
 _PHASE_START = pytest.StashKey[float]()
 
 
+#: The modules that take longest (CPU s with ``--cpu-durations``, wall for the ROS graphs;
+#: docs/testing.md), most first: collected first, hence sent to the workers first (pytest.ini:
+#: ``--dist loadfile --no-loadscope-reorder``), so that none of them starts last and runs alone
+#: at the end. Every other module follows in its usual order.
+SLOW_FIRST = (
+    'cli/test_batch.py',
+    'cli/test_compensate.py',
+    'core/test_targets.py',
+    'ros/test_shutdown.py',
+    'ros/test_graph.py',
+    'core/discrepancy/test_openworld.py',
+    'ros/test_common.py',
+    'io/test_realworld.py',
+    'core/discrepancy/test_analysis.py',
+    'cli/test_locate.py',
+    'ros/test_effects.py',
+    'ros/test_demo.py',
+    'ros/test_calibrator.py',
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    test_dir = config.rootpath / 'test'
+
+    def module_rank(item: pytest.Item) -> int:
+        try:
+            name = item.path.relative_to(test_dir).as_posix()
+        except ValueError:
+            return len(SLOW_FIRST)
+        return rank.get(name, len(SLOW_FIRST))
+
+    items.sort(key=module_rank)  # stable: the order within a module, and of the rest, kept
+
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption('--cpu-durations', type=int, default=None, metavar='N',
                      help='list the N tests with the most CPU time (setup + call + teardown, '

@@ -106,7 +106,9 @@ def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_pa
 def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max_solve_s(tmp_path):
     """Fault table rows: a 20 000-generation paper_ga solve (about 4 s) does not stop
     /diagnostics, a second ~/calibrate is answered at once, ~/cancel ends it within ~1 s
-    (nothing written), and max_solve_s ends it with the best individual so far."""
+    (nothing written), and max_solve_s ends it with the best individual so far. max_solve_s
+    is 1.5 s, not less: its clock starts with the ~/calibrate call, and on a loaded machine
+    the work before the first generation took all of a 0.5 s budget (0 generations run)."""
     from std_srvs.srv import Trigger
     calibration_file = tmp_path / 'calibration.yaml'
     rng = np.random.default_rng(5)
@@ -144,15 +146,15 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
         assert 'of 20000 generations' in reply.message and not calibration_file.exists()
         wait_for(lambda: probe.status(CALIBRATION).get('state') == 'stopped', 5, 'state back to stopped', graph)
 
-        result = set_parameter(probe, graph, 'calibrator', 'max_solve_s', 0.5)
+        result = set_parameter(probe, graph, 'calibrator', 'max_solve_s', 1.5)
         assert result.successful, result.reason
         started = time.monotonic()
         reply = probe.call('calibrator/calibrate')
         took = time.monotonic() - started
         assert reply.success, reply.message
-        match = re.search(r'stopped at max_solve_s 0.5 s after (\d+) of 20000 generations', reply.message)
+        match = re.search(r'stopped at max_solve_s 1.5 s after (\d+) of 20000 generations', reply.message)
         assert match and 0 < int(match.group(1)) < 20000, reply.message
-        assert took < 2.0, took
+        assert took < 3.0, took
         saved = load_calibration(calibration_file)
         assert np.all(np.isfinite(saved.parameters.to_vector(symmetric=True)))
 
@@ -187,7 +189,7 @@ def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_f
             odom.publish(cv.odometry_msg(feeder.types, np.zeros(3), north, stamp))
             feeder.publish_raw(stamp, g[i], b[i])
             time.sleep(0.002)
-        wait_for(lambda: received and received[-1]['samples'] == 200, 10, 'guidance on 200 samples', graph)
+        wait_for(lambda: received and received[-1]['samples'] == 200, 30, 'guidance on 200 samples', graph)
         document = received[-1]
         assert document['enough'] is False and document['ratio'] > 10, document['text']
         assert document['advice']['kind'] in ('roll', 'pitch', 'level turn') and 'next: ' in document['text']

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from ros_helpers import interference_set, ros_graph, wait_for, wait_matched
+from ros_helpers import interference_set, ros_graph, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile
@@ -44,8 +44,7 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
         norms: list[float] = []
         probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)
         wait_matched(feeder.raw, 2)  # compensator and probe
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/norm') >= 1, 10, 'norm publisher', graph)
-        time.sleep(0.5)
+        wait_connected(probe, graph, 'compensator', '/tetra/gradient/norm', 1)
         with probe.lock:
             probe.collecting = True
         for i in range(10):
@@ -134,8 +133,7 @@ def test_gradient_sigma_follows_the_calibration_and_is_absent_while_the_noise_is
         wait_for(lambda: _diag(probe, status).get('sigma', '').startswith('none: sensor noise unknown'),
                  30, 'compensator diagnostics', graph)
         wait_matched(feeder.raw, 2)
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/sigma') >= 1, 10, 'sigma publisher', graph)
-        time.sleep(0.5)
+        wait_connected(probe, graph, 'compensator', '/tetra/gradient/sigma', 1)
         with probe.lock:
             probe.collecting = True
         for i in range(5):  # uncompensated, noise unknown: no sigma
@@ -183,8 +181,7 @@ def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibra
         sigmas = _sigma_subscription(probe)
         wait_for(lambda: 'raw tensor' in _diag(probe, status).get('sigma', ''), 30, 'compensator diagnostics', graph)
         wait_matched(feeder.raw, 2)
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/sigma') >= 1, 10, 'sigma publisher', graph)
-        time.sleep(0.5)
+        wait_connected(probe, graph, 'compensator', '/tetra/gradient/sigma', 1)
         for i in range(3):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
         wait_for(lambda: len(sigmas) == 3, 10, 'sigma of the raw tensors', graph)

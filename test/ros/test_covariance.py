@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from ros_helpers import ros_graph, uniform_gradient_fields, wait_for, wait_matched
+from ros_helpers import ros_graph, uniform_gradient_fields, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io import conversions as cv
@@ -39,8 +39,7 @@ def test_reference_field_carries_the_covariance_of_its_own_mag1_message():
         reference = _collect(probe, 'reference_field', derived_qos())
         for publisher in feeder.mags:
             wait_matched(publisher, 1)
-        wait_for(lambda: probe.count_publishers('/tetra/reference_field') >= 1, 20, 'tensor node', graph)
-        time.sleep(0.5)
+        wait_connected(probe, graph, 'tensor', '/tetra/reference_field', 2)  # the feeder's and the node's
         sent = {}
         for i in range(12):
             stamp = T0 + i * 10**8

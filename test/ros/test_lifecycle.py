@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_helpers import interference_set, ros_graph, unique_domain, wait_for, wait_matched
+from ros_helpers import interference_set, ros_graph, unique_domain, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile, save_calibration
@@ -83,8 +83,7 @@ def test_compensator_transitions_through_the_lifecycle_services(tmp_path):
         assert change(probe, 'compensator', 'configure')
         assert state(probe, 'compensator') == 'inactive'
         wait_matched(feeder.raw, 2)  # compensator and probe
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/compensated') >= 1, 10, 'publisher', graph)
-        time.sleep(0.5)
+        wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)
         with probe.lock:
             probe.collecting = True
 

@@ -86,5 +86,7 @@ def test_replay_publishes_clock_and_diagnostics_follow_the_bag_time(bag, rate):
     assert expected - 3 <= len([s for s in playing if s['received'] < RATE_HZ * SECONDS]) <= expected + 3
     middle = playing[1:-1]  # the first window starts before the data, the last may be partial
     rates = [s['rate_hz'] for s in middle]
-    assert np.median(rates) == pytest.approx(RATE_HZ, rel=0.1), rates
+    # 20 %: a loaded machine gave 44 Hz (the node's /clock and data callbacks run late);
+    # the wall clock would give 500 Hz at 10x (376 Hz before sim time was used).
+    assert np.median(rates) == pytest.approx(RATE_HZ, rel=0.2), rates
     assert max(s['staleness_s'] for s in middle) < 0.2
