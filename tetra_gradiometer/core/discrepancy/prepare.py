@@ -65,6 +65,8 @@ class RecordedRun:
     missing : topic -> why it is unavailable
     extra_currents : BatteryState topic -> (N,) A, the further current channels (one per
         thruster, say): ``vehicle_current`` fits a field per channel
+    position_m : (N, 3) m, the body origin in the odom frame (ENU) from ``/odom``, or None:
+        the track that places a target's field (:mod:`.dipoles`)
     """
 
     t_s: Array
@@ -74,6 +76,7 @@ class RecordedRun:
     current_a: Array | None = None
     missing: Mapping[str, str] = field(default_factory=dict)
     extra_currents: Mapping[str, Array] = field(default_factory=dict)
+    position_m: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,10 @@ class Prepared:
     rotation : (N, 3, 3) body -> ENU, or None
     open_world : the steps and spectral lines the scans of the residual found
     extra_currents : the further current channels, (BatteryState topic, (N,) A) each
+    position : (N, 3) m, the track (body origin, odom frame), or None
+    target_cols : (N, 4, 3, 3K) nT per A m^2, the fitted targets' field per unit moment
+        (odom axes), appended to ``base_cols`` (their moments are fitted with the base
+        model), or None; ``target_labels`` label them
     """
 
     t: Array
@@ -118,6 +125,9 @@ class Prepared:
     rotation: Array | None
     open_world: OpenWorld = field(default_factory=OpenWorld)
     extra_currents: tuple[tuple[str, Array], ...] = ()
+    position: Array | None = None
+    target_cols: Array | None = None
+    target_labels: Labels = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -132,6 +142,7 @@ class _Samples:
     current_a: Array | None
     notes: tuple[str, ...]
     extra_currents: tuple[tuple[str, Array], ...] = ()
+    position: Array | None = None
 
 
 def prepare(
@@ -168,7 +179,7 @@ def _samples(
     if window_s is not None:
         keep &= _inside_window(t_all, window_s)
     optional: dict[str, Array | None] = {}
-    for name in ('orientation_xyzw', 'temperature_c', 'current_a'):
+    for name in ('orientation_xyzw', 'temperature_c', 'current_a', 'position_m'):
         value = getattr(recording, name, None)
         if value is not None:
             value = np.asarray(value, dtype=float)
@@ -213,6 +224,7 @@ def _samples(
         picked['current_a'],
         tuple(notes),
         tuple((topic, value[index]) for topic, value in extra.items()),
+        picked['position_m'],
     )
 
 
@@ -290,6 +302,7 @@ def _absolute_view(samples: _Samples, quat: Array, earth_field_enu: object) -> P
         notes=tuple(notes),
         piece=samples.piece,
         rotation=r,
+        position=samples.position,
     )
 
 
@@ -342,6 +355,9 @@ def refresh_background(
     if np.max(np.abs(b_background - prep.b_background)) < tolerance_nT:
         return prep, False
     base_cols, base_labels = base_columns(prep.rotation, b_background, True, prep.t)
+    if prep.target_cols is not None:
+        base_cols = np.concatenate([base_cols, prep.target_cols], axis=-1)
+        base_labels = base_labels + prep.target_labels
     return replace(
         prep,
         b_background=b_background,
@@ -368,6 +384,23 @@ def refresh_pair_background(
         base_labels=base_labels,
         b_rate=smoothed(prep.t, clean, prep.piece, deriv=1),
     ), True
+
+
+def with_targets(prep: Prepared, cols: Array | None, labels: Labels) -> Prepared:
+    """``prep`` with the targets' columns (N, 4, 3, 3K) nT per A m^2 (None: no targets) in
+    place of the previous ones at the end of the base model."""
+    keep = prep.base_cols.shape[-1] - len(prep.target_labels)
+    base_cols = prep.base_cols[..., :keep]
+    base_labels = prep.base_labels[:keep]
+    if cols is not None and cols.shape[-1]:
+        base_cols = np.concatenate([base_cols, cols], axis=-1)
+        base_labels = base_labels + list(labels)
+    else:
+        cols, labels = None, []
+    return replace(
+        prep, base_cols=base_cols, base_labels=base_labels, target_cols=cols,
+        target_labels=list(labels),
+    )
 
 
 def smoothed(t: Array, values: Array, piece: NDArray[np.int_], deriv: int = 0) -> Array:
