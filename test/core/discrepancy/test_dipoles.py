@@ -26,7 +26,9 @@ def test_unit_fields_are_the_dipole_field_in_the_body_frame():
     position = rng.uniform(-50, 50, (n, 3))
     source = np.array([3.0, -20.0, -40.0])
     moment = np.array([2e4, -1e4, 3e4])
-    got = np.einsum('nsak,k->nsa', unit_fields(Track(position, rotation, geometry), source), moment)
+    got = np.einsum(
+        'nsak,k->nsa', unit_fields(Track(position, rotation, geometry), source), moment
+    )
     points = sensor_points(position, rotation, geometry)
     for s in range(4):
         world = dipole_field(points[:, s], moment, source) * 1e9

@@ -50,12 +50,12 @@ import numpy as np
 
 from ...errors import InputError
 from ..geometry import TetraGeometry
+from .dipoles import locate_targets, model_targets, track_of
 from .effects import CANDIDATES, LIBRARY, Candidate
 from .prepare import Prepared, RunLike, prepare, testable
 from .result import Report, Settings
 from .search import search_effects
 from .summary import RunInfo, build_report
-from .dipoles import locate_targets, model_targets, track_of
 from .targets import TargetSpans, find_target_spans
 
 

@@ -151,7 +151,9 @@ def unit_fields(track: Track, source: Array) -> Array:
 def target_columns(track: Track, sources: Array) -> tuple[Array, list[tuple[int, str]]]:
     """Columns (N, 4, 3, 3K) nT per A m^2 of the dipoles at ``sources`` (K, 3) m, labels."""
     cols = [unit_fields(track, s) for s in sources]
-    labels = [(-1, f'target{k + 1}_m_{"enu"[a]}_Am2') for k in range(len(sources)) for a in range(3)]
+    labels = [
+        (-1, f'target{k + 1}_m_{"enu"[a]}_Am2') for k in range(len(sources)) for a in range(3)
+    ]
     return np.concatenate(cols, axis=-1), labels
 
 
@@ -442,9 +444,14 @@ def locate_targets(
     if not any(keep):
         return None
     positions, position_sigma, moment_sigma = (
-        positions[keep], position_sigma[keep], moment_sigma[keep]
+        positions[keep],
+        position_sigma[keep],
+        moment_sigma[keep],
     )
     return Located(
-        model_targets(base, track, positions), positions, position_sigma, moment_sigma,
+        model_targets(base, track, positions),
+        positions,
+        position_sigma,
+        moment_sigma,
         settled.mask,
     )

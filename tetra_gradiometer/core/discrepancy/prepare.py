@@ -398,7 +398,10 @@ def with_targets(prep: Prepared, cols: Array | None, labels: Labels) -> Prepared
     else:
         cols, labels = None, []
     return replace(
-        prep, base_cols=base_cols, base_labels=base_labels, target_cols=cols,
+        prep,
+        base_cols=base_cols,
+        base_labels=base_labels,
+        target_cols=cols,
         target_labels=list(labels),
     )
 

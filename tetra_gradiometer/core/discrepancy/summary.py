@@ -13,13 +13,13 @@ from numpy.typing import NDArray
 from ..geometry import TetraGeometry
 from .cv import ALL_SENSORS
 from .diagnostics import diagnostics, tensor_rms
+from .dipoles import Located, Track, describe
 from .effects import LIBRARY
 from .findings import findings
 from .fit import column_bounds, effect_field
 from .prepare import Prepared
 from .result import BASE_MODEL, Report, Settings, Step, format_parameters
 from .search import SearchResult
-from .dipoles import Located, Track, describe
 from .targets import TargetSpans
 
 Array = NDArray[np.float64]
@@ -181,8 +181,13 @@ def _targets(search: SearchResult, info: RunInfo) -> list[dict[str, Any]]:
     start = prep.base_cols.shape[-1] - prep.target_cols.shape[-1]
     moments = search.fit.coef[start : prep.base_cols.shape[-1]].reshape(-1, 3)
     records = describe(
-        prep, track, located.positions, located.position_sigma, moments,
-        located.moment_sigma, search.floors[-1],
+        prep,
+        track,
+        located.positions,
+        located.position_sigma,
+        moments,
+        located.moment_sigma,
+        search.floors[-1],
     )
     per_target = [
         np.einsum('nsak,k->nsa', prep.target_cols[..., 3 * k : 3 * k + 3], moments[k])
@@ -195,7 +200,9 @@ def _targets(search: SearchResult, info: RunInfo) -> list[dict[str, Any]]:
     for k, record in enumerate(records):
         entry = record.to_dict()
         rest = without - per_target[k]
-        entry['share_of_gap'] = (total - float(np.mean(rest[:, sensors] ** 2))) / max(total, 1e-300)
+        entry['share_of_gap'] = (total - float(np.mean(rest[:, sensors] ** 2))) / max(
+            total, 1e-300
+        )
         out.append(entry)
     return out
 
