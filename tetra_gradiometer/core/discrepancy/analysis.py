@@ -115,7 +115,7 @@ def analyze(
             )
             if located is not None:
                 track = track_of(prep, geometry)
-                prep = model_targets(prep, track, located.positions)  # type: ignore[arg-type]
+                prep = model_targets(prep, track, located.positions, located.moments)  # type: ignore[arg-type]
         elif located is not None:
             prep = located.prep
     search = search_effects(prep, testable_candidates, settings)

@@ -371,13 +371,19 @@ def describe(
     return out
 
 
-def model_targets(prep: Prepared, track: Track, sources: Array) -> Prepared:
+def model_targets(
+    prep: Prepared, track: Track, sources: Array, moments: Array | None = None
+) -> Prepared:
     """``prep`` with the dipoles at ``sources`` (K, 3) m in its base model (``track``: the
-    run's, sample for sample)."""
+    run's, sample for sample); with their ``moments`` (K, 3) A m^2, their field at sensor 1
+    joins ``B^b``."""
     if not len(sources):
         return with_targets(prep, None, [])
     cols, labels = target_columns(track, sources)
-    return with_targets(prep, cols, labels)
+    background = None
+    if moments is not None:
+        background = np.einsum('nap,p->na', cols[:, 0], np.asarray(moments).ravel())
+    return with_targets(prep, cols, labels, background)
 
 
 def _moments(
@@ -396,13 +402,15 @@ def _moments(
 class Located:
     """Dipoles fitted into a run: ``prep`` with their columns (the run as given, ``B^b`` as
     the detector left it), their positions (K, 3) m with sigmas, their moment sigmas (K, 3)
-    A m^2, and the detector's spans (bool, N) they were sought in."""
+    A m^2, the detector's spans (bool, N) they were sought in, and the moments (K, 3) A m^2
+    of the full model (their field at sensor 1 is part of ``B^b``)."""
 
     prep: Prepared
     positions: Array
     position_sigma: Array
     moment_sigma: Array
     spans: Mask
+    moments: Array
 
 
 def locate_targets(

@@ -105,6 +105,8 @@ class Prepared:
     target_cols : (N, 4, 3, 3K) nT per A m^2, the fitted targets' field per unit moment
         (odom axes), appended to ``base_cols`` (their moments are fitted with the base
         model), or None; ``target_labels`` label them
+    target_background : (N, 3) nT, the targets' field at sensor 1 with their fitted
+        moments: part of ``B^b`` (the soft iron ``K_i`` magnetised by it too), or None
     """
 
     t: Array
@@ -128,6 +130,7 @@ class Prepared:
     position: Array | None = None
     target_cols: Array | None = None
     target_labels: Labels = field(default_factory=list)
+    target_background: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -352,6 +355,8 @@ def refresh_background(
         raise InputError('the Earth-field correction needs the attitude (/odom)')
     world = correction[None, :3] + ramp(prep.t)[:, None] * correction[None, 3:6]
     b_background = prep.base_offset[:, 0] + np.einsum('nji,nj->ni', prep.rotation, world)
+    if prep.target_background is not None:
+        b_background = b_background + prep.target_background
     if np.max(np.abs(b_background - prep.b_background)) < tolerance_nT:
         return prep, False
     base_cols, base_labels = base_columns(prep.rotation, b_background, True, prep.t)
@@ -386,9 +391,27 @@ def refresh_pair_background(
     ), True
 
 
-def with_targets(prep: Prepared, cols: Array | None, labels: Labels) -> Prepared:
+def with_targets(
+    prep: Prepared, cols: Array | None, labels: Labels, background: Array | None = None
+) -> Prepared:
     """``prep`` with the targets' columns (N, 4, 3, 3K) nT per A m^2 (None: no targets) in
-    place of the previous ones at the end of the base model."""
+    place of the previous ones at the end of the base model, and their field at sensor 1
+    ``background`` (N, 3) nT (None: not known yet) in ``B^b``: the simulator and the
+    vehicle magnetise the soft iron with the whole field, targets included."""
+    b_background = prep.b_background
+    if prep.target_background is not None:
+        b_background = b_background - prep.target_background
+    if background is not None:
+        b_background = b_background + background
+    if prep.rotation is not None and b_background is not prep.b_background:
+        base_cols, base_labels = base_columns(prep.rotation, b_background, True, prep.t)
+        prep = replace(
+            prep,
+            b_background=b_background,
+            base_cols=np.concatenate([base_cols, prep.base_cols[..., base_cols.shape[-1] :]], -1),
+            b_rate=PiecewiseSpline(prep.t, b_background, prep.piece)(0.0, 1),
+        )
+    prep = replace(prep, target_background=background)
     keep = prep.base_cols.shape[-1] - len(prep.target_labels)
     base_cols = prep.base_cols[..., :keep]
     base_labels = prep.base_labels[:keep]
