@@ -456,10 +456,12 @@ def locate_targets(
         position_sigma[keep],
         moment_sigma[keep],
     )
+    moments = _moments(base, track, names, settings, positions)
     return Located(
-        model_targets(base, track, positions),
+        model_targets(base, track, positions, moments),
         positions,
         position_sigma,
         moment_sigma,
         settled.mask,
+        moments,
     )
