@@ -177,7 +177,9 @@ def _fibonacci(n: int) -> Array:
     )
 
 
-def _stretch(z: Array, peak: int, piece: NDArray[np.int_], fraction: float = 0.05) -> Array:
+def _stretch(
+    z: Array, peak: int, piece: NDArray[np.int_], fraction: float = 0.05
+) -> NDArray[np.int_]:
     """Indices around ``peak`` (same piece) where ``z`` stays above ``fraction`` of it."""
     above = (z > fraction * z[peak]) & (piece == piece[peak])
     lo = peak
@@ -224,7 +226,7 @@ def _grid_start(
 class _Projected:
     """The thinned data with the base model plus global candidates projected out."""
 
-    idx: Array
+    idx: NDArray[np.int_]
     q: Array
     y: Array
     scale: float  # sqrt(thinned / all samples): sigmas to all samples
@@ -415,16 +417,16 @@ class Located:
 
 def locate_targets(
     prep: Prepared, track: Track, names: frozenset[str], settings: Settings
-) -> Located | None:
+) -> Located | None | bool:
     """Detect the localized fields of the run (the detector of :mod:`.targets`) and fit them
-    as dipoles (greedy starts, joint refinement); None when nothing is localized or no dipole
-    explains it."""
+    as dipoles (greedy starts, joint refinement); None when no dipole explains what is
+    localized, False when nothing is."""
     dt = float(np.median(np.diff(prep.t)))
     width = max(5, int(round(2.0 / dt)))
     include = robust_start(prep, names, settings, width)
     settled = settle(prep, names, settings, width, include)
     if not settled.mask.any():
-        return None
+        return False
     base = settled.prep
     outside = ~settled.mask
 
