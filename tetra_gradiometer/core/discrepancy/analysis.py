@@ -103,16 +103,14 @@ def analyze(
     if settings.exclude_targets:
         names = frozenset(c.name for c in testable_candidates)
         track = track_of(prep, geometry)
-        localized: Located | None | bool = True
         if track is not None and settings.model_targets:
             localized = locate_targets(prep, track, names, settings)
             located = localized if isinstance(localized, Located) else None
         elif settings.model_targets:
             target_notes.append(_no_track_note(prep, geometry))
-        # What no dipole explains is left out, with its evidence (the same detector found
-        # nothing localized: nothing to look for).
-        if localized is not False:
-            targets = find_target_spans(located.prep if located else prep, names, settings)
+        # What no dipole explains is left out, with its evidence (and the detector's levels
+        # are reported).
+        targets = find_target_spans(located.prep if located else prep, names, settings)
         if targets.spans:
             prep = prepare(
                 recording, earth_field_enu, settings.max_samples, window_s, targets.intervals

@@ -198,6 +198,8 @@ def _targets(search: SearchResult, info: RunInfo) -> list[dict[str, Any]]:
     total = float(np.mean(without[:, sensors] ** 2))
     out = []
     for k, record in enumerate(records):
+        if not record.passes:
+            continue  # its field nowhere 10 x the noise: a stand-in, not a target to list
         entry = record.to_dict()
         rest = without - per_target[k]
         entry['share_of_gap'] = (total - float(np.mean(rest[:, sensors] ** 2))) / max(
