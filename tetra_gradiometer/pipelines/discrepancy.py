@@ -63,6 +63,7 @@ def analyze_bag(
         recording.current_a,
         recording.missing,
         recording.extra_currents,
+        recording.position_m,
     )
     report = analyze(run, geometry, earth_field_enu, settings=settings, window_s=window)
     report = dataclasses.replace(report, data={**report.data, **recording.input_counts()})

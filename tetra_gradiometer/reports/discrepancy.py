@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from ..core.discrepancy import CANDIDATES, LIBRARY, Report, criterion_text
 from ..io import conversions as cv
 from ..io.outputs import REPORT, atomic_output
+from .discrepancy_targets import excluded_section, targets_section
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -243,7 +244,8 @@ def report_markdown(
         _summary_section(report)
         + _failures_section(list(failures))
         + _findings_section(report)
-        + _excluded_section(report)
+        + targets_section(report)
+        + excluded_section(report)
         + _method_section(figures)
         + _steps_section(report, figures)
         + _untestable_section(report)
@@ -334,36 +336,6 @@ def _summary_section(report: Report) -> list[str]:
     lines += ['', '## Recorded channels', '']
     lines += [f'- {c["note"]}' for c in channel_notes(report).values()]
     return lines
-
-
-def _excluded_section(report: Report) -> list[str]:
-    """The table of excluded target passages, and why each was left out."""
-    if not report.excluded_spans:
-        return []
-    lines = [
-        '',
-        '## Excluded spans (target passages)',
-        '',
-        'Spans where the residual is dominated by a localized field that no candidate '
-        'represents (it differs between the sensors and rises and falls within the span: a '
-        'target passed close to the track). They are left out of every fit and of the '
-        'held-out gap, with a margin; "adequate" refers to the rest of the run.',
-        '',
-        '| start, s | end, s | peak at, s | peak residual, nT | x noise | between sensors, nT | '
-        'common, nT | attitude change, deg |',
-        '|---|---|---|---|---|---|---|---|',
-    ]
-    reasons = ['']
-    for e in report.excluded_spans:
-        common = '-' if e['peak_common_rms_nT'] is None else f'{e["peak_common_rms_nT"]:.3g}'
-        turn = '-' if e['attitude_change_deg'] is None else f'{e["attitude_change_deg"]:.1f}'
-        lines.append(
-            f'| {e["start_s"]:.1f} | {e["end_s"]:.1f} | {e["peak_time_s"]:.1f} | '
-            f'{e["peak_residual_rms_nT"]:.3g} | {e["peak_over_noise"]:.0f} | '
-            f'{e["peak_difference_rms_nT"]:.3g} | {common} | {turn} |'
-        )
-        reasons.append(f'- {e["start_s"]:.1f}-{e["end_s"]:.1f} s: {e["reason"]}')
-    return lines + reasons
 
 
 def _method_section(figures: dict[str, str]) -> list[str]:

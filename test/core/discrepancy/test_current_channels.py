@@ -4,12 +4,23 @@ registry's (one definition of each operational effect)."""
 import numpy as np
 import pytest
 
-from tetra_gradiometer.core import CurrentProfile, Effects, Scenario, Thruster, random_interference, simulate
+from tetra_gradiometer.core import (
+    CurrentProfile,
+    Effects,
+    Scenario,
+    Thruster,
+    random_interference,
+    simulate,
+)
 from tetra_gradiometer.core.discrepancy import LIBRARY, analyze
-from tetra_gradiometer.core.discrepancy.effects import Context
 from tetra_gradiometer.core.discrepancy import prepare as preparation
+from tetra_gradiometer.core.discrepancy.effects import Context
 from tetra_gradiometer.core.discrepancy.prepare import RecordedRun, prepare
-from tetra_gradiometer.core.discrepancy.synthetic import random_earth_field, random_geometry, random_trim
+from tetra_gradiometer.core.discrepancy.synthetic import (
+    random_earth_field,
+    random_geometry,
+    random_trim,
+)
 from tetra_gradiometer.core.effects import EFFECTS
 
 THRUSTERS = (Thruster('/thruster_1/battery_state', turn_a_per_deg_s=-0.05, step_s=11.0),

@@ -19,6 +19,9 @@ from tetra_gradiometer.io.params import params_document
 from tetra_gradiometer.io.recording import write_mission_bag
 from tetra_gradiometer.reports.discrepancy import write_report
 
+#: The exclusion path (what the workflow does without the track): targets not modelled.
+EXCLUDE = Settings(model_targets=False)
+
 EFFECTS = (
     'eddy_current',
     'sensor_misalignment',
@@ -63,6 +66,7 @@ def test_target_pass_is_excluded_and_the_hidden_effect_named(hidden):
         case.scenario.geometry,
         case.scenario.earth_field_enu if seed % 2 else None,
         keep_series=False,
+        settings=EXCLUDE,
     )
     assert report.named_effects == list(effects), (report.named_effects, report.excluded_spans)
     # The passage is a third of the run: never "adequate" on what is left (issue 11).
@@ -85,7 +89,7 @@ def test_without_the_exclusion_the_target_leaves_the_model_inadequate():
         case.scenario.geometry,
         case.scenario.earth_field_enu,
         keep_series=False,
-        settings=Settings(exclude_targets=False, max_effects=0),
+        settings=Settings(exclude_targets=False, max_effects=0, model_targets=False),
     )
     assert not kept.adequate and kept.excluded_spans == []
     report = analyze(
@@ -93,7 +97,7 @@ def test_without_the_exclusion_the_target_leaves_the_model_inadequate():
         case.scenario.geometry,
         case.scenario.earth_field_enu,
         keep_series=False,
-        settings=Settings(max_effects=0),
+        settings=Settings(max_effects=0, model_targets=False),
     )
     assert report.excluded_spans
     # Most of the base model's gap is the target: without it the gap is the hidden delay's.
@@ -150,7 +154,7 @@ def test_window_restricts_the_analysis_to_the_trim():
         analyze(case.recording(), window_s=(10.0, 5.0))
 
 
-def test_report_and_cli_say_what_was_excluded(tmp_path, capsys):
+def test_report_and_cli_list_the_modelled_target(tmp_path, capsys):
     case = make_case(46, ('vehicle_current',), duration_s=120.0, near_target=True)
     bag = write_mission_bag(tmp_path / 'bag', case.mission)
     params = tmp_path / 'params.yaml'
@@ -168,14 +172,13 @@ def test_report_and_cli_say_what_was_excluded(tmp_path, capsys):
         == 0
     )
     data = json.loads((out / 'report.json').read_text())
-    assert data['named_effects'] == ['vehicle_current'] and data['adequate'] is False
-    assert data['excluded_fraction'] > 0.1  # a passage of a third of the run
-    assert data['excluded_spans'] and {'start_s', 'end_s', 'reason'} <= set(
-        data['excluded_spans'][0]
-    )
+    # The bag has the track (/odom position): the target is modelled, nothing excluded.
+    assert data['named_effects'] == ['vehicle_current'] and data['adequate'] is True
+    assert data['excluded_fraction'] == 0.0 and data['excluded_spans'] == []
+    truth = case.scenario.dipoles[-1].position
+    assert min(np.linalg.norm(np.array(t['position_m']) - truth) for t in data['targets']) < 0.5
     text = (out / 'report.md').read_text()
-    assert '## Excluded spans' in text and 'target' in text
-    assert 'excluded' in capsys.readouterr().err
+    assert '## Targets (modelled as dipoles)' in text
     # --window: only the trim, nothing to exclude.
     out2 = tmp_path / 'out2'
     trim = _trim_s(case)
@@ -210,7 +213,9 @@ def test_report_and_cli_say_what_was_excluded(tmp_path, capsys):
 
 def test_plots_mark_the_excluded_spans(tmp_path):
     case = make_case(47, (), duration_s=100.0, near_target=True)
-    report = analyze(case.recording(), case.scenario.geometry, case.scenario.earth_field_enu)
+    report = analyze(
+        case.recording(), case.scenario.geometry, case.scenario.earth_field_enu, settings=EXCLUDE
+    )
     out = write_report(report, tmp_path / 'out')
     assert (out / 'residual_base.png').exists()
     assert report.named_effects == [] and report.excluded_spans

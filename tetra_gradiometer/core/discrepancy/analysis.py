@@ -50,6 +50,7 @@ import numpy as np
 
 from ...errors import InputError
 from ..geometry import TetraGeometry
+from .dipoles import Located, locate_targets, model_targets, track_of
 from .effects import CANDIDATES, LIBRARY, Candidate
 from .prepare import Prepared, RunLike, prepare, testable
 from .result import Report, Settings
@@ -98,14 +99,27 @@ def analyze(
     window_s = _checked_window(window_s)
     prep = prepare(recording, earth_field_enu, settings.max_samples, window_s)
     testable_candidates, untestable = testable(prep, candidates)
-    targets = TargetSpans()
+    targets, located, target_notes = TargetSpans(), None, []
     if settings.exclude_targets:
         names = frozenset(c.name for c in testable_candidates)
-        targets = find_target_spans(prep, names, settings)
+        track = track_of(prep, geometry)
+        if track is not None and settings.model_targets:
+            localized = locate_targets(prep, track, names, settings)
+            located = localized if isinstance(localized, Located) else None
+        elif settings.model_targets:
+            target_notes.append(_no_track_note(prep, geometry))
+        # What no dipole explains is left out, with its evidence (and the detector's levels
+        # are reported).
+        targets = find_target_spans(located.prep if located else prep, names, settings)
         if targets.spans:
             prep = prepare(
                 recording, earth_field_enu, settings.max_samples, window_s, targets.intervals
             )
+            if located is not None:
+                track = track_of(prep, geometry)
+                prep = model_targets(prep, track, located.positions, located.moments)  # type: ignore[arg-type]
+        elif located is not None:
+            prep = located.prep
     search = search_effects(prep, testable_candidates, settings)
     info = RunInfo(
         settings=settings,
@@ -114,10 +128,26 @@ def analyze(
         missing=getattr(recording, 'missing', {}) or {},
         untestable=untestable,
         targets=targets,
-        notes=_run_notes(prep, targets, window_s),
+        notes=target_notes + _run_notes(prep, targets, window_s),
+        located=located,
+        track=track_of(search.prep, geometry) if located is not None else None,
     )
     report = build_report(search, info, geometry, keep_series=keep_series, runtime_s=0.0)
     return replace(report, runtime_s=float(time.perf_counter() - started))
+
+
+def _no_track_note(prep: Prepared, geometry: TetraGeometry | None) -> str:
+    """Why the targets cannot be fitted as dipoles in this run."""
+    if geometry is None:
+        missing = 'the array geometry was not given'
+    elif prep.rotation is None:
+        missing = 'no /odom (attitude and position)'
+    else:
+        missing = 'no position on /odom'
+    return (
+        f'{missing}: targets cannot be fitted as dipoles (their field needs the track and the '
+        'sensor positions); target passages are left out of the fits instead'
+    )
 
 
 def _candidates(settings: Settings) -> tuple[Candidate, ...]:

@@ -65,6 +65,8 @@ class RecordedRun:
     missing : topic -> why it is unavailable
     extra_currents : BatteryState topic -> (N,) A, the further current channels (one per
         thruster, say): ``vehicle_current`` fits a field per channel
+    position_m : (N, 3) m, the body origin in the odom frame (ENU) from ``/odom``, or None:
+        the track that places a target's field (:mod:`.dipoles`)
     """
 
     t_s: Array
@@ -74,6 +76,7 @@ class RecordedRun:
     current_a: Array | None = None
     missing: Mapping[str, str] = field(default_factory=dict)
     extra_currents: Mapping[str, Array] = field(default_factory=dict)
+    position_m: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,12 @@ class Prepared:
     rotation : (N, 3, 3) body -> ENU, or None
     open_world : the steps and spectral lines the scans of the residual found
     extra_currents : the further current channels, (BatteryState topic, (N,) A) each
+    position : (N, 3) m, the track (body origin, odom frame), or None
+    target_cols : (N, 4, 3, 3K) nT per A m^2, the fitted targets' field per unit moment
+        (odom axes), appended to ``base_cols`` (their moments are fitted with the base
+        model), or None; ``target_labels`` label them
+    target_background : (N, 3) nT, the targets' field at sensor 1 with their fitted
+        moments: part of ``B^b`` (the soft iron ``K_i`` magnetised by it too), or None
     """
 
     t: Array
@@ -118,6 +127,10 @@ class Prepared:
     rotation: Array | None
     open_world: OpenWorld = field(default_factory=OpenWorld)
     extra_currents: tuple[tuple[str, Array], ...] = ()
+    position: Array | None = None
+    target_cols: Array | None = None
+    target_labels: Labels = field(default_factory=list)
+    target_background: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -132,6 +145,7 @@ class _Samples:
     current_a: Array | None
     notes: tuple[str, ...]
     extra_currents: tuple[tuple[str, Array], ...] = ()
+    position: Array | None = None
 
 
 def prepare(
@@ -168,7 +182,7 @@ def _samples(
     if window_s is not None:
         keep &= _inside_window(t_all, window_s)
     optional: dict[str, Array | None] = {}
-    for name in ('orientation_xyzw', 'temperature_c', 'current_a'):
+    for name in ('orientation_xyzw', 'temperature_c', 'current_a', 'position_m'):
         value = getattr(recording, name, None)
         if value is not None:
             value = np.asarray(value, dtype=float)
@@ -213,6 +227,7 @@ def _samples(
         picked['current_a'],
         tuple(notes),
         tuple((topic, value[index]) for topic, value in extra.items()),
+        picked['position_m'],
     )
 
 
@@ -290,6 +305,7 @@ def _absolute_view(samples: _Samples, quat: Array, earth_field_enu: object) -> P
         notes=tuple(notes),
         piece=samples.piece,
         rotation=r,
+        position=samples.position,
     )
 
 
@@ -339,9 +355,14 @@ def refresh_background(
         raise InputError('the Earth-field correction needs the attitude (/odom)')
     world = correction[None, :3] + ramp(prep.t)[:, None] * correction[None, 3:6]
     b_background = prep.base_offset[:, 0] + np.einsum('nji,nj->ni', prep.rotation, world)
+    if prep.target_background is not None:
+        b_background = b_background + prep.target_background
     if np.max(np.abs(b_background - prep.b_background)) < tolerance_nT:
         return prep, False
     base_cols, base_labels = base_columns(prep.rotation, b_background, True, prep.t)
+    if prep.target_cols is not None:
+        base_cols = np.concatenate([base_cols, prep.target_cols], axis=-1)
+        base_labels = base_labels + prep.target_labels
     return replace(
         prep,
         b_background=b_background,
@@ -368,6 +389,44 @@ def refresh_pair_background(
         base_labels=base_labels,
         b_rate=smoothed(prep.t, clean, prep.piece, deriv=1),
     ), True
+
+
+def with_targets(
+    prep: Prepared, cols: Array | None, labels: Labels, background: Array | None = None
+) -> Prepared:
+    """``prep`` with the targets' columns (N, 4, 3, 3K) nT per A m^2 (None: no targets) in
+    place of the previous ones at the end of the base model, and their field at sensor 1
+    ``background`` (N, 3) nT (None: not known yet) in ``B^b``: the simulator and the
+    vehicle magnetise the soft iron with the whole field, targets included."""
+    b_background = prep.b_background
+    if prep.target_background is not None:
+        b_background = b_background - prep.target_background
+    if background is not None:
+        b_background = b_background + background
+    if prep.rotation is not None and b_background is not prep.b_background:
+        base_cols, base_labels = base_columns(prep.rotation, b_background, True, prep.t)
+        prep = replace(
+            prep,
+            b_background=b_background,
+            base_cols=np.concatenate([base_cols, prep.base_cols[..., base_cols.shape[-1] :]], -1),
+            b_rate=PiecewiseSpline(prep.t, b_background, prep.piece)(0.0, 1),
+        )
+    prep = replace(prep, target_background=background)
+    keep = prep.base_cols.shape[-1] - len(prep.target_labels)
+    base_cols = prep.base_cols[..., :keep]
+    base_labels = prep.base_labels[:keep]
+    if cols is not None and cols.shape[-1]:
+        base_cols = np.concatenate([base_cols, cols], axis=-1)
+        base_labels = base_labels + list(labels)
+    else:
+        cols, labels = None, []
+    return replace(
+        prep,
+        base_cols=base_cols,
+        base_labels=base_labels,
+        target_cols=cols,
+        target_labels=list(labels),
+    )
 
 
 def smoothed(t: Array, values: Array, piece: NDArray[np.int_], deriv: int = 0) -> Array:

@@ -48,6 +48,8 @@ class Settings:
         this share in one sensor is a change of that sensor, not a passage: not excluded
     max_excluded : a run with more than this share of its samples excluded is never
         adequate (what was left out is not explained)
+    model_targets : with the track (/odom position) and the geometry, fit localized fields
+        as dipoles in the base model (:mod:`.dipoles`) before excluding what they leave
     """
 
     n_folds: int = 5
@@ -68,6 +70,7 @@ class Settings:
     target_edge: float = 0.5
     target_one_sensor: float = 0.8
     max_excluded: float = 0.1
+    model_targets: bool = True
 
 
 @dataclass(frozen=True)
@@ -127,6 +130,8 @@ class Report:
     findings: list[dict[str, Any]] = field(default_factory=list)
     settings: Settings = field(default_factory=Settings)
     series: dict[str, Any] = field(default_factory=dict, repr=False)
+    #: The targets fitted as dipoles in the base model (:meth:`.dipoles.Target.to_dict`).
+    targets: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -147,6 +152,7 @@ class Report:
             'excluded_spans': list(self.excluded_spans),
             'excluded_fraction': self.excluded_fraction,
             'findings': list(self.findings),
+            'targets': list(self.targets),
             'criterion': criterion_text(self.settings),
             'library': {c.name: c.physics for c in CANDIDATES},
             'runtime_s': self.runtime_s,

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from ..geometry import TetraGeometry
 from .cv import ALL_SENSORS
 from .diagnostics import diagnostics, tensor_rms
+from .dipoles import Located, Track, describe
 from .effects import LIBRARY
 from .findings import findings
 from .fit import column_bounds, effect_field
@@ -36,6 +37,7 @@ class RunInfo:
     missing : topic -> why it is unavailable
     untestable : candidate -> why the run cannot test it
     targets : the excluded target passages
+    located, track : the targets fitted as dipoles and the track, or None
     notes : what preparing the data and the detector decided
     """
 
@@ -46,6 +48,8 @@ class RunInfo:
     untestable: dict[str, str]
     targets: TargetSpans
     notes: list[str]
+    located: Located | None = None
+    track: Track | None = None
 
 
 def _final_steps(search: SearchResult) -> tuple[list[Step], list[Array]]:
@@ -167,6 +171,44 @@ def _series(prep: Prepared, search: SearchResult, fields: list[Array]) -> dict[s
     }
 
 
+def _targets(search: SearchResult, info: RunInfo) -> list[dict[str, Any]]:
+    """The fitted targets with their moments from the final joint fit, and the share of
+    the base model's residual (without the targets: their fitted field added back) each
+    one's field is."""
+    located, track, prep = info.located, info.track, search.prep
+    if located is None or track is None or prep.target_cols is None:
+        return []
+    start = prep.base_cols.shape[-1] - prep.target_cols.shape[-1]
+    moments = search.fit.coef[start : prep.base_cols.shape[-1]].reshape(-1, 3)
+    records = describe(
+        prep,
+        track,
+        located.positions,
+        located.position_sigma,
+        moments,
+        located.moment_sigma,
+        search.floors[-1],
+    )
+    per_target = [
+        np.einsum('nsak,k->nsa', prep.target_cols[..., 3 * k : 3 * k + 3], moments[k])
+        for k in range(len(moments))
+    ]
+    sensors = list(prep.sensors)
+    without = search.residuals[0] + sum(per_target)
+    total = float(np.mean(without[:, sensors] ** 2))
+    out = []
+    for k, record in enumerate(records):
+        if not record.passes:
+            continue  # its field nowhere 10 x the noise: a stand-in, not a target to list
+        entry = record.to_dict()
+        rest = without - per_target[k]
+        entry['share_of_gap'] = (total - float(np.mean(rest[:, sensors] ** 2))) / max(
+            total, 1e-300
+        )
+        out.append(entry)
+    return out
+
+
 def build_report(
     search: SearchResult,
     info: RunInfo,
@@ -212,4 +254,5 @@ def build_report(
         findings=findings(search, steps),
         settings=info.settings,
         series=_series(prep, search, fields) if keep_series else {},
+        targets=_targets(search, info),
     )

@@ -69,6 +69,7 @@ class Case:
             m.current_a if battery else None,
             missing,
             dict(zip(m.current_topics[1:], m.currents_a[:, 1:].T, strict=True)) if battery else {},
+            m.position_enu if odom else None,
         )
 
 

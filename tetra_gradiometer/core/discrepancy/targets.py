@@ -74,7 +74,7 @@ def runs(mask: Mask) -> list[Span]:
     return [(int(i), int(j)) for i, j in zip(first, last, strict=True)]
 
 
-def _detector_columns(
+def detector_columns(
     prep: Prepared, names: frozenset[str], include: Mask, settings: Settings
 ) -> Array:
     """Columns (N, 4, 3, p) of the base model plus every global candidate (the library's
@@ -100,7 +100,7 @@ def _detector_columns(
     return np.concatenate([prep.base_cols] + [c.build(ctx, None)[0] for c in families], axis=-1)
 
 
-def _full_model_residual(
+def full_model_residual(
     prep: Prepared, names: frozenset[str], include: Mask, settings: Settings
 ) -> tuple[Prepared, Array]:
     """Residual (N, 4, 3) of the base model plus every global candidate, fitted on
@@ -108,7 +108,7 @@ def _full_model_residual(
     prepared data with ``B^b`` refreshed by that fit."""
     y = prep.fields - prep.base_offset
     for _ in range(3):
-        cols = _detector_columns(prep, names, include, settings)
+        cols = detector_columns(prep, names, include, settings)
         coef = lstsq_rows(prep.sensors, cols, y, include)
         if not prep.absolute:
             break
@@ -146,7 +146,7 @@ def _lts_starts(piece: NDArray[np.int_], block: NDArray[np.int_], count: int) ->
     return starts
 
 
-def _robust_start(prep: Prepared, names: frozenset[str], settings: Settings, width: int) -> Mask:
+def robust_start(prep: Prepared, names: frozenset[str], settings: Settings, width: int) -> Mask:
     """Samples (bool, N) of the half of the run that the full model fits best.
 
     A strong target pulls a least-squares fit over the whole run, and a slow regressor
@@ -157,7 +157,7 @@ def _robust_start(prep: Prepared, names: frozenset[str], settings: Settings, wid
     smallest mean square residual; the start with the smallest trimmed sum wins.
     """
     y = prep.fields - prep.base_offset
-    cols = _detector_columns(prep, names, np.ones(len(prep.t), dtype=bool), settings)
+    cols = detector_columns(prep, names, np.ones(len(prep.t), dtype=bool), settings)
     a = flat(cols, prep.sensors)
     target = flat(y, prep.sensors)
     norm = np.sqrt(np.einsum('nmp,nmp->p', a, a))
@@ -205,7 +205,7 @@ def _score(
     prep: Prepared, names: frozenset[str], settings: Settings, width: int, include: Mask
 ) -> tuple[Prepared, _Score]:
     """The full model fitted on ``include``: its residual in noise sigmas, averaged."""
-    prep, residual = _full_model_residual(prep, names, include, settings)
+    prep, residual = full_model_residual(prep, names, include, settings)
     view = flat(residual, prep.sensors)
     _, sigma = noise_floor(view[include])
     sigma = np.maximum(sigma, 1e-12)
@@ -246,7 +246,7 @@ class _Settled:
     widespread: bool
 
 
-def _settle(
+def settle(
     prep: Prepared, names: frozenset[str], settings: Settings, width: int, include: Mask
 ) -> _Settled:
     """Refit without the spans until they settle (a strong target distorts the first fit)."""
@@ -353,8 +353,8 @@ def find_target_spans(prep: Prepared, names: frozenset[str], settings: Settings)
     """
     dt = float(np.median(np.diff(prep.t)))
     width = max(5, int(round(2.0 / dt)))
-    include = _robust_start(prep, names, settings, width)
-    settled = _settle(prep, names, settings, width, include)
+    include = robust_start(prep, names, settings, width)
+    settled = settle(prep, names, settings, width, include)
     info = dict(settled.info)
     if settled.widespread:
         note = (
