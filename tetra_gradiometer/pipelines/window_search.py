@@ -25,6 +25,7 @@ import numpy as np
 from ..core import TetraGeometry, difference_tensor
 from ..core.guidance import assess, trim_statistics
 from ..core.identification import attitude_coverage
+from ..core.odometry import check_odometry
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..core.units import S_PER_NS
 from ..errors import AssumptionError, IdentifiabilityError
@@ -121,7 +122,10 @@ def _orientation(bag_path: str | os.PathLike[str], stamps_ns: np.ndarray) -> np.
         series = bag.read_series(cv.ODOM_TOPIC)
     if series is None or len(series.stamps_ns) < 2:
         return None
-    return orientation_at(series.stamps_ns, series.values[:, cv.POSE_ORIENTATION], stamps_ns)
+    check = check_odometry(series.stamps_ns, series.values)  # the rule calibrate's solve uses
+    if not check.orientation_ok:
+        return None
+    return orientation_at(check.stamps_ns, check.pose[:, cv.POSE_ORIENTATION], stamps_ns)
 
 
 def rank_candidates(
