@@ -359,7 +359,9 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
                  'the compensator to follow the calibration and its channels', graph)
         graph.stop('driver')
 
-        graph.start('driver', rate=0.0, max_in_flight=4, **driver)  # as fast as the chain goes
+        # Paced like the trim: at rate 0 the best-effort channel and magnetometer messages were
+        # lost in bursts on a loaded machine (2145-2334 of 2396 sets arrived).
+        graph.start('driver', rate=TRIM_RATE, max_in_flight=4, **driver)
         wait_for(lambda: probe.count_publishers('/battery_state') >= 1
                  and probe.count_publishers('/tetra/temperature') >= 1, 30, 'the second driver', graph)
         wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)
