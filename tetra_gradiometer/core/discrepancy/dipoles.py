@@ -123,6 +123,13 @@ class Track:
     position: Array
     rotation: Array
     geometry: TetraGeometry
+    #: The sensors' positions (N, 4, 3) m, odom frame: computed once (the fits evaluate
+    #: thousands of trial sources on one track).
+    points: Array = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        points = sensor_points(self.position, self.rotation, self.geometry)
+        object.__setattr__(self, 'points', points)
 
     def at(self, idx: NDArray[np.int_]) -> Track:
         return Track(self.position[idx], self.rotation[idx], self.geometry)
@@ -138,8 +145,7 @@ def track_of(prep: Prepared, geometry: TetraGeometry | None) -> Track | None:
 def unit_fields(track: Track, source: Array) -> Array:
     """Field (N, 4, 3) body frame, nT per A m^2, of unit moments along the odom axes of a
     dipole at ``source`` (3,) m: (N, 4, 3, 3), the last axis the moment's axis."""
-    points = sensor_points(track.position, track.rotation, track.geometry)
-    r = points - source
+    r = track.points - source
     d2 = np.einsum('nsi,nsi->ns', r, r)
     inv3 = d2**-1.5
     inv5 = inv3 / d2
