@@ -141,3 +141,28 @@ def test_check_odometry_counts_what_it_changes():
     assert len(check.stamps_ns) == 9 and np.allclose(np.linalg.norm(check.pose[:, 3:], axis=1), 1.0)
     assert check.orientation_ok is False and check.position_ok is True  # the identity does not turn
     assert check.faults[0].startswith('1 of 10 /odom messages have a zero-norm')
+
+
+def test_the_nodes_live_check_keeps_drops_and_normalizes_as_check_odometry_does():
+    """One rule (issue 30 item 2): message by message, the nodes' check keeps, drops and
+    normalizes exactly the messages `check_odometry` does, at norms either side of its bounds
+    (zero-norm 1e-6, unit tolerance 1e-3), non-finite orientations and positions."""
+    from tetra_gradiometer.core.odometry import LiveOdometryCheck
+
+    norms = [0.0, 1e-7, 2e-6, 0.5, 0.998, 0.9995, 1.0, 1.0005, 1.002, 3.0, np.nan, np.inf, 1.0, 1.0]
+    rng = np.random.default_rng(30)
+    q = Rotation.random(len(norms), random_state=rng).as_quat() * np.array(norms)[:, None]
+    pose = np.column_stack([rng.normal(size=(len(norms), 3)), q])
+    pose[-2, 0], pose[-1, 2] = np.nan, np.inf  # a unit quaternion, a position not known
+    stamps = np.arange(len(norms), dtype=np.int64) * 10**8
+    offline = check_odometry(stamps, pose)
+    live = LiveOdometryCheck()
+    accepted = [live.accept(p[3:], p[:3]) for p in pose]
+    kept = [i for i, a in enumerate(accepted) if a is not None]
+    assert kept == [2, 3, 4, 5, 6, 7, 8, 9]  # independent of both: the bounds as documented
+    np.testing.assert_array_equal(offline.stamps_ns, stamps[kept])
+    np.testing.assert_allclose(np.array([accepted[i] for i in kept]), offline.pose[:, 3:], rtol=0, atol=1e-15)
+    assert (live.dropped, live.normalized) == (6, 5)  # 2e-6, 0.5, 0.998, 1.002, 3; not 0.9995, 1.0005
+    assert offline.faults[0].startswith('6 of 14') and offline.faults[1].startswith('5 /odom orientations')
+    # The calibrator reads only the orientation: a position not known does not drop it.
+    assert live.accept(pose[-1, 3:]) is not None

@@ -106,3 +106,29 @@ def test_the_history_keeps_the_last_history_s():
     snapshot = track.snapshot()
     assert snapshot.last_ns - snapshot.t0_ns == 60 * 10**9
     assert len(track) == 601 and track.added == 999
+
+
+def test_odometry_is_checked_on_the_offline_rule():
+    """An unfilled (zero-norm) orientation is dropped and counted; one scaled by 3 (or by
+    1.05: within the old 0.1 tolerance, kept unnormalized) is normalized, as core/odometry.py
+    does offline, and its rotation is the true one (was dropped: `odom_dropped`)."""
+    track = _track()
+    for k in range(30):
+        pose = _pose(k * 0.1, 10.0)
+        if k == 10:
+            pose[3:] = 0.0
+        if k in (20, 21):
+            pose[3:] *= 3.0 if k == 20 else 1.05
+        assert (track.add_odom(T0 + k * 100 * MS, pose) is None) == (k != 10)
+        track.add_tensor(T0 + k * 100 * MS, np.zeros((3, 3)))
+    track.resolve()
+    snapshot = track.snapshot()
+    t_s = (snapshot.t0_ns - T0) * 1e-9 + snapshot.survey.t_s
+    expected = Rotation.from_euler('z', 10.0 * t_s[:, None], degrees=True)
+    np.testing.assert_allclose(snapshot.survey.rotations, expected.as_matrix(), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(snapshot.orientation_xyzw, axis=1), 1.0, atol=1e-12)
+    assert len(track) == 29 and track.counts.odom_dropped == 1
+    assert (track.odom_check.dropped, track.odom_check.normalized) == (1, 2)
+    report = track.odom_check.report()
+    assert report.startswith('1 odometry message with a zero-norm or non-finite orientation or position dropped')
+    assert '2 odometry orientations not of unit norm (norm 1.05-3) normalized' in report, report

@@ -48,9 +48,33 @@ def test_the_live_history_gives_the_nearest_message_and_all_samples_at_the_end()
     for stamp, quat in zip(stamps, quats, strict=True):
         history.add(int(stamp), quat)
     sample = int(stamps[40]) + 20_000_000  # 20 ms after a message, 30 ms before the next
-    np.testing.assert_array_equal(history.at(sample), quats[40])
+    np.testing.assert_allclose(history.at(sample), quats[40], rtol=0, atol=1e-15)  # normalized: 1 ulp
     samples = stamps[5:-5] + 13_000_000
     np.testing.assert_allclose(history.over(samples), orientation_at(stamps, quats, samples))
     assert np.all(np.isnan(history.at(int(stamps[-1]) + 2 * NS)))
     history.add(int(stamps[0]), quats[0])  # time went back (a replay restarted): the rest is stale
     assert np.all(np.isnan(history.at(int(stamps[100]))))
+
+
+def test_the_live_history_drops_zero_norm_and_normalizes_unnormalized_quaternions():
+    """Issue 30 item 2, live: an unfilled orientation (all zeros), a NaN one and one scaled by 3
+    among the messages. The first two are dropped and counted (the samples around them take the
+    neighbouring messages, as if they had not come), the third normalized: the attitudes equal
+    the true yaw's, never an error (was `ValueError: Found zero norm quaternions` at ~/calibrate)."""
+    stamps, quats = odom()
+    fed = quats.copy()
+    fed[40] = 0.0
+    fed[41, 2] = np.nan
+    fed[60] *= 3.0
+    history = AttitudeHistory()
+    for stamp, quat in zip(stamps, fed, strict=True):
+        history.add(int(stamp), quat)
+    samples = stamps[5:-5] + 13_000_000
+    assert angle_deg(history.over(samples), yaw(samples)).max() < 1e-9
+    assert angle_deg(history.at(int(stamps[40]))[None], yaw(stamps[40:41])).max() < 0.6  # a neighbour, 50 ms away
+    np.testing.assert_allclose(history.at(int(stamps[60])), quats[60], atol=1e-12)
+    assert (history.check.dropped, history.check.normalized) == (2, 1)
+    report = history.check.report()
+    assert '2 odometry messages with a zero-norm or non-finite orientation dropped' in report, report
+    assert '1 odometry orientation not of unit norm (norm 3) normalized' in report, report
+    assert history.check.report() == ''  # nothing new since

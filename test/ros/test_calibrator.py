@@ -320,3 +320,44 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
         diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
         assert diagnostics['window_check']['passed'] is False
         assert any(note.startswith('WARNING (force:=true)') for note in diagnostics['notes'])
+
+
+def test_unfilled_and_unnormalized_odom_orientations_are_dropped_counted_and_named(tmp_path):
+    """Issue 30 item 2, live: among a trim's /odom, three unfilled orientations (all zeros) and
+    one scaled by 3. The calibrator drops and counts the first, normalizes the second, says so
+    at WARN on /diagnostics, and ~/calibrate fits the regional gradient as with a clean /odom
+    (within 3 sigma of the simulator's; was `ValueError: Found zero norm quaternions`)."""
+    import yaml
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+
+    from tetra_gradiometer.nodes.common import derived_qos
+
+    warnings: list[str] = []
+
+    def keep_warnings(msg) -> None:
+        warnings.extend(s.message for s in msg.status if s.name == CALIBRATION and s.level == bytes([1]))
+
+    calibration_file = tmp_path / 'calibration.yaml'
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        probe.create_subscription(DiagnosticArray, '/diagnostics', keep_warnings, 50)
+        odom = probe.create_publisher(Odometry, '/tetra/odom', derived_qos())
+        for publisher in (feeder.raw, feeder.reference, odom):
+            wait_matched(publisher, 1)
+        stamps, g, b, q, g_world = _trim(8)
+        fed = q.copy()
+        fed[200:203] = 0.0
+        fed[400] *= 3.0
+        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, fed)
+        reply = probe.call('calibrator/calibrate')
+        assert reply.success and 'regional gradient (ENU, nT/m) gxx' in reply.message, reply.message
+        status = probe.status(CALIBRATION)
+    diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
+    fitted = np.array(diagnostics['regional_gradient_enu_nT_per_m'])
+    sigma = np.array(diagnostics['regional_gradient_sigma_nT_per_m'])
+    assert np.all(np.abs(fitted - g_world * 1e9) <= 3 * sigma + 1e-6), (fitted - g_world * 1e9) / sigma
+    assert (status['odom_dropped_zero_norm'], status['odom_normalized']) == ('3', '1'), status
+    assert any('3 odometry messages with a zero-norm or non-finite orientation dropped' in w for w in warnings), \
+        warnings
+    assert any('1 odometry orientation not of unit norm (norm 3) normalized' in w for w in warnings), warnings

@@ -266,8 +266,15 @@ def test_the_node_locates_the_simulated_dipole_and_latches_its_outputs():
 
 def test_bad_input_is_dropped_and_counted_and_never_searched():
     """A 90 s straight leg over nothing: four non-finite tensors, two stamps out of order, a
-    malformed tensor message, a 3 s odometry outage and a NaN odometry message."""
+    malformed tensor message, a 3 s odometry outage, a NaN odometry message, an unfilled
+    (zero-norm) orientation, dropped, and one scaled by 3, normalized (issue 30 item 2)."""
+    from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import JointState
+
+    warnings: list[str] = []
+
+    def keep_warnings(msg) -> None:
+        warnings.extend(s.message for s in msg.status if s.name == STATUS and s.level == bytes([1]))
 
     rng = np.random.default_rng(9)
     n = 900
@@ -284,6 +291,8 @@ def test_bad_input_is_dropped_and_counted_and_never_searched():
     with ros_graph() as (graph, probe, feeder):
         outputs = _Outputs(probe)
         tensor_pub, odom_pub = _start(graph, probe, feeder, update_period_s=1.0)
+        probe.create_subscription(DiagnosticArray, '/diagnostics', keep_warnings, 50)
+        orientations = identity * np.where(np.arange(n) == 810, 0.0, np.where(np.arange(n) == 820, 3.0, 1.0))[:, None]
         for i in range(n):
             tensor_pub.publish(cv.tensor_msg(types, tensors[i], int(tensor_stamps[i])))
             if i == 60:  # an older and an equal stamp
@@ -292,7 +301,7 @@ def test_bad_input_is_dropped_and_counted_and_never_searched():
                 tensor_pub.publish(JointState(name=['a'], position=[1.0]))
             if not 700 <= i < 730:
                 position = positions[i] * (np.nan if i == 800 else 1.0)
-                odom_pub.publish(cv.odometry_msg(types, position, identity[i], T0 + i * PERIOD_NS))
+                odom_pub.publish(cv.odometry_msg(types, position, orientations[i], T0 + i * PERIOD_NS))
             time.sleep(0.001)
         expected = n - 4 - 21 - 1  # non-finite, no odometry, the last bin (still open)
         wait_for(lambda: probe.status(STATUS).get('searched_samples') == str(expected)
@@ -303,10 +312,15 @@ def test_bad_input_is_dropped_and_counted_and_never_searched():
         detections = outputs.get('detections')
     counts = {name: int(status[name]) for name in (
         'received', 'buffered_samples', 'pending_samples', 'dropped_malformed', 'dropped_non_finite',
-        'dropped_out_of_order', 'dropped_no_odom', 'odom_dropped', 'restarts')}
+        'dropped_out_of_order', 'dropped_no_odom', 'odom_dropped', 'odom_dropped_zero_norm', 'odom_normalized',
+        'restarts')}
     assert counts == {'received': n + 2, 'buffered_samples': expected, 'pending_samples': 1,
                       'dropped_malformed': 1, 'dropped_non_finite': 4, 'dropped_out_of_order': 2,
-                      'dropped_no_odom': 21, 'odom_dropped': 1, 'restarts': 0}
+                      'dropped_no_odom': 21, 'odom_dropped': 2, 'odom_dropped_zero_norm': 2,
+                      'odom_normalized': 1, 'restarts': 0}
+    warned = ' '.join(warnings)
+    assert 'with a zero-norm or non-finite orientation or position dropped (an unfilled orientation; 2 in all)' in warned, warned
+    assert '1 odometry orientation not of unit norm (norm 3) normalized' in warned, warned
     assert status['level'] == 0  # no sample lacked odometry since the previous report
     document = json.loads(text.data, parse_constant=lambda name: pytest.fail(f'{name} in the JSON'))
     assert document['targets'] == [] and poses.poses == []

@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from .types import FloatArray
 from .units import S_PER_NS
@@ -38,10 +39,14 @@ __all__ = [
     'MAX_UNEXPLAINED',
     'MIN_BODY_VARIATION',
     'NORM_TOLERANCE',
+    'LiveOdometryCheck',
     'OdometryCheck',
     'attitude_agreement',
     'check_odometry',
+    'pose_faults',
 ]
+
+BoolArray = npt.NDArray[np.bool_]
 
 #: A quaternion whose norm differs from 1 by more than this is counted as unnormalized.
 NORM_TOLERANCE = 1e-3
@@ -83,6 +88,86 @@ class OdometryCheck:
         return '; '.join(self.faults)
 
 
+def pose_faults(
+    orientation_xyzw: FloatArray, position: FloatArray | None = None
+) -> tuple[BoolArray, BoolArray, FloatArray]:
+    """The rule on m ``/odom`` messages, offline and live: which carry no pose (a zero-norm or
+    non-finite quaternion, or a non-finite ``position`` when one is given: dropped), which
+    quaternions are unnormalized (normalized, the same rotation), and their norms.
+
+    ``orientation_xyzw`` (m, 4); ``position`` (m, 3) m or None (not checked); returns (m,)
+    bool, (m,) bool, (m,) float.
+    """
+    norms = np.linalg.norm(orientation_xyzw, axis=1)
+    zero = ~np.isfinite(norms) | (norms < ZERO_NORM)
+    if position is not None:
+        zero |= ~np.all(np.isfinite(position), axis=1)
+    unnormalized = ~zero & (np.abs(norms - 1.0) > NORM_TOLERANCE)
+    return zero, unnormalized, norms
+
+
+class LiveOdometryCheck:
+    """The nodes' ``/odom`` check, message by message, on :func:`pose_faults` (the rule of
+    :func:`check_odometry`): drop and count, normalize and count, never raise.
+
+    :attr:`dropped`, :attr:`normalized`: counts since construction; :meth:`report` says what
+    changed since its previous call (the nodes' ``/diagnostics`` WARN text).
+    """
+
+    def __init__(self) -> None:
+        self.dropped = 0
+        self.normalized = 0
+        self._norms = (np.inf, 0.0)  # the least and the largest norm normalized
+        self._reported = (0, 0)
+        self._position_checked = False
+
+    def accept(
+        self, orientation_xyzw: FloatArray, position: FloatArray | None = None
+    ) -> FloatArray | None:
+        """The orientation (4,) x, y, z, w as a unit quaternion, or None: dropped (counted).
+        ``position`` (3,) m is checked when given (a node that reads only the attitude
+        keeps an orientation whose position is unknown)."""
+        q = np.asarray(orientation_xyzw, dtype=float).reshape(1, 4)
+        p = None if position is None else np.asarray(position, dtype=float).reshape(1, 3)
+        self._position_checked |= p is not None
+        zero, unnormalized, norms = pose_faults(q, p)
+        if zero[0]:
+            self.dropped += 1
+            return None
+        norm = float(norms[0])
+        if unnormalized[0]:
+            self.normalized += 1
+            self._norms = (min(self._norms[0], norm), max(self._norms[1], norm))
+        return q[0] / norm
+
+    def values(self) -> dict[str, int]:
+        """The counts, for ``/diagnostics``."""
+        return {'odom_dropped_zero_norm': self.dropped, 'odom_normalized': self.normalized}
+
+    def report(self) -> str:
+        """'' or, when messages were dropped or normalized since the previous report, what."""
+        dropped, normalized = (
+            self.dropped - self._reported[0],
+            self.normalized - self._reported[1],
+        )
+        self._reported = (self.dropped, self.normalized)
+        parts = []
+        if dropped:
+            what = 'orientation or position' if self._position_checked else 'orientation'
+            parts.append(
+                f'{dropped} odometry message{"s" * (dropped > 1)} with a zero-norm or non-finite '
+                f'{what} dropped (an unfilled orientation; {self.dropped} in all)'
+            )
+        if normalized:
+            low, high = self._norms
+            norm = f'{low:.3g}' if f'{low:.3g}' == f'{high:.3g}' else f'{low:.3g}-{high:.3g}'
+            parts.append(
+                f'{normalized} odometry orientation{"s" * (normalized > 1)} not of unit norm '
+                f'(norm {norm}) normalized ({self.normalized} in all)'
+            )
+        return '; '.join(parts)
+
+
 def check_odometry(stamps_ns: np.ndarray, pose: FloatArray) -> OdometryCheck:
     """Norms and a frozen pose (:func:`attitude_agreement` is the test against the
     magnetometers, made where the fields are known)."""
@@ -90,14 +175,12 @@ def check_odometry(stamps_ns: np.ndarray, pose: FloatArray) -> OdometryCheck:
     pose = np.array(pose, dtype=float, copy=True)
     faults: list[str] = []
     t = (stamps - (stamps[0] if len(stamps) else 0)) * S_PER_NS
-    norms = np.linalg.norm(pose[:, 3:7], axis=1)
-    zero = ~np.isfinite(norms) | (norms < ZERO_NORM) | ~np.all(np.isfinite(pose[:, :3]), axis=1)
+    zero, unnormalized, norms = pose_faults(pose[:, 3:7], pose[:, :3])
     if zero.any():
         faults.append(
             f'{int(zero.sum())} of {len(stamps)} /odom messages have a zero-norm or non-finite '
             f'pose (an unfilled orientation; {t[zero][0]:.1f}-{t[zero][-1]:.1f} s): dropped'
         )
-    unnormalized = ~zero & (np.abs(norms - 1.0) > NORM_TOLERANCE)
     if unnormalized.any():
         faults.append(
             f'{int(unnormalized.sum())} /odom orientations are not unit quaternions (norm '

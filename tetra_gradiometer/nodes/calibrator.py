@@ -510,7 +510,8 @@ class CalibratorNode(ManagedNode):
         )
 
     def _publish_diagnostics(self) -> None:
-        level = WARN if self._last_ok is False or self._forced else OK
+        odom = self._odom.check.report()  # odom messages dropped or normalized since the last
+        level = WARN if self._last_ok is False or self._forced or odom else OK
         running = self._worker.running_s
         state, elapsed = self._state, self._worker.last_s
         message = f'{state}: {self._last_result}'
@@ -520,6 +521,7 @@ class CalibratorNode(ManagedNode):
             state, elapsed = 'solving', running
             budget = self.get_parameter('max_solve_s').value
             message = f'solving for {elapsed:.1f} s (max_solve_s {budget:g})'
+        message += f'; {odom}' * bool(odom)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(
@@ -536,6 +538,7 @@ class CalibratorNode(ManagedNode):
                     'calibrations': self._calibrations,
                     'unpaired_evicted': self._pairer.evicted,
                     'dropped_implausible': self._dropped_implausible,
+                    **self._odom.check.values(),
                     'method': self.get_parameter('method').value,
                     'effects': self.get_parameter('effects').value,
                     **{f'{n} messages': count for n, count in self._channels.counts().items()},

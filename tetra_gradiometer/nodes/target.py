@@ -356,6 +356,8 @@ class TargetNode(ManagedNode):
 
     def _publish_diagnostics(self) -> None:
         level, text = self._summary()
+        if odom := self._track.odom_check.report():  # dropped or normalized since the last
+            level, text = max(level, WARN), f'{text}; {odom}'
         counts, last, located = self._track.counts, self._last, self._published
         values: dict[str, Any] = {
             'received': counts.received,
@@ -366,6 +368,7 @@ class TargetNode(ManagedNode):
             'dropped_out_of_order': counts.dropped_out_of_order,
             'dropped_no_odom': counts.dropped_no_odom,
             'odom_dropped': counts.odom_dropped,
+            **self._track.odom_check.values(),
             'restarts': counts.restarts,
             'passes': counts.passes,
             'searches': self._runs,

@@ -17,9 +17,11 @@ Choices:
   nearest message is more than :data:`~.window_check.MAX_ODOM_GAP_S` away is dropped and
   counted (``dropped_no_odom``).
 * **Drops.** A non-finite tensor, a stamp not after the previous one (``dropped_...``); an
-  odometry message with a non-finite pose, a quaternion far from unit length or an old
-  stamp (``odom_dropped``). A stamp more than :data:`JUMP_BACK_S` before the previous one
-  (a new replay) starts a new track (``restarts``).
+  odometry message with a zero-norm or non-finite quaternion or a non-finite position (the
+  offline rule: :class:`~tetra_gradiometer.core.odometry.LiveOdometryCheck`, which also
+  normalizes and counts an unnormalized one) or an old stamp (``odom_dropped``). A stamp
+  more than :data:`JUMP_BACK_S` before the previous one (a new replay) starts a new track
+  (``restarts``).
 * **Passes.** The straight legs are cut as ``core.targets.legs`` cuts them (heading off the
   leg's first heading by more than ``max_turn_deg``, a step over ``max_step_m``, a gap over
   ``max_gap_s``); a leg of at least ``min_leg_s`` that ends is a completed pass.
@@ -28,13 +30,13 @@ Choices:
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..core.odometry import LiveOdometryCheck
 from ..core.targets import DetectorSettings, Survey
 from ..core.targets.detection import ends_leg, headings
 from ..core.types import FloatArray, IntArray
@@ -46,8 +48,6 @@ from ..pipelines.window_check import orientation_at
 JUMP_BACK_S = 1.0
 #: A bin waits for odometry until the tensors are this far past its stamp, s.
 ODOM_WAIT_S = 10.0
-#: An odometry quaternion whose norm differs from 1 by more than this is refused.
-MAX_QUATERNION_ERROR = 0.1
 
 
 @dataclass
@@ -91,6 +91,7 @@ class SurveyTrack:
         self._history_ns = round(history_s * NS_PER_S)
         self._legs = legs
         self.counts = TrackCounts()
+        self.odom_check = LiveOdometryCheck()
         #: Samples added since construction (a restart does not reset it).
         self.added = 0
         self._odom_t: deque[int] = deque()
@@ -149,12 +150,12 @@ class SurveyTrack:
     def add_odom(self, stamp_ns: int, pose: FloatArray) -> str | None:
         """One odometry pose (7,): position (3,) m, orientation (4,) x, y, z, w (body ->
         odom) at ``stamp_ns``; the reason it is dropped (counted), or None."""
-        pose = np.asarray(pose, dtype=float)
-        finite = np.all(np.isfinite(pose))
-        norm = float(np.linalg.norm(pose[cv.POSE_ORIENTATION])) if finite else math.nan
-        if not abs(norm - 1.0) <= MAX_QUATERNION_ERROR:
+        pose = np.array(pose, dtype=float)
+        orientation = self.odom_check.accept(pose[cv.POSE_ORIENTATION], pose[cv.POSE_POSITION])
+        if orientation is None:
             self.counts.odom_dropped += 1
-            return 'an odometry pose that is not finite or not a unit quaternion'
+            return 'an odometry pose with a zero-norm or non-finite orientation or position'
+        pose[cv.POSE_ORIENTATION] = orientation
         if self._odom_t and stamp_ns <= self._odom_t[-1]:
             if (self._odom_t[-1] - stamp_ns) * S_PER_NS <= JUMP_BACK_S:
                 self.counts.odom_dropped += 1

@@ -32,6 +32,7 @@ from ..core.identification import (
     identify,
 )
 from ..core.identification.misfit import FIELD_SHARE, gradient_share
+from ..core.odometry import LiveOdometryCheck
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import AssumptionError, IdentifiabilityError
 from ..io import conversions as cv
@@ -109,7 +110,9 @@ class AttitudeHistory:
     as a sample arrives (the trim guidance, whose attitude bins are 30 degrees wide: the
     nearest message, no slerp, cheap per sample), :meth:`over` all the samples' stamps at
     ``~/calibrate`` (the joint regional gradient: :func:`orientation_at`, by which time
-    every message around every sample has arrived).
+    every message around every sample has arrived). Each message is checked on the offline
+    rule first (:class:`~tetra_gradiometer.core.odometry.LiveOdometryCheck`, :attr:`check`:
+    an unfilled orientation dropped and counted, an unnormalized one normalized).
 
     Parameters
     ----------
@@ -120,14 +123,20 @@ class AttitudeHistory:
         self._stamps: deque[int] = deque(maxlen=length)
         self._quats: deque[FloatArray] = deque(maxlen=length)
         self._lock = threading.Lock()  # the two deques change together
+        self.check = LiveOdometryCheck()
 
-    def add(self, stamp_ns: int, quaternion_xyzw: FloatArray) -> None:
-        """One message; a stamp earlier than the last (a replay restarted) forgets the rest."""
+    def add(self, stamp_ns: int, quaternion_xyzw: FloatArray) -> bool:
+        """One message; a stamp earlier than the last (a replay restarted) forgets the rest.
+        False when its orientation was dropped (counted in :attr:`check`)."""
         with self._lock:
+            quaternion = self.check.accept(quaternion_xyzw)
+            if quaternion is None:
+                return False
             if self._stamps and stamp_ns < self._stamps[-1]:
                 self.clear()
             self._stamps.append(stamp_ns)
-            self._quats.append(np.asarray(quaternion_xyzw, dtype=float))
+            self._quats.append(quaternion)
+            return True
 
     def clear(self) -> None:
         self._stamps.clear()
