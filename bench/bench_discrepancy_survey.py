@@ -5,7 +5,9 @@ passing two dipoles (2.0e4 and 4.6e4 A m^2) at 30-35 m closest approach; sensor 
 clean. Two vehicles: clean, and with battery current (``vehicle_current``). Each is
 simulated into a bag (``simulate``) and analysed end to end through the command line
 (``discrepancy BAG --params FILE --out DIR``); reported: what is named, the targets against
-the truth, the gap against the noise floor, the excluded share, wall and CPU time.
+the truth, the gap against the noise floor, the excluded share, wall and CPU time (CPU summed over
+threads: the analysis runs on one BLAS thread, see pipelines/discrepancy.py) and the 1-minute
+load average before and after each run.
 
     nice -n 10 .venv/bin/python bench/bench_discrepancy_survey.py
 """
@@ -13,6 +15,7 @@ the truth, the gap against the noise floor, the excluded share, wall and CPU tim
 from __future__ import annotations
 
 import json
+import os
 import sys
 import tempfile
 import time
@@ -64,6 +67,7 @@ def run(name: str, effects: str, seed: int, tmp: Path) -> dict:
     bag = tmp / f'bag{seed}'
     cli_main(['simulate', '--scenario', str(scenario), '--out', str(bag), '--no-progress'])
     out = tmp / f'out{seed}'
+    load = os.getloadavg()[0]
     wall, cpu = time.perf_counter(), time.process_time()
     code = cli_main(
         ['discrepancy', str(bag), '--params', f'{bag}.params.yaml', '--out', str(out),
@@ -89,6 +93,7 @@ def run(name: str, effects: str, seed: int, tmp: Path) -> dict:
         'adequate': report['adequate'],
         'wall_s': wall,
         'cpu_s': cpu,
+        'load_1min': [load, os.getloadavg()[0]],  # before and after: the machine is shared
     }
 
 
@@ -102,16 +107,16 @@ def main() -> int:
             print(json.dumps(row, default=float), flush=True)
     print(
         '| vehicle | hidden | named | targets (error, m) | gap / floor, nT | excluded | '
-        'adequate | wall, s | CPU, s |'
+        'adequate | wall, s | CPU, s | load |'
     )
-    print('|---|---|---|---|---|---|---|---|---|')
+    print('|---|---|---|---|---|---|---|---|---|---|')
     for r in rows:
         err = ', '.join(f'{e:.2f}' for e in r['target_error_m'])
         print(
             f'| {r["vehicle"]} | {", ".join(r["hidden"]) or "-"} | {", ".join(r["named"])} | '
             f'{r["targets"]} ({err}) | {r["gap_nT"]:.3g} / {r["floor_nT"]:.3g} | '
-            f'{100 * r["excluded_fraction"]:.0f} % | {r["adequate"]} | {r["wall_s"]:.0f} | '
-            f'{r["cpu_s"]:.0f} |'
+            f'{100 * r["excluded_fraction"]:.0f} % | {r["adequate"]} | {r["wall_s"]:.1f} | '
+            f'{r["cpu_s"]:.1f} | {r["load_1min"][0]:.1f}-{r["load_1min"][1]:.1f} |'
         )
     return 0
 

@@ -45,6 +45,7 @@ PYTHON_KEYS = {
     'rosbags': None,
     'ppigrf': None,
     'dask': None,
+    'threadpoolctl': None,
 }
 PIP_NAMES = {'dask': 'dask[distributed]'}
 

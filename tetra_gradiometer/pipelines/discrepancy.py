@@ -5,7 +5,8 @@ between loading the params file and writing the report folder
 (:func:`tetra_gradiometer.reports.discrepancy.write_report`): the bag read whole
 (:func:`~tetra_gradiometer.io.recording.read_recording`), analysed by
 :func:`tetra_gradiometer.core.discrepancy.analyze`, and the report's ``data`` completed with
-what never reached the analysis (implausible sets, undecodable messages).
+what never reached the analysis (implausible sets, undecodable messages). The analysis
+runs on one BLAS thread (see :func:`analyze_bag`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import os
 
 import numpy as np
 import numpy.typing as npt
+from threadpoolctl import threadpool_limits
 
 from ..core import TetraGeometry
 from ..core.discrepancy import RecordedRun, Report, Settings, analyze
@@ -65,6 +67,12 @@ def analyze_bag(
         recording.extra_currents,
         recording.position_m,
     )
-    report = analyze(run, geometry, earth_field_enu, settings=settings, window_s=window)
+    # One BLAS thread: the analysis is many small solves and products, where a second
+    # thread only spins; on the shared 2-core machine (load 3-9) the clean 1,000 s survey
+    # took 86 s wall / 43 s CPU with OpenBLAS's two threads, 24 s / 14 s with one
+    # (bench/bench_discrepancy_survey.py). threadpoolctl: the maintained way to set it at
+    # run time (the environment variables act only before numpy loads).
+    with threadpool_limits(limits=1, user_api='blas'):
+        report = analyze(run, geometry, earth_field_enu, settings=settings, window_s=window)
     report = dataclasses.replace(report, data={**report.data, **recording.input_counts()})
     return report, recording

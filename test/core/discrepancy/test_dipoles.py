@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tetra_gradiometer.core.discrepancy import analyze
-from tetra_gradiometer.core.discrepancy.dipoles import Track, unit_fields
+from tetra_gradiometer.core.discrepancy.dipoles import Track, _grid_costs, unit_fields
 from tetra_gradiometer.core.discrepancy.synthetic import make_case
 from tetra_gradiometer.core.fields import dipole_field
 from tetra_gradiometer.core.geometry import TetraGeometry
@@ -34,6 +34,34 @@ def test_unit_fields_are_the_dipole_field_in_the_body_frame():
         world = dipole_field(points[:, s], moment, source) * 1e9
         body = np.einsum('nji,nj->ni', rotation, world)
         np.testing.assert_allclose(got[:, s], body, rtol=1e-10)
+
+
+def test_grid_costs_are_the_least_squares_residual_of_each_source():
+    # Independent truth: numpy's lstsq of the centred data on the dipole's field and a
+    # constant per channel, one source at a time; the batched normal equations must agree.
+    rng = np.random.default_rng(8)
+    geometry = TetraGeometry.regular(0.5)
+    n = 40
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_euler('ZYX', rng.uniform(-np.pi, np.pi, (n, 3))).as_matrix()
+    position = np.column_stack([np.linspace(-30, 30, n), np.zeros(n), np.full(n, -40.0)])
+    track = Track(position, rotation, geometry)
+    true = unit_fields(track, np.array([5.0, 12.0, -70.0])) @ np.array([2e4, -1e4, 3e4])
+    data = true + rng.normal(0.0, 0.05, true.shape)
+    for sensors in [(0, 1, 2, 3), (1, 2, 3)]:
+        view = data if len(sensors) == 4 else data[:, 1:] - data[:, :1]
+        y = view.reshape(n, -1)
+        y = (y - y.mean(axis=0)).reshape(-1)
+        sources = rng.uniform([-40, -40, -90], [40, 40, -50], (9, 3))
+        got = _grid_costs(track, sensors, y, sources)
+        for source, cost in zip(sources, got, strict=True):
+            f = unit_fields(track, source)
+            f = f if len(sensors) == 4 else f[:, 1:] - f[:, :1]
+            a = f.reshape(n, -1, 3)
+            a = (a - a.mean(axis=0)).reshape(-1, 3)
+            coef = np.linalg.lstsq(a, y, rcond=None)[0]
+            np.testing.assert_allclose(cost, np.sum((y - a @ coef) ** 2), rtol=1e-7)
 
 
 @pytest.fixture(scope='module', params=[(), ('eddy_current',)], ids=['clean', 'eddy'])

@@ -157,9 +157,11 @@ def lstsq_rows(
     sensors: tuple[int, ...], cols: Array, target: Array, rows: NDArray[np.bool_]
 ) -> Array:
     """Least squares on the samples ``rows`` (bool, N) only; physical coefficients."""
-    a = flat(cols[rows], sensors)
+    if not rows.all():  # (all rows: no copy of the columns, the same numbers)
+        cols, target = cols[rows], target[rows]
+    a = flat(cols, sensors)
     a = a.reshape(-1, a.shape[-1])
-    y = flat(target[rows], sensors).reshape(-1)
+    y = flat(target, sensors).reshape(-1)
     gram = a.T @ a
     norm = np.sqrt(np.diag(gram)).copy()
     norm[norm == 0] = 1.0

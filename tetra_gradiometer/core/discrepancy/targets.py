@@ -81,7 +81,7 @@ def detector_columns(
     ``in_detector`` families among ``names``)."""
     y = prep.fields - prep.base_offset
     coef = lstsq_rows(prep.sensors, prep.base_cols, y, include)
-    prediction = prep.base_offset + np.einsum('nsap,p->nsa', prep.base_cols, coef)
+    prediction = prep.base_offset + prep.base_cols @ coef
     ctx = Context(
         prep.t,
         ALL_SENSORS,
@@ -116,7 +116,7 @@ def full_model_residual(
         if not moved:
             break
         y = prep.fields - prep.base_offset
-    residual = prep.fields - prep.base_offset - np.einsum('nsap,p->nsa', cols, coef)
+    residual = prep.fields - prep.base_offset - cols @ coef
     if not prep.absolute:
         residual = residual - residual[:, :1]
     return prep, residual
