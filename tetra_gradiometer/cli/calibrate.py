@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -86,6 +88,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + f' (default: {DEFAULT_METHOD})',
     )
     parser.add_argument('--out', required=True, help='calibration YAML to write')
+    parser.add_argument(
+        '--key-file',
+        default=None,
+        metavar='FILE',
+        help="sign the calibration (HMAC-SHA256) with the key of the nodes' "
+        'calibration_key_file, so that a compensator configured with that key loads it '
+        '(mode 600, at least 32 bytes)',
+    )
     add_effects_arguments(parser)
     parser.add_argument(
         '--report',
@@ -135,17 +145,31 @@ def _format_matrix(rows: np.ndarray, fmt: str) -> str:
     return '[' + '; '.join(' '.join(fmt.format(v) for v in row) for row in rows) + ']'
 
 
+def _signer(key_file: str | None) -> Callable[[str], str] | None:
+    """The calibrator's signature with the key in ``key_file`` (None: unsigned); the key is
+    checked as the nodes check theirs
+    (:func:`~tetra_gradiometer.nodes.authentication.load_key`)."""
+    if key_file is None:
+        return None
+    # Imported here: only a signed calibration needs the nodes' authentication module.
+    from ..nodes.authentication import load_key, sign
+
+    key = load_key(Path(key_file))
+    return lambda text: sign(text, key)
+
+
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     inputs = (args.bag, args.params)
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     if args.report is not None:  # nor over the calibration file it sits beside
         check_output(args.report, CALIBRATION_REPORT, force=args.force, inputs=(*inputs, args.out))
+    signer = _signer(args.key_file)  # a bad key refused before any work
     params = load_params(args.params)
     geometry = geometry_from_params(params, source=args.params)
     earth = earth_field_from_params(params, str(args.params))
     result, window_assessment, why = _calibrate(args, geometry, earth)
-    save_calibration(args.out, result.record, force=args.force, inputs=inputs)
+    save_calibration(args.out, result.record, force=args.force, inputs=inputs, sign=signer)
     _print_summary(args, result)
     if why:
         print(f'  {why}')

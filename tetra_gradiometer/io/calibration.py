@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -230,14 +230,18 @@ def save_calibration(
     *,
     force: bool = False,
     inputs: Iterable[str | os.PathLike] = (),
+    sign: Callable[[str], str] | None = None,
 ) -> Path:
-    """Write atomically (temporary file, then rename).
+    """Write atomically (temporary file, then rename); ``sign`` maps the YAML text to the
+    signed text (the calibrator's HMAC, ``calibrate --key-file``).
 
     Refused (:class:`~tetra_gradiometer.errors.OutputError`) when ``path`` exists and is not
     a calibration file, or is a previous one and ``force`` is False, or is one of ``inputs``
     (:func:`~tetra_gradiometer.io.outputs.check_output`).
     """
-    return atomic_write_text(path, calibration.to_yaml(), CALIBRATION, force=force, inputs=inputs)
+    text = calibration.to_yaml()
+    text = text if sign is None else sign(text)
+    return atomic_write_text(path, text, CALIBRATION, force=force, inputs=inputs)
 
 
 def load_calibration(path: str | os.PathLike) -> CalibrationFile:
