@@ -20,7 +20,9 @@ LINE_HZ = 1.7
 
 def _closest_approach(case):
     """Time (s from the start) and distance (m) of the track's closest approach to the target."""
-    distance = np.linalg.norm(case.mission.position_enu - case.scenario.dipoles[-1].position, axis=1)
+    distance = np.linalg.norm(
+        case.mission.position_enu - case.scenario.dipoles[-1].position, axis=1
+    )
     i = int(np.argmin(distance))
     return case.mission.t[i] - case.mission.t[0], float(distance[i])
 
@@ -46,7 +48,9 @@ def stepped_and_lined():
     phase = rng.uniform(0, 2 * np.pi, 3)
     fields = run.fields.copy()
     fields[run.t_s >= t_step, STEP_SENSOR - 1] += jump
-    fields[:, LINE_SENSOR - 1] += amplitude * np.sin(2 * np.pi * LINE_HZ * run.t_s[:, None] + phase)
+    fields[:, LINE_SENSOR - 1] += amplitude * np.sin(
+        2 * np.pi * LINE_HZ * run.t_s[:, None] + phase
+    )
     report = analyze(
         replace(run, fields=fields),
         case.scenario.geometry,
