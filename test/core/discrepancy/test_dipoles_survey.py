@@ -27,20 +27,23 @@ def _closest_approach(case):
     return case.mission.t[i] - case.mission.t[0], float(distance[i])
 
 
-@pytest.fixture(scope='module')
-def stepped_and_lined():
+# Seed 44: before the detector looked at the located run with the dipoles' moments fixed,
+# the step left the pass out of its robust fit, the free moments blew up (4.6e4 nT) and the
+# whole line (38 %) was excluded, target and step with it.
+@pytest.fixture(scope='module', params=[40, 44])
+def stepped_and_lined(request):
     """A trim and a line over a target, with a 30-sigma step on sensor 3 on the line as far
     from the target's pass as it can be (15 s or more from the line's ends: the change-point
     scan keeps 10 s, MIN_SEGMENT_S, either side of a step) and a 10-sigma 1.7 Hz line on
     sensor 1 throughout."""
-    case = make_case(40, (), duration_s=240.0, near_target=True, far_target=False)
+    case = make_case(request.param, (), duration_s=240.0, near_target=True, far_target=False)
     run = case.recording()
     t_pass, _ = _closest_approach(case)
     line_start = case.scenario.segments[0].duration_s
     on_line = run.t_s[(run.t_s > line_start + 15.0) & (run.t_s < run.t_s[-1] - 15.0)]
     t_step = float(on_line[np.argmax(np.abs(on_line - t_pass))])
     noise = case.scenario.noise_t
-    rng = np.random.default_rng(40)
+    rng = np.random.default_rng(request.param)
     jump = rng.normal(size=3)
     jump *= 30 * noise / np.linalg.norm(jump)
     amplitude = rng.normal(size=3)
