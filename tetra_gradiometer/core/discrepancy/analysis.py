@@ -110,7 +110,9 @@ def analyze(
             target_notes.append(_no_track_note(prep, geometry))
         # What no dipole explains is left out, with its evidence (and the detector's levels
         # are reported).
-        targets = find_target_spans(located.prep if located else prep, names, settings)
+        targets = find_target_spans(
+            located.fixed() if located else prep, names, settings
+        )
         if targets.spans:
             prep = prepare(
                 recording, earth_field_enu, settings.max_samples, window_s, targets.intervals

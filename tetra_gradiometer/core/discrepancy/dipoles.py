@@ -36,7 +36,7 @@ fits the tensor of a compensated survey); here the fields of all four sensors ar
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -450,6 +450,20 @@ class Located:
     moment_sigma: Array
     spans: Mask
     moments: Array
+
+    def fixed(self) -> Prepared:
+        """``prep`` with the dipoles' fitted field (their full-model moments) taken out of
+        the data and their columns out of the model (their field stays in ``B^b``): what the
+        detector looks at for what no dipole explains. With free moments, a detector fit
+        that leaves a pass out (its robust start keeps half the run) has nothing to pin
+        them to, and their extrapolated field reads as a target of its own."""
+        cols = self.prep.target_cols
+        if cols is None:
+            return self.prep
+        field = cols @ self.moments.ravel()
+        background = self.prep.target_background
+        fixed = with_targets(self.prep, None, [], background)
+        return replace(fixed, fields=self.prep.fields - field)
 
 
 def locate_targets(
