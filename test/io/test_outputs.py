@@ -221,3 +221,32 @@ def test_a_refusal_from_a_real_process_is_one_line_without_traceback(data, tmp_p
     assert result.returncode == 1
     assert result.stderr.startswith('error: ') and result.stderr.count('\n') == 1, result.stderr
     assert (data / 'other_bag' / 'metadata.yaml').is_file()
+
+
+def test_an_interrupt_while_the_temporary_folder_is_made_leaves_no_folder(tmp_path, monkeypatch):
+    """SIGTERM (raised as KeyboardInterrupt, as __main__ does) delivered just after mkdtemp,
+    while the folder's owner file is written: it used to escape before the try that removes
+    the folder, leaving a .partial behind (a real signal to this process, not a mock raise)."""
+    import signal
+
+    from tetra_gradiometer.io import outputs
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    real_owner = outputs._owner
+
+    def owner_and_signal(kind):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real_owner(kind)
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    monkeypatch.setattr(outputs, '_owner', owner_and_signal)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with outputs.atomic_output(tmp_path / 'out.csv', outputs.CSV) as tmp:
+                tmp.write_text('stamp_s,gxx\n', encoding='utf-8')
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == set()  # nothing left held

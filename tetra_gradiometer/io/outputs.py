@@ -36,6 +36,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import socket
 import sqlite3
 import tempfile
@@ -235,6 +236,10 @@ def check_output(
     return path
 
 
+#: The signals held while an output's temporary folder is made (see :func:`atomic_output`).
+_INTERRUPTS = frozenset({signal.SIGINT, signal.SIGTERM})
+
+
 @contextmanager
 def atomic_output(
     path: str | os.PathLike,
@@ -253,14 +258,23 @@ def atomic_output(
     """
     inputs = tuple(inputs)
     path = check_output(path, kind, force=force, inputs=inputs)
+    # Ctrl-C and SIGTERM are held while the temporary folder is made and owned: delivered
+    # between mkdtemp's return and the try below, they left a folder no one removed (seen
+    # once in a fresh-clone run of test_interrupts_and_full_disk). They land inside the try.
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, _INTERRUPTS)
+    work: Path | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(path, kind)
         work = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', suffix='.partial', dir=path.parent))
         (work / OWNER).write_text(json.dumps(_owner(kind)), encoding='utf-8')
     except OSError as error:
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
         raise OutputError(f'cannot write {path}: {error.strerror or error}') from error
     try:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)  # a held interrupt is raised here
         tmp = work / path.name
         yield tmp
         if kind.folder:
