@@ -268,11 +268,13 @@ def atomic_output(
         remove_stale_temporaries(path, kind)
         work = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', suffix='.partial', dir=path.parent))
         (work / OWNER).write_text(json.dumps(_owner(kind)), encoding='utf-8')
-    except OSError as error:
+    except BaseException as error:
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
-        raise OutputError(f'cannot write {path}: {error.strerror or error}') from error
+        if isinstance(error, OSError):
+            raise OutputError(f'cannot write {path}: {error.strerror or error}') from error
+        raise
     try:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)  # a held interrupt is raised here
         tmp = work / path.name
