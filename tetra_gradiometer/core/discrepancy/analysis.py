@@ -53,6 +53,7 @@ from ..geometry import TetraGeometry
 from .dipoles import Located, locate_targets, model_targets, track_of
 from .effects import CANDIDATES, LIBRARY, Candidate
 from .prepare import Prepared, RunLike, prepare, testable
+from .relocation import outside_detector, relocate
 from .result import Report, Settings
 from .search import search_effects
 from .summary import RunInfo, build_report
@@ -111,7 +112,7 @@ def analyze(
         # What no dipole explains is left out, with its evidence (and the detector's levels
         # are reported).
         targets = find_target_spans(
-            located.fixed() if located else prep, names, settings
+            located.fixed() if located else prep, names, settings, modelled=located is not None
         )
         if targets.spans:
             prep = prepare(
@@ -123,6 +124,20 @@ def analyze(
         elif located is not None:
             prep = located.prep
     search = search_effects(prep, testable_candidates, settings)
+    if located is not None and track is not None:
+        relocated = relocate(search, prep, track, located)
+        if relocated is not None:
+            # The targets were placed without what the search then named: placed again
+            # with it, and the search repeated on them (once).
+            located = relocated.located
+            target_notes.append(
+                'targets refined again with the named '
+                + ', '.join(outside_detector(search))
+                + ' (moved '
+                + ', '.join(f'{m:.3f}' for m in relocated.moved_m)
+                + ' m) and the search repeated'
+            )
+            search = search_effects(located.prep, testable_candidates, settings)
     info = RunInfo(
         settings=settings,
         window_s=window_s,
