@@ -59,7 +59,9 @@ def test_a_step_in_a_pass_or_at_a_span_edge_is_unresolved_and_one_away_is_named(
     span = {'start_s': 100.0, 'end_s': 110.0, 'duration_s': 10.0}
     out = resolve(findings, [[(35.0, 65.0)]], [span])
     assert [f['status'] for f in out] == ['unresolved', 'unresolved', 'named', 'named']
-    assert 'pass' in out[0]['unresolved_because'] and 'excluded span' in out[1]['unresolved_because']
+    assert (
+        'pass' in out[0]['unresolved_because'] and 'excluded span' in out[1]['unresolved_because']
+    )
     assert out[0]['separated_by']
     assert named_and_unresolved(['hard_iron_step', 'periodic_interference'], out) == (
         ['hard_iron_step', 'periodic_interference'],

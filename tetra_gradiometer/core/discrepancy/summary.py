@@ -248,8 +248,8 @@ def build_report(
     notes = _closing_notes(search, info, excluded)
     if unresolved:
         notes.append(
-            f'unresolved (fitted, not named): {", ".join(unresolved)}; see the findings\' '
-            'unresolved_because and separated_by'
+            f'unresolved (fitted, not named): {", ".join(unresolved)}; see unresolved_because '
+            'and separated_by in the findings'
         )
     return Report(
         named_effects=named,

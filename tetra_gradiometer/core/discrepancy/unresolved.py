@@ -61,8 +61,9 @@ def _edge_reason(
     for k, (t0, t1) in passes:
         if t0 <= t_s <= t1:
             return (
-                f'the step at {t_s:.1f} s lies within target {k + 1}\'s pass ({t0:.1f}-{t1:.1f} s, '
-                f'track within {PASS_FACTOR:.2g} x its closest approach), where an error of the '
+                f"the step at {t_s:.1f} s lies within target {k + 1}'s pass "
+                f'({t0:.1f}-{t1:.1f} s, track within {PASS_FACTOR:.2g} x its closest '
+                'approach), where an error of the '
                 "target's fitted field changes like a step"
             )
     for span in spans:
@@ -70,7 +71,7 @@ def _edge_reason(
         if span['start_s'] - reach <= t_s <= span['end_s'] + reach:
             return (
                 f'the step at {t_s:.1f} s lies at the edge of the excluded span '
-                f'{span["start_s"]:.1f}-{span["end_s"]:.1f} s, where the left-out target\'s '
+                f"{span['start_s']:.1f}-{span['end_s']:.1f} s, where the left-out target's "
                 'tails change like a step'
             )
     return None
