@@ -144,7 +144,8 @@ def ros_graph() -> Iterator[tuple[Graph, Any, 'Feeder']]:
     spinner = threading.Thread(target=executor.spin, daemon=True)
     nodes: list = []
     try:
-        probe = Probe('test_probe', context=context)
+        # Every tensor of a test's replay (a few thousand) waits for the probe's thread.
+        probe = Probe('test_probe', depth=20_000, context=context)
         feeder = Feeder(context=context)
         nodes = [probe, feeder]
         for node in nodes:
@@ -274,6 +275,33 @@ def wait_connected(probe: Any, graph: Graph, node: str, topic: str, publishers: 
             time.sleep(0.02)
     finally:
         probe.destroy_client(client)
+
+
+def wait_tensor_delivers(probe: Any, graph: Graph, raw: int, reference: int,
+                         readers: tuple[str, ...] = (), timeout_s: float = 30.0) -> None:
+    """Until the tensor node's outputs have matched their readers: at least ``raw`` on
+    gradient/raw and ``reference`` on reference_field, and every reader the probe sees in the
+    graph; and each node of ``readers`` sees the tensor's writers on both topics. The graph
+    showing a subscription does not mean the tensor's writer has matched it (its side of the
+    discovery comes later on a loaded machine: the calibrator then missed the first 179-643
+    of 1200 replayed sets), and a volatile reader misses what is published before; the
+    tensor's /diagnostics report its writers' matched counts (rmw), a reader node's
+    ``inputs`` status the publishers it knows."""
+    def matched() -> bool:
+        status = probe.status('tetra/tensor: matching')
+        have_raw = int(status.get('gradient/raw subscribers', -1))
+        have_reference = int(status.get('reference_field subscribers', -1))
+        if not (have_raw >= max(raw, probe.count_subscribers('/tetra/gradient/raw'))
+                and have_reference >= max(reference, probe.count_subscribers('/tetra/reference_field'))):
+            return False
+        for node in readers:
+            inputs = probe.status(f'tetra/{node}: inputs')
+            if min(int(inputs.get(f'/tetra/{t} publishers', 0)) for t in ('gradient/raw', 'reference_field')) < 1:
+                return False
+        return True
+
+    wait_for(matched, timeout_s, f'the tensor node to match {raw} gradient/raw and {reference} '
+             'reference_field readers', graph)
 
 
 def uniform_gradient_fields(positions: np.ndarray, b0: np.ndarray, g: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_matched
+from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_matched, wait_tensor_delivers
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io import conversions as cv
@@ -198,7 +198,6 @@ def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(of
     from tetra_gradiometer.nodes.common import derived_qos
 
     calibration_file = tmp_path / 'calibration.yaml'
-    n_messages = len(offline.temperature.stamps_ns)
     stamps = offline.sets[0]
     n_trim = int(np.sum(stamps - stamps[0] <= TRIM_S * 1e9))
     sigmas: dict[int, np.ndarray] = {}
@@ -309,12 +308,6 @@ def _play(probe, graph, count) -> None:
         time.sleep(0.05)
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    'flaky on this machine, quiet or loaded: the calibrator takes 188-1170 of the 1200 trim sets '
-    'the driver replays (best-effort, 8x real time), so its calibration is not the offline one; '
-    'the live = offline property stays tested by '
-    'test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors. Next session: '
-    'find why _play returns before the trim is taken.'))
 def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figures(offline, tmp_path):
     """The whole chain on the bag as recorded: the driver replays it (magnetometers, ``/odom``,
     the temperature and battery messages: nothing published by the test) into the tensor
@@ -336,7 +329,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
         probe.create_subscription(
             JointState, 'gradient/sigma',
             lambda msg: sigmas.__setitem__(cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg)),
-            derived_qos())
+            derived_qos(20_000))  # as the probe's: all of them may wait for this thread
         graph.start('tensor', sensor_positions=GEOMETRY.positions.reshape(-1).tolist(),
                     diagnostics_period_s=0.2)
         graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
@@ -349,7 +342,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
                  and probe.count_publishers('/battery_state') >= 1
                  and probe.count_subscribers('/tetra/gradient/raw') >= 3
                  and probe.count_publishers('/tetra/gradient/raw') >= 2, 30, 'discovery', graph)
-        time.sleep(1.0)  # both sides of the tensor -> calibrator discovery (no probe end to ask)
+        wait_tensor_delivers(probe, graph, raw=3, reference=2, readers=('calibrator', 'compensator'))
         wait_for(lambda: _received(probe, CALIBRATION, 'samples') == 0, 20, 'the calibrator', graph)
         assert probe.call('calibrator/start').success
         _play(probe, graph, lambda: _received(probe, CALIBRATION, 'samples'))
@@ -373,7 +366,13 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
         wait_for(lambda: probe.count_publishers('/battery_state') >= 1
                  and probe.count_publishers('/tetra/temperature') >= 1, 30, 'the second driver', graph)
         wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)
-        time.sleep(0.5)  # the driver's side of its channels' discovery (no probe subscription)
+
+        def channels_matched() -> bool:  # both sides: the driver's writers, the compensator's readers
+            playback, inputs = probe.status(PLAYBACK), probe.status('tetra/compensator: inputs')
+            return all(int(playback.get(f'{topic} subscribers', 0)) >= 1 and int(inputs.get(f'{topic} publishers', 0)) >= 1
+                       for topic in ('/battery_state', '/tetra/temperature'))
+
+        wait_for(channels_matched, 30, "the compensator to match the driver's channels", graph)
         with probe.lock:
             probe.collecting = True
 

@@ -443,6 +443,12 @@ class DriverNode(ManagedNode):
                     'ack_timeouts': self.ack_timeouts,
                     'rate': self._rate,
                     **self.info,
+                    # Matched readers per output (rmw): a reader not yet matched misses what
+                    # is played before (volatile), e.g. a node started after the replay.
+                    **{
+                        f'{publisher.topic_name} subscribers': publisher.get_subscription_count()
+                        for publisher in self._pubs.values()
+                    },
                 },
             )
         )

@@ -423,6 +423,10 @@ class TensorNode(ManagedNode):
                     'sets_dropped_stale': self.sets_stale,
                     **{MATCHER_KEYS.get(k, f'matcher_{k}'): v for k, v in counts.items()},
                     'matcher_resets': self.resets,
+                    # Matched readers of the outputs (rmw, both sides of discovery done): who
+                    # receives the tensors from now on; a reader not yet matched misses them.
+                    'gradient/raw subscribers': self._raw_pub.get_subscription_count(),
+                    'reference_field subscribers': self._ref_pub.get_subscription_count(),
                 },
             )
         )
