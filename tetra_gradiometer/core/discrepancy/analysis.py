@@ -101,6 +101,7 @@ def analyze(
     prep = prepare(recording, earth_field_enu, settings.max_samples, window_s)
     testable_candidates, untestable = testable(prep, candidates)
     targets, located, target_notes = TargetSpans(), None, []
+    track: Track | None = None
     if settings.exclude_targets:
         names = frozenset(c.name for c in testable_candidates)
         track = track_of(prep, geometry)

@@ -321,7 +321,8 @@ def _external(ctx: Context, estimate: Estimate | None) -> Built:
     rotation = _required(ctx.rotation, 'the attitude (/odom)')
     # A spline per continuous piece: across a jump between recorded segments the vehicle is
     # elsewhere, and a field fixed in the world (a distant target, geology) is another.
-    pieces = [np.flatnonzero(ctx.piece == p) for p in np.unique(ctx.piece)]
+    piece = np.zeros(len(ctx.t), dtype=int) if ctx.piece is None else ctx.piece
+    pieces = [np.flatnonzero(piece == p) for p in np.unique(piece)]
     bases = [spline_basis(ctx.t[idx], ctx.knot_s) for idx in pieces]
     phi = np.zeros((len(ctx.t), sum(b.shape[1] for b in bases)))
     start = 0
