@@ -26,7 +26,8 @@ convergence loop):
    moments and the columns of the base model plus every global candidate linear (projected
    out by a QR factorization). Position and moment sigmas from the projected Jacobian,
    ``s^2 (J^T J)^-1``, scaled to all samples (white noise: information grows with the
-   count).
+   count). Done twice: the second time with the first fit's target field at sensor 1 in
+   ``B^b`` (the soft iron is magnetised by it too, ``K_i B^b``).
 
 What no dipole explains stays for the detector (run again with the dipoles in the model)
 to exclude, with its evidence. The same point-dipole physics as :mod:`..targets` (which
