@@ -9,12 +9,14 @@ the fields; the workflow is told nothing. Seeds differ from the test suite's.
   smaller (or at the floor, when it started below 3 x the floor) and <= 1.5 x the floor;
 * **line**: a rotating magnet (0.2-5 Hz, log-uniform; one or two sensors, 5-20 x the
   noise) -> ``periodic_interference`` at the frequency +- 1 %, on those sensors only, gap
-  >= 3 x smaller (or at the floor);
+  >= 3 x smaller (or at the floor); named, or unresolved when a recorded channel has a line
+  there too (issue 31's rule);
 * **triple**: eddy current + time skew + thermal drift -> eddy and thermal named, the skew
   named or under the eddy term's ``confounded_with``, gap <= 1.5 x the floor;
 * **target**: a survey line passing 20-50 m over a 1e4-1e5 A m^2 dipole after the trim,
-  one random library effect hidden -> the passage excluded with evidence, the effect
-  named, gap <= 1.5 x the floor.
+  one random library effect hidden -> the target listed within 0.5 m (modelled as a
+  dipole, issue 31), nothing excluded, the effect named and nothing else, gap <= 1.5 x the
+  floor.
 
     .venv/bin/python bench/bench_openworld.py [--cases 6] [--first-seed 900] [--kinds step,line,triple,target] [--json FILE]
 """
@@ -73,9 +75,15 @@ def line_case(seed: int) -> dict:
     lines = [f for f in report.findings if f['effect'] == 'periodic_interference']
     hit = (len(lines) == 1 and abs(lines[0]['frequency_hz'] / frequency - 1) <= 0.01
            and lines[0]['sensors'] == [int(s) for s in sensors])  # fmt: skip
-    ok = report.named_effects == ['periodic_interference'] and hit and gaps_ok(report, shrink=3.0)
+    # Issue 31's rule: a line that a recorded channel (the manoeuvre's field rate, ...) has
+    # too is reported unresolved, not named; that is the right answer there.
+    unresolved = (report.named_effects == [] and report.unresolved_effects == ['periodic_interference']
+                  and all(f['recorded_with_line'] for f in lines))  # fmt: skip
+    named_ok = report.named_effects == ['periodic_interference'] or unresolved
+    ok = named_ok and hit and gaps_ok(report, shrink=3.0)
     return {'truth': {'frequency_hz': frequency, 'sensors': [int(s) for s in sensors], 'size_noise': size},
-            'found': [{'frequency_hz': f['frequency_hz'], 'sensors': f['sensors']} for f in lines],
+            'found': [{'frequency_hz': f['frequency_hz'], 'sensors': f['sensors'], 'status': f['status'],
+                       'recorded_with_line': f['recorded_with_line']} for f in lines],
             **common(report, ok)}  # fmt: skip
 
 
@@ -98,10 +106,18 @@ def target_case(seed: int) -> dict:
     distance = np.linalg.norm(m.position_enu - target.position, axis=1)
     t_closest = float(m.t[np.argmin(distance)])
     spans = report.excluded_spans
-    excluded = any(s['start_s'] <= t_closest <= s['end_s'] for s in spans)
-    evidence = all('target' in s['reason'] for s in spans)
-    ok = report.named_effects == [effect] and excluded and evidence and gaps_ok(report, floor=1.5)
-    return {'truth': {'effect': effect, 'distance_m': float(distance.min()), 't_closest_s': t_closest},
+    # Issue 31: the target is modelled as a dipole (listed within 0.5 m), not excluded.
+    errors = [float(np.linalg.norm(np.array(t['position_m']) - target.position))
+              for t in report.targets]
+    listed = bool(errors) and min(errors) < 0.5
+    # A distant dipole of make_case (1e6-scale A m^2, 0.8-2 km) is a field from outside the
+    # vehicle on the track: external_field is then there too.
+    far = len(case.scenario.dipoles) > 1
+    named_ok = report.named_effects in ([effect], [effect, 'external_field'] if far else None)
+    ok = named_ok and listed and not spans and gaps_ok(report, floor=1.5)
+    return {'truth': {'effect': effect, 'distance_m': float(distance.min()), 't_closest_s': t_closest,
+                      'far_dipole': far},
+            'target_errors_m': errors,
             'spans': [{k: s[k] for k in ('start_s', 'end_s', 'reason')} for s in spans],
             **common(report, ok)}  # fmt: skip
 

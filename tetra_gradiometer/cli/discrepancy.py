@@ -137,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
     for warning in channel_warnings(report):
         print(f'not tested: {warning}')
     named = ', '.join(report.named_effects) or 'none'
+    if report.unresolved_effects:
+        named += f' (unresolved, not named: {", ".join(report.unresolved_effects)})'
     excluded = ''
     if report.excluded_fraction > 0:
         excluded = f'excluded {percent_text(report.excluded_fraction)} % of the samples; '

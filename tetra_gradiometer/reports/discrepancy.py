@@ -288,8 +288,23 @@ def _findings_section(report: Report) -> list[str]:
     for f in report.findings:
         t_s, hz = f.get('t_s'), f.get('frequency_hz')
         when = f'{_cell(t_s)} s' if t_s is not None else '-' if hz is None else f'{_cell(hz)} Hz'
-        cells = [f.get('effect'), f.get('sensors') or 'all', when, f.get('confounded_with')]
+        effect = f.get('effect', '') + (' (unresolved)' if f.get('status') == 'unresolved' else '')
+        cells = [effect, f.get('sensors') or 'all', when, f.get('confounded_with')]
         lines.append('| ' + ' | '.join(map(_cell, cells + [f.get('evidence')])) + ' |')
+    return lines + _unresolved_section(report)
+
+
+def _unresolved_section(report: Report) -> list[str]:
+    """The unresolved findings: why, and what data would separate the readings."""
+    open_ = [f for f in report.findings if f.get('status') == 'unresolved']
+    if not open_:
+        return []
+    lines = ['', '## Unresolved (fitted, not named)', '']
+    for f in open_:
+        lines.append(
+            f'- {f.get("effect")}: {f.get("unresolved_because")}. What would separate them: '
+            f'{f.get("separated_by")}.'
+        )
     return lines
 
 

@@ -29,8 +29,12 @@ def _closest_approach(case):
 
 # Seed 44: before the detector looked at the located run with the dipoles' moments fixed,
 # the step left the pass out of its robust fit, the free moments blew up (4.6e4 nT) and the
-# whole line (38 %) was excluded, target and step with it.
-@pytest.fixture(scope='module', params=[40, 44])
+# whole line (38 %) was excluded, target and step with it. Seed 48: before the targets were
+# placed with their field in B^b and the detector after them fitted every sample, 31.6 % was
+# excluded, no target listed, the step lost; seed 47: a spurious 0.041 Hz line (the target
+# 0.09 m off until placed again with the named step). 101 and 107: fresh seeds, first run
+# after those fixes (10 of 10 fresh seeds, 100-109, pass).
+@pytest.fixture(scope='module', params=[40, 44, 47, 48, 101, 107])
 def stepped_and_lined(request):
     """A trim and a line over a target, with a 30-sigma step on sensor 3 on the line as far
     from the target's pass as it can be (15 s or more from the line's ends: the change-point
@@ -78,11 +82,13 @@ def test_a_step_and_a_line_beside_a_target_are_found_and_nothing_else(stepped_an
         report.named_effects,
         report.notes,
     )
+    assert len(report.findings) == 2, report.findings
     (step,) = [f for f in report.findings if f['effect'] == 'hard_iron_step']
-    assert step['sensors'] == [STEP_SENSOR]
+    assert step['sensors'] == [STEP_SENSOR] and step['status'] == 'named'
     assert abs(step['t_s'] - t_step) <= 1.0
     (line,) = [f for f in report.findings if f['effect'] == 'periodic_interference']
-    assert line['sensors'] == [LINE_SENSOR]
+    assert line['sensors'] == [LINE_SENSOR] and line['status'] == 'named'
+    assert report.unresolved_effects == []
     assert line['frequency_hz'] == pytest.approx(LINE_HZ, rel=1e-3)
     truth = case.scenario.dipoles[-1].position
     errors = [np.linalg.norm(np.array(t['position_m']) - truth) for t in report.targets]
@@ -91,12 +97,16 @@ def test_a_step_and_a_line_beside_a_target_are_found_and_nothing_else(stepped_an
     assert report.gap_final_nT <= 1.2 * report.noise_floor_nT
 
 
-@pytest.fixture(scope='module')
-def long_tails():
+# Seeds 41 and 42 (gap 1.24 and 1.32 x the floor) and 48 (31.5 % excluded, no target)
+# failed until the targets were placed with their field in B^b (the soft iron's K_i B_target,
+# ~6 nT at 25 m, had moved the fitted position by 0.09 m, 60 sigma). 100 and 103: fresh
+# seeds, first run after the fix (10 of 10 fresh seeds, 100-109, pass).
+@pytest.fixture(scope='module', params=[43, 41, 42, 48, 100, 103])
+def long_tails(request):
     """A 5e4 A m^2 dipole 25 m from a short line (about 40-100 m long): its field is far above
     the noise at every sample of the line."""
     case = make_case(
-        43,
+        request.param,
         (),
         duration_s=120.0,
         near_target=True,

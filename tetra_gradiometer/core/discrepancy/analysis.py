@@ -50,11 +50,12 @@ import numpy as np
 
 from ...errors import InputError
 from ..geometry import TetraGeometry
-from .dipoles import Located, locate_targets, model_targets, track_of
+from .dipoles import Located, Track, locate_targets, model_targets, track_of
 from .effects import CANDIDATES, LIBRARY, Candidate
 from .prepare import Prepared, RunLike, prepare, testable
+from .relocation import outside_detector, relocate
 from .result import Report, Settings
-from .search import search_effects
+from .search import SearchResult, search_effects
 from .summary import RunInfo, build_report
 from .targets import TargetSpans, find_target_spans
 
@@ -100,6 +101,7 @@ def analyze(
     prep = prepare(recording, earth_field_enu, settings.max_samples, window_s)
     testable_candidates, untestable = testable(prep, candidates)
     targets, located, target_notes = TargetSpans(), None, []
+    track: Track | None = None
     if settings.exclude_targets:
         names = frozenset(c.name for c in testable_candidates)
         track = track_of(prep, geometry)
@@ -111,7 +113,7 @@ def analyze(
         # What no dipole explains is left out, with its evidence (and the detector's levels
         # are reported).
         targets = find_target_spans(
-            located.fixed() if located else prep, names, settings
+            located.fixed() if located else prep, names, settings, modelled=located is not None
         )
         if targets.spans:
             prep = prepare(
@@ -122,7 +124,7 @@ def analyze(
                 prep = model_targets(prep, track, located.positions, located.moments)  # type: ignore[arg-type]
         elif located is not None:
             prep = located.prep
-    search = search_effects(prep, testable_candidates, settings)
+    search, located = _search(prep, track, located, testable_candidates, settings, target_notes)
     info = RunInfo(
         settings=settings,
         window_s=window_s,
@@ -136,6 +138,34 @@ def analyze(
     )
     report = build_report(search, info, geometry, keep_series=keep_series, runtime_s=0.0)
     return replace(report, runtime_s=float(time.perf_counter() - started))
+
+
+def _search(
+    prep: Prepared,
+    track: Track | None,
+    located: Located | None,
+    testable_candidates: tuple[Candidate, ...],
+    settings: Settings,
+    notes: list[str],
+) -> tuple[SearchResult, Located | None]:
+    """The search, repeated once on targets placed again when it named what their placing
+    did not have (a note in ``notes`` says so)."""
+    search = search_effects(prep, testable_candidates, settings)
+    if located is None or track is None:
+        return search, located
+    relocated = relocate(search, prep, track, located)
+    if relocated is None:
+        return search, located
+    notes.append(
+        'targets refined again with the named '
+        + ', '.join(outside_detector(search))
+        + ' (moved '
+        + ', '.join(f'{m:.3f}' for m in relocated.moved_m)
+        + ' m) and the search repeated'
+    )
+    return search_effects(relocated.located.prep, testable_candidates, settings), (
+        relocated.located
+    )
 
 
 def _no_track_note(prep: Prepared, geometry: TetraGeometry | None) -> str:

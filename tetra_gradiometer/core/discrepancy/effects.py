@@ -319,7 +319,16 @@ def spline_basis(t: Array, knot_s: float) -> Array:
 
 def _external(ctx: Context, estimate: Estimate | None) -> Built:
     rotation = _required(ctx.rotation, 'the attitude (/odom)')
-    phi = spline_basis(ctx.t, ctx.knot_s)
+    # A spline per continuous piece: across a jump between recorded segments the vehicle is
+    # elsewhere, and a field fixed in the world (a distant target, geology) is another.
+    piece = np.zeros(len(ctx.t), dtype=int) if ctx.piece is None else ctx.piece
+    pieces = [np.flatnonzero(piece == p) for p in np.unique(piece)]
+    bases = [spline_basis(ctx.t[idx], ctx.knot_s) for idx in pieces]
+    phi = np.zeros((len(ctx.t), sum(b.shape[1] for b in bases)))
+    start = 0
+    for idx, basis in zip(pieces, bases, strict=True):
+        phi[idx, start : start + basis.shape[1]] = basis
+        start += basis.shape[1]
     n, nk = phi.shape
     cols = _empty(n, 3 * nk)
     labels: list[tuple[int, str]] = []

@@ -125,13 +125,17 @@ class Report:
     excluded_spans: list[dict[str, Any]] = field(default_factory=list)
     #: Share (0-1) of the analysed samples left out of the fits and the gap.
     excluded_fraction: float = 0.0
-    #: One entry per named effect: effect, sensors (1-based), confounded_with, evidence, and
-    #: t_s (steps) or frequency_hz (periodic terms).
+    #: One entry per named effect: effect, sensors (1-based), confounded_with, evidence,
+    #: t_s (steps) or frequency_hz (periodic terms), and status ('named' or 'unresolved',
+    #: then with unresolved_because and separated_by).
     findings: list[dict[str, Any]] = field(default_factory=list)
     settings: Settings = field(default_factory=Settings)
     series: dict[str, Any] = field(default_factory=dict, repr=False)
     #: The targets fitted as dipoles in the base model (:meth:`.dipoles.Target.to_dict`).
     targets: list[dict[str, Any]] = field(default_factory=list)
+    #: Effects fitted but not named: every finding of theirs is unresolved (its evidence
+    #: sits at a target's edge or at a recorded channel's frequency; :mod:`.unresolved`).
+    unresolved_effects: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -153,6 +157,7 @@ class Report:
             'excluded_fraction': self.excluded_fraction,
             'findings': list(self.findings),
             'targets': list(self.targets),
+            'unresolved_effects': list(self.unresolved_effects),
             'criterion': criterion_text(self.settings),
             'library': {c.name: c.physics for c in CANDIDATES},
             'runtime_s': self.runtime_s,

@@ -21,6 +21,7 @@ from .prepare import Prepared
 from .result import BASE_MODEL, Report, Settings, Step, format_parameters
 from .search import SearchResult
 from .targets import TargetSpans
+from .unresolved import named_and_unresolved, pass_intervals, resolve
 
 Array = NDArray[np.float64]
 
@@ -233,8 +234,25 @@ def build_report(
     if geometry is not None:
         diag['final_tensor_rms_nT_per_m'] = tensor_rms(prep, search.residuals[-1], geometry)
     view = '; B^b = R^T earth_field_enu from /odom' if prep.absolute else "; B^b = B_1' (no /odom)"
+    targets = _targets(search, info)
+    passes = []
+    if info.track is not None:
+        passes = [
+            pass_intervals(prep.t, info.track.position, np.asarray(t['position_m']))
+            for t in targets
+        ]
+        for target, own in zip(targets, passes, strict=True):
+            target['pass_intervals_s'] = [list(p) for p in own]
+    found = resolve(findings(search, steps), passes, info.targets.spans)
+    named, unresolved = named_and_unresolved([s.effect for s in steps], found)
+    notes = _closing_notes(search, info, excluded)
+    if unresolved:
+        notes.append(
+            f'unresolved (fitted, not named): {", ".join(unresolved)}; see unresolved_because '
+            'and separated_by in the findings'
+        )
     return Report(
-        named_effects=[s.effect for s in steps],
+        named_effects=named,
         steps=steps,
         gap_initial_nT=search.gaps[0],
         gap_final_nT=gap_final,
@@ -243,7 +261,7 @@ def build_report(
         adequate=bool(adequate),
         untestable=info.untestable,
         view='absolute' if prep.absolute else 'pair',
-        notes=_closing_notes(search, info, excluded),
+        notes=notes,
         rounds=search.rounds,
         diagnostics=diag,
         base_parameters=_base_parameters(search),
@@ -251,8 +269,9 @@ def build_report(
         runtime_s=runtime_s,
         excluded_spans=info.targets.spans,
         excluded_fraction=excluded,
-        findings=findings(search, steps),
+        findings=found,
         settings=info.settings,
         series=_series(prep, search, fields) if keep_series else {},
-        targets=_targets(search, info),
+        targets=targets,
+        unresolved_effects=unresolved,
     )
