@@ -163,13 +163,12 @@ def test_help_into_a_closed_pipe_ends_quietly(args, status):
 
 
 def _start_and_catch_writing(args, folder: Path) -> subprocess.Popen:
-    """Start the command and return once it owns a temporary folder (it is writing; a kill
-    before its owner file is written leaves an empty folder, removed only once a minute old:
-    test_only_a_dead_runs_own_temporaries_are_removed)."""
+    """Start the command and return once its temporary folder exists (it is writing; a kill
+    may land before its owner file is written)."""
     process = subprocess.Popen(_command(*args), env=_env(), stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
-    while not any((folder / name / OWNER).is_file() for name in _partials(folder)):
+    while not _partials(folder):
         assert process.poll() is None, f'finished before it could be caught: {process.stderr.read()}'
         assert time.monotonic() < deadline
         time.sleep(0.05)
@@ -228,9 +227,10 @@ def test_the_next_run_removes_a_killed_runs_temporaries(scenarios, tmp_path):
 def test_only_a_dead_runs_own_temporaries_are_removed(tmp_path):
     """remove_stale_temporaries: a live run's (this process), another kind's, one without an
     owner file but with something in it, an empty one made less than a minute ago (a run
-    about to write its owner file), another output's stay; a dead run's of the same kind and
-    output goes, and an empty one without an owner (or with a cut-short one) older than a
-    minute (a run killed before it owned it)."""
+    about to write its owner file), an empty one named by a live run, another output's stay;
+    a dead run's of the same kind and output goes, and an empty one without an owner (or
+    with a cut-short one) named by a dead run or older than a minute (a run killed before it
+    owned it)."""
     dead = subprocess.run([sys.executable, '-c', 'import os; print(os.getpid())'],
                           capture_output=True, text=True).stdout.strip()
     import json
@@ -263,6 +263,13 @@ def test_only_a_dead_runs_own_temporaries_are_removed(tmp_path):
     fresh_empty = tmp_path / '.out.new00000.partial'
     fresh_empty.mkdir()
     kept.append(fresh_empty)
+    start = (Path(f'/proc/{os.getpid()}/stat').read_text().rsplit(')', 1)[1].split()[19])
+    named_live = tmp_path / f'.out.live1111.{os.getpid()}-{start}.partial'
+    named_dead = tmp_path / f'.out.dead1111.{dead}-1.partial'
+    named_reused = tmp_path / f'.out.reus1111.{os.getpid()}-1.partial'  # this pid, another start
+    for folder in (named_live, named_dead, named_reused):
+        folder.mkdir()
+    kept.append(named_live)
     removed = remove_stale_temporaries(tmp_path / 'out', BAG)
-    assert sorted(removed) == sorted([gone, unowned_empty, cut_short])
+    assert sorted(removed) == sorted([gone, unowned_empty, cut_short, named_dead, named_reused])
     assert not any(folder.exists() for folder in removed) and all(folder.is_dir() for folder in kept)

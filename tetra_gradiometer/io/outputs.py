@@ -23,8 +23,8 @@ Every file or folder a command writes goes through :func:`atomic_output`:
   time and output kind), and only a folder of a run that no longer exists on this host is
   removed (never a concurrent run's, never one with anything else in it but no owner). A
   kill between ``mkdtemp`` and the owner file (microseconds; seen on a machine at load 10)
-  leaves an empty folder: removed once :data:`UNOWNED_EMPTY_AGE_S` old, when no live run
-  can still be about to write its owner file.
+  leaves an empty folder, ``.NAME.XXXXXXXX.PID-START.partial``: removed when that run no
+  longer exists, or once :data:`UNOWNED_EMPTY_AGE_S` old (a name without them).
 * **Disk full** (``ENOSPC``, ``EDQUOT``, ``EFBIG`` past a file-size limit) and sqlite3's
   ``database or disk is full`` while filling the temporary path are an :class:`OutputError`
   (one line), the temporary folder removed.
@@ -273,7 +273,12 @@ def atomic_output(
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(path, kind)
-        work = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', suffix='.partial', dir=path.parent))
+        # The name carries the run's pid and start too: a kill before OWNER is written
+        # leaves an empty folder whose run can still be told dead.
+        run = f'{os.getpid()}-{_process_start(os.getpid()) or 0}'
+        work = Path(
+            tempfile.mkdtemp(prefix=f'.{path.name}.', suffix=f'.{run}.partial', dir=path.parent)
+        )
         (work / OWNER).write_text(json.dumps(_owner(kind)), encoding='utf-8')
     except BaseException as error:
         if work is not None:
@@ -340,7 +345,8 @@ def remove_stale_temporaries(path: str | os.PathLike, kind: OutputKind) -> list[
     writing it as ``kind`` (see the module); return them. A folder is removed only when its
     :data:`OWNER` file names this host, ``kind`` and a process that no longer runs."""
     path = Path(path)
-    pattern = re.compile(rf'\.{re.escape(path.name)}\.[A-Za-z0-9_]{{8}}\.partial')
+    run = r'(?:\.(\d+)-(\d+))?'  # the run's pid and start, in names since they were added
+    pattern = re.compile(rf'\.{re.escape(path.name)}\.[A-Za-z0-9_]{{8}}{run}\.partial')
     removed: list[Path] = []
     try:
         entries = list(path.parent.iterdir())
@@ -348,29 +354,36 @@ def remove_stale_temporaries(path: str | os.PathLike, kind: OutputKind) -> list[
         return removed
     host = socket.gethostname()
     for entry in entries:
-        if not pattern.fullmatch(entry.name) or entry.is_symlink() or not entry.is_dir():
+        match = pattern.fullmatch(entry.name)
+        if not match or entry.is_symlink() or not entry.is_dir():
             continue
         try:
             owner = json.loads((entry / OWNER).read_text(encoding='utf-8'))
             mine = owner['host'] == host and owner['kind'] == kind.name
             stale = mine and not _alive(int(owner['pid']), owner.get('start'))
         except (OSError, ValueError, KeyError, TypeError):
-            stale = _unowned_and_empty(entry)  # else an older run's, or not ours: left alone
+            stale = _unowned_and_empty(entry, match)  # else an older run's, or not ours
         if stale:
             shutil.rmtree(entry, ignore_errors=True)
             removed.append(entry)
     return removed
 
 
-def _unowned_and_empty(folder: Path) -> bool:
-    """True for a temporary folder holding nothing but (maybe) a cut-short owner file, last
+def _unowned_and_empty(folder: Path, name: re.Match[str]) -> bool:
+    """True for a temporary folder holding nothing but (maybe) a cut-short owner file whose
+    run, named in ``name`` (pid, start), no longer exists, or (a name without them) last
     changed over :data:`UNOWNED_EMPTY_AGE_S` ago: a run killed before it owned it."""
     try:
         names = [entry.name for entry in folder.iterdir()]
         age_s = time.time() - folder.stat().st_mtime
     except OSError:
         return False
-    return set(names) <= {OWNER} and age_s > UNOWNED_EMPTY_AGE_S
+    if not set(names) <= {OWNER}:
+        return False
+    if name.group(1) is not None:
+        start = name.group(2)
+        return not _alive(int(name.group(1)), None if start == '0' else start)
+    return age_s > UNOWNED_EMPTY_AGE_S
 
 
 def output_folder(
