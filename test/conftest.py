@@ -23,21 +23,31 @@ _PHASE_START = pytest.StashKey[float]()
 #: The modules that take longest (CPU s with ``--cpu-durations``, wall for the ROS graphs;
 #: docs/testing.md), most first: collected first, hence sent to the workers first (pytest.ini:
 #: ``--dist loadfile --no-loadscope-reorder``), so that none of them starts last and runs alone
-#: at the end. Every other module follows in its usual order.
+#: at the end. Every other module follows in its usual order. test_docs_commands leads: its
+#: worker waits while the documented command blocks run in processes of their own, whose
+#: longest chain (the README's, ~25 s CPU one command after another) then ends early.
 SLOW_FIRST = (
+    'cli/test_docs_commands.py',
     'cli/test_batch.py',
-    'cli/test_compensate.py',
+    'ros/test_effects.py',
     'core/test_targets.py',
     'ros/test_shutdown.py',
+    'ros/test_calibrator.py',
     'ros/test_graph.py',
+    'io/test_realworld.py',
     'core/discrepancy/test_openworld.py',
     'ros/test_common.py',
-    'io/test_realworld.py',
     'core/discrepancy/test_analysis.py',
+    'pipelines/test_effects_bag.py',
     'cli/test_locate.py',
-    'ros/test_effects.py',
+    'cli/test_interrupts_and_full_disk.py',
+    'cli/test_survey.py',
+    'ros/test_calibration_authentication.py',
+    'cli/test_discrepancy.py',
+    'ros/test_tensor_replay.py',
+    'io/test_calibration.py',
     'ros/test_demo.py',
-    'ros/test_calibrator.py',
+    'cli/test_compensate.py',
 )
 
 

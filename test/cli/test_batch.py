@@ -108,10 +108,12 @@ def _kill_group(process: subprocess.Popen) -> None:
             process.wait(timeout=20)
 
 
-@pytest.fixture(scope='module')
+@pytest.fixture
 def scheduler(tmp_path_factory):
     """``dask scheduler`` and two ``dask worker`` processes of this environment on a free
-    port (the scheduler picks it and writes it to its scheduler file)."""
+    port (the scheduler picks it and writes it to its scheduler file). One test uses them:
+    function scope ends them with it (idle, the three processes still spin: module scope kept
+    them, and their CPU, through the rest of the module)."""
     from dask.distributed import Client
 
     work = tmp_path_factory.mktemp('dask')

@@ -1,11 +1,19 @@
 """cli/compensate.py (with cli/simulate.py and cli/calibrate.py before it) end to end, through
-the CLI in a subprocess: simulate -> bag -> calibrate -> compensate, checked against
-independent truth (the simulator's ground truth, closed-form fields); the failures of both
-commands with the one error line that names the problem."""
+the CLI: simulate -> bag -> calibrate -> compensate, checked against independent truth (the
+simulator's ground truth, closed-form fields); the failures of both commands with the one
+error line that names the problem.
+
+The commands run in-process through ``__main__.main`` (the code path of ``python -m
+tetra_gradiometer``: parsing, the one ``error:`` line, exit statuses 1 and 2); one round trip
+(mcap) runs as real subprocesses, the entry point and interpreter exit included. A subprocess
+costs ~0.9 s CPU of imports (docs/testing.md), and this module ran ~40 of them."""
+import contextlib
+import io
 import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,6 +22,7 @@ import yaml
 from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.core import TetraGeometry, dipole_field, dipole_gradient, noise_floor
 from tetra_gradiometer.io.bag import BagWriter
+from tetra_gradiometer.__main__ import main
 from tetra_gradiometer.io.params import params_document
 
 REPO = Path(__file__).resolve().parents[2]
@@ -22,11 +31,31 @@ NOISE_NT = 0.05
 EDGE_M = 0.5
 
 
-def cli(*args, check=True):
+def cli_process(*args, check=True):
+    """``python -m tetra_gradiometer ARGS`` in a subprocess: its exit status, stdout, stderr."""
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.pop('TETRA_DEBUG', None)
     result = subprocess.run([sys.executable, '-m', 'tetra_gradiometer', *map(str, args)], capture_output=True,
                             text=True, env=env, cwd=REPO, timeout=300)
+    if check and result.returncode != 0:
+        raise AssertionError(f'exit {result.returncode}\nstdout: {result.stdout}\nstderr: {result.stderr}')
+    return result
+
+
+def cli(*args, check=True):
+    """The same in-process (``__main__.main``): what a subprocess would return, without its
+    ~0.9 s of imports. A usage error (argparse's SystemExit) is exit status 2, as there."""
+    debug = os.environ.pop('TETRA_DEBUG', None)  # it would add a traceback to the error line
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as stop:
+            code = stop.code if isinstance(stop.code, int) else 1
+        finally:
+            if debug is not None:
+                os.environ['TETRA_DEBUG'] = debug
+    result = SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())
     if check and result.returncode != 0:
         raise AssertionError(f'exit {result.returncode}\nstdout: {result.stdout}\nstderr: {result.stderr}')
     return result
@@ -54,10 +83,11 @@ def read_csv(path):
 
 @pytest.mark.parametrize('storage,reference_clean', [('sqlite3', True), ('mcap', False)])
 def test_round_trip_reaches_the_noise_floor(tmp_path, storage, reference_clean):
+    run = cli if storage == 'sqlite3' else cli_process  # mcap: the real entry point, as a user runs it
     scenario = tmp_path / 'mission.yaml'
     scenario.write_text(yaml.safe_dump(small_mission(reference_clean)))
     bag = tmp_path / 'mission'
-    out = cli('simulate', '--scenario', scenario, '--out', bag, '--storage', storage,
+    out = run('simulate', '--scenario', scenario, '--out', bag, '--storage', storage,
               '--start-utc', '2026-01-01T00:00:00Z')
     assert 'simulated 1200 sample sets' in out.stdout
     assert list(bag.glob('*.mcap' if storage == 'mcap' else '*.db3'))
@@ -66,7 +96,7 @@ def test_round_trip_reaches_the_noise_floor(tmp_path, storage, reference_clean):
     assert np.isclose(np.linalg.norm(params['earth_field_enu']), 50_000e-9, rtol=1e-6)
     truth = np.load(tmp_path / 'mission.truth.npz')
 
-    out = cli('calibrate', bag, '--params', tmp_path / 'mission.params.yaml', '--window', '0:59.95',
+    out = run('calibrate', bag, '--params', tmp_path / 'mission.params.yaml', '--window', '0:59.95',
               '--out', tmp_path / 'calib.yaml')
     assert 'rank 36' in out.stdout and 'condition number' in out.stdout and 'attitude coverage' in out.stdout
     calibration = yaml.safe_load((tmp_path / 'calib.yaml').read_text())
@@ -76,9 +106,9 @@ def test_round_trip_reaches_the_noise_floor(tmp_path, storage, reference_clean):
     assert np.allclose(calibration['b_hard_T'], truth['b_effective'], atol=0.5e-9)
     assert np.allclose(calibration['k_soft'], truth['k_effective'], atol=1e-5)
 
-    cli('compensate', bag, '--params', tmp_path / 'mission.params.yaml', '--calibration', tmp_path / 'calib.yaml',
+    run('compensate', bag, '--params', tmp_path / 'mission.params.yaml', '--calibration', tmp_path / 'calib.yaml',
         '--csv', tmp_path / 'comp.csv', '--out-bag', tmp_path / 'comp_bag')
-    cli('compensate', bag, '--params', tmp_path / 'mission.params.yaml', '--raw', '--csv', tmp_path / 'raw.csv')
+    run('compensate', bag, '--params', tmp_path / 'mission.params.yaml', '--raw', '--csv', tmp_path / 'raw.csv')
     header, stamps, compensated = read_csv(tmp_path / 'comp.csv')
     _, raw_stamps, raw = read_csv(tmp_path / 'raw.csv')
     assert header == ('stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz,'

@@ -1,5 +1,5 @@
-"""cli/locate.py end to end through the CLI in a subprocess: simulate (trim, then survey
-lines over two dipoles) -> calibrate on the trim -> locate; the targets against the
+"""cli/locate.py end to end through the CLI (in-process, test_compensate.cli): simulate (trim,
+then survey lines over two dipoles) -> calibrate on the trim -> locate; the targets against the
 simulator's dipoles (ground truth), targets.json through its reader; the refusals."""
 import json
 
