@@ -20,6 +20,11 @@ from tetra_gradiometer.io.scenario import load_scenario, load_scenario_or_defaul
 
 NT = 1e-9
 GEOMETRY = core.TetraGeometry.regular(0.5)
+#: The bag replays at 8x real time (400 sets/s), not at rate 0: rate 0 paces the driver on the
+#: tensor node alone, and a calibrator or compensator starved of CPU (3 test workers on 2
+#: cores, measured) overflows its 1000-set reader queue within the 1200 and 1500 sets of these
+#: bags and drops the oldest; at 8x it has 3-4 s to take them.
+REPLAY_RATE = 8.0
 
 
 def _diag(probe, name: str) -> dict:
@@ -86,7 +91,9 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
             probe.collecting = True
         assert probe.call('driver/resume').success
         wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'survey', graph)
-        wait_for(lambda: len(probe.tensors['gradient/truth']) == len(survey), 10, 'all truth tensors', graph)
+        # A tensor the loaded test process did not take in time comes again after the reliable
+        # writer's next heartbeat (Fast DDS: 3 s), and its queue holds 1000 (5 s at 20x).
+        wait_for(lambda: len(probe.tensors['gradient/truth']) == len(survey), 20, 'all truth tensors', graph)
         time.sleep(1.0)
         stamps, g_raw, g_comp, g_true = probe.paired()
         percent = probe.percent
@@ -114,20 +121,20 @@ def test_replayed_bags_give_the_offline_core_tensors(tmp_path):
         graph.start('tensor')
         graph.start('calibrator', calibration_file=str(calibration_file))
         graph.start('compensator', calibration_file=str(calibration_file))
-        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'trim'), rate=0.0, start_paused=True,
-                    min_subscribers=1)
+        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'trim'), rate=REPLAY_RATE,
+                    start_paused=True, min_subscribers=1)
         _wait_discovered(probe, graph)
         assert probe.call('calibrator/start').success
         assert probe.call('driver/resume').success
         wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'trim replay', graph)
-        # The driver paces on the tensor node; the calibrator (a process of its own, with its
-        # trim guidance) may still be working through its queue: let it, before stopping.
+        # The calibrator (a process of its own, with its trim guidance) may still be working
+        # through its queue: let it, before stopping.
         wait_for(lambda: _diag(probe, 'tetra/calibrator: calibration').get('samples') == '1200', 20,
                  'the calibrator to take every set', graph)
         assert probe.call('calibrator/stop').success
         reply = probe.call('calibrator/calibrate', timeout_s=60)
         assert reply.success, reply.message
-        assert '1200 samples' in reply.message                   # rate 0: nothing dropped
+        assert '1200 samples' in reply.message                   # nothing dropped
         saved = load_calibration(calibration_file)
         assert np.abs(saved.parameters.k_soft - exact.k_soft).max() < 2e-5
         assert np.abs(saved.parameters.b_hard - exact.b_hard).max() < 1.0 * NT
@@ -137,12 +144,12 @@ def test_replayed_bags_give_the_offline_core_tensors(tmp_path):
         graph.stop('driver')
         with probe.lock:
             probe.collecting = True
-        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'survey'), rate=0.0, min_subscribers=1,
-                    start_paused=True)
+        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'survey'), rate=REPLAY_RATE,
+                    min_subscribers=1, start_paused=True)
         # The new driver's truth publisher must be known to the compensator and the probe first.
         wait_for(lambda: probe.count_publishers('/tetra/gradient/truth') >= 1, 30, 'the new driver', graph)
         wait_connected(probe, graph, 'driver', '/tetra/gradient/truth', 1)
-        wait_tensor_delivers(probe, graph, raw=4, reference=2, readers=('compensator',))
+        wait_tensor_delivers(probe, graph, raw=3, reference=2, readers=('compensator',))
         assert probe.call('driver/resume').success
         # Polled cheaply (paired() under the probe's lock every 20 ms slowed its thread until
         # the replay outran it); the probe may still be taking the trim's last tensors when
