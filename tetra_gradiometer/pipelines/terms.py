@@ -144,6 +144,8 @@ class WindowTerms:
         }
         if self.selection is not None:
             out['tests'] = self.selection.evidence
+            if self.selection.unsolved:
+                out['unsolved'] = self.selection.unsolved
         return out
 
 
@@ -292,7 +294,7 @@ def terms_on(
         min_gain=MIN_GAIN if strict else -np.inf,
     )
     chosen = selection.chosen
-    notes = (_note(choice, selection, lacking), *redundant)
+    notes = (_note(choice, selection, lacking), *unsolved_notes(selection, candidates), *redundant)
     return WindowTerms(chosen, selection, lacking, found, notes)
 
 
@@ -321,6 +323,18 @@ def _independent(
 def _pairs(fields: FloatArray, geometry: TetraGeometry) -> FloatArray:
     """The pair differences ``B_i' - B_1'`` as (n, 3 axes, 3 pairs), T (eq. 7 times a)."""
     return np.swapaxes(fields[:, 1:, :] - fields[:, :1, :], 1, 2)
+
+
+def unsolved_notes(selection: Selection, candidates: list[Candidate]) -> tuple[str, ...]:
+    """One note per candidate whose held-out solve failed (:attr:`Selection.unsolved`): it
+    was not kept, and the note says which effect, on which channels, and why."""
+    inputs = {c.name: c.inputs for c in candidates}
+    return tuple(
+        f'effects: {name}'
+        + (f' ({", ".join(inputs[name])})' if inputs.get(name) else '')
+        + f' could not be tested, its held-out solve failed ({why}): not kept'
+        for name, why in selection.unsolved.items()
+    )
 
 
 def _note(choice: EffectsChoice, selection: Selection, lacking: dict[str, str]) -> str:

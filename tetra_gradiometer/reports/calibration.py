@@ -243,6 +243,10 @@ def _effects_lines(effects: dict[str, Any]) -> list[str]:
             f'p {test["p_value"]:.2g}: {"kept" if test["kept"] else "not kept"}'
         )
     lines += [
+        f'- {name}: not tested, its held-out solve failed ({why}): not kept'
+        for name, why in effects.get('unsolved', {}).items()
+    ]
+    lines += [
         f'- {name}: cannot be fitted, needs {what}' for name, what in effects['lacking'].items()
     ]
     return [*lines, '']

@@ -323,12 +323,27 @@ def _design(b_reference: FloatArray, chosen: list[Candidate]) -> FloatArray:
 def _heldout_rss(
     pairs: FloatArray, x: FloatArray, regional: FloatArray | None, folds: np.ndarray
 ) -> float:
-    """Sum of squares of the whitened residual of each fold predicted by the others."""
+    """Sum of squares of the whitened residual of each fold predicted by the others.
+
+    Raises
+    ------
+    IdentifiabilityError
+        The fit on the other folds cannot be solved (the message says which fold it left
+        out, e.g. a channel that varies only in that fold).
+    """
     total = 0.0
-    for fold in np.unique(folds):
+    blocks = np.unique(folds)
+    for fold in blocks:
         test = folds == fold
         train = ~test
-        fit = solve_pairs(pairs[train], x[train], None if regional is None else regional[train])
+        try:
+            fit = solve_pairs(
+                pairs[train], x[train], None if regional is None else regional[train]
+            )
+        except (IdentifiabilityError, np.linalg.LinAlgError) as error:
+            raise IdentifiabilityError(
+                f'fitted without block {fold + 1} of {len(blocks)}: {error}'
+            ) from None
         predicted = x[test] @ (
             fit.theta.reshape(x.shape[1], 9) @ np.kron(np.eye(3), PAIR_WHITENER)
         )
@@ -364,12 +379,16 @@ class Selection:
         axis; F, p-value, gain, kept), for every candidate tested
     lacking : effect name -> what it would need that the data lack
     heldout_rms_nT : held-out RMS of the final set (whitened pair residual, nT)
+    unsolved : effect name -> why its held-out solve failed (against which set, which
+        block, the solver's reason), for every candidate that could not be tested the last
+        time it was offered: it is not kept, and says so rather than vanish
     """
 
     chosen: tuple[Candidate, ...]
     evidence: dict[str, dict[str, Any]]
     lacking: dict[str, str] = field(default_factory=dict)
     heldout_rms_nT: float = float('nan')
+    unsolved: dict[str, str] = field(default_factory=dict)
 
 
 def select_terms(
@@ -408,15 +427,17 @@ def select_terms(
     chosen: list[Candidate] = []
     rss = _heldout_rss(y, _design(b1, chosen), reg, fold_of)
     evidence: dict[str, dict[str, Any]] = {}
+    unsolved: dict[str, str] = {}
     rows = 9 * n
     remaining = list(sub)
     while remaining and rss > 0:
         tests = []
         for candidate in remaining:
-            try:
-                rss_with = _heldout_rss(y, _design(b1, [*chosen, candidate]), reg, fold_of)
-            except IdentifiabilityError:
+            rss_with, why = _candidate_rss(y, b1, chosen, candidate, reg, fold_of)
+            if why:
+                unsolved[candidate.name] = why
                 continue
+            unsolved.pop(candidate.name, None)
             f_stat, p_value, gain = _held_out_test(rss, rss_with, 9 * candidate.size, rows)
             passed = p_value < alpha / len(remaining) and gain >= min_gain
             tests.append((passed, gain, candidate, rss_with, f_stat, p_value))
@@ -442,7 +463,29 @@ def select_terms(
             (c for c in candidates if c.name in names), key=lambda c: names.index(c.name)
         )
     )
-    return Selection(final, evidence, heldout_rms_nT=float(np.sqrt(rss / rows) * NT_PER_T))
+    return Selection(
+        final, evidence, heldout_rms_nT=float(np.sqrt(rss / rows) * NT_PER_T), unsolved=unsolved
+    )
+
+
+def _candidate_rss(
+    y: FloatArray,
+    b1: FloatArray,
+    chosen: list[Candidate],
+    candidate: Candidate,
+    regional: FloatArray | None,
+    folds: np.ndarray,
+) -> tuple[float, str]:
+    """The held-out sum of squares with ``candidate`` added to ``chosen``, or NaN and why
+    that solve failed (singular on some fold's complement, non-finite)."""
+    against = ' + '.join(['k, b', *(c.name for c in chosen)])
+    try:
+        rss_with = _heldout_rss(y, _design(b1, [*chosen, candidate]), regional, folds)
+    except IdentifiabilityError as error:
+        return float('nan'), f'with {against}, {error}'
+    if not np.isfinite(rss_with):
+        return float('nan'), f'with {against}, the held-out residual is not finite'
+    return rss_with, ''
 
 
 def fit_with_terms(
