@@ -22,7 +22,10 @@ the channel's last (a restarted replay) forgets the channel's earlier messages.
 * :class:`LiveEffects` (compensator): a calibration's terms evaluated per set
   (:class:`~tetra_gradiometer.core.effects.LiveTerms`: the eddy rate keeps its history,
   reset when the sets' stamps go back); a set where a regressor is unknown is dropped and
-  counted per channel, with the reason for ``/diagnostics``.
+  counted per channel, with the reason for ``/diagnostics``. A set that arrives before a
+  channel's message at or after its stamp is held until it comes (:meth:`LiveEffects.
+  submit`, at most :data:`HOLD_PERIODS` of the channel's periods), so that its value is the
+  interpolated one, as offline.
 """
 
 from __future__ import annotations

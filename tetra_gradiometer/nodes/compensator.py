@@ -27,7 +27,9 @@ Vehicle effects (issue 28): a calibration with terms (``vehicle_current``, ``edd
 channels they read (``/tetra/temperature``, sensor_msgs/Temperature; the BatteryState topic
 of each ``current:<topic>``; :mod:`.channels`), evaluate the terms' regressors on each set
 (the channels interpolated onto its stamp; the eddy rate from the sets before it) and
-compensate and compute the sigma with them, as ``compensate`` does offline. A channel that
+compensate and compute the sigma with them, as ``compensate`` does offline (a set that
+arrives before a channel's message at or after its stamp waits for it, bounded:
+:meth:`.channels.LiveEffects.submit`). A channel that
 is missing or stale at a set is never taken as zero: the set is dropped (nothing published
 for it), counted per channel, and ``/diagnostics`` goes WARN naming the channel.
 """
