@@ -1,12 +1,14 @@
-"""Live vs offline channel timing (issue 28): how far the compensator node's value of a channel
-can be from ``compensate``'s, and what that does to the compensated tensor.
+"""Live vs offline channel timing (issue 28): how far a channel's last message is from
+``compensate``'s interpolated value, and what that does to the compensated tensor: what the
+compensator node did before it held a set for its channels' next message (and does for a set
+released at the hold's bound; docs/ros.md, *Vehicle effects*).
 
     .venv/bin/python bench/bench_channel_timing.py [--json FILE]
 
 Offline, ``compensate`` interpolates each channel linearly onto the set's stamp between the
 messages on both sides (``io/channels.ChannelSeries.on``). Live, the compensator node has
-only the messages received so far (``nodes/channels.ChannelBuffer.at``): when a set arrives
-before the channel's message at or after its stamp, it takes the last message's value. This
+only the messages received so far (``nodes/channels.ChannelBuffer.at``): a set taken before
+the channel's message at or after its stamp gets the last message's value. This
 script takes the bag of ``test/ros/test_effects.py`` (its scenario, copied: 60 s trim then a
 60 s line at 20 Hz, battery current stepping 12 A every 10 s, eddy currents, thermal
 drift; ``/battery_state`` and ``/tetra/temperature`` at every set's stamp), calibrates on the
