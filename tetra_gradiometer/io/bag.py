@@ -17,7 +17,7 @@ Fast paths (the generic ones stay, and a test checks both agree):
   ``TimeBase(sync='nearest')``, by pairing stamps: when the next stamps of the four sensors
   are identical and increasing (a synchronised driver), the batch is emitted with array
   operations; otherwise it goes message by message through
-  :class:`~tetra_gradiometer.matching.StampMatcher`.
+  :class:`~tetra_gradiometer.io.matching.StampMatcher`.
 * :meth:`BagWriter.write_fields` and :meth:`BagWriter.write_tensors` encode MagneticField
   and the tensor JointState directly (``conversions.magnetic_field_cdr``,
   ``conversions.TensorCdr``: the nodes' writers), byte-identical to rosbags' serializer.
