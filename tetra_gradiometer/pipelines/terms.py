@@ -294,7 +294,11 @@ def terms_on(
         min_gain=MIN_GAIN if strict else -np.inf,
     )
     chosen = selection.chosen
-    notes = (_note(choice, selection, lacking), *unsolved_notes(selection, candidates), *redundant)
+    notes = (
+        _note(choice, selection, lacking),
+        *_unsolved_notes(selection, candidates),
+        *redundant,
+    )
     return WindowTerms(chosen, selection, lacking, found, notes)
 
 
@@ -325,7 +329,7 @@ def _pairs(fields: FloatArray, geometry: TetraGeometry) -> FloatArray:
     return np.swapaxes(fields[:, 1:, :] - fields[:, :1, :], 1, 2)
 
 
-def unsolved_notes(selection: Selection, candidates: list[Candidate]) -> tuple[str, ...]:
+def _unsolved_notes(selection: Selection, candidates: list[Candidate]) -> tuple[str, ...]:
     """One note per candidate whose held-out solve failed (:attr:`Selection.unsolved`): it
     was not kept, and the note says which effect, on which channels, and why."""
     inputs = {c.name: c.inputs for c in candidates}
