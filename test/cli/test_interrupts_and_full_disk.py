@@ -163,11 +163,13 @@ def test_help_into_a_closed_pipe_ends_quietly(args, status):
 
 
 def _start_and_catch_writing(args, folder: Path) -> subprocess.Popen:
-    """Start the command and return once its temporary folder exists (it is writing)."""
+    """Start the command and return once it owns a temporary folder (it is writing; a kill
+    before its owner file is written leaves an empty folder, removed only once a minute old:
+    test_only_a_dead_runs_own_temporaries_are_removed)."""
     process = subprocess.Popen(_command(*args), env=_env(), stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
-    while not _partials(folder):
+    while not any((folder / name / OWNER).is_file() for name in _partials(folder)):
         assert process.poll() is None, f'finished before it could be caught: {process.stderr.read()}'
         assert time.monotonic() < deadline
         time.sleep(0.05)
@@ -225,7 +227,10 @@ def test_the_next_run_removes_a_killed_runs_temporaries(scenarios, tmp_path):
 
 def test_only_a_dead_runs_own_temporaries_are_removed(tmp_path):
     """remove_stale_temporaries: a live run's (this process), another kind's, one without an
-    owner file, another output's stay; a dead run's of the same kind and output goes."""
+    owner file but with something in it, an empty one made less than a minute ago (a run
+    about to write its owner file), another output's stay; a dead run's of the same kind and
+    output goes, and an empty one without an owner (or with a cut-short one) older than a
+    minute (a run killed before it owned it)."""
     dead = subprocess.run([sys.executable, '-c', 'import os; print(os.getpid())'],
                           capture_output=True, text=True).stdout.strip()
     import json
@@ -247,5 +252,17 @@ def test_only_a_dead_runs_own_temporaries_are_removed(tmp_path):
         partial('.out.none0000.partial', None),
         partial('.out2.abcd1234.partial', {'host': host, 'pid': int(dead), 'kind': BAG.name}),
     ]
-    assert remove_stale_temporaries(tmp_path / 'out', BAG) == [gone]
-    assert not gone.exists() and all(folder.is_dir() for folder in kept)
+    old = time.time() - 120.0
+    unowned_empty = tmp_path / '.out.empt0000.partial'
+    unowned_empty.mkdir()
+    cut_short = tmp_path / '.out.half0000.partial'
+    cut_short.mkdir()
+    (cut_short / OWNER).write_text('{"host": "')
+    for folder in (unowned_empty, cut_short, kept[3]):
+        os.utime(folder, (old, old))
+    fresh_empty = tmp_path / '.out.new00000.partial'
+    fresh_empty.mkdir()
+    kept.append(fresh_empty)
+    removed = remove_stale_temporaries(tmp_path / 'out', BAG)
+    assert sorted(removed) == sorted([gone, unowned_empty, cut_short])
+    assert not any(folder.exists() for folder in removed) and all(folder.is_dir() for folder in kept)

@@ -21,7 +21,10 @@ Every file or folder a command writes goes through :func:`atomic_output`:
   ``.NAME.XXXXXXXX.partial`` folder, which the next run writing the same target as the same
   kind removes: the temporary folder holds :data:`OWNER` (the run's host, pid, process start
   time and output kind), and only a folder of a run that no longer exists on this host is
-  removed (never a concurrent run's, never one without that file).
+  removed (never a concurrent run's, never one with anything else in it but no owner). A
+  kill between ``mkdtemp`` and the owner file (microseconds; seen on a machine at load 10)
+  leaves an empty folder: removed once :data:`UNOWNED_EMPTY_AGE_S` old, when no live run
+  can still be about to write its owner file.
 * **Disk full** (``ENOSPC``, ``EDQUOT``, ``EFBIG`` past a file-size limit) and sqlite3's
   ``database or disk is full`` while filling the temporary path are an :class:`OutputError`
   (one line), the temporary folder removed.
@@ -40,6 +43,7 @@ import signal
 import socket
 import sqlite3
 import tempfile
+import time
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -81,6 +85,9 @@ SQLITE_STORAGE_ERRORS = ('database or disk is full', 'disk I/O error')
 #: Name of the file in a run's temporary folder naming its owner (JSON: host, pid, start,
 #: kind), beside the output being filled (never inside it).
 OWNER = '.owner'
+#: An empty temporary folder without a readable owner file, older than this (s, by its
+#: mtime), is a run's killed before it wrote :data:`OWNER`: removed.
+UNOWNED_EMPTY_AGE_S = 60.0
 
 
 def _starts_with(prefix: bytes) -> Callable[[Path], bool]:
@@ -348,11 +355,22 @@ def remove_stale_temporaries(path: str | os.PathLike, kind: OutputKind) -> list[
             mine = owner['host'] == host and owner['kind'] == kind.name
             stale = mine and not _alive(int(owner['pid']), owner.get('start'))
         except (OSError, ValueError, KeyError, TypeError):
-            continue  # no owner file (an older run's, or not ours): left alone
+            stale = _unowned_and_empty(entry)  # else an older run's, or not ours: left alone
         if stale:
             shutil.rmtree(entry, ignore_errors=True)
             removed.append(entry)
     return removed
+
+
+def _unowned_and_empty(folder: Path) -> bool:
+    """True for a temporary folder holding nothing but (maybe) a cut-short owner file, last
+    changed over :data:`UNOWNED_EMPTY_AGE_S` ago: a run killed before it owned it."""
+    try:
+        names = [entry.name for entry in folder.iterdir()]
+        age_s = time.time() - folder.stat().st_mtime
+    except OSError:
+        return False
+    return set(names) <= {OWNER} and age_s > UNOWNED_EMPTY_AGE_S
 
 
 def output_folder(
