@@ -1,12 +1,14 @@
-"""Live vs offline channel timing (issue 28): how far the compensator node's value of a channel
-can be from ``compensate``'s, and what that does to the compensated tensor.
+"""Live vs offline channel timing (issue 28): how far a channel's last message is from
+``compensate``'s interpolated value, and what that does to the compensated tensor: what the
+compensator node did before it held a set for its channels' next message (and does for a set
+released at the hold's bound; docs/ros.md, *Vehicle effects*).
 
     .venv/bin/python bench/bench_channel_timing.py [--json FILE]
 
 Offline, ``compensate`` interpolates each channel linearly onto the set's stamp between the
 messages on both sides (``io/channels.ChannelSeries.on``). Live, the compensator node has
-only the messages received so far (``nodes/channels.ChannelBuffer.at``): when a set arrives
-before the channel's message at or after its stamp, it takes the last message's value. This
+only the messages received so far (``nodes/channels.ChannelBuffer.at``): a set taken before
+the channel's message at or after its stamp gets the last message's value. This
 script takes the bag of ``test/ros/test_effects.py`` (its scenario, copied: 60 s trim then a
 60 s line at 20 Hz, battery current stepping 12 A every 10 s, eddy currents, thermal
 drift; ``/battery_state`` and ``/tetra/temperature`` at every set's stamp), calibrates on the
@@ -17,6 +19,7 @@ channels recorded at 1 Hz (a typical BatteryState rate), live then being up to 1
 Printed: RMS and largest difference over the sets and nine components, nT/m, and over the
 tensor's noise floor.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -66,11 +69,27 @@ def scenario() -> dict:
         'temperature': {'mean_c': 15.0, 'ramp_c': 4.0, 'amplitude_c': 0.5, 'period_s': 437.0},
         'dipoles': [{'position_m': [0.0, 0.0, -80.0], 'moment_Am2': [30000.0, 20000.0, -33000.0]}],
         'segments': [
-            {'trim': {'duration_s': 60, 'center_m': [3000.0, 3000.0, -50.0],
-                      'heading_rate_deg_s': 6.0, 'roll_amplitude_deg': 25.0, 'roll_period_s': 11.0,
-                      'pitch_amplitude_deg': 20.0, 'pitch_period_s': 17.0, 'speed_m_s': 1.0}},
-            {'line': {'start_m': [-60.0, 0.0, -50.0], 'end_m': [60.0, 0.0, -50.0],
-                      'speed_m_s': 2.0, 'roll_amplitude_deg': 2.0, 'pitch_amplitude_deg': 1.0}},
+            {
+                'trim': {
+                    'duration_s': 60,
+                    'center_m': [3000.0, 3000.0, -50.0],
+                    'heading_rate_deg_s': 6.0,
+                    'roll_amplitude_deg': 25.0,
+                    'roll_period_s': 11.0,
+                    'pitch_amplitude_deg': 20.0,
+                    'pitch_period_s': 17.0,
+                    'speed_m_s': 1.0,
+                }
+            },
+            {
+                'line': {
+                    'start_m': [-60.0, 0.0, -50.0],
+                    'end_m': [60.0, 0.0, -50.0],
+                    'speed_m_s': 2.0,
+                    'roll_amplitude_deg': 2.0,
+                    'pitch_amplitude_deg': 1.0,
+                }
+            },
         ],
     }
 
@@ -95,7 +114,9 @@ def difference(bag: Path, calibration: Path, stride: int, lagged: tuple[str, ...
         for name in terms_channels(parameters.terms):
             s = reader.read_series(channel_topic(name))
             full[name] = ChannelSeries(name, s.stamps_ns, s.values[:, 0])
-    series = {n: ChannelSeries(n, s.stamps_ns[::stride], s.values[::stride]) for n, s in full.items()}
+    series = {
+        n: ChannelSeries(n, s.stamps_ns[::stride], s.values[::stride]) for n, s in full.items()
+    }
     t_s = (stamps - stamps[0]) * 1e-9
     b1 = fields[:, 0, :]
     raw = difference_tensor(fields, GEOMETRY)
@@ -140,9 +161,19 @@ def run() -> list[dict]:
         path = folder / 'effects.yaml'
         path.write_text(yaml.safe_dump(scenario()))
         bag, params, calibration = folder / 'bag', folder / 'bag.params.yaml', folder / 'c.yaml'
-        for args in (['simulate', '--scenario', path, '--out', bag],
-                     ['calibrate', bag, '--params', params, '--window', f'0:{TRIM_S}', '--out',
-                      calibration]):
+        for args in (
+            ['simulate', '--scenario', path, '--out', bag],
+            [
+                'calibrate',
+                bag,
+                '--params',
+                params,
+                '--window',
+                f'0:{TRIM_S}',
+                '--out',
+                calibration,
+            ],
+        ):
             assert main([str(a) for a in args]) == 0
         return [
             difference(bag, calibration, stride, lagged)

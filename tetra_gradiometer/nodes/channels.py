@@ -22,13 +22,17 @@ the channel's last (a restarted replay) forgets the channel's earlier messages.
 * :class:`LiveEffects` (compensator): a calibration's terms evaluated per set
   (:class:`~tetra_gradiometer.core.effects.LiveTerms`: the eddy rate keeps its history,
   reset when the sets' stamps go back); a set where a regressor is unknown is dropped and
-  counted per channel, with the reason for ``/diagnostics``.
+  counted per channel, with the reason for ``/diagnostics``. A set that arrives before a
+  channel's message at or after its stamp is held until it comes (:meth:`LiveEffects.
+  submit`, at most :data:`HOLD_PERIODS` of the channel's periods), so that its value is the
+  interpolated one, as offline.
 """
 
 from __future__ import annotations
 
 import bisect
 import threading
+from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
@@ -52,6 +56,11 @@ MAX_MESSAGES = 125_000
 #: The compensator forgets a channel's messages older than its gap limit before the last
 #: set in steps of this many (the per-set cost stays a bisection).
 PRUNE_STEP = 256
+#: A channel's message period is the median spacing of its last this many messages.
+PERIOD_MESSAGES = 16
+#: A set waits for a lagging channel at most this many of its periods (of later sets'
+#: stamps, or of the steady clock): one for the next message to be due, one for its delivery.
+HOLD_PERIODS = 2.0
 
 
 class ChannelBuffer:
@@ -108,6 +117,15 @@ class ChannelBuffer:
         after = bisect.bisect_left(self.stamps, stamp_ns)
         near = self.stamps[max(after - 1, 0) : after + 1]
         return min(abs(s - stamp_ns) for s in near) * S_PER_NS
+
+    def period_s(self) -> float:
+        """The channel's message period, s: the median spacing of its last
+        :data:`PERIOD_MESSAGES` messages, at most its gap limit (the limit with one message:
+        a set within it of that message has its value, offline too)."""
+        recent = np.diff(np.asarray(self.stamps[-PERIOD_MESSAGES:], dtype=np.int64))
+        if not len(recent):
+            return self.max_gap_s
+        return min(float(np.median(recent)) * S_PER_NS, self.max_gap_s)
 
     def prune(self, stamp_ns: int) -> None:
         """Forget the messages no set at or after ``stamp_ns`` can use (all but the last one
@@ -258,8 +276,13 @@ class LiveEffects:
         self.dropped: dict[str, int] = {}
         self.reason = ''
         self.resets = 0
+        self.held = 0
+        self.released_at_bound = 0
+        self._dropped_reported = 0  # channel drops already on /diagnostics
         self._origin_ns: int | None = None
         self._last_ns: int | None = None
+        self._queue: deque[tuple[int, float, Any]] = deque()  # (stamp, arrival s, the set)
+        self._newest_ns = 0
 
     @property
     def names(self) -> str:
@@ -295,6 +318,73 @@ class LiveEffects:
             else f'{REFERENCE_RATE}: the eddy rate needs the sets before (a start or a jump)'
         )
         return None
+
+    def submit(self, stamp_ns: int, item: Any, now_s: float) -> list[Any]:
+        """Queue the set ``item`` at ``stamp_ns`` (arrived at ``now_s``, a steady clock, s);
+        returns the sets to compensate now, in order (:meth:`release`). A set is held until
+        every channel with messages has one at or after its stamp (its value is then
+        interpolated, as offline), for at most :data:`HOLD_PERIODS` periods of the lagging
+        channel (of later sets' stamps or of the steady clock); a stamp that goes back (a
+        restarted replay) releases the queue."""
+        out = self.release(now_s, flush=True) if stamp_ns <= self._newest_ns else []
+        self._newest_ns = stamp_ns
+        self._queue.append((stamp_ns, now_s, item))
+        out += self.release(now_s)
+        self.held += bool(self._queue)
+        return out
+
+    def release(self, now_s: float, *, flush: bool = False) -> list[Any]:
+        """The queued sets that need wait no longer, in order: their channels' messages have
+        reached their stamp, or they waited :data:`HOLD_PERIODS` periods of a lagging channel
+        (sets' stamps or the steady clock ``now_s``; counted in :attr:`released_at_bound`),
+        or ``flush``."""
+        out = []
+        while self._queue:
+            stamp_ns, arrived_s, item = self._queue[0]
+            bound = HOLD_PERIODS * max(
+                (
+                    b.period_s()
+                    for b in self.channels.values()
+                    if b.stamps and b.stamps[-1] < stamp_ns
+                ),
+                default=0.0,
+            )
+            if bound > 0.0:
+                waited = max((self._newest_ns - stamp_ns) * S_PER_NS, now_s - arrived_s)
+                if waited <= bound and not flush:
+                    break
+                self.released_at_bound += 1
+            out.append(item)
+            self._queue.popleft()
+        return out
+
+    def report(self) -> tuple[bool, str, dict[str, Any]]:
+        """``tetra/compensator: channels`` as (warn, message, values): WARN while sets are
+        dropped for a missing or stale channel (since the last report) or a channel the terms
+        read has no message yet, naming it; OK otherwise."""
+        values: dict[str, Any] = {
+            'terms': self.names,
+            'replay_restarts': self.resets,
+            'sets held for a channel message': self.held,
+            'sets released at the hold bound': self.released_at_bound,
+        }
+        for name, buffer in self.channels.items():
+            values[f'{name} ({buffer.topic}) messages'] = buffer.received
+        for name, count in self.dropped.items():
+            values[f'sets dropped without {name}'] = count
+        by_channel = sum(n for name, n in self.dropped.items() if name in self.channels)
+        new, self._dropped_reported = by_channel - self._dropped_reported, by_channel
+        waiting = self.stale()
+        if new > 0:
+            text = (
+                f'{new} sets dropped since the last report, never compensated with zero: '
+                f'{self.reason}'
+            )
+            return True, text, values
+        if waiting:
+            listed = ', '.join(f'{n} ({self.channels[n].topic})' for n in waiting)
+            return True, f'no message yet on {listed}: its sets are dropped', values
+        return False, f'terms {self.names}: channels fresh', values
 
     def stale(self) -> list[str]:
         """The channels the terms read that have no message yet."""

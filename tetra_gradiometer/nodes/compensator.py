@@ -27,7 +27,9 @@ Vehicle effects (issue 28): a calibration with terms (``vehicle_current``, ``edd
 channels they read (``/tetra/temperature``, sensor_msgs/Temperature; the BatteryState topic
 of each ``current:<topic>``; :mod:`.channels`), evaluate the terms' regressors on each set
 (the channels interpolated onto its stamp; the eddy rate from the sets before it) and
-compensate and compute the sigma with them, as ``compensate`` does offline. A channel that
+compensate and compute the sigma with them, as ``compensate`` does offline (a set that
+arrives before a channel's message at or after its stamp waits for it, bounded:
+:meth:`.channels.LiveEffects.submit`). A channel that
 is missing or stale at a set is never taken as zero: the set is dropped (nothing published
 for it), counted per channel, and ``/diagnostics`` goes WARN naming the channel.
 """
@@ -139,6 +141,8 @@ PARAMETERS = [
 ]
 #: Seconds between feeds of the health monitor (it works on chunks; ~1 ms per call).
 HEALTH_PERIOD_S = 0.1
+#: Seconds between checks of the sets held for a channel message (when the sets stop).
+HOLD_CHECK_S = 0.05
 
 
 class CompensatorNode(ManagedNode):
@@ -184,7 +188,6 @@ class CompensatorNode(ManagedNode):
         self._health_sent: dict[int, bool] = {}  # alarm index -> settled when published
         self._effects: LiveEffects | None = None
         self._channel_subscriptions: dict[str, Any] = {}
-        self._dropped_reported = 0  # channel drops already on /diagnostics
         self._set_sigma(None)
         self.published = 0
         self.dropped_non_finite = 0
@@ -205,9 +208,7 @@ class CompensatorNode(ManagedNode):
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
-        self.create_subscription(
-            String, 'calibration', gated(self._on_calibration), latched_qos()
-        )
+        self.create_subscription(String, 'calibration', gated(self._on_calibration), latched_qos())
         self.create_subscription(
             JointState, 'gradient/raw', gated(self._on_raw), derived_qos(), raw=True
         )
@@ -221,6 +222,7 @@ class CompensatorNode(ManagedNode):
         self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self.create_timer(HEALTH_PERIOD_S, self._feed_health, clock=steady_clock())  # not /clock's
         self.create_timer(0.2, self._judge_waiting, clock=steady_clock())
+        self.create_timer(HOLD_CHECK_S, self._release, clock=steady_clock())  # sets that stop
 
     # ----------------------------------------------------------------- calibration
 
@@ -273,6 +275,7 @@ class CompensatorNode(ManagedNode):
         check_positions(
             calibration, self._geometry, source=source, target='sensor_positions of this node'
         )
+        self._release(flush=True)  # the held sets with the calibration they arrived under
         self._set_sigma(calibration)
         self._interference = calibration.parameters
         self._follow_channels(calibration)
@@ -291,7 +294,6 @@ class CompensatorNode(ManagedNode):
         terms = calibration.parameters.terms
         kept = {} if self._effects is None else self._effects.channels
         self._effects = LiveEffects(terms, kept) if terms else None
-        self._dropped_reported = 0
         names = set(self._effects.channels) if self._effects is not None else set()
         for name in set(self._channel_subscriptions) - names:
             self.destroy_subscription(self._channel_subscriptions.pop(name))
@@ -309,6 +311,7 @@ class CompensatorNode(ManagedNode):
             stamp_ns = cv.stamp_to_ns(msg.header.stamp)
             if not self._horizon.refuse(channel_topic(name), stamp_ns):  # a later stamp
                 self._effects.add(name, stamp_ns, channel_message(name, msg))  # would reset it
+                self._release()
 
     def _set_sigma(self, calibration: CalibrationFile | None) -> None:
         """The 1-sigma model of ``calibration`` (None: the raw tensor's) and its description."""
@@ -404,8 +407,19 @@ class CompensatorNode(ManagedNode):
         if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
             return
         pair = self._inputs.add(stream, stamp_ns, value)
-        if pair is not None:
+        if pair is None:
+            return
+        if self._effects is None:
             self._compensate(stamp_ns, *pair)
+            return
+        for held in self._effects.submit(stamp_ns, (stamp_ns, *pair), time.monotonic()):
+            self._compensate(*held)  # in order, once its channels reached its stamp
+
+    def _release(self, flush: bool = False) -> None:
+        """Compensate the sets held for a channel message that need wait no longer."""
+        if self._effects is not None:
+            for held in self._effects.release(time.monotonic(), flush=flush):
+                self._compensate(*held)
 
     def _compensate(self, stamp_ns: int, g_raw: np.ndarray, b_reference: np.ndarray) -> None:
         """Eq. 19 on one sample: ``G_m`` (3, 3) T/m, ``B_1'`` (3,) T."""
@@ -532,31 +546,12 @@ class CompensatorNode(ManagedNode):
         self._diag_pub.publish(array)
 
     def _channels_status(self) -> tuple[int, str, dict[str, Any]]:
-        """``tetra/compensator: channels`` as (level, message, values): WARN while sets are
-        dropped for a missing or stale channel (since the last report) or a channel the terms
-        read has no message yet, naming it; OK otherwise (also without terms)."""
-        effects = self._effects
-        if effects is None:
+        """``tetra/compensator: channels`` as (level, message, values)
+        (:meth:`~.channels.LiveEffects.report`; OK without terms)."""
+        if self._effects is None:
             return OK, 'no terms: no channel read', {}
-        values: dict[str, Any] = {'terms': effects.names, 'replay_restarts': effects.resets}
-        for name, buffer in effects.channels.items():
-            values[f'{name} ({buffer.topic}) messages'] = buffer.received
-        for name, count in effects.dropped.items():
-            values[f'sets dropped without {name}'] = count
-        by_channel = sum(n for name, n in effects.dropped.items() if name in effects.channels)
-        new, self._dropped_reported = by_channel - self._dropped_reported, by_channel
-        waiting = effects.stale()
-        if new > 0:
-            text = (
-                f'{new} sets dropped since the last report, never compensated with zero: '
-                f'{effects.reason}'
-            )
-            return WARN, text, values
-        if waiting:
-            listed = ', '.join(f'{n} ({effects.channels[n].topic})' for n in waiting)
-            text = f'no message yet on {listed}: its sets are dropped'
-            return WARN, text, values
-        return OK, f'terms {effects.names}: channels fresh', values
+        warn, text, values = self._effects.report()
+        return (WARN if warn else OK), text, values
 
     def _health_status(self) -> Any:
         """``tetra/compensator: health``: ERROR after an alarm (until a new calibration), WARN
