@@ -1,7 +1,7 @@
 """nodes/channels.LiveEffects without a graph: the compensator holds a set that arrives before
 its channels' messages at or after its stamp, so that its value is interpolated as offline
-(io/channels.ChannelSeries.on), for at most two periods of the lagging channel (later sets'
-stamps or the steady clock); a channel that stops releases its sets at that bound, a
+(io/channels.ChannelSeries.on), for at most two periods of the lagging channel of later sets'
+stamps (on the steady clock only once the sets stop); a channel that stops releases its sets at that bound, a
 restarted replay releases the queue, nothing is lost or reordered."""
 from __future__ import annotations
 
@@ -143,3 +143,41 @@ def test_a_restarted_replay_releases_the_queue_in_order():
     series = {BATTERY: current, TEMPERATURE: ChannelSeries(TEMPERATURE, sets[::20], np.full(n // 20, 15.0))}
     _, _, out, _, live = _run(n, series, 2 * 10**8, restart_at=250)
     assert sorted(out) == list(range(n)) and live.resets == 1
+
+
+def test_a_node_behind_its_queue_waits_for_a_received_message_and_lets_the_sets_go_once_they_stop():
+    """The compensator's timer runs before the messages waiting in its queue when it falls
+    behind: a set is released on the steady clock only once no set has come for
+    IDLE_RELEASE_S (and the hold bound), never while the sets flow; then it takes the value
+    of the message that was waiting, as offline."""
+    from tetra_gradiometer.nodes.channels import IDLE_RELEASE_S
+
+    sets = T0 + np.arange(40, dtype=np.int64) * SET_NS
+    b = np.tile([2e-5, 1e-5, -4e-5], (len(sets), 1))
+    current = ChannelSeries(BATTERY, sets, np.linspace(-10.0, -5.0, len(sets)))  # 20 Hz
+    temperature = ChannelSeries(TEMPERATURE, sets, np.full(len(sets), 15.0))
+    offline = term_regressors(_terms(), channels_on(sets, b, {BATTERY: current, TEMPERATURE: temperature}))
+    live = LiveEffects(_terms())
+    out: dict[int, np.ndarray | None] = {}
+    for i in range(20):  # the channels' messages for sets 0..19 came first
+        live.add(BATTERY, int(sets[i]), float(current.values[i]))
+        live.add(TEMPERATURE, int(sets[i]), 15.0)
+        for j in live.submit(int(sets[i]), i, 100.0 + 0.05 * i):
+            out[j] = live.regressors(int(sets[j]), b[j])
+    # Set 20 before its messages; the node, descheduled for 0.9 s, runs its timer first.
+    assert live.submit(int(sets[20]), 20, 101.0) == []
+    assert live.release(101.9) == []  # the bound is 0.1 s, but the sets have not stopped
+    live.add(BATTERY, int(sets[20]), float(current.values[20]))
+    live.add(TEMPERATURE, int(sets[20]), 15.0)
+    assert live.release(101.9) == [20]
+    out[20] = live.regressors(int(sets[20]), b[20])
+    assert live.released_at_bound == 0
+    # Set 21 whose messages never come: held until the sets stop for IDLE_RELEASE_S.
+    assert live.submit(int(sets[21]), 21, 102.0) == []
+    assert live.release(102.0 + 0.99 * IDLE_RELEASE_S) == []
+    assert live.release(102.0 + 1.01 * IDLE_RELEASE_S) == [21]
+    assert live.released_at_bound == 1
+    out[21] = live.regressors(int(sets[21]), b[21])  # the last message's value, 50 ms old
+    got = np.array([out[i] for i in range(1, 21)])  # set 0: no eddy rate yet, both sides
+    np.testing.assert_allclose(got, offline[1:21], rtol=1e-12, atol=0)
+    assert out[21] is not None and np.isfinite(out[21]).all()

@@ -24,8 +24,9 @@ the channel's last (a restarted replay) forgets the channel's earlier messages.
   reset when the sets' stamps go back); a set where a regressor is unknown is dropped and
   counted per channel, with the reason for ``/diagnostics``. A set that arrives before a
   channel's message at or after its stamp is held until it comes (:meth:`LiveEffects.
-  submit`, at most :data:`HOLD_PERIODS` of the channel's periods), so that its value is the
-  interpolated one, as offline.
+  submit`, at most :data:`HOLD_PERIODS` of the channel's periods of later sets' stamps, or
+  until the sets stop for :data:`IDLE_RELEASE_S`), so that its value is the interpolated one,
+  as offline.
 """
 
 from __future__ import annotations
@@ -58,9 +59,15 @@ MAX_MESSAGES = 125_000
 PRUNE_STEP = 256
 #: A channel's message period is the median spacing of its last this many messages.
 PERIOD_MESSAGES = 16
-#: A set waits for a lagging channel at most this many of its periods (of later sets'
-#: stamps, or of the steady clock): one for the next message to be due, one for its delivery.
+#: A set waits for a lagging channel at most this many of its periods of later sets' stamps:
+#: one for the next message to be due, one for its delivery.
 HOLD_PERIODS = 2.0
+#: When no set has come for this long on the steady clock (s; or for the hold bound, if
+#: longer), the held sets go out: the sets stopped (a replay's end, a sensor outage). Not
+#: shorter: a node that falls behind (a loaded machine) runs its timers before the messages
+#: waiting in its queue, and a channel message already received would be passed over (seen
+#: at 8x real time with a bound of two 20 Hz periods, 0.1 s).
+IDLE_RELEASE_S = 1.0
 
 
 class ChannelBuffer:
@@ -281,8 +288,9 @@ class LiveEffects:
         self._dropped_reported = 0  # channel drops already on /diagnostics
         self._origin_ns: int | None = None
         self._last_ns: int | None = None
-        self._queue: deque[tuple[int, float, Any]] = deque()  # (stamp, arrival s, the set)
+        self._queue: deque[tuple[int, Any]] = deque()  # (stamp, the set)
         self._newest_ns = 0
+        self._last_set_s = 0.0  # steady clock of the last set submitted
 
     @property
     def names(self) -> str:
@@ -324,23 +332,25 @@ class LiveEffects:
         returns the sets to compensate now, in order (:meth:`release`). A set is held until
         every channel with messages has one at or after its stamp (its value is then
         interpolated, as offline), for at most :data:`HOLD_PERIODS` periods of the lagging
-        channel (of later sets' stamps or of the steady clock); a stamp that goes back (a
-        restarted replay) releases the queue."""
+        channel of later sets' stamps; a stamp that goes back (a restarted replay) releases
+        the queue."""
         out = self.release(now_s, flush=True) if stamp_ns <= self._newest_ns else []
-        self._newest_ns = stamp_ns
-        self._queue.append((stamp_ns, now_s, item))
+        self._newest_ns, self._last_set_s = stamp_ns, now_s
+        self._queue.append((stamp_ns, item))
         out += self.release(now_s)
         self.held += bool(self._queue)
         return out
 
     def release(self, now_s: float, *, flush: bool = False) -> list[Any]:
         """The queued sets that need wait no longer, in order: their channels' messages have
-        reached their stamp, or they waited :data:`HOLD_PERIODS` periods of a lagging channel
-        (sets' stamps or the steady clock ``now_s``; counted in :attr:`released_at_bound`),
-        or ``flush``."""
+        reached their stamp, or later sets' stamps passed them by :data:`HOLD_PERIODS`
+        periods of a lagging channel, or no set came for that long and at least
+        :data:`IDLE_RELEASE_S` on the steady clock ``now_s`` (those two counted in
+        :attr:`released_at_bound`), or ``flush``."""
         out = []
+        idle_s = now_s - self._last_set_s
         while self._queue:
-            stamp_ns, arrived_s, item = self._queue[0]
+            stamp_ns, item = self._queue[0]
             bound = HOLD_PERIODS * max(
                 (
                     b.period_s()
@@ -350,8 +360,9 @@ class LiveEffects:
                 default=0.0,
             )
             if bound > 0.0:
-                waited = max((self._newest_ns - stamp_ns) * S_PER_NS, now_s - arrived_s)
-                if waited <= bound and not flush:
+                passed = (self._newest_ns - stamp_ns) * S_PER_NS > bound
+                stopped = idle_s > max(bound, IDLE_RELEASE_S)
+                if not (passed or stopped or flush):
                     break
                 self.released_at_bound += 1
             out.append(item)
