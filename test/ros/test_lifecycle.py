@@ -215,3 +215,26 @@ def test_diagnostics_are_named_after_the_node_so_two_suites_do_not_collide():
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_no_node_overrides_a_private_method_of_the_managed_node():
+    """A node's own ``_name`` that is also one of ManagedNode's replaces it silently: the
+    compensator's ``_release`` (of its held sets) once did, and cleanup then kept every
+    publisher (this file's lifecycle tests caught it). Public hooks (``configure``,
+    ``stop_work``, ...) are meant to be overridden; private ones never."""
+    import inspect
+
+    from tetra_gradiometer.nodes.calibrator import CalibratorNode
+    from tetra_gradiometer.nodes.compensator import CompensatorNode
+    from tetra_gradiometer.nodes.driver import DriverNode
+    from tetra_gradiometer.nodes.managed import ManagedNode
+    from tetra_gradiometer.nodes.target import TargetNode
+    from tetra_gradiometer.nodes.tensor import TensorNode
+
+    private = {name for name, value in vars(ManagedNode).items()
+               if name.startswith('_') and not name.startswith('__') and inspect.isfunction(value)}
+    assert '_release' in private  # the one that was overridden
+    for node in (CalibratorNode, CompensatorNode, DriverNode, TargetNode, TensorNode):
+        clashes = sorted(private & {name for klass in node.__mro__[:node.__mro__.index(ManagedNode)]
+                                    for name in vars(klass)})
+        assert not clashes, f'{node.__name__} overrides ManagedNode.{clashes}'

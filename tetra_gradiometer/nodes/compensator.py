@@ -222,7 +222,7 @@ class CompensatorNode(ManagedNode):
         self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
         self.create_timer(HEALTH_PERIOD_S, self._feed_health, clock=steady_clock())  # not /clock's
         self.create_timer(0.2, self._judge_waiting, clock=steady_clock())
-        self.create_timer(HOLD_CHECK_S, self._release, clock=steady_clock())  # sets that stop
+        self.create_timer(HOLD_CHECK_S, self._release_held, clock=steady_clock())  # sets that stop
 
     # ----------------------------------------------------------------- calibration
 
@@ -275,7 +275,7 @@ class CompensatorNode(ManagedNode):
         check_positions(
             calibration, self._geometry, source=source, target='sensor_positions of this node'
         )
-        self._release(flush=True)  # the held sets with the calibration they arrived under
+        self._release_held(flush=True)  # the held sets with the calibration they arrived under
         self._set_sigma(calibration)
         self._interference = calibration.parameters
         self._follow_channels(calibration)
@@ -311,7 +311,7 @@ class CompensatorNode(ManagedNode):
             stamp_ns = cv.stamp_to_ns(msg.header.stamp)
             if not self._horizon.refuse(channel_topic(name), stamp_ns):  # a later stamp
                 self._effects.add(name, stamp_ns, channel_message(name, msg))  # would reset it
-                self._release()
+                self._release_held()
 
     def _set_sigma(self, calibration: CalibrationFile | None) -> None:
         """The 1-sigma model of ``calibration`` (None: the raw tensor's) and its description."""
@@ -415,7 +415,7 @@ class CompensatorNode(ManagedNode):
         for held in self._effects.submit(stamp_ns, (stamp_ns, *pair), time.monotonic()):
             self._compensate(*held)  # in order, once its channels reached its stamp
 
-    def _release(self, flush: bool = False) -> None:
+    def _release_held(self, flush: bool = False) -> None:
         """Compensate the sets held for a channel message that need wait no longer."""
         if self._effects is not None:
             for held in self._effects.release(time.monotonic(), flush=flush):
