@@ -93,7 +93,14 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
         wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'survey', graph)
         # A tensor the loaded test process did not take in time comes again after the reliable
         # writer's next heartbeat (Fast DDS: 3 s), and its queue holds 1000 (5 s at 20x).
-        wait_for(lambda: len(probe.tensors['gradient/truth']) == len(survey), 20, 'all truth tensors', graph)
+        deadline = time.monotonic() + 20.0
+        while len(probe.tensors['gradient/truth']) < len(survey) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        truth = sorted(probe.tensors['gradient/truth'])
+        assert len(truth) == len(survey), (
+            f'{len(truth)} of {len(survey)} truth tensors (first {truth[:1]}, last {truth[-1:]}; '
+            f'gaps over 0.1 s at {[int(i) for i in np.flatnonzero(np.diff(truth) > 1.5e8)][:10]})'
+            f'\n{graph.logs()}')
         time.sleep(1.0)
         stamps, g_raw, g_comp, g_true = probe.paired()
         percent = probe.percent
