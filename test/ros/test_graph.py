@@ -20,11 +20,13 @@ from tetra_gradiometer.io.scenario import load_scenario, load_scenario_or_defaul
 
 NT = 1e-9
 GEOMETRY = core.TetraGeometry.regular(0.5)
-#: The bag replays at 8x real time (400 sets/s), not at rate 0: rate 0 paces the driver on the
-#: tensor node alone, and a calibrator or compensator starved of CPU (3 test workers on 2
-#: cores, measured) overflows its 1000-set reader queue within the 1200 and 1500 sets of these
-#: bags and drops the oldest; at 8x it has 3-4 s to take them.
-REPLAY_RATE = 8.0
+#: The bags (10 Hz) replay at 40x real time (400 sets/s), not at rate 0: rate 0 paces the
+#: driver on the tensor node alone, and a calibrator or compensator starved of CPU (3 parallel
+#: runs of the ROS tests, measured) overflows its 1000-set reader queue within the 1200 and
+#: 1500 sets of these bags and drops the oldest; at 40x it has 3-4 s to take them. (At 8x the
+#: test took 48 s wall and 50 s CPU, the nodes' timers running all along; at rate 0 16 s and
+#: 12 s.)
+REPLAY_RATE = 40.0
 
 
 def _diag(probe, name: str) -> dict:
