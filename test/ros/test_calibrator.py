@@ -36,6 +36,10 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
     rng = np.random.default_rng(3)
     with ros_graph() as (graph, probe, feeder):
         graph.start('calibrator', calibration_file=str(calibration_file))
+        # Up and reporting first: a request sent as soon as the service is discovered can
+        # reach a server whose request reader has not matched the client yet, and is lost
+        # (a loaded run waited 30 s for its answer).
+        wait_for(lambda: probe.status(CALIBRATION).get('state') == 'idle', 30, 'the calibrator', graph)
         reply = probe.call('calibrator/calibrate')
         assert not reply.success and 'too few' in reply.message
 
