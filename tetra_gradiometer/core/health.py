@@ -45,6 +45,7 @@ import numpy as np
 
 from ..errors import InputError
 from ._distributions import chi2_isf
+from ._filters import exponential_filter
 from ._validate import as_array, as_tensors, as_vectors, same_length
 from .design import CONSTRAINT_ROWS, affine_interference_design, constraint_residual
 from .geometry import TetraGeometry
@@ -52,17 +53,6 @@ from .model import InterferenceParameters
 from .types import FloatArray
 from .uncertainty import check_covariance, noise_jacobian
 from .units import NT_PER_T
-
-
-def _exponential_filter(lam: float, inputs: FloatArray, initial: FloatArray) -> FloatArray:
-    """``y[n] = inputs[n] + lam * y[n-1]`` along axis 0 with ``y[-1] = initial / lam``
-    (scipy.signal.lfilter's ``zi``); the same shape as ``inputs``. scipy.signal is imported
-    here, at the first call, not with the module: it costs ~0.45 s of a compensator node's or
-    ``compensate``'s ~0.65 s of imports, and most runs never monitor (no calibration noise,
-    no ``--report``)."""
-    from scipy.signal import lfilter
-
-    return lfilter([1.0], [1.0, -lam], inputs, axis=0, zi=initial)[0]
 
 __all__ = ['Alarm', 'HealthConfig', 'HealthMonitor', 'HealthTrace', 'alarm_threshold']
 
@@ -336,7 +326,7 @@ class HealthMonitor:
         valid = np.isfinite(ratio)
         lam = self._noise_forget
         inputs = np.column_stack([np.where(valid, ratio, 0.0), valid]) * (1 - lam)
-        state = _exponential_filter(lam, inputs, lam * self._noise_state[None])
+        state = exponential_filter(lam, inputs, lam * self._noise_state[None])
         self._noise_state = state[-1]
         counts = self._differences + np.cumsum(valid)
         self._differences = int(counts[-1])
@@ -490,9 +480,9 @@ class HealthMonitor:
         weights: the mean's variance is ``Sigma`` times it over the weight squared)."""
         lam = self._forget
         inputs = np.column_stack([y, bias, np.ones(len(y))]) * (1 - lam)
-        state = _exponential_filter(lam, inputs, lam * self._drift_state[None])
+        state = exponential_filter(lam, inputs, lam * self._drift_state[None])
         squares = np.full(len(y), (1 - lam) ** 2)
-        variance = _exponential_filter(lam**2, squares, np.array([lam**2 * self._drift_variance]))
+        variance = exponential_filter(lam**2, squares, np.array([lam**2 * self._drift_variance]))
         return state, variance
 
     def _attribute(self, shift_y: FloatArray, spread: FloatArray) -> tuple[int, ...]:
