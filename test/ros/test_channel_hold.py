@@ -6,25 +6,15 @@ restarted replay releases the queue, nothing is lost or reordered."""
 from __future__ import annotations
 
 import numpy as np
+from channel_helpers import BATTERY, example_terms
 
-from tetra_gradiometer.core.effects import TEMPERATURE, Term, current_channel, term_regressors
+from tetra_gradiometer.core.effects import TEMPERATURE, term_regressors
 from tetra_gradiometer.io.channels import ChannelSeries
 from tetra_gradiometer.nodes.channels import LiveEffects
 from tetra_gradiometer.pipelines.terms import channels_on
 
-NT = 1e-9
 T0 = 1_767_225_600 * 10**9
-BATTERY = current_channel('/battery_state')
 SET_NS = 5 * 10**7  # 20 Hz
-
-
-def _terms() -> tuple[Term, ...]:
-    rng = np.random.default_rng(3)
-    return (
-        Term('vehicle_current', (BATTERY,), rng.normal(size=(3, 3, 1)) * NT),
-        Term('eddy_current', ('reference_rate',), rng.normal(size=(3, 3, 3)) * 1e-4, (0.2,)),
-        Term('thermal_drift', (TEMPERATURE,), rng.normal(size=(3, 3, 1)) * 0.1 * NT, (15.0,)),
-    )
 
 
 def _run(n: int, series: dict[str, ChannelSeries], latency_ns: int, restart_at: int | None = None):
@@ -42,7 +32,7 @@ def _run(n: int, series: dict[str, ChannelSeries], latency_ns: int, restart_at: 
         for name, s in series.items()
         for stamp, value in zip(s.stamps_ns, s.values)
     )
-    live = LiveEffects(_terms())
+    live = LiveEffects(example_terms())
     out: dict[int, np.ndarray | None] = {}
     released_when: dict[int, int] = {}
     newest = [0]
@@ -77,7 +67,7 @@ def test_a_held_set_gets_the_offline_value_when_its_channels_come_late():
     temperature = ChannelSeries(TEMPERATURE, sets[::40] + 7 * 10**6, 15.0 + rng.normal(0, 0.2, n // 40))
     series = {BATTERY: current, TEMPERATURE: temperature}
     sets, b, out, released_when, live = _run(n, series, 3 * 10**8)
-    offline = term_regressors(_terms(), channels_on(sets, b, series))
+    offline = term_regressors(example_terms(), channels_on(sets, b, series))
     assert sorted(out) == list(range(n))  # every set released once
     # Before the battery's first message arrives (0.313 s) a set has no value to wait for:
     # dropped, as before (offline takes the first message within 2 s).
@@ -101,7 +91,7 @@ def test_a_held_set_gets_the_offline_value_when_its_channels_come_late():
     assert waited.max() > 2.0  # just after a temperature message: its next one 2 s later
 
     # Without the hold (each set on arrival, the last message held): far from offline.
-    eager = LiveEffects(_terms())
+    eager = LiveEffects(example_terms())
     messages = sorted((int(s) + 3 * 10**8, name, int(s), float(v))
                       for name, c in series.items() for s, v in zip(c.stamps_ns, c.values))
     k, eager_x = 0, []
@@ -123,7 +113,7 @@ def test_a_channel_that_stops_releases_its_sets_at_the_bound_and_they_are_droppe
     temperature = ChannelSeries(TEMPERATURE, sets[::20], np.full(n // 20, 15.0))
     series = {BATTERY: current, TEMPERATURE: temperature}
     sets, b, out, released_when, live = _run(n, series, 10**8)
-    offline = term_regressors(_terms(), channels_on(sets, b, series))
+    offline = term_regressors(example_terms(), channels_on(sets, b, series))
     start = 2  # the sets before the first messages are delivered (0.1 s): no value, dropped
     dropped = np.array([out[i] is None for i in range(n)])
     np.testing.assert_array_equal(dropped[start:], ~np.all(np.isfinite(offline[start:]), axis=1))
@@ -156,8 +146,8 @@ def test_a_node_behind_its_queue_waits_for_a_received_message_and_lets_the_sets_
     b = np.tile([2e-5, 1e-5, -4e-5], (len(sets), 1))
     current = ChannelSeries(BATTERY, sets, np.linspace(-10.0, -5.0, len(sets)))  # 20 Hz
     temperature = ChannelSeries(TEMPERATURE, sets, np.full(len(sets), 15.0))
-    offline = term_regressors(_terms(), channels_on(sets, b, {BATTERY: current, TEMPERATURE: temperature}))
-    live = LiveEffects(_terms())
+    offline = term_regressors(example_terms(), channels_on(sets, b, {BATTERY: current, TEMPERATURE: temperature}))
+    live = LiveEffects(example_terms())
     out: dict[int, np.ndarray | None] = {}
     for i in range(20):  # the channels' messages for sets 0..19 came first
         live.add(BATTERY, int(sets[i]), float(current.values[i]))

@@ -6,17 +6,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from channel_helpers import BATTERY, NT, example_terms
 
 from tetra_gradiometer import core
-from tetra_gradiometer.core.effects import TEMPERATURE, Term, current_channel, term_regressors
+from tetra_gradiometer.core.effects import TEMPERATURE, term_regressors
 from tetra_gradiometer.errors import InputError
 from tetra_gradiometer.io.channels import ChannelSeries
 from tetra_gradiometer.nodes.channels import PRUNE_STEP, ChannelBuffer, LiveEffects, sample_terms
 from tetra_gradiometer.pipelines.terms import EffectsChoice, channels_on
 
-NT = 1e-9
 T0 = 1_767_225_600 * 10**9
-BATTERY = current_channel('/battery_state')
 GEOMETRY = core.TetraGeometry.regular(0.5)
 
 
@@ -68,15 +67,6 @@ def test_a_buffer_without_messages_is_unknown_and_a_restarted_replay_forgets():
     assert buffer.restarts == 1 and len(buffer) == 1 and buffer.at(T0) == 7.0
 
 
-def _terms() -> tuple[Term, ...]:
-    rng = np.random.default_rng(3)
-    return (
-        Term('vehicle_current', (BATTERY,), rng.normal(size=(3, 3, 1)) * NT),
-        Term('eddy_current', ('reference_rate',), rng.normal(size=(3, 3, 3)) * 1e-4, (0.2,)),
-        Term('thermal_drift', (TEMPERATURE,), rng.normal(size=(3, 3, 1)) * 0.1 * NT, (15.0,)),
-    )
-
-
 def test_the_terms_per_set_are_the_whole_run_regressors_and_a_replay_starts_again():
     rng = np.random.default_rng(2)
     n = 600
@@ -88,7 +78,7 @@ def test_the_terms_per_set_are_the_whole_run_regressors_and_a_replay_starts_agai
                             np.delete(current.values, range(60, 80)))  # a 4 s gap: stale sets
     temperature = ChannelSeries(TEMPERATURE, sets[::20] + 3 * 10**7, 15.0 + rng.normal(0, 0.1, n // 20))
     series = {BATTERY: current, TEMPERATURE: temperature}
-    terms = _terms()
+    terms = example_terms()
     offline = term_regressors(terms, channels_on(sets, b, series))
 
     live = LiveEffects(terms)
