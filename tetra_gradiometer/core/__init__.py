@@ -1,5 +1,10 @@
 """ROS-free core: geometry, fields, the interference model, identification, metrics and
-the mission simulator. Imports numpy and scipy only. SI units (T, T/m, m, s)."""
+the mission simulator. Imports numpy and scipy only. SI units (T, T/m, m, s).
+
+scipy's heavier submodules (``stats``, ``optimize``, ``signal``, ``special``, ``integrate``,
+``fft``, ``linalg``) are reached as ``scipy.stats`` after a plain ``import scipy``, which loads
+each on first use: importing them (scipy 1.17 parses their docstrings) cost every process that
+imported the core ~0.8 s of CPU, each node start and CLI command included, used or not."""
 
 from __future__ import annotations
 

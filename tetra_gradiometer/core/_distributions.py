@@ -7,17 +7,17 @@ each. Tested against ``scipy.stats`` in test/core/test_distributions.py.
 
 from __future__ import annotations
 
-from scipy import special
+import scipy  # submodules load on first use: see core/__init__.py
 
 
 def chi2_isf(p: float, dof: float) -> float:
     """The chi-square upper quantile: ``x`` with ``P(X > x) = p``, ``X ~ chi2(dof)``."""
-    return float(2.0 * special.gammainccinv(dof / 2.0, p))
+    return float(2.0 * scipy.special.gammainccinv(dof / 2.0, p))
 
 
 def f_ppf(q: float, dfn: float, dfd: float) -> float:
     """The F quantile: ``x`` with ``P(X <= x) = q``, ``X ~ F(dfn, dfd)``."""
-    b = float(special.betaincinv(dfn / 2.0, dfd / 2.0, q))
+    b = float(scipy.special.betaincinv(dfn / 2.0, dfd / 2.0, q))
     return dfd * b / (dfn * (1.0 - b))
 
 
@@ -25,4 +25,4 @@ def f_sf(x: float, dfn: float, dfd: float) -> float:
     """The F upper tail ``P(X > x)``, ``X ~ F(dfn, dfd)``."""
     if x <= 0.0:
         return 1.0
-    return float(special.betainc(dfd / 2.0, dfn / 2.0, dfd / (dfd + dfn * x)))
+    return float(scipy.special.betainc(dfd / 2.0, dfn / 2.0, dfd / (dfd + dfn * x)))

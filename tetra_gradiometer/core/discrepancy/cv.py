@@ -7,8 +7,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
-from scipy import linalg as scipy_linalg
 
 Array = NDArray[np.float64]
 Index = NDArray[np.int_]
@@ -23,8 +23,8 @@ def solve_fast(gram: Array, rhs: Array) -> Array:
         return np.zeros(0)
     ridge = 1e-10 * max(float(np.trace(gram)) / len(rhs), 1e-300)
     try:
-        factor = scipy_linalg.cho_factor(gram + ridge * np.eye(len(rhs)), check_finite=False)
-        solution: Array = scipy_linalg.cho_solve(factor, rhs, check_finite=False)
+        factor = scipy.linalg.cho_factor(gram + ridge * np.eye(len(rhs)), check_finite=False)
+        solution: Array = scipy.linalg.cho_solve(factor, rhs, check_finite=False)
         return solution
     except np.linalg.LinAlgError:
         return solve(gram, rhs)[0]

@@ -41,9 +41,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
-from scipy import linalg as scipy_linalg
-from scipy import optimize
 from scipy.ndimage import uniform_filter1d
 
 from ..fields import MU0_OVER_4PI
@@ -228,7 +227,7 @@ def _grid_start(
         [_grid_costs(sub, prep.sensors, y, centre + d * directions) for d in GRID_DISTANCES_M]
     )
     best = grid[int(np.argmin(costs))] if np.isfinite(costs).any() else centre
-    solution = optimize.least_squares(misfit, best, method='lm', x_scale=1.0)
+    solution = scipy.optimize.least_squares(misfit, best, method='lm', x_scale=1.0)
     cost = float(np.sum(solution.fun**2))
     return solution.x, 1.0 - cost / max(total, 1e-300)
 
@@ -280,7 +279,7 @@ def _projection(prep: Prepared, other: Array, offset: Array | None) -> _Projecte
     a = flat(other[idx], prep.sensors).reshape(-1, other.shape[-1])
     norm = np.linalg.norm(a, axis=0)
     a = a[:, norm > 0] / norm[norm > 0]
-    q, r, _ = scipy_linalg.qr(a, mode='economic', pivoting=True)
+    q, r, _ = scipy.linalg.qr(a, mode='economic', pivoting=True)
     diag = np.abs(np.diag(r))
     q = q[:, diag > 1e-9 * max(float(diag[0]), 1e-300)] if len(diag) else q
     y = prep.fields - prep.base_offset - (0.0 if offset is None else offset)
@@ -320,7 +319,7 @@ def refine(
 
     # Tolerances 1e-6 (relative): ~0.1 mm on positions ~100 m from the odom origin, against
     # sigmas of ~1 mm; the default 1e-8 took twice the evaluations (0.1 s each on 3000 sets).
-    solution = optimize.least_squares(
+    solution = scipy.optimize.least_squares(
         residual, starts.ravel(), method='lm', x_scale=1.0, ftol=1e-6, xtol=1e-6
     )
     x = solution.x

@@ -32,8 +32,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
-from scipy import fft, optimize, stats
 from scipy.ndimage import median_filter
 
 Array = NDArray[np.float64]
@@ -100,7 +100,7 @@ def find_steps(t: Array, residual: Array, alpha: float, sensor: int) -> list[Ste
     means = residual[: count * width].reshape(count, width, 3).mean(axis=1)
     spread = 1.4826 * np.median(np.abs(np.diff(means, axis=0)), axis=0) / np.sqrt(2.0)
     z = means / np.maximum(spread, 1e-12)
-    threshold = float(stats.chi2.isf(alpha / count, 3))
+    threshold = float(scipy.stats.chi2.isf(alpha / count, 3))
     least = max(2, int(np.ceil(MIN_SEGMENT_S / (width * dt))))
     found: list[StepChange] = []
     segments = [(0, count)]
@@ -163,9 +163,9 @@ def periodogram(t: Array, values: Array) -> tuple[Array, Array]:
     grid = np.zeros((index[-1] + 1, values.shape[1]))
     grid[index] = values - values.mean(axis=0)
     size = OVERSAMPLE * len(grid)
-    spectrum = fft.rfft(grid, n=size, axis=0)
+    spectrum = scipy.fft.rfft(grid, n=size, axis=0)
     power = np.abs(spectrum) ** 2 / len(t)
-    return fft.rfftfreq(size, dt)[1:], power[1:]
+    return scipy.fft.rfftfreq(size, dt)[1:], power[1:]
 
 
 def line_power(power: Array) -> Array:
@@ -265,7 +265,7 @@ def _refined_frequency(t: Array, channels: Array, start_hz: float, bin_hz: float
     def rss(frequency: float) -> float:
         return float(np.sum((channels - _sinusoid(t, channels, frequency)) ** 2))
 
-    result = optimize.minimize_scalar(
+    result = scipy.optimize.minimize_scalar(
         rss, bounds=(start_hz - 2 * bin_hz, start_hz + 2 * bin_hz), method='bounded'
     )
     return float(result.x)

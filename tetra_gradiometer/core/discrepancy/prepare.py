@@ -12,8 +12,8 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
+import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
-from scipy.signal import savgol_filter
 from scipy.spatial.transform import Rotation
 
 from ...errors import InputError
@@ -442,7 +442,9 @@ def smoothed(t: Array, values: Array, piece: NDArray[np.int_], deriv: int = 0) -
         dt = float(np.median(np.diff(t[idx])))
         window = max(13, int(round(1.3 / dt)) | 1)
         if len(idx) > window:
-            out[idx] = savgol_filter(values[idx], window, 5, deriv=deriv, delta=dt, axis=0)
+            out[idx] = scipy.signal.savgol_filter(
+                values[idx], window, 5, deriv=deriv, delta=dt, axis=0
+            )
         else:
             out[idx] = PiecewiseSpline(t[idx], values[idx])(0.0, deriv)
     return out

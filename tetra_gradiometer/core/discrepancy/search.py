@@ -12,8 +12,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
-from scipy import stats
 
 from .cv import ALL_SENSORS, Fit, Gram, block_length, flat, noise_floor
 from .discovery import open_world_move
@@ -132,7 +132,7 @@ class _Round:
         dof = max(n_obs - res.rank, 1.0)
         if dp > 0 and gain > 0:
             fstat = (gain / dp) / (res.cv / dof)
-            pval = float(stats.f.sf(fstat, dp, dof))
+            pval = float(scipy.stats.f.sf(fstat, dp, dof))
         else:
             fstat, pval = 0.0, 1.0
         own = 3 if (sensor >= 1 or (sensor == 0 and self.absolute)) else self.channels

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import integrate, linalg, ndimage, optimize, signal, stats
+import scipy  # submodules load on first use: see core/__init__.py
 
 from ...errors import InputError
 from .._validate import require_positive
@@ -186,9 +186,11 @@ def detect(
     components = _background_removed(world, None, found, size)
     sigma = noise_sigma(components, found)
     q = np.sum((components / sigma) ** 2, axis=1)
-    low = float(stats.chi2.isf(QUIET_TAIL, 5 * window) / window)
-    averaged = ndimage.uniform_filter1d(q, window, mode='nearest')  # marks only
-    quiet = ndimage.binary_erosion(averaged < low, np.ones(4 * window + 1, bool), border_value=1)
+    low = float(scipy.stats.chi2.isf(QUIET_TAIL, 5 * window) / window)
+    averaged = scipy.ndimage.uniform_filter1d(q, window, mode='nearest')  # marks only
+    quiet = scipy.ndimage.binary_erosion(
+        averaged < low, np.ones(4 * window + 1, bool), border_value=1
+    )
     # Pass 2: background and noise model from the quiet samples (anomalies cover much of a
     # line over targets and would bias both).
     components = _background_removed(world, quiet, found, size)
@@ -202,7 +204,9 @@ def detect(
     for start, stop in found:
         averaged = window_mean(q[start:stop], window)
         statistic[start:stop] = averaged
-        smooth = ndimage.uniform_filter1d(anomaly[start:stop], window, axis=0, mode='nearest')
+        smooth = scipy.ndimage.uniform_filter1d(
+            anomaly[start:stop], window, axis=0, mode='nearest'
+        )
         strength = normalized_source_strength(smooth)
         detections += _runs(averaged, strength, (threshold, low, window), start, stop)
     return DetectionResult(detections, statistic, threshold, noise, anomaly, found, settings)
@@ -242,15 +246,15 @@ def _background_removed(
         ):
             weight = quiet[start:stop].astype(float)
             window = min(size, stop - start)
-            total = ndimage.uniform_filter1d(
+            total = scipy.ndimage.uniform_filter1d(
                 piece * weight[:, None], window, axis=0, mode='mirror'
             )
-            count = ndimage.uniform_filter1d(weight, window, mode='mirror')
+            count = scipy.ndimage.uniform_filter1d(weight, window, mode='mirror')
             out[start:stop] = piece - total / np.maximum(count, 1e-12)[:, None]
             continue
         keep = index[:: max(1, size // 100)]
         window = min(max(3, size * len(keep) // max(stop - start, 1)), len(keep))
-        background = ndimage.median_filter(world[keep], size=(window, 1), mode='mirror')
+        background = scipy.ndimage.median_filter(world[keep], size=(window, 1), mode='mirror')
         for c in range(world.shape[1]):
             out[start:stop, c] = piece[:, c] - np.interp(index, keep, background[:, c])
     return out
@@ -323,7 +327,7 @@ class NoiseModel:
             if pairs < 10:
                 break
             correlation[lag] = np.sum(z[:-lag] * z[lag:]) / (5.0 * pairs)
-        eigenvalues = np.maximum(linalg.eigvalsh(linalg.toeplitz(correlation)), 0.0)
+        eigenvalues = np.maximum(scipy.linalg.eigvalsh(scipy.linalg.toeplitz(correlation)), 0.0)
         return cls(covariance, eigenvalues)
 
     @classmethod
@@ -360,7 +364,7 @@ class NoiseModel:
     def point(self, tail: float) -> float:
         """The window-averaged statistic's level exceeded with probability ``tail``."""
         mean, scale, nu = self._pearson()
-        return float((mean + scale * (stats.chi2.isf(tail, nu) - nu)) / self.window)
+        return float((mean + scale * (scipy.stats.chi2.isf(tail, nu) - nu)) / self.window)
 
     def threshold(self, false_alarms_per_hour: float, rate_hz: float) -> float:
         """The window-averaged statistic's level crossed upwards ``false_alarms_per_hour``
@@ -384,8 +388,11 @@ class NoiseModel:
             rate = steps_per_hour * upcrossing(x, nu, swapped)
             return float(np.log(max(rate, 1e-300)) - np.log(false_alarms_per_hour))
 
-        low, high = nu, float(stats.chi2.isf(1e-16, nu))
-        x = nu if excess(low) <= 0.0 else float(optimize.brentq(excess, low, high, xtol=1e-9))
+        low, high = nu, float(scipy.stats.chi2.isf(1e-16, nu))
+        if excess(low) <= 0.0:
+            x = nu
+        else:
+            x = float(scipy.optimize.brentq(excess, low, high, xtol=1e-9))
         return float((mean + scale * (x - nu)) / self.window)
 
 
@@ -395,14 +402,14 @@ def upcrossing(x: float, nu: float, swapped: float) -> float:
     swaps a chi-square ``swapped`` one: the shared part is ``x - y`` with the part leaving
     at most ``y`` and the one entering more. Integrated over ``y`` up to where the swapped
     part's tail is below 1e-19."""
-    shared = stats.chi2(max(nu - swapped, 1.0))
-    one = stats.chi2(swapped)
+    shared = scipy.stats.chi2(max(nu - swapped, 1.0))
+    one = scipy.stats.chi2(swapped)
     top = min(x, float(one.isf(1e-19)))
 
     def integrand(y: float) -> float:
         return float(shared.pdf(x - y) * one.cdf(y) * one.sf(y))
 
-    return float(integrate.quad(integrand, 0.0, top, epsabs=0.0, limit=200)[0])
+    return float(scipy.integrate.quad(integrand, 0.0, top, epsabs=0.0, limit=200)[0])
 
 
 def _tensors_from_components(components: FloatArray) -> FloatArray:
@@ -460,7 +467,7 @@ def _split(strength: FloatArray, first: int, last: int) -> list[tuple[int, int]]
     anomalies overlap are two detections; one dipole's strength has a single peak)."""
     log_s = np.log(np.maximum(strength[first:last], 1e-300))
     padded = np.concatenate([[-np.inf], log_s, [-np.inf]])
-    peaks = signal.find_peaks(padded, prominence=np.log(PEAK_PROMINENCE))[0] - 1
+    peaks = scipy.signal.find_peaks(padded, prominence=np.log(PEAK_PROMINENCE))[0] - 1
     cuts = [first]
     for left, right in zip(peaks[:-1], peaks[1:], strict=True):
         cuts.append(first + left + int(np.argmin(log_s[left:right])))

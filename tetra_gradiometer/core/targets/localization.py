@@ -23,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize
+import scipy  # submodules load on first use: see core/__init__.py
 
 from ...errors import InputError
 from ..geometry import TetraGeometry, to_world
@@ -249,7 +249,7 @@ def fit_dipoles(
             f'a fit of {count} dipole(s) needs more than {n_linear + 3 * count} values, '
             f'got {len(problem.data)}'
         )
-    solution = optimize.least_squares(
+    solution = scipy.optimize.least_squares(
         lambda s: problem.solve(s)[1], np.concatenate(initials), x_scale='jac', method='lm'
     )
     sources = solution.x.reshape(count, 3)
