@@ -121,18 +121,27 @@ def _importing(case: Case, timeout_s: float = 60.0) -> bool:
 
 
 def _state(probe: Any, case: Case, timeout_s: float) -> str:
-    """The node's lifecycle state label from its ``get_state`` service (answered: it spins)."""
+    """The node's lifecycle state label from its ``get_state`` service (answered: it spins).
+    The request is sent again every 5 s: a reply can be lost when the server's reply writer
+    has not yet matched the client's reader (the service is found by its request reader
+    alone); one full run on a loaded machine waited 60 s for a reply that never came."""
     from lifecycle_msgs.srv import GetState
 
     client = probe.create_client(GetState, f'{case.ns}/{case.node}/get_state')
     try:
         if not client.wait_for_service(timeout_sec=timeout_s):
             return 'no get_state service'
-        future = client.call_async(GetState.Request())
         deadline = time.monotonic() + timeout_s
-        while not future.done() and time.monotonic() < deadline:
-            time.sleep(0.01)
-        return future.result().current_state.label if future.done() else 'no get_state reply'
+        futures = []
+        while time.monotonic() < deadline:
+            futures.append(client.call_async(GetState.Request()))
+            resend = time.monotonic() + 5.0
+            while time.monotonic() < min(resend, deadline):
+                done = [f for f in futures if f.done()]
+                if done:
+                    return done[0].result().current_state.label
+                time.sleep(0.01)
+        return 'no get_state reply'
     finally:
         probe.destroy_client(client)
 
