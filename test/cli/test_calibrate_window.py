@@ -1,14 +1,14 @@
 """calibrate without --window finds its own window (issue 30): the manoeuvring spans of the
 bag (pipelines/window_check.excited_spans), ranked by the trim guidance's prediction, each
 checked as --window would check it; a failing --window names the best passing window of the
-bag. Truth: the simulator's segments and g_true, the sample bags' recorded truth."""
+bag. Truth: the simulator's segments and g_true, the sample bags' recorded truth. The spans
+on analytic fields: test/pipelines/test_window_check.py."""
 import numpy as np
 import pytest
 import yaml
 
 from tetra_gradiometer.core import noise_floor
 from tetra_gradiometer.io.params import geometry_from_params, load_params
-from tetra_gradiometer.pipelines.window_check import excited_spans
 
 from test.io.cli_helpers import assert_refused, run_cli
 
@@ -135,17 +135,6 @@ def test_sample_bags_calibrated_without_window_compensate_the_survey(tmp_path, c
     assert np.sqrt(np.mean(residual**2)) <= 1.2 * floor
 
 
-def test_excited_spans_follow_the_field_direction():
-    """Analytic: a field direction fixed for 100 s, swinging +-30 deg for 60 s, fixed again;
-    then a 20 s swing (shorter than the 30 s minimum) is not a span."""
-    t = np.arange(0, 300, 0.1)
-    angle = np.where((t >= 100) & (t < 160), np.radians(30) * np.sin(2 * np.pi * t / 7), 0.0)
-    angle = np.where((t >= 200) & (t < 220), np.radians(30) * np.sin(2 * np.pi * t / 7), angle)
-    b = np.stack([np.sin(angle), np.zeros_like(t), np.cos(angle)], axis=1) * 5e-5
-    assert excited_spans(t, b) == [(pytest.approx(100.0), pytest.approx(159.9))]
-    assert excited_spans(t, np.tile([0.0, 2e-5, -4.5e-5], (len(t), 1))) == []
-
-
 def test_the_checked_solve_names_the_passing_manoeuvre_it_holds(mission):
     """What the calibrator node calls (identify_checked on its samples): all the samples fail,
     and the passing span it names is the far trim, not the trim over the target."""
@@ -166,25 +155,6 @@ def test_the_checked_solve_names_the_passing_manoeuvre_it_holds(mission):
     far = t[segment == 3]
     assert far[0] - 0.05 <= t0 and t1 <= far[-1] + 0.05
     assert f'{t0:g}-{t1:g}' in checked.check.text('{0:g}-{1:g}')
-
-
-def test_a_gentle_trim_between_rough_sea_lines_is_one_span():
-    """Body-frame fields of an Earth field (inclination 73 deg) seen on straight legs rolling
-    +-5 deg and pitching +-3 deg (periods 8 and 11 s), and 100-300 s on a gentle trim
-    (2 deg/s heading, roll +-8 deg, pitch +-6 deg): its 30 s spread is ~2x the legs', not
-    10x. The span found is the trim's, to a block."""
-    from scipy.spatial.transform import Rotation
-
-    t = np.arange(0, 400, 0.1)
-    trim = (t >= 100) & (t < 300)
-    heading = np.where(trim, 2.0 * (t - 100), 0.0)
-    roll = np.where(trim, 8 * np.sin(2 * np.pi * t / 15), 5 * np.sin(2 * np.pi * t / 8))
-    pitch = np.where(trim, 6 * np.sin(2 * np.pi * t / 23), 3 * np.sin(2 * np.pi * t / 11))
-    body_to_world = Rotation.from_euler('ZYX', np.stack([heading, pitch, roll], 1), degrees=True)
-    b = body_to_world.inv().apply(np.array([0.0, 15000.0, -48000.0]) * 1e-9)
-    spans = excited_spans(t, b)
-    assert len(spans) == 1
-    assert abs(spans[0][0] - 100) <= 10 and abs(spans[0][1] - 299.9) <= 10
 
 
 def test_batch_without_a_window_calibrates_on_the_window_found(tmp_path):
