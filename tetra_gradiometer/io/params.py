@@ -31,7 +31,8 @@ KNOWN_PARAMETERS = frozenset(
     ga_seed health_false_alarms_per_hour health_min_source_range_edges history_s
     hold_between_segments jump_back_s max_coverage_condition max_duration_s max_field_t
     max_gap_periods max_in_flight max_stamp_ahead_s max_pending max_samples max_solve_s
-    method min_samples min_subscribers mode odom_frame_id publish_clock publisher_depth rate
+    method min_samples min_subscribers mode odom_frame_id pace_topic publish_clock publisher_depth
+    rate
     reference_rate_hz
     replay_remap sample_rate_hz scenario seed sensor_frame_ids sensor_noise_t sensor_positions
     sensor_queue_depth stale_timeout_s stamp_tolerance_s start_paused sync update_period_s

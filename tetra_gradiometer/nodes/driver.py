@@ -26,7 +26,8 @@ magnetometer message keeps its recorded covariance; one recorded without (all ze
 
 Pacing: ``rate`` times real time (by sample time in sim, by log time in replay), or with
 ``rate: 0`` as fast as the graph takes it: at most ``max_in_flight`` sets are published
-ahead of the last ``gradient/raw`` received (after ``ack_timeout_s`` without one, the
+ahead of the last ``pace_topic`` message received (``gradient/raw``, the tensor node; or
+``gradient/compensated``, the end of the chain: after ``ack_timeout_s`` without one, the
 driver moves on and counts a timeout).
 
 ``start_paused`` waits for ``~/resume``; ``hold_between_segments`` (sim) pauses after each
@@ -65,12 +66,16 @@ from .common import (
     diagnostics_period_spec,
     frame_ids,
     non_negative,
+    one_of,
     positive,
     status,
 )
 from .managed import ManagedNode
 from .process import spin_node
 from .replay import CHANNEL, MAG, ODOM, TRUTH, Frame
+
+#: rate 0: the topics whose messages may pace the replay (``pace_topic``).
+PACE_TOPICS = ('gradient/raw', 'gradient/compensated')
 
 #: Why the driver refuses to configure without a ``mode``.
 MODE_UNSET = (
@@ -122,7 +127,7 @@ PARAMETERS = [
     ParamSpec(
         'rate',
         1.0,
-        'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by gradient/raw). '
+        'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by pace_topic). '
         'At most 1000.',
         non_negative,
         float_range=(0.0, 1000.0),
@@ -152,6 +157,14 @@ PARAMETERS = [
         'rate 0: sets published ahead of the last gradient/raw received (at most 1000, the '
         "tensor node's pending queue; beyond, sets are lost, not faster).",
         int_range=(1, 1000),
+    ),
+    ParamSpec(
+        'pace_topic',
+        'gradient/raw',
+        'rate 0: the tensor topic that paces the replay: gradient/raw (the tensor node) or '
+        'gradient/compensated (the whole chain: a compensator short of CPU slows the replay '
+        'instead of dropping the oldest sets of its 1000-set queue).',
+        one_of(*PACE_TOPICS),
     ),
     ParamSpec(
         'ack_timeout_s',
@@ -260,7 +273,7 @@ class DriverNode(ManagedNode):
         gated = self.when_active
         if self._rate == 0:
             self.create_subscription(
-                JointState, 'gradient/raw', gated(self._on_ack), derived_qos()
+                JointState, p['pace_topic'], gated(self._on_ack), derived_qos()
             )
         self.create_service(Trigger, '~/resume', gated(self._on_resume))
         self.create_service(Trigger, '~/pause', gated(self._on_pause))
