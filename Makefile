@@ -80,8 +80,9 @@ clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants
 
 # Mutation smoke check (not in CI): mutmut (requirements-dev.txt) mutates core/metrics.py,
-# geometry.py, fields.py, core/effects/, core/identification/terms.py and
-# pipelines/window_check.py and runs their direct tests (config: setup.cfg [mutmut]).
+# geometry.py, fields.py, core/effects/, core/identification/terms.py, core/streams.py,
+# core/live_streams.py and pipelines/window_check.py and runs their direct tests (config:
+# setup.cfg [mutmut]); scripts/mutation_score.py prints killed / survived / untested per file.
 # Survivors are listed at the end; `.venv/bin/mutmut show NAME` prints one.
 # MUTANTS='tetra_gradiometer.core.effects*' runs only the mutants whose names match (the whole
 # set takes over 30 min on two loaded cores).
