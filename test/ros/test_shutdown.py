@@ -144,7 +144,12 @@ def _state(probe: Any, case: Case, timeout_s: float) -> str:
                 return future.result().current_state.label
         finally:
             probe.destroy_client(client)
-    return 'no get_state reply' if found else 'no get_state service'
+    if not found:
+        return 'no get_state service'
+    # What tells a node that does not spin from replies that do not come back: its process, and
+    # whether its /diagnostics (sent by its executor's timer) reach the probe.
+    heard = sorted(name for name in probe.diagnostics if name.startswith(case.ns[1:] + '/'))
+    return f'no get_state reply (process alive: {case.process.poll() is None}; its diagnostics heard: {heard})'
 
 
 def _start_solves(probe: Any, feeder: Any, solving: list[Case]) -> None:
