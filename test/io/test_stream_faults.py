@@ -271,3 +271,22 @@ def test_live_check_drops_one_sensor_off_the_clock_but_follows_a_restart_of_all(
     assert accepted == [False, False, True, True]  # once two have moved, the others' median has
     assert check.accept(0, restart + 10**8, now + 10**8, *reading)
     assert not check.accept(1, 0, now + 10**8, *reading) and check.dropped[1]['zero_stamp'] == 1
+
+
+def test_live_check_names_a_sensor_in_gauss_and_is_silent_on_earth_fields():
+    """The tensor node's magnitude text (core/live_streams.py) against the Earth's range: a
+    sensor reading 50 000 nT written as Gauss-in-tesla (x 1e4) is named with the factor; the
+    Earth's field itself, a sensor with no reading yet and one reading NaN say nothing."""
+    from tetra_gradiometer.core.live_streams import LiveStreamCheck
+    check = LiveStreamCheck(history=8)
+    earth = np.array([0.0, 2e-5, -4.5e-5])
+    for i in range(12):  # more than the history: the median of the last 8
+        stamp = START_NS + i * 10**8
+        assert check.accept(0, stamp, i * 10**8, *earth)
+        assert check.accept(1, stamp, i * 10**8, *(earth * 1e4))
+        assert check.accept(3, stamp, i * 10**8, *(earth * np.nan))
+    assert check.magnitude_text(0) == '' and check.magnitude_text(2) == '' and check.magnitude_text(3) == ''
+    text = check.magnitude_text(1)
+    assert text.startswith(f'median |B| {np.linalg.norm(earth) * 1e4:.4g} of the last 8 readings, '
+                           "outside the Earth field's 22-67 µT: "), text
+    assert 'Gauss' in text, text

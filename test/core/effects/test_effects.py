@@ -19,7 +19,9 @@ from tetra_gradiometer.core.effects import (
     LiveTerms,
     causal_rate,
     current_channel,
+    term_from_dict,
     term_regressors,
+    term_to_dict,
 )
 from tetra_gradiometer.core.identification import Options, identify
 from tetra_gradiometer.core.identification.terms import (
@@ -27,6 +29,7 @@ from tetra_gradiometer.core.identification.terms import (
     fit_with_terms,
     select_terms,
 )
+from tetra_gradiometer.core.effects.base import Term
 from tetra_gradiometer.core.model import compensate
 from tetra_gradiometer.errors import InputError
 
@@ -173,3 +176,62 @@ def test_terms_are_never_taken_as_zero():
         term_regressors(calibration.parameters.terms, without_current)
     _, lacking = candidates_for(without_current)
     assert set(lacking) == {'vehicle_current', 'thermal_drift'}
+
+
+# ------------------------------------------------------------------------ the file form
+
+AVAILABLE = (BATTERY, current_channel('/thruster1/battery'), TEMPERATURE)
+
+
+def _term(name: str, rng) -> Term:
+    """A term of effect ``name`` on the channels it takes of AVAILABLE, random values."""
+    spec = EFFECTS[name]
+    inputs = spec.inputs(AVAILABLE)
+    m = len(spec.labels(inputs))
+    return Term(name, inputs, rng.normal(0.0, 1e-9, (3, 3, m)), tuple(rng.normal(0.0, 1.0, len(inputs))),
+                tuple(rng.uniform(0.1, 1.0, m)), {'test': 'F', 'gap_nT': [1.5, 0.2]},
+                tuple(rng.normal(0.0, 1.0, m)), tuple(tuple(row) for row in np.eye(m) * 2.0))
+
+
+@pytest.mark.parametrize('name', sorted(EFFECTS))
+def test_a_term_round_trips_through_its_file_form_in_the_effects_file_unit(name):
+    """What a calibration file holds of a term (term_to_dict), read back (term_from_dict): the
+    same term; coefficients written in the effect's file unit (nT/A, s, nT/degC) with its
+    labels, plain types only."""
+    import yaml
+
+    rng = np.random.default_rng(sorted(EFFECTS).index(name))
+    term = _term(name, rng)
+    spec = EFFECTS[name]
+    data = term_to_dict(term)
+    assert yaml.safe_load(yaml.safe_dump(data)) == data  # plain types
+    assert data['effect'] == name and data['unit'] == spec.file_unit
+    assert data['labels'] == list(spec.labels(term.inputs))
+    np.testing.assert_allclose(np.array(data['coefficients']), term.coefficients * spec.file_factor)
+    back = term_from_dict(yaml.safe_load(yaml.safe_dump(data)), 'calibration.yaml terms[0]')
+    for field in ('effect', 'inputs', 'reference', 'channel_noise', 'evidence', 'window_mean',
+                  'window_covariance'):
+        assert getattr(back, field) == getattr(term, field), field
+    np.testing.assert_allclose(back.coefficients, term.coefficients, rtol=1e-15)
+    older = {k: v for k, v in data.items() if k not in ('window', 'evidence', 'channel_noise')}
+    read = term_from_dict(older, 'old.yaml')  # an older file: no window, evidence or noise
+    assert read.window_mean == () and read.window_covariance == () and read.evidence == {}
+    np.testing.assert_allclose(read.coefficients, term.coefficients, rtol=1e-15)
+
+
+@pytest.mark.parametrize('data, fragment', [
+    (['effect'], 'where: a term must be a mapping, got list'),
+    ({'effect': 'magic'}, "where: unknown effect 'magic'; known: "),
+    ({'effect': 'thermal_drift', 'inputs': ['temperature:/tetra/temperature']},
+     "where (thermal_drift): not a term: 'coefficients'"),
+    ({'effect': 'thermal_drift', 'inputs': ['temperature:/tetra/temperature'], 'coefficients': [[1, 2]]},
+     'where (thermal_drift): coefficients must be finite (3, 3, 1) [pair][axis][regressor], got (1, 2)'),
+    ({'effect': 'thermal_drift', 'inputs': ['temperature:/tetra/temperature'],
+      'coefficients': np.full((3, 3, 1), np.nan).tolist()}, 'must be finite (3, 3, 1)'),
+    ({'effect': 'thermal_drift', 'inputs': ['temperature:/tetra/temperature'],
+      'coefficients': np.zeros((3, 3, 1)).tolist(), 'reference': ['warm']}, 'not a term: could not convert'),
+])
+def test_a_term_that_is_not_one_is_refused_naming_where_and_what(data, fragment):
+    with pytest.raises(InputError) as refused:
+        term_from_dict(data, 'where')
+    assert fragment in str(refused.value), str(refused.value)
