@@ -96,7 +96,7 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
         assert probe.call('driver/resume').success
         wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'survey', graph)
         # A tensor the loaded test process did not take in time comes again after the reliable
-        # writer's next heartbeat (Fast DDS: 3 s), and its queue holds 1000 (5 s at 20x).
+        # writer's next heartbeat (Fast DDS: 3 s), and its queue holds 1000.
         deadline = time.monotonic() + 20.0
         while len(probe.tensors['gradient/truth']) < len(survey) and time.monotonic() < deadline:
             time.sleep(0.1)
