@@ -122,28 +122,30 @@ def _importing(case: Case, timeout_s: float = 60.0) -> bool:
 
 def _state(probe: Any, case: Case, timeout_s: float) -> str:
     """The node's lifecycle state label from its ``get_state`` service (answered: it spins).
-    Asked again every 5 s with a new client: in two full runs on a loaded machine one node
-    left a request unanswered for 60 s after its service was found (a reply lost, or a client
-    whose reply reader the node never matched), and the test failed before any signal was
-    sent."""
+    Asked again every 5 s on the same client, as ``Probe.call`` does: rmw_fastrtps drops a
+    reply when the node has not matched the client's reply reader within 100 ms of the
+    request, which a node just started on a loaded machine misses (two full runs had one
+    node leave get_state unanswered for 60 s, new clients every 5 s included: each new
+    client is a new reader to match)."""
     from lifecycle_msgs.srv import GetState
+
+    from tetra_gradiometer.cli._probe import RESEND_S
 
     deadline = time.monotonic() + timeout_s
     found = False
-    while time.monotonic() < deadline:
-        client = probe.create_client(GetState, f'{case.ns}/{case.node}/get_state')
-        try:
-            if not client.wait_for_service(timeout_sec=max(deadline - time.monotonic(), 0.0)):
-                break
-            found = True
+    client = probe.create_client(GetState, f'{case.ns}/{case.node}/get_state')
+    try:
+        found = client.wait_for_service(timeout_sec=timeout_s)
+        while found and time.monotonic() < deadline:
             future = client.call_async(GetState.Request())
-            ask_again = min(time.monotonic() + 5.0, deadline)
+            ask_again = min(time.monotonic() + RESEND_S, deadline)
             while not future.done() and time.monotonic() < ask_again:
                 time.sleep(0.01)
             if future.done():
                 return future.result().current_state.label
-        finally:
-            probe.destroy_client(client)
+            client.remove_pending_request(future)
+    finally:
+        probe.destroy_client(client)
     if not found:
         return 'no get_state service'
     # What tells a node that does not spin from replies that do not come back: its process, and

@@ -23,6 +23,11 @@ from ..io import conversions as cv
 from ..nodes.common import DERIVED_DEPTH, NAMESPACE, derived_qos
 
 TENSOR_TOPICS = ('gradient/raw', 'gradient/compensated', 'gradient/truth')
+RESEND_S = 5.0
+"""s: an unanswered Trigger request is sent again after this (see :meth:`Probe.call`)."""
+NOT_RESENT = frozenset({'calibrate'})
+"""Services not asked twice: a second ``~/calibrate`` during a solve is refused, so its
+answer would stand for the first one's."""
 
 
 def init_local_ros(params: str) -> int:
@@ -104,19 +109,35 @@ class Probe(Node):
         return np.array(common, dtype=np.int64), raw, compensated, truth
 
     def call(self, service: str, timeout_s: float = 30.0) -> Any:
-        """Call a std_srvs/Trigger service (spun by another thread); return the response."""
+        """Call a std_srvs/Trigger service (spun by another thread); return the response.
+
+        A request left unanswered for :data:`RESEND_S` is sent again on the same client, except
+        to the services in :data:`NOT_RESENT`: rmw_fastrtps drops a reply when the server has
+        not matched the client's reply reader within 100 ms of the request
+        (ros2/rmw_fastrtps#390, #467), which a server or client just created on a loaded
+        machine misses, and the client would wait forever (a fresh-clone ``make test`` lost
+        the reply to a second driver's ``~/resume``). By then the server has matched it. The
+        other services are idempotent: a repeat changes nothing the first did not.
+        """
         client = self._trigger_clients.get(service)
         if client is None:
             client = self._trigger_clients[service] = self.create_client(Trigger, service)
         if not client.wait_for_service(timeout_sec=timeout_s):
             raise TimeoutError(f'service {service} is not available')
-        future = client.call_async(Trigger.Request())
+        resend = service.rsplit('/', 1)[-1] not in NOT_RESENT
         deadline = time.monotonic() + timeout_s
-        while not future.done():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f'service {service} did not answer within {timeout_s:g} s')
-            time.sleep(0.005)
-        return future.result()
+        while True:
+            future = client.call_async(Trigger.Request())
+            ask_again = time.monotonic() + RESEND_S if resend else deadline
+            while not future.done():
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f'service {service} did not answer within {timeout_s:g} s')
+                if time.monotonic() > ask_again:
+                    client.remove_pending_request(future)
+                    break
+                time.sleep(0.005)
+            else:
+                return future.result()
 
     def wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
         deadline = time.monotonic() + timeout_s

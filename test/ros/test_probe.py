@@ -1,0 +1,78 @@
+"""The operator probe's service calls survive a reply that never comes (rmw_fastrtps drops one
+when the server has not matched the client's reply reader in time): a server in this process
+takes the first request and leaves it unanswered, as the middleware does."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import pytest
+
+from .ros_helpers import ros_graph
+
+
+def _serve(probe: Any, name: str, stop: threading.Event, taken: list[float]) -> threading.Thread:
+    """A Trigger server on the probe's context, polled by hand: the first request is taken and
+    dropped, every later one answered with its ordinal."""
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    node = Node('dropper', context=probe.context)
+    service = node.create_service(Trigger, name, lambda request, response: response)
+
+    def run() -> None:
+        try:
+            while not stop.is_set():
+                with service.handle:
+                    _, header = service.handle.service_take_request(Trigger.Request)
+                if header is None:  # nothing to take
+                    time.sleep(0.01)
+                    continue
+                taken.append(time.monotonic())
+                if len(taken) > 1:
+                    service.send_response(
+                        Trigger.Response(success=True, message=f'request {len(taken)}'), header
+                    )
+        finally:
+            node.destroy_node()
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_an_unanswered_request_is_sent_again_on_the_same_client_and_its_answer_returned(monkeypatch):
+    from tetra_gradiometer.cli import _probe
+
+    monkeypatch.setattr(_probe, 'RESEND_S', 0.5)
+    stop, taken = threading.Event(), []
+    with ros_graph() as (_, probe, _feeder):
+        thread = _serve(probe, '/dropper/resume', stop, taken)
+        try:
+            started = time.monotonic()
+            reply = probe.call('/dropper/resume', timeout_s=20)
+        finally:
+            stop.set()
+            thread.join(timeout=5)
+    assert (reply.success, reply.message) == (True, 'request 2')
+    assert len(taken) == 2
+    assert taken[1] - taken[0] >= 0.4 and taken[1] - started < 10  # resent after 0.5 s; taken by 10 ms polls
+
+
+def test_a_calibrate_request_is_not_sent_twice(monkeypatch):
+    """A second ``~/calibrate`` during a solve is refused: the probe waits for the first."""
+    from tetra_gradiometer.cli import _probe
+
+    monkeypatch.setattr(_probe, 'RESEND_S', 0.5)
+    stop, taken = threading.Event(), []
+    with ros_graph() as (_, probe, _feeder):
+        thread = _serve(probe, '/dropper/calibrate', stop, taken)
+        try:
+            with pytest.raises(TimeoutError, match='did not answer within 2 s'):
+                probe.call('/dropper/calibrate', timeout_s=2)
+        finally:
+            stop.set()
+            thread.join(timeout=5)
+    assert len(taken) == 1
