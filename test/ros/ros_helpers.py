@@ -349,9 +349,17 @@ def set_parameter(probe: Any, graph: Graph, node: str, name: str, value: str | f
         parameter_value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
     else:
         parameter_value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=float(value))
-    future = client.call_async(SetParameters.Request(parameters=[Parameter(name=name, value=parameter_value)]))
-    wait_for(future.done, 10, 'set_parameters', graph)
-    return future.result().results[0]
+    request = SetParameters.Request(parameters=[Parameter(name=name, value=parameter_value)])
+    # Asked again on the same client each 5 s, as Probe.call does: rmw_fastrtps drops a reply
+    # whose reader the node has not matched within 0.1 s (setting a value twice is harmless).
+    futures = [client.call_async(request)]
+    deadline = time.monotonic() + 20.0
+    while not any(f.done() for f in futures):
+        assert time.monotonic() < deadline, f'no reply from {node}/set_parameters in 20 s\n{graph.logs()}'
+        if time.monotonic() > deadline - 20.0 + 5.0 * len(futures):
+            futures.append(client.call_async(request))
+        time.sleep(0.02)
+    return next(f for f in futures if f.done()).result().results[0]
 
 
 def change_state(probe: Any, node: str, transition: str, timeout_s: float = 30.0) -> bool:
