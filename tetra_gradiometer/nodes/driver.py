@@ -24,7 +24,9 @@ sensor_msgs/BatteryState topic (``/battery_state``, a thruster's), the latter ca
 magnetometer message keeps its recorded covariance; one recorded without (all zero) gets
 ``diag(sensor_noise_t^2)``, or REP 145's unknown (-1 first) with ``sensor_noise_t`` 0.
 
-Pacing: ``rate`` times real time (by sample time in sim, by log time in replay), or with
+Pacing: ``rate`` times real time (by sample time in sim, by log time in replay; a frame
+more than ``MAX_CATCH_UP_S`` late, after a stall, restarts the pacing from itself rather
+than the backlog going out at once: counted as ``pace_restarts``), or with
 ``rate: 0`` as fast as the graph takes it: at most ``max_in_flight`` sets are published
 ahead of the last ``pace_topic`` message received (``gradient/raw``, the tensor node; or
 ``gradient/compensated``, the end of the chain: after ``ack_timeout_s`` without one, the
@@ -217,6 +219,14 @@ CLOCK_STEP_NS = 1_000_000
 #: subscribers' side of the discovery has completed too.
 MATCH_SETTLE_S = 0.5
 
+#: rate > 0: a frame due more than this long ago (s of wall time: the driver's process was
+#: stalled) restarts the pacing from itself instead of the backlog going out in one tick. A
+#: burst of a second's sets overflows best-effort readers' transport queues (a driver stopped
+#: for 1 s of an 8x replay: the tensor node received 1092 of 1200 sets and the calibrator's
+#: channels 912); restarted, the replay takes longer and nothing is skipped. 0.25 s at 8x is
+#: 40 sets of 20 Hz, well within the queues.
+MAX_CATCH_UP_S = 0.25
+
 
 class DriverNode(ManagedNode):
     """Publishes the magnetometers (and truth, odometry) from the simulator or a bag."""
@@ -245,6 +255,7 @@ class DriverNode(ManagedNode):
         self.segment = self._next.segment if self._next is not None else -1
         self.sets_published = 0
         self.ack_timeouts = 0
+        self.pace_restarts = 0
         self._in_flight: deque[int] = deque()
         self._last_progress = time.monotonic()
         self._origin = (time.monotonic(), self._next.pace_ns if self._next else 0)
@@ -368,11 +379,12 @@ class DriverNode(ManagedNode):
                 self._set_state('holding')
                 return
             if self._rate > 0:
-                if (
-                    frame.pace_ns
-                    > self._origin[1] + (now - self._origin[0]) * self._rate * NS_PER_S
-                ):
+                due_ns = self._origin[1] + (now - self._origin[0]) * self._rate * NS_PER_S
+                if frame.pace_ns > due_ns:
                     return
+                if frame.pace_ns < due_ns - MAX_CATCH_UP_S * self._rate * NS_PER_S:
+                    self._origin = (now, frame.pace_ns)
+                    self.pace_restarts += 1
             elif len(self._in_flight) >= self._window:
                 if now - self._last_progress < self._ack_timeout:
                     return
@@ -454,6 +466,7 @@ class DriverNode(ManagedNode):
                     'segment': self.segment,
                     'sets_published': self.sets_published,
                     'ack_timeouts': self.ack_timeouts,
+                    'pace_restarts': self.pace_restarts,
                     'rate': self._rate,
                     **self.info,
                     # Matched readers per output (rmw): a reader not yet matched misses what
