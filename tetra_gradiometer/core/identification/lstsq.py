@@ -11,7 +11,6 @@ are ``c = (gxx, gxy, gxz, gyy, gyz)`` of ``G_w`` with ``gzz = -gxx - gyy``
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ...errors import IdentifiabilityError, InputError
 from .._validate import as_array, as_tensors, as_vectors, same_length
@@ -303,6 +302,10 @@ def regional_body_tensor(orientation_xyzw: ArrayLike, g_world: ArrayLike) -> Flo
 
 def _body_tensor(quaternions: FloatArray, g_world: FloatArray) -> FloatArray:
     """:func:`regional_body_tensor` of validated (N, 4) quaternions and (3, 3) ``G_w``."""
+    # Imported here: scipy.spatial loads its k-d tree and sparse modules with it (~0.17 s of
+    # CPU), which a compensator node that never fits a regional gradient paid at each start.
+    from scipy.spatial.transform import Rotation
+
     rotation = Rotation.from_quat(quaternions).as_matrix().reshape(-1, 3, 3)
     return to_body(np.broadcast_to(g_world, rotation.shape), rotation)
 
@@ -313,6 +316,8 @@ def _regional_columns(
     """Per-sample columns ``[B_1' 1 | Z | y]``, shape (m, 58): ``Z`` the whitened body-frame
     regional basis (9 whitened components x 5 coefficients, component-major), ``y`` the
     whitened target (9)."""
+    from scipy.spatial.transform import Rotation  # as in _body_tensor
+
     m = len(b_reference)
     rotation = Rotation.from_quat(quaternions).as_matrix().reshape(m, 1, 3, 3)
     body = np.swapaxes(rotation, 2, 3) @ REGIONAL_BASIS @ rotation  # (m, 5, 3, 3)
