@@ -35,14 +35,12 @@ check: setup
 	$(VENV)/bin/mypy
 	$(PY) scripts/check_sizes.py tetra_gradiometer
 
-# The tests on one pytest-xdist worker per core plus one (TEST_WORKERS=0: one process, e.g.
+# The tests on one pytest-xdist worker per core plus two (TEST_WORKERS=0: one process, e.g.
 # for pdb); a whole test module goes to one worker (pytest.ini, docs/testing.md). The extra
-# worker runs while another waits on wall-clock time (ROS replays in real time, node start-up,
-# discovery, a Dask cluster): with one per core a quiet 2-core machine was busy 74 % of the
-# run, with one more 90 % (docs/testing.md: measured).
-# The gates run beside the tests (make -j2): mypy's cold start is ~8 s of one core while
-# the workers start and the cores are half idle; either failing fails `make test`.
-TEST_WORKERS ?= $(shell echo $$(($$(nproc) + 1)))
+# workers run while others wait on wall-clock time (ROS replays, node start-up, discovery, a
+# Dask cluster): with one per core a quiet 2-core machine was busy 74 % of the run, with one
+# more ~90 %; at 401fb5b, one more again: 4 min 43 s against 5 min 01 s (docs/testing.md).
+TEST_WORKERS ?= $(shell echo $$(($$(nproc) + 2)))
 test: setup
 	$(MAKE) --no-print-directory -j2 check tests
 
