@@ -261,18 +261,14 @@ def wait_connected(probe: Any, graph: Graph, node: str, topic: str, publishers: 
     assert subscriptions, f'the probe has no subscription on {topic}'
     wait_for(lambda: all(s.get_publisher_count() >= publishers for s in subscriptions), timeout_s,
              f'{publishers} publisher(s) matched on {topic}', graph)
+    from tetra_gradiometer.cli._probe import ask
+
     client = probe.create_client(GetParameters, f'{node}/get_parameters')
     try:
         assert client.wait_for_service(timeout_sec=timeout_s), f'{node}/get_parameters'
-        deadline = time.monotonic() + timeout_s
-        futures = []
-        while not any(f.done() for f in futures):
-            if time.monotonic() > deadline:
-                raise AssertionError(f'no reply from {node}/get_parameters in {timeout_s:g} s\n{graph.logs()}')
-            if not futures or time.monotonic() - asked > 1.0:
-                futures.append(client.call_async(GetParameters.Request(names=['use_sim_time'])))
-                asked = time.monotonic()
-            time.sleep(0.02)
+        ask(client, GetParameters.Request(names=['use_sim_time']), timeout_s, 1.0)
+    except TimeoutError as error:
+        raise AssertionError(f'{error}\n{graph.logs()}') from None
     finally:
         probe.destroy_client(client)
 
@@ -349,17 +345,14 @@ def set_parameter(probe: Any, graph: Graph, node: str, name: str, value: str | f
         parameter_value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
     else:
         parameter_value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=float(value))
+    from tetra_gradiometer.cli._probe import RESEND_S, ask
+
     request = SetParameters.Request(parameters=[Parameter(name=name, value=parameter_value)])
-    # Asked again on the same client each 5 s, as Probe.call does: rmw_fastrtps drops a reply
-    # whose reader the node has not matched within 0.1 s (setting a value twice is harmless).
-    futures = [client.call_async(request)]
-    deadline = time.monotonic() + 20.0
-    while not any(f.done() for f in futures):
-        assert time.monotonic() < deadline, f'no reply from {node}/set_parameters in 20 s\n{graph.logs()}'
-        if time.monotonic() > deadline - 20.0 + 5.0 * len(futures):
-            futures.append(client.call_async(request))
-        time.sleep(0.02)
-    return next(f for f in futures if f.done()).result().results[0]
+    # Asked again on the same client, as Probe.call does (setting a value twice is harmless).
+    try:
+        return ask(client, request, 20.0, RESEND_S).results[0]
+    except TimeoutError as error:
+        raise AssertionError(f'{error}\n{graph.logs()}') from None
 
 
 def change_state(probe: Any, node: str, transition: str, timeout_s: float = 30.0) -> bool:

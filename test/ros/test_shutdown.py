@@ -129,21 +129,17 @@ def _state(probe: Any, case: Case, timeout_s: float) -> str:
     client is a new reader to match)."""
     from lifecycle_msgs.srv import GetState
 
-    from tetra_gradiometer.cli._probe import RESEND_S
+    from tetra_gradiometer.cli._probe import RESEND_S, ask
 
     deadline = time.monotonic() + timeout_s
-    found = False
     client = probe.create_client(GetState, f'{case.ns}/{case.node}/get_state')
     try:
         found = client.wait_for_service(timeout_sec=timeout_s)
-        while found and time.monotonic() < deadline:
-            future = client.call_async(GetState.Request())
-            ask_again = min(time.monotonic() + RESEND_S, deadline)
-            while not future.done() and time.monotonic() < ask_again:
-                time.sleep(0.01)
-            if future.done():
-                return future.result().current_state.label
-            client.remove_pending_request(future)
+        if found:
+            return ask(client, GetState.Request(), max(deadline - time.monotonic(), 0.0),
+                       RESEND_S).current_state.label
+    except TimeoutError:
+        pass
     finally:
         probe.destroy_client(client)
     if not found:

@@ -57,6 +57,30 @@ def init_local_ros(params: str) -> int:
     return domain
 
 
+def ask(client: Any, request: Any, timeout_s: float, resend_s: float | None) -> Any:
+    """The response to ``request`` on a service ``client`` whose node another thread spins,
+    the request sent again on the same client every ``resend_s`` while unanswered (None:
+    once): rmw_fastrtps drops a reply whose reader the server has not matched within 100 ms
+    (see :meth:`Probe.call`); only for a request that may be repeated. Raises TimeoutError
+    after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        future = client.call_async(request)
+        ask_again = deadline if resend_s is None else time.monotonic() + resend_s
+        while not future.done():
+            if time.monotonic() > deadline:
+                client.remove_pending_request(future)
+                raise TimeoutError(
+                    f'service {client.srv_name} did not answer within {timeout_s:g} s'
+                )
+            if time.monotonic() > ask_again:
+                client.remove_pending_request(future)
+                break
+            time.sleep(0.005)
+        else:
+            return future.result()
+
+
 class Probe(Node):
     """Collects ``gradient/raw|compensated|truth`` (T/m) by stamp while ``collecting``.
 
@@ -125,19 +149,7 @@ class Probe(Node):
         if not client.wait_for_service(timeout_sec=timeout_s):
             raise TimeoutError(f'service {service} is not available')
         resend = service.rsplit('/', 1)[-1] not in NOT_RESENT
-        deadline = time.monotonic() + timeout_s
-        while True:
-            future = client.call_async(Trigger.Request())
-            ask_again = time.monotonic() + RESEND_S if resend else deadline
-            while not future.done():
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f'service {service} did not answer within {timeout_s:g} s')
-                if time.monotonic() > ask_again:
-                    client.remove_pending_request(future)
-                    break
-                time.sleep(0.005)
-            else:
-                return future.result()
+        return ask(client, Trigger.Request(), timeout_s, RESEND_S if resend else None)
 
     def wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
         deadline = time.monotonic() + timeout_s
