@@ -39,7 +39,7 @@ def write_params(path: Path, earth: bool = True) -> Path:
 
 
 def write_bag(path: Path, mission, *, stamps=None, fields=None, keep=None, log=None,
-              odom_xyzw=None, odom_position=None, odom: bool = True) -> Path:
+              odom_xyzw=None, odom_position=None, odom: bool = True, odom_late_s: float = 0.0) -> Path:
     """The mission's four magnetometers (and ``/odom``) with faults.
 
     stamps : per sensor (n,) int64 header stamps (default: the log times)
@@ -47,6 +47,7 @@ def write_bag(path: Path, mission, *, stamps=None, fields=None, keep=None, log=N
     keep : per sensor (n,) bool, the messages written (default all)
     log : (n,) int64 log times (default START_NS + t)
     odom_xyzw, odom_position : (n, 4), (n, 3) the /odom pose (default the mission's)
+    odom_late_s : the /odom header stamps this much after the pose's instant (a filter delay)
     """
     n = len(mission.t)
     log = START_NS + np.round(mission.t * 1e9).astype(np.int64) if log is None else log
@@ -62,6 +63,7 @@ def write_bag(path: Path, mission, *, stamps=None, fields=None, keep=None, log=N
                     data = cv.magnetic_field_cdr(fields[i, sensor], int(stamps[sensor][i]), cv.MAG_FRAMES[sensor])
                     writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD, data, int(log[i]))
             if odom:
-                msg = cv.odometry_msg(writer.types, position[i], quats[i], int(log[i]))
+                stamp = int(log[i]) + int(odom_late_s * 1e9)
+                msg = cv.odometry_msg(writer.types, position[i], quats[i], stamp)
                 writer.write(cv.ODOM_TOPIC, msg, int(log[i]))
     return path

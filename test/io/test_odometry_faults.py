@@ -13,9 +13,9 @@ import pytest
 import yaml
 from cli_helpers import assert_refused, run_cli, snapshot
 from scipy.spatial.transform import Rotation
-from stream_faults import short_mission, write_bag, write_params
+from stream_faults import EARTH_ENU, START_NS, short_mission, write_bag, write_params
 
-from tetra_gradiometer.core.odometry import MAX_UNEXPLAINED, attitude_agreement, check_odometry
+from tetra_gradiometer.core.odometry import attitude_verdict, check_odometry, world_frame_fault
 
 
 @pytest.fixture(scope='module')
@@ -91,16 +91,22 @@ def test_a_frozen_odom_is_not_used_and_locate_refuses(mission, params, tmp_path,
     assert snapshot(bag) == before and not (tmp_path / 'targets').exists()
 
 
-@pytest.mark.parametrize('wrong', ['reversed in time', 'body frame FRD'])
-def test_an_attitude_that_disagrees_with_the_magnetometers_is_not_used(mission, params, tmp_path, capsys, wrong):
+@pytest.mark.parametrize('wrong, named', [
+    ('reversed in time', 'no convention or lag within 2 s fits either'),
+    ('body frame FRD', 'fits the magnetometers with the body frame FRD (x forward, y right, z down)'),
+    ('stamped 1 s late', 'fits the magnetometers as declared, with the /odom stamps 1.00 s late'),
+])
+def test_an_attitude_that_disagrees_with_the_magnetometers_is_named_and_not_used(
+        mission, params, tmp_path, capsys, wrong, named):
     q = mission.orientation_xyzw
     if wrong == 'reversed in time':
         q = q[::-1].copy()
-    else:  # a body frame x forward, y right, z down (not REP 103's)
+    elif wrong == 'body frame FRD':  # a body frame x forward, y right, z down (not REP 103's)
         q = (Rotation.from_quat(q) * Rotation.from_matrix(np.diag([1.0, -1.0, -1.0]))).as_quat()
-    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=q)
+    bag = write_bag(tmp_path / 'bag', mission, odom_xyzw=q,
+                    odom_late_s=1.0 if wrong == 'stamped 1 s late' else 0.0)
     out, _ = _calibrate(capsys, tmp_path, bag, params)
-    assert 'the /odom orientation does not agree with the magnetometers' in out
+    assert named in out
     assert '/odom orientation not used: no regional gradient (assumed zero)' in out
 
 
@@ -116,18 +122,47 @@ def test_discrepancy_with_zero_norm_quaternions_goes_on_without_odom(mission, pa
 # ----------------------------------------------------------------------------- the core tests
 
 
-def test_the_attitude_test_separates_right_from_wrong(mission):
-    b = mission.fields_measured[:, 0]
+NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # ENU <-> NED
+FRD = np.diag([1.0, -1.0, -1.0])
+
+
+def _verdict(mission, q, late_s=0.0, span=slice(None)):
+    stamps = (mission.t[span] * 1e9).astype(np.int64) + START_NS
+    return attitude_verdict(stamps + int(late_s * 1e9), q[span], stamps, mission.fields_measured[span, 0])
+
+
+def test_the_attitude_test_names_the_convention_that_fits(mission):
     q = mission.orientation_xyzw
-    right = attitude_agreement(q, b)
-    assert right < 0.01  # noise and the vehicle's induced field only
+    right = _verdict(mission, q)
+    assert right.tested and right.fault() is None and abs(right.carried - 1.0) < 0.01
+    assert world_frame_fault(right.world_field, EARTH_ENU) is None
+    # Truth: the rotations as a navigation stack would publish them, built from the simulator's.
+    as_published = {
+        'body FRD, world NED': (Rotation.from_matrix(NED) * Rotation.from_quat(q) * Rotation.from_matrix(FRD)),
+        'inverse': Rotation.from_quat(q).inv(),
+    }
+    ned_frd = _verdict(mission, as_published['body FRD, world NED'].as_quat())
+    assert 'with the body frame FRD' in ned_frd.fault() and 'as declared the attitude carries' in ned_frd.fault()
+    inverse = _verdict(mission, as_published['inverse'].as_quat())
+    assert 'as the inverse rotation (world -> body)' in inverse.fault()
+    scalar_first = _verdict(mission, np.roll(q, 1, axis=1))
+    assert 'read scalar first (w, x, y, z)' in scalar_first.fault()
+    ned = _verdict(mission, (Rotation.from_matrix(NED) * Rotation.from_quat(q)).as_quat())
+    assert ned.fault() is None  # a constant world rotation: the field is steady...
+    assert 'looks NED, not ENU' in world_frame_fault(ned.world_field, EARTH_ENU)  # ...but points north-down
+    for late in (0.7, -0.4):
+        text = _verdict(mission, q, late_s=late).fault()
+        assert f'{abs(late):.2f} s {"late" if late > 0 else "early"}' in text, text
+
+
+def test_a_wrong_attitude_is_refused_and_a_still_one_untested(mission):
+    q = mission.orientation_xyzw
+    for wrong in (q[::-1], np.roll(q, 150, axis=0)):
+        assert 'no convention or lag within 2 s fits either' in _verdict(mission, wrong).fault()
     noise = Rotation.from_rotvec(np.random.default_rng(1).normal(0, 1e-3, (len(q), 3))).as_quat()
-    world_ned = (Rotation.from_matrix([[0, 1, 0], [1, 0, 0], [0, 0, -1]]) * Rotation.from_quat(q)).as_quat()
-    assert attitude_agreement(world_ned, b) < 0.01  # a constant world rotation: the field is steady
-    for wrong in (q[::-1], noise, np.roll(q, 150, axis=0)):
-        assert attitude_agreement(wrong, b) > MAX_UNEXPLAINED
-    survey = slice(400, None)  # a straight line: the field does not turn, nothing to test
-    assert np.isnan(attitude_agreement(q[survey], b[survey]))
+    assert 'hardly turns' in _verdict(mission, noise).fault()  # the field turns, the attitude does not
+    survey = _verdict(mission, q, span=slice(400, None))  # a straight line: nothing turns, nothing to test
+    assert not survey.tested and survey.fault() is None
 
 
 def test_check_odometry_counts_what_it_changes():

@@ -9,16 +9,17 @@ ENU) then the orientation x, y, z, w (body -> ENU):
 * **unnormalized quaternions** (``| |q| - 1 | >`` :data:`NORM_TOLERANCE`): normalized (the
   same rotation) and counted.
 * **a frozen pose**: the orientation (and the position) does not change over the recording.
-* **agreement with the magnetometers**: a right attitude turns the body-frame field of
-  sensor 1 into a world-frame field that stays put while the vehicle turns; a frozen or an
-  identity attitude does not. The test fits ``b_body(t) = R(t)^T w + c`` (``w`` a constant
-  world field, ``c`` a constant body-frame offset: the vehicle's permanent field at sensor 1)
-  by least squares and compares the residual's RMS with the body field's own variation about
-  its mean: the ratio is the share of the measured rotation the attitude does not explain
-  (noise and the vehicle's induced field: a few percent with a right attitude; ~100 % with a
-  frozen or identity one). Above :data:`MAX_UNEXPLAINED` the orientation is not used. The
-  test needs the field to turn: below :data:`MIN_BODY_VARIATION` of ``|B|`` (about 3 degrees
-  of rotation) it is not made, and the note says so.
+* **agreement with the magnetometers** (:func:`attitude_verdict`): a right attitude turns
+  the body-frame field of sensor 1 into a world-frame field that stays put while the vehicle
+  turns. The fit ``b_body(t) = R(t)^T w + c`` (``w`` a constant world field, ``c`` the
+  vehicle's permanent field at sensor 1) carries the field in ``w`` (``|w| ~ |B|``) when the
+  attitude is right, whatever anomaly the track crosses (an anomaly adds variation no
+  attitude explains, but does not move ``w``); a wrong, reversed or frozen one leaves
+  ``|w|`` small. The same fit over the conventions real navigation stacks publish (an FRD
+  body, the inverse rotation, the scalar first) and over stamp lags of up to
+  :data:`MAX_LAG_S` names the one that fits when it is not the declared one. A NED world
+  frame is a constant rotation ``w`` absorbs: :func:`world_frame_fault` tells it from ``w``
+  against the Earth field. The test needs the attitude to turn (:data:`MIN_TURN_RAD`).
 
 A command that finds the orientation or the position unusable goes on without it and says
 what that costs (:data:`COSTS`), or refuses with one line when it cannot go on (``locate``
@@ -27,7 +28,9 @@ needs the track).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -36,12 +39,11 @@ from .types import FloatArray
 from .units import S_PER_NS
 
 __all__ = [
-    'MAX_UNEXPLAINED',
-    'MIN_BODY_VARIATION',
     'NORM_TOLERANCE',
     'LiveOdometryCheck',
     'OdometryCheck',
-    'attitude_agreement',
+    'AttitudeVerdict',
+    'attitude_verdict',
     'check_odometry',
     'pose_faults',
 ]
@@ -52,11 +54,6 @@ BoolArray = npt.NDArray[np.bool_]
 NORM_TOLERANCE = 1e-3
 #: Below this norm (or non-finite) a quaternion is no rotation: the orientation is unknown.
 ZERO_NORM = 1e-6
-#: Largest share of the body field's variation the attitude may leave unexplained.
-MAX_UNEXPLAINED = 0.5
-#: Smallest RMS variation of the body-frame field, as a fraction of its mean |B|, that
-#: tests the attitude (0.05: about 3 degrees of rotation).
-MIN_BODY_VARIATION = 0.05
 #: Pose changes below these over the whole recording are a frozen pose.
 FROZEN_ANGLE_RAD = 1e-6
 FROZEN_POSITION_M = 1e-6
@@ -169,7 +166,7 @@ class LiveOdometryCheck:
 
 
 def check_odometry(stamps_ns: np.ndarray, pose: FloatArray) -> OdometryCheck:
-    """Norms and a frozen pose (:func:`attitude_agreement` is the test against the
+    """Norms and a frozen pose (:func:`attitude_verdict` is the test against the
     magnetometers, made where the fields are known)."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     pose = np.array(pose, dtype=float, copy=True)
@@ -210,51 +207,248 @@ def check_odometry(stamps_ns: np.ndarray, pose: FloatArray) -> OdometryCheck:
     return OdometryCheck(stamps, pose, not frozen_orientation, not frozen_position, tuple(faults))
 
 
-def attitude_agreement(orientation_xyzw: FloatArray, body_field_t: FloatArray) -> float:
-    """The share of the body field's variation the attitude leaves unexplained (see the
-    module docstring), or NaN when the field turns too little to tell.
+#: The orientation conventions tried against the magnetometers: (text, function of the
+#: (n, 4) quaternions as read -> (n, 3, 3) body -> world matrices). A world frame other than
+#: ENU (NED) is a constant rotation the fitted world field absorbs: it is told by that field
+#: against the Earth field's (:func:`world_frame_fault`), not here.
+def _conventions() -> tuple[tuple[str, Any], ...]:
+    from scipy.spatial.transform import Rotation
 
-    Parameters
-    ----------
-    orientation_xyzw : (n, 4) body -> ENU, unit quaternions, at the field's instants
-    body_field_t : (n, 3) T, sensor 1's field in the body frame
-    """
-    from scipy.spatial.transform import Rotation  # only the attitude paths need scipy.spatial
+    def matrices(q: FloatArray) -> FloatArray:
+        return Rotation.from_quat(q).as_matrix()
 
-    step = max(1, len(body_field_t) // AGREEMENT_SAMPLES)
-    b = np.asarray(body_field_t, dtype=float)[::step]
-    q = np.asarray(orientation_xyzw, dtype=float)[::step]
-    ok = np.all(np.isfinite(b), axis=1) & np.all(np.isfinite(q), axis=1)
-    b, q = b[ok], q[ok]
-    if len(b) < 10:
-        return float('nan')
-    variation = float(np.sqrt(np.mean(np.sum((b - b.mean(axis=0)) ** 2, axis=1))))
-    if variation < MIN_BODY_VARIATION * float(np.mean(np.linalg.norm(b, axis=1))):
-        return float('nan')
-    to_body = Rotation.from_quat(q).as_matrix().transpose(0, 2, 1)  # (n, 3, 3) R^T
-    design = np.concatenate([to_body, np.broadcast_to(np.eye(3), to_body.shape)], axis=2)
-    solution, *_ = np.linalg.lstsq(design.reshape(-1, 6), b.reshape(-1), rcond=None)
-    residual = b.reshape(-1) - design.reshape(-1, 6) @ solution
-    return float(np.sqrt(np.mean(residual**2) * 3) / variation)
-
-
-def agreement_fault(unexplained: float) -> str | None:
-    """The fault line for :func:`attitude_agreement`'s ratio (None when it agrees or was
-    not tested)."""
-    if not unexplained > MAX_UNEXPLAINED:
-        return None
+    frd = np.diag([1.0, -1.0, -1.0])
     return (
-        'the /odom orientation does not agree with the magnetometers: rotated into ENU by it, '
-        f"sensor 1's field still varies by {unexplained:.0%} of its body-frame variation "
-        f'(a right attitude leaves a few %, a frozen or identity one ~100 %; at most '
-        f'{MAX_UNEXPLAINED:.0%} accepted)'
+        ('as declared (x, y, z, w; body FLU -> world)', matrices),
+        ('with the body frame FRD (x forward, y right, z down)', lambda q: matrices(q) @ frd),
+        ('as the inverse rotation (world -> body)', lambda q: matrices(q).transpose(0, 2, 1)),
+        ('read scalar first (w, x, y, z)', lambda q: matrices(np.roll(q, -1, axis=1))),
+        (
+            'inverse with the body frame FRD',
+            lambda q: matrices(q).transpose(0, 2, 1) @ frd,
+        ),
+        ('scalar first with the body frame FRD', lambda q: matrices(np.roll(q, -1, axis=1)) @ frd),
     )
 
 
-#: The note when the field turns too little to test the attitude against it.
+@dataclass(frozen=True)
+class AttitudeVerdict:
+    """The ``/odom`` orientation against the magnetometers (:func:`attitude_verdict`).
+
+    Attributes
+    ----------
+    tested : whether the attitude turns enough to be tested
+    carried : for the declared convention and no lag, ``|w| / mean |B|``: the share of the
+        field the attitude carries as a steady world field (about 1 when right, whatever
+        the anomalies; near 0 when wrong)
+    unexplained : the declared fit's residual RMS over the body field's variation
+    best : the convention that fits best, its lag (s; > 0: the /odom stamps are late) and
+        its ``carried`` and ``unexplained``
+    world_field : the declared fit's world field ``w`` (3,) T, in the odometry's world frame
+    """
+
+    tested: bool
+    carried: float = float('nan')
+    unexplained: float = float('nan')
+    best: tuple[str, float, float, float] = ('', 0.0, float('nan'), float('nan'))
+    world_field: FloatArray | None = None
+    field_turn_deg: float = 0.0
+
+    @property
+    def agrees(self) -> bool:
+        """Untested, or the declared convention carries the field and no other convention
+        or lag leaves less than half its unexplained share."""
+        if not self.tested:
+            return self.field_turn_deg < MIN_FIELD_TURN_DEG
+        _, _, carried, unexplained = self.best
+        better = clear_fit(carried, unexplained) and (
+            unexplained < BETTER_BY * self.unexplained - 0.01
+        )
+        return fits(self.carried, self.unexplained) and not better
+
+    def fault(self) -> str | None:
+        """What is wrong with the declared orientation, with the evidence (None: agrees)."""
+        if self.agrees:
+            return None
+        if not self.tested:
+            return (
+                f'the /odom orientation hardly turns (less than {math.degrees(MIN_TURN_RAD):.0f} '
+                f"deg RMS) while sensor 1's field turns by {self.field_turn_deg:.0f} deg RMS in "
+                'the body frame: the attitude is not this vehicle\'s (frozen, identity, or '
+                'another source)'
+            )
+        name, lag, carried, unexplained = self.best
+        declared = (
+            f'as declared the attitude carries {self.carried:.0%} of the field as a steady '
+            f'world field and leaves {self.unexplained:.0%} of its variation unexplained'
+        )
+        if not clear_fit(carried, unexplained):
+            return (
+                f'the /odom orientation does not agree with the magnetometers: {declared} (a '
+                f'right attitude carries ~100 % and leaves a few %); no convention or lag '
+                'within 2 s fits either (a wrong, reversed or foreign attitude)'
+            )
+        what = name if name != CONVENTIONS_DECLARED else 'as declared'
+        if abs(lag) >= 0.5 * LAG_RESOLUTION_S:
+            late = 'late' if lag > 0 else 'early'
+            what += f', with the /odom stamps {abs(lag):.2f} s {late}'
+        return (
+            f'the /odom orientation fits the magnetometers {what} ({carried:.0%} of the field '
+            f'carried, {unexplained:.0%} unexplained); {declared}'
+        )
+
+
+CONVENTIONS_DECLARED = 'as declared (x, y, z, w; body FLU -> world)'
+#: The lags tried, s (the /odom stamps late by this much).
+MAX_LAG_S = 2.0
+LAG_RESOLUTION_S = 0.1
+#: The share of |B| a right attitude carries as a steady world field lies within this
+#: (the rest is the vehicle's field at sensor 1: a few %; 0.5 leaves room for 50 %).
+CARRIED_RANGE = (0.7, 1.3)
+#: Above this unexplained share the declared attitude must carry |B| within CARRIED_CLOSE.
+MAX_UNEXPLAINED = 0.3
+CARRIED_CLOSE = 0.05
+#: Another convention or lag is named when it leaves less than this share of the declared
+#: one's unexplained variation.
+BETTER_BY = 0.5
+#: RMS angle of the attitude about its mean, rad, below which it is not tested (~6 deg).
+MIN_TURN_RAD = 0.1
+#: An attitude that does not turn while sensor 1's field turns by more than this RMS angle,
+#: degrees, is not the vehicle's (an anomaly turns the field by a few degrees at most).
+MIN_FIELD_TURN_DEG = 20.0
+
+
+def clear_fit(carried: float, unexplained: float) -> bool:
+    """Whether an alternative convention or lag fits well enough to be named."""
+    return fits(carried, unexplained) and unexplained < MAX_UNEXPLAINED
+
+
+def fits(carried: float, unexplained: float) -> bool:
+    """Whether an attitude that carries ``carried`` of |B| and leaves ``unexplained`` of the
+    field's variation fits: variation it leaves (an anomaly's) is accepted only while it
+    carries the field closely (a reversed or foreign one carries part of it)."""
+    close = abs(carried - 1.0) <= CARRIED_CLOSE or unexplained < MAX_UNEXPLAINED
+    return CARRIED_RANGE[0] <= carried <= CARRIED_RANGE[1] and close
+
+
+def _fit(to_world: FloatArray, b: FloatArray) -> tuple[float, float, FloatArray]:
+    """``b = R^T w + c`` by least squares: (``|w| / mean |B|``, residual RMS over the
+    variation of ``b``, ``w``)."""
+    to_body = to_world.transpose(0, 2, 1)
+    design = np.concatenate([to_body, np.broadcast_to(np.eye(3), to_body.shape)], axis=2)
+    solution, *_ = np.linalg.lstsq(design.reshape(-1, 6), b.reshape(-1), rcond=None)
+    residual = b.reshape(-1) - design.reshape(-1, 6) @ solution
+    variation = float(np.sqrt(np.mean(np.sum((b - b.mean(axis=0)) ** 2, axis=1))))
+    unexplained = float(np.sqrt(np.mean(residual**2) * 3) / max(variation, 1e-30))
+    carried = float(np.linalg.norm(solution[:3]) / np.mean(np.linalg.norm(b, axis=1)))
+    return carried, unexplained, solution[:3]
+
+
+def attitude_verdict(
+    odom_stamps_ns: np.ndarray,
+    orientation_xyzw: FloatArray,
+    stamps_ns: np.ndarray,
+    body_field_t: FloatArray,
+) -> AttitudeVerdict:
+    """Test the ``/odom`` orientation against sensor 1's field, over the conventions of
+    :func:`_conventions` and lags of up to :data:`MAX_LAG_S`.
+
+    A right attitude turns the body-frame field into a world field that stays put: the fit
+    ``b(t) = R(t)^T w + c`` carries the field in ``w`` (``|w| ~ |B|``) and leaves ``c``, the
+    vehicle's field at sensor 1, small. An anomaly under the track adds variation no
+    attitude explains but leaves ``w`` the Earth field: the test reads ``|w|``, not the
+    residual alone (the residual ranks the conventions).
+
+    Parameters
+    ----------
+    odom_stamps_ns : (m,) ns, the checked ``/odom`` messages' stamps
+    orientation_xyzw : (m, 4) their unit quaternions, as read
+    stamps_ns : (n,) ns, the field's stamps
+    body_field_t : (n, 3) T, sensor 1's field
+    """
+    from .geometry import interp_orientation
+
+    step = max(1, len(stamps_ns) // AGREEMENT_SAMPLES)
+    stamps = np.asarray(stamps_ns, dtype=np.int64)[::step]
+    b = np.asarray(body_field_t, dtype=float)[::step]
+    margin = int(MAX_LAG_S * 1e9)
+    inside = (stamps >= odom_stamps_ns[0] + margin) & (stamps <= odom_stamps_ns[-1] - margin)
+    inside &= np.all(np.isfinite(b), axis=1)
+    if inside.sum() < 10:
+        inside = np.all(np.isfinite(b), axis=1)
+        margin = 0
+    stamps, b = stamps[inside], b[inside]
+    if len(b) < 10:
+        return AttitudeVerdict(False)
+    conventions = _conventions()
+    declared = conventions[0][1](interp_orientation(odom_stamps_ns, orientation_xyzw, stamps))
+    if _turn_rms(declared) < MIN_TURN_RAD:
+        return AttitudeVerdict(False, field_turn_deg=_field_turn_deg(b))
+    carried, unexplained, world = _fit(declared, b)
+    lags = np.arange(-MAX_LAG_S, MAX_LAG_S + 1e-9, LAG_RESOLUTION_S) if margin else [0.0]
+    best = (CONVENTIONS_DECLARED, 0.0, carried, unexplained)
+    for lag in lags:
+        q = interp_orientation(odom_stamps_ns, orientation_xyzw, stamps + int(lag * 1e9))
+        for name, to_world in conventions:
+            c, u, _ = _fit(to_world(q), b)
+            if clear_fit(c, u) and u < best[3]:
+                best = (name, float(lag), c, u)
+    return AttitudeVerdict(True, carried, unexplained, best, world)
+
+
+def _field_turn_deg(b: FloatArray) -> float:
+    """RMS angle, degrees, of the field's directions (n, 3) about their mean."""
+    unit = b / np.linalg.norm(b, axis=1, keepdims=True)
+    mean = unit.mean(axis=0)
+    cos = unit @ (mean / np.linalg.norm(mean))
+    return float(np.degrees(np.sqrt(np.mean(np.arccos(np.clip(cos, -1.0, 1.0)) ** 2))))
+
+
+def _turn_rms(to_world: FloatArray) -> float:
+    """RMS angle, rad, of the rotations (n, 3, 3) about their chordal mean."""
+    u, _, vt = np.linalg.svd(to_world.mean(axis=0))
+    mean = u @ vt
+    cos = (np.einsum('nij,ij->n', to_world, mean) - 1.0) / 2.0
+    return float(np.sqrt(np.mean(np.arccos(np.clip(cos, -1.0, 1.0)) ** 2)))
+
+
+def world_frame_fault(world_field_t: FloatArray, earth_field_enu_t: FloatArray) -> str | None:
+    """A line when the world field ``w`` (3,) T a tested attitude makes steady does not point
+    where ``earth_field_enu_t`` (3,) T does (NED named when it points there in NED), else
+    None. A right attitude's ``w`` is the Earth field plus the survey's mean anomaly: within
+    a few degrees of it."""
+    ned = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    earth = np.asarray(earth_field_enu_t, dtype=float)
+
+    def angle(u: FloatArray, v: FloatArray) -> float:
+        cos = float(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)))
+        return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+    as_enu, as_ned = angle(world_field_t, earth), angle(world_field_t, ned @ earth)
+    if as_enu <= MAX_WORLD_FIELD_DEG:
+        return None
+    if as_ned <= MAX_WORLD_FIELD_DEG:
+        return (
+            f"the /odom world frame looks NED, not ENU: the field it makes steady points "
+            f"{as_ned:.0f} deg from earth_field_enu's direction in NED and {as_enu:.0f} deg "
+            'from it in ENU (REP 103 odometry is ENU)'
+        )
+    return (
+        f'the /odom orientation does not agree with earth_field_enu: the field it makes steady '
+        f'points {as_enu:.0f} deg from earth_field_enu (a right attitude: within a few '
+        'degrees): the attitude (reversed, foreign, another convention) or earth_field_enu '
+        'is wrong'
+    )
+
+
+#: The largest angle, degrees, between a right attitude's world field and the Earth field.
+MAX_WORLD_FIELD_DEG = 15.0
+
+
+#: The note when the attitude turns too little to test it against the field.
 UNTESTED_ATTITUDE = (
-    'the /odom orientation was not checked against the magnetometers (the field turns by '
-    'less than about 3 degrees)'
+    'the /odom orientation was not checked against the magnetometers (it turns by less than '
+    f'about {math.degrees(MIN_TURN_RAD):.0f} degrees)'
 )
 
 #: What each command loses without the orientation or the position, for its notes.

@@ -22,9 +22,9 @@ from ..core.odometry import (
     COSTS,
     UNTESTED_ATTITUDE,
     OdometryCheck,
-    agreement_fault,
-    attitude_agreement,
+    attitude_verdict,
     check_odometry,
+    world_frame_fault,
 )
 from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.streams import StreamReport
@@ -332,12 +332,19 @@ class Odometry:
 
 
 def odometry_at(
-    bag: MagneticBag, stamps_ns: np.ndarray, body_field_t: FloatArray | None, command: str
+    bag: MagneticBag,
+    stamps_ns: np.ndarray,
+    body_field_t: FloatArray | None,
+    command: str,
+    earth_field_enu: FloatArray | None = None,
 ) -> Odometry:
     """``/odom``'s pose on ``stamps_ns`` (N,) ns, checked: zero-norm quaternions dropped,
     unnormalized ones normalized, a frozen orientation or position left out, and the
-    orientation compared with ``body_field_t`` (N, 3) T, sensor 1's field (None: not
-    compared). ``command`` names what going without costs (``core.odometry.COSTS``)."""
+    orientation tested against ``body_field_t`` (N, 3) T, sensor 1's field (None: not
+    tested; :func:`~tetra_gradiometer.core.odometry.attitude_verdict`: another convention or
+    a lag that fits is named) and, with ``earth_field_enu`` (3,) T, its world frame against
+    the Earth field's direction. ``command`` names what going without costs
+    (``core.odometry.COSTS``)."""
     series = bag.read_series(cv.ODOM_TOPIC)
     cost = COSTS.get(command, '')
     if series is None:
@@ -346,14 +353,15 @@ def odometry_at(
     notes = list(check.faults)
     orientation = position = None
     if check.orientation_ok:
-        orientation = interp_orientation(
-            check.stamps_ns, check.pose[:, cv.POSE_ORIENTATION], stamps_ns
-        )
+        quats = check.pose[:, cv.POSE_ORIENTATION]
+        orientation = interp_orientation(check.stamps_ns, quats, stamps_ns)
         if body_field_t is not None:
-            unexplained = attitude_agreement(orientation, body_field_t)
-            fault = agreement_fault(unexplained)
-            if np.isnan(unexplained):
+            verdict = attitude_verdict(check.stamps_ns, quats, stamps_ns, body_field_t)
+            fault = verdict.fault()
+            if not verdict.tested:
                 notes.append(UNTESTED_ATTITUDE)
+            elif fault is None and earth_field_enu is not None and verdict.world_field is not None:
+                fault = world_frame_fault(verdict.world_field, earth_field_enu)
             if fault is not None:
                 notes.append(fault)
                 orientation = None

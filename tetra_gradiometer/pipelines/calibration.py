@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import TetraGeometry, difference_tensor
+from ..core.conventions import relative_axes
 from ..core.identification import (
     DEFAULT_METHOD,
     MAX_COVERAGE_CONDITION,
@@ -33,7 +34,7 @@ from ..core.identification.paper_ga import GENERATIONS
 from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.units import S_PER_NS
-from ..errors import BagError, InputError
+from ..errors import AssumptionError, BagError, InputError
 from ..io import conversions as cv
 from ..io.bag import MagneticBag, SetCounters
 from ..io.calibration import CalibrationFile
@@ -239,12 +240,13 @@ def _read_plausible(
     window: tuple[float, float] | None,
     timebase: TimeBase,
     progress: bool | None,
-    earth_field_t: float | None,
+    earth_field_enu: FloatArray | None,
 ) -> tuple[WindowSets, DroppedSets]:
-    """:func:`read_window` (the streams checked against ``earth_field_t``), then
+    """:func:`read_window` (the streams checked against ``|earth_field_enu|``), then
     :func:`_plausible`."""
+    earth_t = None if earth_field_enu is None else float(np.linalg.norm(earth_field_enu))
     sets = read_window(
-        bag_path, window, timebase=timebase, progress=progress, earth_field_t=earth_field_t
+        bag_path, window, timebase=timebase, progress=progress, earth_field_t=earth_t
     )
     return _plausible(sets, bag_path)
 
@@ -278,7 +280,7 @@ def calibrate_bag(
     progress: bool | None = None,
     force: bool = False,
     effects: EffectsChoice | None = None,
-    earth_field_t: float | None = None,
+    earth_field_enu: FloatArray | None = None,
 ) -> BagCalibration:
     """Identify the interference of the array ``geometry`` on a window of the bag.
 
@@ -297,19 +299,20 @@ def calibrate_bag(
     timebase : how the streams become sets (default: resampled to sensor 1's stamps)
     max_sets : thin the window to at most this many sets (at least :data:`MIN_SETS`)
     progress : tqdm bar on stderr (None: only on a terminal and for long bags)
-    force : keep a calibration that fails the window check (warning in its diagnostics)
+    force : keep a calibration that fails a check (warning in its diagnostics)
     effects : the vehicle effects to fit (None: automatic selection)
-    earth_field_t : |B| of the Earth field, T, for the streams' check (core/streams)
+    earth_field_enu : (3,) T: |B| for the streams' check, the direction for ``/odom``'s
 
     Raises
     ------
-    AssumptionError : the window is not consistent with a constant gradient (no ``force``)
+    AssumptionError : the window is not consistent with a constant gradient, or a sensor's
+        axes are not sensor 1's (no ``force``)
     InputError : ``max_sets`` or ``generations`` out of range, or an unknown method
     BagError : the bag breaks the data contract, or the window holds no usable set
     IdentifiabilityError : the window cannot identify the parameters (message names it)
     CalibrationFileError : the method gives no ``k, b`` calibration"""
     _check_limits(max_sets, generations)
-    sets, dropped = _read_plausible(bag_path, window, timebase, progress, earth_field_t)
+    sets, dropped = _read_plausible(bag_path, window, timebase, progress, earth_field_enu)
     n_window = len(sets.stamps_ns)
     thinned = max(1, int(np.ceil(n_window / max_sets)))  # every k-th set: at most max_sets
     text = window_text(window)
@@ -320,7 +323,7 @@ def calibrate_bag(
         max_coverage_condition=max_coverage_condition,
     )
     checked, options, terms = _solve(
-        bag_path, sets, thinned, geometry, method, options, effects, text, force
+        bag_path, sets, thinned, geometry, method, options, effects, text, force, earth_field_enu
     )
     result = BagCalibration(
         calibration=checked.calibration,
@@ -355,11 +358,15 @@ def _solve(
     effects: EffectsChoice | None,
     window: str,
     force: bool,
+    earth_field_enu: FloatArray | None,
 ) -> tuple[CheckedCalibration, Options, WindowTerms]:
     """The checked solve (:func:`~.window_check.identify_checked`) on every ``thinned``-th
     set of ``sets``, with the ``/odom`` attitude and the vehicle effects' terms."""
     stamps, fields = sets.stamps_ns[::thinned], sets.fields[::thinned]
-    options, note = _with_attitude(options, method, bag_path, stamps, fields[:, 0])
+    axes_note = sensor_axes_check(fields, window, force)
+    options, note = _with_attitude(
+        options, method, bag_path, stamps, fields[:, 0], earth_field_enu
+    )
     terms = _terms(bag_path, sets, thinned, geometry, method, effects, options)
     options = dataclasses.replace(options, terms=terms.candidates)
     checked = identify_checked(
@@ -372,10 +379,30 @@ def _solve(
         window=window,
         first_ns=sets.first_ns,
         force=force,
-        notes=(*note, *terms.notes),
+        notes=(*axes_note, *note, *terms.notes),
         lacking=terms.lacking,
     )
     return checked, options, terms
+
+
+def sensor_axes_check(fields: FloatArray, window: str, force: bool) -> tuple[str, ...]:
+    """Refuse a window whose sensors' axes are not sensor 1's (:func:`~tetra_gradiometer.
+    core.conventions.relative_axes` on ``fields`` (N, 4, 3) T): a calibration fitted around
+    a turned or mirrored sensor gives a wrong tensor. With ``force`` the finding becomes a
+    warning note; () when they agree or the field turns too little to tell."""
+    findings = relative_axes(fields)
+    if not findings:
+        return ()
+    text = '; '.join(f.text() for f in findings)
+    cause = (
+        f'window {window}: {text}. Every sensor reads the same Earth field in the body frame '
+        'up to the vehicle interference, so its axes against sensor 1\'s follow from the '
+        'data: mount the sensor as declared or rotate its readings (its driver\'s frame) '
+        'before calibrating'
+    )
+    if not force:
+        raise AssumptionError(cause)
+    return (f'warning (forced): {cause}',)
 
 
 def _terms(
@@ -420,12 +447,13 @@ def _with_attitude(
     bag_path: str | os.PathLike[str],
     stamps_ns: IntArray,
     body_field_t: FloatArray,
+    earth_field_enu: FloatArray | None,
 ) -> tuple[Options, tuple[str, ...]]:
     """Known-gradient methods: the ``/odom`` attitude of each set, for the joint regional
     gradient (none without a usable ``/odom``: assumed zero, as the notes say)."""
     if method not in KNOWN_GRADIENT_METHODS:
         return options, ()
-    orientation, notes = odom_orientation(bag_path, stamps_ns, body_field_t)
+    orientation, notes = odom_orientation(bag_path, stamps_ns, body_field_t, earth_field_enu)
     return dataclasses.replace(options, orientation_xyzw=orientation), notes
 
 
@@ -453,7 +481,10 @@ def _clock_diagnostics(clocks: tuple[ClockEstimate, ...] | None) -> dict[str, An
 
 
 def odom_orientation(
-    bag_path: str | os.PathLike[str], stamps_ns: IntArray, body_field_t: FloatArray | None = None
+    bag_path: str | os.PathLike[str],
+    stamps_ns: IntArray,
+    body_field_t: FloatArray | None = None,
+    earth_field_enu: FloatArray | None = None,
 ) -> tuple[FloatArray | None, tuple[str, ...]]:
     """``/odom``'s orientation slerped onto ``stamps_ns`` (n, 4), or None, with notes why.
 
@@ -463,7 +494,7 @@ def odom_orientation(
     (the joint solve needs every attitude).
     """
     with MagneticBag(bag_path) as bag:
-        odometry = odometry_at(bag, stamps_ns, body_field_t, 'calibrate')
+        odometry = odometry_at(bag, stamps_ns, body_field_t, 'calibrate', earth_field_enu)
     check = odometry.check
     if odometry.orientation_xyzw is None or check is None:
         return None, odometry.notes

@@ -174,7 +174,8 @@ def calibrate_assessed(
     BagError, IdentifiabilityError, InputError, CalibrationFileError : as
         :func:`calibrate_bag`
     """
-    earth_t = None if earth_field_enu is None else float(np.linalg.norm(earth_field_enu))
-    result = calibrate_bag(bag_path, geometry, force=force, earth_field_t=earth_t, **options)
+    result = calibrate_bag(
+        bag_path, geometry, force=force, earth_field_enu=earth_field_enu, **options
+    )
     window = assess_window(result, bag_path, geometry, earth_field_enu)
     return check_excitation(result, window, force), window

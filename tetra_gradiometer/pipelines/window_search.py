@@ -30,7 +30,7 @@ from ..core.units import S_PER_NS
 from ..errors import AssumptionError, IdentifiabilityError
 from ..io.bag import MagneticBag
 from ..io.recording import odometry_at
-from .calibration import BagCalibration, WindowSets, read_window
+from .calibration import BagCalibration, WindowSets, read_window, sensor_axes_check
 from .trim import (
     DEFAULT_SENSOR_NOISE_T,
     WindowAssessment,
@@ -205,6 +205,7 @@ def find_window(
         progress=options.get('progress'),
         earth_field_t=earth_norm,
     )
+    sensor_axes_check(sets.fields, f'0:{sets.span_s:.1f} s (the whole bag)', force=False)
     orientation = _orientation(bag_path, sets)
     earth = earth_field_enu
     if earth is None and orientation is not None:
