@@ -290,8 +290,7 @@ def calibrate_bag(
 
     Parameters
     ----------
-    bag_path : path of the rosbag2 folder
-    geometry : TetraGeometry of the array that recorded the bag
+    bag_path, geometry : the rosbag2 folder, and the array that recorded it
     window : (t0, t1) in seconds from the first matched set, or None for the whole bag
     method : a method of ``core.identification.CALIBRATION_METHODS``
     seed, generations, wide_bounds : ``paper_ga`` only (generations default ``GENERATIONS``)
