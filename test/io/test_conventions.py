@@ -101,3 +101,31 @@ def test_an_irregular_array_names_its_reordered_positions(survey_fields):
         assert named in finding.best[0], finding.text()
     frd = tensor_conventions(difference_tensor(fields @ FRD, geometry), geometry.positions, 1e-11)
     assert 'the magnetometers read in FRD' in frd.text() and 'sensor_positions are in FRD' in frd.text()
+
+
+def test_compensate_names_positions_listed_in_reverse_and_is_quiet_when_right(tmp_path, capsys):
+    from tetra_gradiometer.io.params import params_document
+
+    positions = GEOMETRY.positions + np.array([[0, 0, 0], [0.1, 0, 0], [0, -0.08, 0.05], [0.02, 0, 0.1]])
+    rng = np.random.default_rng(11)
+    scenario = Scenario(geometry=TetraGeometry(positions), earth_field_enu=EARTH, noise_t=1e-10,
+                        interference=random_interference(rng), sample_rate_hz=10.0,
+                        dipoles=(Dipole([160.0, 3.0, -56.0], [0.0, 500.0, -700.0]),),
+                        segments=[TrimManoeuvre(60.0), SurveyLine((0, 0, -50), (240, 0, -50))])
+    mission = simulate(scenario, rng)
+    bag = write_bag(tmp_path / 'bag', mission)
+    texts = {}
+    for name, declared in (('right', positions), ('reversed', positions[::-1])):
+        params = tmp_path / f'{name}.yaml'
+        params.write_text(params_document({'sensor_positions': declared.ravel().tolist(), 'earth_field_enu': EARTH}))
+        calibration = tmp_path / f'{name}_c.yaml'
+        code, out, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', '0:59',
+                                 '--out', calibration)
+        assert code == 0, err
+        code, out, err = run_cli(capsys, 'compensate', bag, '--params', params, '--calibration', calibration,
+                                 '--csv', tmp_path / f'{name}.csv')
+        assert code == 0, err
+        texts[name] = err
+    assert 'not a gradient' not in texts['right']
+    assert 'warning: the compensated tensor is not a gradient' in texts['reversed']
+    assert 'sensor_positions were listed in reverse order' in texts['reversed']

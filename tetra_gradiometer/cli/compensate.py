@@ -46,6 +46,7 @@ writes ``DIR/report.json`` (``alarms``: ``t_s`` seconds since the bag's first me
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -197,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
         print(f'  {counts.channel_summary}')
     if counts.held_summary:
         print(f'  {counts.held_summary}')
+    if counts.conventions:
+        print(f'warning: {counts.conventions}', file=sys.stderr)
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m; {_sigma_text(compensation)})')
     if args.out_bag is not None:

@@ -28,11 +28,12 @@ set's stamp (``conversions.tensor_msg``).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Iterable
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
@@ -40,6 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import InterferenceParameters, TetraGeometry, compensate, difference_tensor
+from ..core.conventions import tensor_conventions
 from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.uncertainty import SigmaModel
@@ -107,6 +109,10 @@ class CompensationCounts:
     held_summary : str
         Compensated without an absent channel: which, and what was done instead ('' when
         every channel was there).
+    conventions : str
+        The written tensors are not a gradient with the declared positions and reading
+        frame: the hypotheses that make them one (core/conventions; '' when they are one,
+        or their signal is too weak to tell).
     """
 
     n_sets: int
@@ -120,6 +126,45 @@ class CompensationCounts:
     channel_dropped: int = 0
     channel_summary: str = ''
     held_summary: str = ''
+    conventions: str = ''
+
+
+@dataclass
+class TensorSample:
+    """Every ``stride``-th written tensor (at most about :data:`SAMPLE_SETS`, the stride
+    doubling as the bag goes on), for the self-check of :func:`conventions_text`."""
+
+    stride: int = 1
+    seen: int = 0
+    chunks: list[FloatArray] = field(default_factory=list)
+
+    def add(self, tensors: FloatArray) -> None:
+        """A chunk of written tensors (n, 3, 3) T/m."""
+        offset = (-self.seen) % self.stride
+        self.chunks.append(tensors[offset :: self.stride])
+        self.seen += len(tensors)
+        if sum(len(c) for c in self.chunks) > 2 * SAMPLE_SETS:
+            self.chunks = [np.concatenate(self.chunks)[::2]]
+            self.stride *= 2
+
+    def conventions_text(self, geometry: TetraGeometry) -> str:
+        """'' or what the tensors say of the declared positions and reading frame
+        (:func:`~tetra_gradiometer.core.conventions.tensor_conventions`; the noise of one
+        element from consecutive differences, before thinning at a stride of 1)."""
+        if not self.chunks:
+            return ''
+        tensors = np.concatenate(self.chunks)
+        steps = np.diff(tensors.reshape(len(tensors), 9), axis=0)
+        if not len(steps):
+            return ''
+        # The median absolute step: the noise of one element (a target's passage moves few).
+        noise = float(np.median(np.abs(steps)) / (0.6745 * np.sqrt(2.0)))
+        finding = tensor_conventions(tensors, geometry.positions, noise)
+        return '' if finding is None else finding.text()
+
+
+#: The written tensors the self-check keeps (thinned evenly over the bag).
+SAMPLE_SETS = 20_000
 
 
 @dataclass
@@ -312,10 +357,8 @@ def compensate_bag(
     parameters : InterferenceParameters or None
         ``k``, ``b`` of eq. 19 and the terms (their channels read from the bag, a set where
         one is unknown dropped and counted); None writes the raw tensor (eq. 7).
-    sigma : SigmaModel, optional; the tensor's 1-sigma (built for ``parameters``): the CSV
-        gets the nine ``sigma_`` columns (the output bag has no place for them)
-    health : HealthRecorder, optional; fed every chunk of compensated sets
-    statistics : TensorStatistics, optional; fed every chunk's raw and written tensors
+    sigma : SigmaModel, optional; the tensor's 1-sigma: the CSV's nine ``sigma_`` columns
+    health, statistics : optional; fed every chunk of compensated (and raw) tensors
     csv, out_bag, out_storage : outputs (one at least, each written atomically); the bag's
         storage (default: the input's)
     timebase : how the streams become sets (default: resampled to sensor 1's stamps);
@@ -333,10 +376,8 @@ def compensate_bag(
         channel the terms read is not in the bag (unless ``allow_missing_channels``)
     OutputError : an output is not ours to replace
     """
-    inputs = tuple(inputs)
-    topic = RAW_TOPIC if parameters is None else COMPENSATED_TOPIC
-    n_sets = 0
-    dropped = DroppedSets()
+    inputs, topic = tuple(inputs), RAW_TOPIC if parameters is None else COMPENSATED_TOPIC
+    n_sets, dropped, sample = 0, DroppedSets(), TensorSample()
     first = last = 0
     with ExitStack() as stack:
         bag = stack.enter_context(MagneticBag(bag_path))
@@ -359,11 +400,15 @@ def compensate_bag(
             sigmas = None if handle is None else _sigmas(sigma, fields, x, held)
             _write(handle, writer, topic, stamps, tensors, sigmas)
             _feed(health, statistics, stamps, fields, raw, tensors, bag.reader.start_time)
-            first = int(stamps[0]) if n_sets == 0 else first
-            last = int(stamps[-1])
+            sample.add(tensors)
+            first, last = int(stamps[0]) if n_sets == 0 else first, int(stamps[-1])
             n_sets += len(stamps)
         _close_read(n_sets, bag_path, dropped, bag, writer)
-    return _counts(n_sets, dropped, (last - first) * S_PER_NS, topic, bag, terms)
+    # The raw tensor holds the vehicle's interference, not a gradient: not self-checked.
+    counts = _counts(n_sets, dropped, (last - first) * S_PER_NS, topic, bag, terms)
+    return dataclasses.replace(
+        counts, conventions='' if parameters is None else sample.conventions_text(geometry)
+    )
 
 
 def _counts(
