@@ -109,3 +109,35 @@ def test_a_writer_killed_mid_write_never_leaves_a_truncated_calibration_file(tmp
         i = round(loaded.parameters.k_soft[0, 0, 0] / 1e-6)
         np.testing.assert_allclose(loaded.parameters.b_hard, 1e-12 * i)  # ... and self-consistent
         assert len(loaded.diagnostics) == 20000
+
+
+def test_a_misspelt_or_unknown_key_is_refused_naming_it(tmp_path):
+    parameters = InterferenceParameters(np.zeros((3, 3, 3)), np.zeros((3, 3)))
+    original = CalibrationFile(parameters, 'known_gradient_lstsq_general', False, GEOMETRY.to_flat(), {},
+                               sensor_noise_t=1e-10)
+    path = save_calibration(tmp_path / 'c.yaml', original)
+    text = path.read_text()
+    assert 'sensor_noise_T:' in text
+    path.write_text(text.replace('sensor_noise_T:', 'sensor_noise_t:') + 'colour: blue\n')
+    with pytest.raises(CalibrationFileError, match=r"unknown keys 'sensor_noise_t' \(did you mean "
+                                                   r"'sensor_noise_T'\?\), 'colour'"):
+        load_calibration(path)
+
+
+def test_a_file_too_large_or_binary_is_refused_before_it_is_parsed(tmp_path):
+    import resource
+
+    big = tmp_path / 'big.yaml'
+    with big.open('wb') as handle:  # 120 MB of YAML-looking text
+        handle.write(b'k_soft: [' + b'0.0, ' * (24 * 2**20) + b']\n')
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    start = time.perf_counter()
+    with pytest.raises(CalibrationFileError, match='too large to be a calibration'):
+        load_calibration(big)
+    assert time.perf_counter() - start < 5.0
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert grown_mb < 500
+    binary = tmp_path / 'bag.db3'
+    binary.write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(CalibrationFileError, match='not UTF-8 text'):
+        load_calibration(binary)

@@ -139,6 +139,7 @@ class CalibrationFile:
             raise CalibrationFileError(
                 f'{source} is not a tetra_gradiometer calibration (version {FORMAT_VERSION})'
             )
+        _check_keys(document, source)
         try:
             check_parameters(document['k_soft'], document['b_hard_T'], source)
             terms = _terms(document.get('terms'), source)
@@ -162,6 +163,44 @@ class CalibrationFile:
             raise CalibrationFileError(str(error)) from None
         except (KeyError, TypeError, ValueError) as error:
             raise CalibrationFileError(f'{source} is malformed: {error}') from None
+
+
+#: Every top-level key a calibration file may hold (``signature``: nodes/authentication).
+KEYS = (
+    'tetra_gradiometer_calibration',
+    'method',
+    'symmetric_k',
+    'created_utc',
+    'sensor_positions',
+    'k_soft',
+    'b_hard_T',
+    'diagnostics',
+    'sensor_noise_T',
+    'covariance',
+    'terms',
+    'signature',
+)
+#: A calibration is refused unread above this size (the largest, with every term and its
+#: covariance, is a few MB).
+MAX_FILE_BYTES = 32 * 2**20
+
+
+def _check_keys(document: dict[Any, Any], source: str) -> None:
+    """Refuse unknown keys, naming each and the known key it most resembles: a misspelt
+    optional key (``sensor_noise_t``) would otherwise be ignored without a word."""
+    import difflib
+
+    unknown = [str(key) for key in document if key not in KEYS]
+    if not unknown:
+        return
+    named = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, KEYS, n=1, cutoff=0.6)
+        named.append(f'{key!r}' + (f' (did you mean {close[0]!r}?)' if close else ''))
+    raise CalibrationFileError(
+        f'{source}: unknown key{"s" * (len(unknown) > 1)} {", ".join(named)}; a calibration '
+        f'holds only {", ".join(KEYS)}'
+    )
 
 
 def _noise(value: Any, source: str) -> float | None:
@@ -248,9 +287,21 @@ def load_calibration(path: str | os.PathLike) -> CalibrationFile:
     """Read a calibration file, raising :class:`CalibrationFileError` with the reason."""
     path = Path(path)
     try:
-        text = path.read_text(encoding='utf-8')
+        with path.open('rb') as handle:  # one bounded read: a pipe or device ends too
+            data = handle.read(MAX_FILE_BYTES + 1)
     except OSError as error:
         raise CalibrationFileError(
             f'cannot read calibration file {path}: {error.strerror}'
+        ) from None
+    if len(data) > MAX_FILE_BYTES:
+        raise CalibrationFileError(
+            f'{path} is larger than {MAX_FILE_BYTES // 2**20} MB: too large to be a calibration; '
+            'was another file given as the calibration?'
+        )
+    try:
+        text = data.decode('utf-8')
+    except UnicodeDecodeError as error:
+        raise CalibrationFileError(
+            f'{path} is not a calibration: not UTF-8 text (byte {error.start})'
         ) from None
     return CalibrationFile.from_yaml(text, source=str(path))
