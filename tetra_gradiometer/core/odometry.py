@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -207,28 +206,25 @@ def check_odometry(stamps_ns: np.ndarray, pose: FloatArray) -> OdometryCheck:
     return OdometryCheck(stamps, pose, not frozen_orientation, not frozen_position, tuple(faults))
 
 
-#: The orientation conventions tried against the magnetometers: (text, function of the
-#: (n, 4) quaternions as read -> (n, 3, 3) body -> world matrices). A world frame other than
+#: The orientation conventions tried against the magnetometers. A world frame other than
 #: ENU (NED) is a constant rotation the fitted world field absorbs: it is told by that field
 #: against the Earth field's (:func:`world_frame_fault`), not here.
-def _conventions() -> tuple[tuple[str, Any], ...]:
-    from scipy.spatial.transform import Rotation
+#: (text, read scalar first, inverse, body FRD) of each convention tried.
+CONVENTIONS: tuple[tuple[str, bool, bool, bool], ...] = (
+    ('as declared (x, y, z, w; body FLU -> world)', False, False, False),
+    ('with the body frame FRD (x forward, y right, z down)', False, False, True),
+    ('as the inverse rotation (world -> body)', False, True, False),
+    ('read scalar first (w, x, y, z)', True, False, False),
+    ('inverse with the body frame FRD', False, True, True),
+    ('scalar first with the body frame FRD', True, False, True),
+)
+_FRD = np.diag([1.0, -1.0, -1.0])
 
-    def matrices(q: FloatArray) -> FloatArray:
-        return Rotation.from_quat(q).as_matrix()
 
-    frd = np.diag([1.0, -1.0, -1.0])
-    return (
-        ('as declared (x, y, z, w; body FLU -> world)', matrices),
-        ('with the body frame FRD (x forward, y right, z down)', lambda q: matrices(q) @ frd),
-        ('as the inverse rotation (world -> body)', lambda q: matrices(q).transpose(0, 2, 1)),
-        ('read scalar first (w, x, y, z)', lambda q: matrices(np.roll(q, -1, axis=1))),
-        (
-            'inverse with the body frame FRD',
-            lambda q: matrices(q).transpose(0, 2, 1) @ frd,
-        ),
-        ('scalar first with the body frame FRD', lambda q: matrices(np.roll(q, -1, axis=1)) @ frd),
-    )
+def _as_convention(to_world: FloatArray, inverse: bool, frd: bool) -> FloatArray:
+    """The (n, 3, 3) matrices read as the convention's body -> world rotations."""
+    out = to_world.transpose(0, 2, 1) if inverse else to_world
+    return out @ _FRD if frd else out
 
 
 @dataclass(frozen=True)
@@ -298,7 +294,7 @@ class AttitudeVerdict:
         )
 
 
-CONVENTIONS_DECLARED = 'as declared (x, y, z, w; body FLU -> world)'
+CONVENTIONS_DECLARED = CONVENTIONS[0][0]
 #: The lags tried, s (the /odom stamps late by this much).
 MAX_LAG_S = 2.0
 LAG_RESOLUTION_S = 0.1
@@ -334,10 +330,13 @@ def fits(carried: float, unexplained: float) -> bool:
 def _fit(to_world: FloatArray, b: FloatArray) -> tuple[float, float, FloatArray]:
     """``b = R^T w + c`` by least squares: (``|w| / mean |B|``, residual RMS over the
     variation of ``b``, ``w``)."""
-    to_body = to_world.transpose(0, 2, 1)
-    design = np.concatenate([to_body, np.broadcast_to(np.eye(3), to_body.shape)], axis=2)
-    solution, *_ = np.linalg.lstsq(design.reshape(-1, 6), b.reshape(-1), rcond=None)
-    residual = b.reshape(-1) - design.reshape(-1, 6) @ solution
+    # The normal equations of the rows [R^T, I]: [[n I, sum R], [sum R^T, n I]] (R R^T = I).
+    n = len(b)
+    total = to_world.sum(axis=0)
+    normal = np.block([[n * np.eye(3), total], [total.T, n * np.eye(3)]])
+    rhs = np.concatenate([np.einsum('nij,nj->i', to_world, b), b.sum(axis=0)])
+    solution = np.linalg.lstsq(normal, rhs, rcond=None)[0]
+    residual = b - np.einsum('nji,j->ni', to_world, solution[:3]) - solution[3:]
     variation = float(np.sqrt(np.mean(np.sum((b - b.mean(axis=0)) ** 2, axis=1))))
     unexplained = float(np.sqrt(np.mean(residual**2) * 3) / max(variation, 1e-30))
     carried = float(np.linalg.norm(solution[:3]) / np.mean(np.linalg.norm(b, axis=1)))
@@ -351,7 +350,7 @@ def attitude_verdict(
     body_field_t: FloatArray,
 ) -> AttitudeVerdict:
     """Test the ``/odom`` orientation against sensor 1's field, over the conventions of
-    :func:`_conventions` and lags of up to :data:`MAX_LAG_S`.
+    :data:`CONVENTIONS` and lags of up to :data:`MAX_LAG_S`.
 
     A right attitude turns the body-frame field into a world field that stays put: the fit
     ``b(t) = R(t)^T w + c`` carries the field in ``w`` (``|w| ~ |B|``) and leaves ``c``, the
@@ -366,8 +365,6 @@ def attitude_verdict(
     stamps_ns : (n,) ns, the field's stamps
     body_field_t : (n, 3) T, sensor 1's field
     """
-    from .geometry import interp_orientation
-
     step = max(1, len(stamps_ns) // AGREEMENT_SAMPLES)
     stamps = np.asarray(stamps_ns, dtype=np.int64)[::step]
     b = np.asarray(body_field_t, dtype=float)[::step]
@@ -380,17 +377,28 @@ def attitude_verdict(
     stamps, b = stamps[inside], b[inside]
     if len(b) < 10:
         return AttitudeVerdict(False)
-    conventions = _conventions()
-    declared = conventions[0][1](interp_orientation(odom_stamps_ns, orientation_xyzw, stamps))
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t_odom = (np.asarray(odom_stamps_ns) - odom_stamps_ns[0]) * S_PER_NS
+    t = (stamps - odom_stamps_ns[0]) * S_PER_NS
+    orders = {
+        first: Slerp(t_odom, Rotation.from_quat(np.roll(orientation_xyzw, -int(first), axis=1)))
+        for first in (False, True)
+    }
+
+    def at(first: bool, lag: float) -> FloatArray:
+        return orders[first](np.clip(t + lag, 0.0, t_odom[-1])).as_matrix()
+
+    declared = at(False, 0.0)
     if _turn_rms(declared) < MIN_TURN_RAD:
         return AttitudeVerdict(False, field_turn_deg=_field_turn_deg(b))
     carried, unexplained, world = _fit(declared, b)
     lags = np.arange(-MAX_LAG_S, MAX_LAG_S + 1e-9, LAG_RESOLUTION_S) if margin else [0.0]
     best = (CONVENTIONS_DECLARED, 0.0, carried, unexplained)
     for lag in lags:
-        q = interp_orientation(odom_stamps_ns, orientation_xyzw, stamps + int(lag * 1e9))
-        for name, to_world in conventions:
-            c, u, _ = _fit(to_world(q), b)
+        matrices = {first: at(first, float(lag)) for first in (False, True)}
+        for name, first, inverse, frd in CONVENTIONS:
+            c, u, _ = _fit(_as_convention(matrices[first], inverse, frd), b)
             if clear_fit(c, u) and u < best[3]:
                 best = (name, float(lag), c, u)
     return AttitudeVerdict(True, carried, unexplained, best, world)
