@@ -303,6 +303,8 @@ LAG_RESOLUTION_S = 0.1
 CARRIED_RANGE = (0.7, 1.3)
 #: Above this unexplained share the declared attitude must carry |B| within CARRIED_CLOSE.
 MAX_UNEXPLAINED = 0.3
+#: A declared attitude that leaves less than this needs no search for a better one.
+CLEAR_UNEXPLAINED = 0.02
 CARRIED_CLOSE = 0.05
 #: Another convention or lag is named when it leaves less than this share of the declared
 #: one's unexplained variation.
@@ -393,6 +395,10 @@ def attitude_verdict(
     if _turn_rms(declared) < MIN_TURN_RAD:
         return AttitudeVerdict(False, field_turn_deg=_field_turn_deg(b))
     carried, unexplained, world = _fit(declared, b)
+    if unexplained < CLEAR_UNEXPLAINED and abs(carried - 1.0) <= CARRIED_CLOSE:
+        # Nothing can leave less than half of so little: the search is not needed.
+        return AttitudeVerdict(True, carried, unexplained, (CONVENTIONS_DECLARED, 0.0, carried,
+                                                            unexplained), world)
     lags = np.arange(-MAX_LAG_S, MAX_LAG_S + 1e-9, LAG_RESOLUTION_S) if margin else [0.0]
     best = (CONVENTIONS_DECLARED, 0.0, carried, unexplained)
     for lag in lags:
