@@ -122,8 +122,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         '--report',
         default=None,
         metavar='DIR',
-        help='health report folder: alarms when the calibration stops holding (report.json, '
-        'health.png)',
+        help='health report folder (report.json, health.png); the monitor runs without it too '
+        'and its verdict is printed',
     )
     parser.add_argument(
         '--false-alarms-per-hour',
@@ -205,19 +205,35 @@ def run(args: argparse.Namespace) -> int:
     if args.out_bag is not None:
         print(f'bag: {args.out_bag} ({counts.topic}, T/m)')
     if health is not None:
-        write_health_report(health, args.report, force=args.force, inputs=inputs)
-        print(f'health: {health.document()["verdict"]}; report: {args.report}')
+        _health_verdict(health, args, inputs)
     return 0
+
+
+def _health_verdict(
+    health: HealthRecorder, args: argparse.Namespace, inputs: tuple[str, ...]
+) -> None:
+    """The health monitor's verdict, always (a warning on stderr when it alarms); its
+    folder with ``--report``."""
+    document = health.document()
+    where = ''
+    if args.report is not None:
+        write_health_report(health, args.report, force=args.force, inputs=inputs)
+        where = f'; report: {args.report}'
+    if document['alarms']:
+        print(f'warning: health: {document["verdict"]}{where}', file=sys.stderr)
+    else:
+        print(f'health: {document["verdict"]}{where}')
 
 
 def _health_recorder(
     args: argparse.Namespace, geometry: TetraGeometry, compensation: Compensation
 ) -> HealthRecorder | None:
-    """The monitor behind ``--report`` (None without it)."""
-    if args.report is None:
-        return None
+    """The monitor of every compensation that has a sensor noise (its verdict is printed;
+    ``--report`` writes its folder). None for the raw tensor or without a noise."""
     if compensation.parameters is None or compensation.sensor_noise_t is None:
-        raise InputError('--report needs a calibration and a sensor noise')
+        if args.report is not None:
+            raise InputError('--report needs a calibration and a sensor noise')
+        return None
     config = HealthConfig(false_alarms_per_hour=args.false_alarms_per_hour)
     return HealthRecorder(
         geometry,

@@ -50,6 +50,12 @@ FRD = np.diag([1.0, -1.0, -1.0])
 #: The smallest singular value of sensor 1's uncentred readings, as a share of the largest,
 #: that determines ``M_s`` (0.1: the field turns by about 6 degrees out of its mean plane).
 MIN_SPAN = 0.1
+#: A sensor is named only when its fitted axes lie within this many degrees of the signed
+#: permutation named (a looser fit is no mounting: a field that is not shared).
+MAX_FIT_DEG = 10.0
+#: Sets whose |B| on some sensor differs from the median |B| by more than this share are
+#: left out of the axes fit.
+MAX_NORM_OFFSET = 0.5
 #: The compensated tensor's RMS (less its noise) over its noise RMS below which the
 #: position hypotheses are not tested (no gradient to tell them by).
 MIN_SIGNAL_TO_NOISE = 5.0
@@ -141,6 +147,9 @@ def relative_axes(fields: FloatArray) -> tuple[AxesFinding, ...] | None:
     """
     b = np.asarray(fields, dtype=float)
     b = b[np.all(np.isfinite(b), axis=(1, 2))]
+    if len(b):  # readings off the common |B| (a glitch, a unit mistake) do not vote
+        norms = np.linalg.norm(b, axis=2)
+        b = b[np.all(np.abs(norms / np.median(norms) - 1.0) < MAX_NORM_OFFSET, axis=1)]
     if len(b) < 10:
         return None
     reference = b[:, 0]
@@ -152,7 +161,7 @@ def relative_axes(fields: FloatArray) -> tuple[AxesFinding, ...] | None:
         # B_s = B_1 M^T in rows: M^T by least squares.
         m_t, *_ = np.linalg.lstsq(reference, b[:, sensor], rcond=None)
         matrix, angle = _nearest_signed_permutation(m_t.T)
-        if not np.allclose(matrix, np.eye(3)):
+        if not np.allclose(matrix, np.eye(3)) and angle <= MAX_FIT_DEG:
             findings.append(AxesFinding(sensor + 1, matrix, angle))
     return tuple(findings)
 

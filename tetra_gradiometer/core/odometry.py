@@ -297,7 +297,8 @@ class AttitudeVerdict:
 CONVENTIONS_DECLARED = CONVENTIONS[0][0]
 #: The lags tried, s (the /odom stamps late by this much).
 MAX_LAG_S = 2.0
-LAG_RESOLUTION_S = 0.1
+LAG_RESOLUTION_S = 0.05
+COARSE_LAG_S = 0.25
 #: The share of |B| a right attitude carries as a steady world field lies within this
 #: (the rest is the vehicle's field at sensor 1: a few %; 0.5 leaves room for 50 %).
 CARRIED_RANGE = (0.7, 1.3)
@@ -399,14 +400,18 @@ def attitude_verdict(
         # Nothing can leave less than half of so little: the search is not needed.
         return AttitudeVerdict(True, carried, unexplained, (CONVENTIONS_DECLARED, 0.0, carried,
                                                             unexplained), world)
-    lags = np.arange(-MAX_LAG_S, MAX_LAG_S + 1e-9, LAG_RESOLUTION_S) if margin else [0.0]
     best = (CONVENTIONS_DECLARED, 0.0, carried, unexplained)
-    for lag in lags:
+    # Coarse lags for every convention, then the best convention's lag refined.
+    coarse = np.arange(-MAX_LAG_S, MAX_LAG_S + 1e-9, COARSE_LAG_S) if margin else [0.0]
+    for lag in coarse:
         matrices = {first: at(first, float(lag)) for first in (False, True)}
-        for name, first, inverse, frd in CONVENTIONS:
-            c, u, _ = _fit(_as_convention(matrices[first], inverse, frd), b)
-            if clear_fit(c, u) and u < best[3]:
-                best = (name, float(lag), c, u)
+        for convention in CONVENTIONS:
+            best = _better(best, convention, float(lag), matrices[convention[1]], b)
+    if margin:
+        convention = next(c for c in CONVENTIONS if c[0] == best[0])
+        for lag in best[1] + np.arange(-COARSE_LAG_S, COARSE_LAG_S + 1e-9, LAG_RESOLUTION_S):
+            if abs(lag) <= MAX_LAG_S:
+                best = _better(best, convention, float(lag), at(convention[1], float(lag)), b)
     return AttitudeVerdict(True, carried, unexplained, best, world)
 
 
@@ -416,6 +421,22 @@ def _field_turn_deg(b: FloatArray) -> float:
     mean = unit.mean(axis=0)
     cos = unit @ (mean / np.linalg.norm(mean))
     return float(np.degrees(np.sqrt(np.mean(np.arccos(np.clip(cos, -1.0, 1.0)) ** 2))))
+
+
+def _better(
+    best: tuple[str, float, float, float],
+    convention: tuple[str, bool, bool, bool],
+    lag: float,
+    to_world: FloatArray,
+    b: FloatArray,
+) -> tuple[str, float, float, float]:
+    """``best`` or the convention at ``lag`` (its matrices ``to_world`` (n, 3, 3)) when it fits
+    clearly and leaves less unexplained."""
+    name, _, inverse, frd = convention
+    carried, unexplained, _ = _fit(_as_convention(to_world, inverse, frd), b)
+    if clear_fit(carried, unexplained) and unexplained < best[3]:
+        return (name, lag, carried, unexplained)
+    return best
 
 
 def _turn_rms(to_world: FloatArray) -> float:

@@ -70,6 +70,14 @@ IntArray = npt.NDArray[np.int64]
 SetCounters = MatchCounters | ResampleCounters
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
+#: The message type of each of ``conversions.CONTRACT_TOPICS``.
+CONTRACT_TYPES = (
+    *(cv.MAGNETIC_FIELD,) * 4,
+    cv.JOINT_STATE,
+    cv.ODOMETRY,
+    cv.TEMPERATURE,
+    cv.BATTERY_STATE,
+)
 
 
 def typestore() -> Any:
@@ -117,6 +125,7 @@ class MagneticBag:
     ) -> None:
         self.path = Path(path)
         self.remap = dict(remap or {})
+        self.assumed: dict[str, str] = {}
         if not self.path.exists():
             raise BagError(f'bag not found: {self.path}')
         if not 0.0 <= max_skipped_fraction <= 1.0:
@@ -137,7 +146,33 @@ class MagneticBag:
             self._reader.open()
         except Exception as error:  # rosbags raises its own error classes per storage
             raise BagError(f'cannot open bag {self.path}: {error}') from None
+        if not self.remap:
+            self.remap = self.assumed = self._namespaced_topics()
         return self
+
+    def _namespaced_topics(self) -> dict[str, str]:
+        """Contract topics the bag records only under another namespace (``/auv1/tetra/
+        mag1`` for ``/tetra/mag1``, ``/auv1/odom`` for ``/odom``): the one recorded topic of
+        the contract's type whose name ends in the contract's last name, mapped onto it. A
+        name that ends so on two topics (two vehicles) is left unmapped: the contract check
+        then names what the bag has."""
+        recorded = {c.topic: c.msgtype for c in self.reader.connections}
+        assumed = {}
+        for contract, msgtype in zip(cv.CONTRACT_TOPICS, CONTRACT_TYPES, strict=True):
+            if contract in recorded:
+                continue
+            last = '/' + contract.rsplit('/', 1)[-1]
+            found = [t for t, m in recorded.items() if m == msgtype and t.endswith(last)]
+            if len(found) == 1 and found[0] not in assumed:
+                assumed[found[0]] = contract
+        return assumed
+
+    def assumed_text(self) -> str:
+        """'' or the line saying which recorded topics were read as the contract's."""
+        if not self.assumed:
+            return ''
+        pairs = ', '.join(f'{recorded} as {topic}' for recorded, topic in self.assumed.items())
+        return f'topics read under another namespace: {pairs}'
 
     def __exit__(self, *exc: object) -> None:
         if self._reader is not None:
@@ -156,11 +191,13 @@ class MagneticBag:
         return sum(record.count for record in self.skipped)
 
     def skipped_summary(self) -> str:
-        """One line for the CLI ('' when nothing was skipped): 'skipped 3 undecodable
+        """The reader's line for the CLI ('' when nothing to say): the topics read under
+        another namespace (:meth:`assumed_text`), then 'skipped 3 undecodable
         messages (/tetra/mag2 at log time 12.3 s: payload cut short; ...)', log times from
         the bag's start, at most three shown."""
         start = self._reader.start_time if self._reader is not None else 0
-        return summary(self.skipped, start)
+        lines = (self.assumed_text(), summary(self.skipped, start))
+        return '; '.join(line for line in lines if line)
 
     def record_skip(self, record: SkippedMessage) -> int:
         """Record ``record`` (once); return the messages it loses."""
@@ -186,6 +223,10 @@ class MagneticBag:
 
     def has_topic(self, topic: str) -> bool:
         return bool(self._connections(topic))
+
+    def topics(self) -> tuple[str, ...]:
+        """Every (remapped) topic the bag records, sorted."""
+        return tuple(sorted({self.topic_of(c.topic) for c in self.reader.connections}))
 
     def topics_of_type(self, msgtype: str) -> tuple[str, ...]:
         """The (remapped) topics whose messages are of ``msgtype``, sorted."""

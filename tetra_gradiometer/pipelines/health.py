@@ -16,6 +16,9 @@ __all__ = ['BIN_S', 'HealthRecorder']
 
 #: Set stamps further than this from the bag's first log time are on another clock.
 SAME_CLOCK_NS = 86_400 * NS_PER_S
+#: An alarm within this many seconds of the first set says the calibration never held on
+#: this recording (a calibration of another vehicle or time alarms at once).
+FROM_START_S = 10.0
 #: Plot bins, seconds (the largest statistic of each).
 BIN_S = 1.0
 
@@ -41,6 +44,7 @@ class HealthRecorder:
         self._sensor_noise_t = sensor_noise_t
         self._origin_ns: int | None = None
         self.origin = 'bag start'
+        self._first_s: float | None = None
         self.bins: dict[int, tuple[float, float]] = {}
 
     def add(
@@ -56,6 +60,8 @@ class HealthRecorder:
             self._origin_ns = int(bag_start_ns) if same_clock else first
             self.origin = 'bag start' if same_clock else 'first set'
         t_s = (np.asarray(stamps_ns, dtype=np.int64) - self._origin_ns) * S_PER_NS
+        if self._first_s is None:
+            self._first_s = float(t_s[0])
         self._keep(self.monitor.update(t_s, tensors, fields[:, 0, :]))
 
     def _keep(self, trace: HealthTrace) -> None:
@@ -73,6 +79,21 @@ class HealthRecorder:
                 float(np.fmax(old[1], drift_max)),
             )
 
+    def _cause(self, first_alarm_s: float) -> str:
+        """The likely cause of an alarm: from the data's first seconds the calibration never
+        held (made for another vehicle or time, or the array changed since); later, the
+        vehicle changed during the recording."""
+        start = self._first_s if self._first_s is not None else 0.0
+        if first_alarm_s - start <= FROM_START_S:
+            return (
+                f'it does not hold from the start of the data (alarm {first_alarm_s - start:.1f} '
+                "s after the first set): this calibration is not this vehicle's as it is now "
+                "(another vehicle's, an old one, or the array changed since the trim: a sensor "
+                'turned or moved, the positions or frame edited); calibrate on a trim of this '
+                'recording'
+            )
+        return 'the vehicle changed during the recording; recalibrate (a new trim)'
+
     def document(self) -> dict:
         """The content of ``report.json``."""
         monitor, config = self.monitor, self.monitor.config
@@ -82,7 +103,8 @@ class HealthRecorder:
             verdict = (
                 f'{len(alarms)} alarm(s): first at {first["t_s"]:.1f} s, {first["kind"]}'
                 + (f', sensor(s) {first["sensors"]}' if first['sensors'] else '')
-                + ': the calibration no longer holds; recalibrate'
+                + ': the calibration no longer holds; '
+                + self._cause(float(first['t_s']))
             )
         else:
             verdict = 'no change detected'

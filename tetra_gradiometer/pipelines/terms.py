@@ -195,6 +195,13 @@ def window_channels(
 
     with MagneticBag(bag_path) as bag:
         recorded = bag.topics_of_type(cv.BATTERY_STATE)
+        absent = [topic for topic in current_topics if topic not in recorded]
+        if absent:
+            raise InputError(
+                f'--current-topics {",".join(absent)}: not a sensor_msgs/BatteryState topic of '
+                f'{bag_path} (its BatteryState topics: {", ".join(recorded) or "none"}; all its '
+                f'topics: {", ".join(bag.topics())})'
+            )
         names = (TEMPERATURE_CHANNEL, *current_channels((*current_topics, *recorded)))
         series = read_channels(bag, names)
     return channels_on(stamps_ns, fields[:, 0, :], series), series
