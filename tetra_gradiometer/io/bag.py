@@ -30,6 +30,7 @@ only when more than ``max_skipped_fraction`` (default 1 %) of a topic's messages
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable, Generator, Iterable, Iterator, Mapping
 from contextlib import ExitStack
@@ -70,6 +71,9 @@ IntArray = npt.NDArray[np.int64]
 SetCounters = MatchCounters | ResampleCounters
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
+#: Sensors whose message rates differ by more than this factor are resampled to a grid at
+#: the slowest one's rate (the default time base only).
+MIXED_RATES = 1.8
 #: The message type of each of ``conversions.CONTRACT_TOPICS``.
 CONTRACT_TYPES = (
     *(cv.MAGNETIC_FIELD,) * 4,
@@ -126,6 +130,7 @@ class MagneticBag:
         self.path = Path(path)
         self.remap = dict(remap or {})
         self.assumed: dict[str, str] = {}
+        self.rates_note = ''
         if not self.path.exists():
             raise BagError(f'bag not found: {self.path}')
         if not 0.0 <= max_skipped_fraction <= 1.0:
@@ -167,6 +172,30 @@ class MagneticBag:
                 assumed[found[0]] = contract
         return assumed
 
+    def _for_rates(self, timebase: TimeBase) -> TimeBase:
+        """The default time base, or with sensors at rates more than :data:`MIXED_RATES`
+        apart a grid at the slowest one's rate (sets at the fastest sensor's stamps would
+        interpolate the slow ones between samples far apart, a misfit no model explains);
+        :attr:`rates_note` says so. A time base asked for is kept."""
+        if timebase != DEFAULT_TIMEBASE:
+            return timebase
+        duration = self.reader.duration * S_PER_NS
+        counts = [
+            sum(c.msgcount for c in self._connections(topic)) for topic in cv.BAG_MAG_TOPICS
+        ]
+        if duration <= 0 or min(counts) < 2:
+            return timebase
+        rates = np.array(counts) / duration
+        if rates.max() <= MIXED_RATES * rates.min():
+            return timebase
+        slowest = float(f'{rates.min():.3g}')
+        self.rates_note = (
+            'sensors at different rates ('
+            + ', '.join(f'{i + 1}: {r:.3g} Hz' for i, r in enumerate(rates))
+            + f'): resampled to a {slowest:g} Hz grid, the slowest sensor\'s rate'
+        )
+        return dataclasses.replace(timebase, reference_rate_hz=slowest)
+
     def assumed_text(self) -> str:
         """'' or the line saying which recorded topics were read as the contract's."""
         if not self.assumed:
@@ -196,7 +225,7 @@ class MagneticBag:
         messages (/tetra/mag2 at log time 12.3 s: payload cut short; ...)', log times from
         the bag's start, at most three shown."""
         start = self._reader.start_time if self._reader is not None else 0
-        lines = (self.assumed_text(), summary(self.skipped, start))
+        lines = (self.assumed_text(), self.rates_note, summary(self.skipped, start))
         return '; '.join(line for line in lines if line)
 
     def record_skip(self, record: SkippedMessage) -> int:
@@ -284,6 +313,7 @@ class MagneticBag:
         total = self.check_contract()
         if chunk_size < 1:
             raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
+        timebase = self._for_rates(timebase)
         form = set_former(timebase)
         self.counters, self.clocks = form.counters, None
         checker = StreamChecker(earth_field_t, str(self.path), timebase.reference_rate_hz)
