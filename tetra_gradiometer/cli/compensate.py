@@ -198,8 +198,9 @@ def run(args: argparse.Namespace) -> int:
         print(f'  {counts.channel_summary}')
     if counts.held_summary:
         print(f'  {counts.held_summary}')
-    if counts.conventions:
-        print(f'warning: {counts.conventions}', file=sys.stderr)
+    for warning in (counts.extrapolated, counts.conventions):
+        if warning:
+            print(f'warning: {warning}', file=sys.stderr)
     if args.csv is not None:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m; {_sigma_text(compensation)})')
     if args.out_bag is not None:

@@ -109,6 +109,8 @@ class CompensationCounts:
     held_summary : str
         Compensated without an absent channel: which, and what was done instead ('' when
         every channel was there).
+    extrapolated : str
+        The terms' regressors beyond what the calibration window saw ('' when none).
     conventions : str
         The written tensors are not a gradient with the declared positions and reading
         frame: the hypotheses that make them one (core/conventions; '' when they are one,
@@ -126,6 +128,7 @@ class CompensationCounts:
     channel_dropped: int = 0
     channel_summary: str = ''
     held_summary: str = ''
+    extrapolated: str = ''
     conventions: str = ''
 
 
@@ -436,6 +439,7 @@ def _counts(
         sum(terms.unknown.values()),
         terms.text(),
         '' if terms.held is None else terms.held.text(),
+        terms.ranges.text(),
     )
 
 

@@ -430,6 +430,63 @@ def held_terms(
     )
 
 
+class WindowRanges:
+    """Where the terms' regressors fall against the calibration window's: a regressor beyond
+    its window mean +- (4 sigma + 5 % of |mean|) on more than 1 % of the sets is extrapolated
+    (another sign convention, another unit, a load the trim never saw), and :meth:`text`
+    names it. Recorded channels with window statistics are checked."""
+
+    def __init__(self, terms: tuple[Term, ...]) -> None:
+        self.names: list[str] = []
+        means, sigmas = [], []
+        recorded = terms_channels(terms)
+        for term in terms:
+            for j in range(term.size):
+                label = term.inputs[j] if len(term.inputs) == term.size else ''
+                # Recorded channels only: a computed regressor (the eddy rate) is not a
+                # convention or a unit that can change.
+                have = bool(term.window_mean and term.window_covariance) and label in recorded
+                self.names.append(f'{term.effect} ({channel_topic(label)})' if have else '')
+                means.append(term.window_mean[j] if have else np.nan)
+                sigmas.append(np.sqrt(term.window_covariance[j][j]) if have else np.nan)
+        self.mean, sigma = np.array(means), np.array(sigmas)
+        self.bound = 4.0 * sigma + 0.05 * np.abs(self.mean)
+        self.outside = np.zeros(len(means), dtype=int)
+        self.outside_sum = np.zeros(len(means))
+        self.low, self.high = np.full(len(means), np.inf), np.full(len(means), -np.inf)
+        self.sets = 0
+
+    def add(self, regressors: FloatArray) -> None:
+        """A chunk's regressors (n, M), NaN where unknown."""
+        x = regressors[np.all(np.isfinite(regressors), axis=1)]
+        if not len(x):
+            return
+        self.sets += len(x)
+        beyond = np.abs(x - self.mean) > self.bound
+        self.outside += np.sum(beyond, axis=0)
+        self.outside_sum += np.sum(np.where(beyond, x, 0.0), axis=0)
+        self.low = np.minimum(self.low, x.min(axis=0))
+        self.high = np.maximum(self.high, x.max(axis=0))
+
+    def text(self) -> str:
+        """'' or the extrapolated regressors, each with its range against the window's."""
+        parts = []
+        for j in np.flatnonzero(self.outside > 0.01 * max(self.sets, 1)):
+            mean, bound = self.mean[j], self.bound[j]
+            middle = self.outside_sum[j] / self.outside[j]  # the mean of the values beyond
+            hint = ''
+            if abs(-middle - mean) <= bound:
+                hint = ': another sign convention than at the calibration?'
+            elif any(abs(middle * f - mean) <= bound for f in (1e-3, 1e3)):
+                hint = ': another unit than at the calibration?'
+            parts.append(
+                f'{self.names[j]} regressor {self.low[j]:.4g} to {self.high[j]:.4g} on '
+                f'{self.outside[j] / self.sets:.0%} of the sets, beyond the calibration '
+                f'window\'s {mean - bound:.4g} to {mean + bound:.4g}{hint}'
+            )
+        return ('extrapolated beyond the calibration: ' + '; '.join(parts)) if parts else ''
+
+
 class StreamRegressors:
     """The terms' regressors over a bag's sets chunk by chunk (compensation), equal to
     :func:`~tetra_gradiometer.core.effects.term_regressors` on the whole run: an eddy term's
@@ -474,6 +531,7 @@ class StreamRegressors:
         self.origin_ns: int | None = None
         self.unknown: dict[str, int] = {}
         self.spans: dict[str, list[tuple[float, float]]] = {}
+        self.ranges = WindowRanges(terms)
 
     def __call__(self, stamps_ns: IntArray, fields: FloatArray) -> FloatArray:
         """Regressors (n, M) of the chunk's sets, NaN where a channel is unknown."""
@@ -497,6 +555,7 @@ class StreamRegressors:
         keep = (stamps_all[-1] - stamps_all) * S_PER_NS < self.history_s + 1e-9
         self._tail = (stamps_all[keep], b_all[keep])
         self._count(stamps_ns, {name: v[prefix:] for name, v in on_sets.items()}, regressors)
+        self.ranges.add(regressors)
         return regressors
 
     def _count(
