@@ -308,3 +308,21 @@ def test_batch_writes_the_same_survey_products_per_bag_when_asked(surveyed, tmp_
     ours = json.loads((folder / 'targets.geojson').read_text())['features']
     command = json.loads((tmp / 'survey' / 'targets.geojson').read_text())['features']
     assert [f['geometry'] for f in ours] == [f['geometry'] for f in command]
+
+
+def test_an_origin_given_as_lon_lat_is_refused_by_the_earth_field(surveyed, capsys):
+    """IGRF at the place given against the params file's Earth field (that of Marseille to
+    6 uT): LON,LAT is named and refused before any work; a place on another continent is a
+    warning naming both inputs."""
+    from tetra_gradiometer.__main__ import main
+
+    tmp, _ = surveyed
+    params = tmp / 'mission.params.yaml'
+    common = ['survey', str(tmp / 'mission'), '--params', str(params), '--calibration', str(tmp / 'calib.yaml')]
+    assert main([*common, '--out', str(tmp / 'swapped'), '--origin', '5.3,43.2']) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('error: --origin 5.3,43.2 looks given as LON,LAT') and 'give LAT,LON' in err
+    assert not (tmp / 'swapped').exists()
+    assert main([*common, '--out', str(tmp / 'cape'), '--origin=-33.9,18.4']) == 0
+    err = capsys.readouterr().err
+    assert 'warning: the IGRF field at --origin -33.9,18.4 differs from' in err

@@ -22,12 +22,15 @@ import argparse
 import sys
 import time
 
+import numpy as np
+
 from ..core.targets import DetectorSettings
 from ..errors import InputError
+from ..io.bag import MagneticBag
 from ..io.calibration import load_calibration
-from ..io.geo import parse_origin
+from ..io.geo import origin_earth_check, parse_origin
 from ..io.outputs import SURVEY, check_output
-from ..io.params import geometry_from_params, load_params
+from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.compensation import load_compensation
 from ..pipelines.survey import survey_bag
 from ..pipelines.survey_grid import GridSettings
@@ -100,11 +103,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_progress_arguments(parser)
 
 
+def _check_origin(args: argparse.Namespace, earth: np.ndarray | None) -> None:
+    """``--origin`` against the params file's Earth field (io/geo.origin_earth_check): an
+    origin given as LON,LAT is refused, another mismatch is a warning."""
+    if args.origin is None or earth is None:
+        return
+    with MagneticBag(args.bag) as bag:
+        start_ns = int(bag.reader.start_time)
+    line, swapped = origin_earth_check(args.origin, earth, start_ns)
+    if swapped:
+        raise InputError(str(line))
+    if line:
+        print(f'warning: {line}', file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     inputs = [args.bag, args.params, args.calibration]
     check_output(args.out, SURVEY, force=args.force, inputs=inputs)  # refuse before the work
-    geometry = geometry_from_params(load_params(args.params), str(args.params))
+    params = load_params(args.params)
+    geometry = geometry_from_params(params, str(args.params))
+    _check_origin(args, earth_field_from_params(params, str(args.params)))
     compensation = load_compensation(
         args.calibration, geometry, target=str(args.params), sensor_noise_nt=args.sensor_noise_nt
     )

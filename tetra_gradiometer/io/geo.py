@@ -41,6 +41,7 @@ __all__ = [
     'Fixes',
     'Georeference',
     'fit_fixes',
+    'origin_earth_check',
     'parse_origin',
     'read_fixes',
     'utm_epsg',
@@ -70,6 +71,46 @@ def parse_origin(text: str) -> tuple[float, float, float]:
             f'--origin {text!r}: latitude must be in [-90, 90], longitude in [-180, 180]'
         )
     return lat, lon, values[2] if len(values) == 3 else 0.0
+
+
+#: A declared Earth field further than this from the IGRF field at the survey's place is
+#: named (IGRF's main field leaves crustal anomalies of up to a few uT; a place 1000 km off
+#: moves it by 5-10 uT).
+MAX_EARTH_FIELD_OFFSET_T = 10e-6
+
+
+def origin_earth_check(
+    origin: tuple[float, float, float], earth_field_enu: FloatArray, when_ns: int
+) -> tuple[str | None, bool]:
+    """The placement ``origin`` (lat, lon, h) against the params file's ``earth_field_enu``
+    (3,) T: IGRF at that place and at ``when_ns`` (the bag's start) should be within
+    :data:`MAX_EARTH_FIELD_OFFSET_T`. Returns (None, False) when it is; else the line, and
+    whether the origin given as LON,LAT explains it (the field at the swapped place within
+    half the offset, and the bound): then the placement is surely wrong."""
+    import datetime as dt
+
+    from .scenario import igrf_field_enu
+
+    when = dt.datetime.fromtimestamp(when_ns * 1e-9, tz=dt.UTC).replace(tzinfo=None)
+    lat, lon, h = origin
+    declared = np.asarray(earth_field_enu, dtype=float)
+    offset = float(np.linalg.norm(igrf_field_enu(lat, lon, when, h) - declared))
+    if offset <= MAX_EARTH_FIELD_OFFSET_T:
+        return None, False
+    swapped = np.inf
+    if -90.0 <= lon <= 90.0:
+        swapped = float(np.linalg.norm(igrf_field_enu(lon, lat, when, h) - declared))
+    if swapped <= min(0.5 * offset, MAX_EARTH_FIELD_OFFSET_T):
+        return (
+            f'--origin {lat:g},{lon:g} looks given as LON,LAT: the IGRF field there differs from '
+            f'earth_field_enu by {offset * 1e6:.0f} uT, at {lon:g},{lat:g} by '
+            f'{swapped * 1e6:.1f} uT; give LAT,LON'
+        ), True
+    return (
+        f'the IGRF field at --origin {lat:g},{lon:g} differs from the params file\'s '
+        f'earth_field_enu by {offset * 1e6:.0f} uT (more than {MAX_EARTH_FIELD_OFFSET_T * 1e6:g} '
+        'uT): the origin or earth_field_enu is not this survey\'s'
+    ), False
 
 
 def utm_epsg(lat_deg: float, lon_deg: float) -> str:
