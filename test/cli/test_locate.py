@@ -78,3 +78,31 @@ def test_locate_needs_a_calibration_or_raw_and_never_replaces_what_is_not_its_ow
     result = cli('locate', tmp / 'mission', '--params', params, '--raw', '--out', tmp / 'calib.yaml', check=False)
     assert result.returncode == 1 and 'error:' in result.stderr and 'Traceback' not in result.stderr
     assert yaml.safe_load((tmp / 'calib.yaml').read_text())['method']  # untouched
+
+
+def test_odometry_with_z_as_depth_is_named(located, capsys):
+    """The same bag with /odom's z written as a depth (positive down, as some INS publish):
+    the track and every target above the odom origin is named; the right bag says nothing."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'io'))
+    from cli_helpers import rewrite_bag
+
+    from tetra_gradiometer.__main__ import main
+
+    tmp, _ = located
+
+    def as_depth(msg, t_s):
+        msg.pose.pose.position.z = -msg.pose.pose.position.z
+        return msg
+
+    depth = rewrite_bag(tmp / 'mission', tmp / 'depth', '/odom', as_depth)
+    params, calibration = tmp / 'mission.params.yaml', tmp / 'calib.yaml'
+    assert main(['locate', str(depth), '--params', str(params), '--calibration', str(calibration),
+                 '--out', str(tmp / 'depth_targets')]) == 0
+    err = capsys.readouterr().err
+    assert 'warning: /odom z looks like a depth (positive down): the track lies at z = +25.0' in err
+    assert main(['locate', str(tmp / 'mission'), '--params', str(params), '--calibration', str(calibration),
+                 '--out', str(tmp / 'right_targets')]) == 0
+    assert 'depth' not in capsys.readouterr().err

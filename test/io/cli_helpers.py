@@ -29,3 +29,24 @@ def assert_refused(result, *fragments) -> None:
     assert 'Traceback' not in err
     for fragment in fragments:
         assert fragment in err, (fragment, err)
+
+
+def rewrite_bag(bag: Path, out: Path, topic: str, change) -> Path:
+    """A copy of ``bag`` with each message of ``topic`` replaced by ``change(msg, t_s)`` (the
+    deserialized message, seconds from the bag's start -> a message to write, or None to keep
+    the original); every other message byte for byte."""
+    from rosbags.highlevel import AnyReader
+
+    from tetra_gradiometer.io.bag import BagWriter, typestore
+
+    with AnyReader([bag], default_typestore=typestore()) as reader, BagWriter(out) as writer:
+        start = reader.start_time
+        for connection, t, raw in reader.messages():
+            new = None
+            if connection.topic == topic:
+                new = change(reader.deserialize(raw, connection.msgtype), (t - start) * 1e-9)
+            if new is None:
+                writer.write_raw(connection.topic, connection.msgtype, raw, t)
+            else:
+                writer.write(connection.topic, new, t)
+    return out

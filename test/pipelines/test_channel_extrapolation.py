@@ -8,11 +8,10 @@ recorded /battery_state currents (the physics, the fields, are unchanged).
 """
 import numpy as np
 import yaml
-from cli_helpers import run_cli
-from rosbags.highlevel import AnyReader
+from cli_helpers import rewrite_bag, run_cli
 
 from tetra_gradiometer.io import conversions as cv
-from tetra_gradiometer.io.bag import BagWriter, typestore
+from tetra_gradiometer.io.bag import typestore
 
 SCENARIO = {
     'seed': 5,
@@ -34,16 +33,14 @@ SCENARIO = {
 def _flipped_copy(bag, out, after_s):
     """``bag`` with every /battery_state current after ``after_s`` (s from the start) negated."""
     types = cv.rosbags_types(typestore())
-    with AnyReader([bag], default_typestore=typestore()) as reader, BagWriter(out) as writer:
-        start = reader.start_time
-        for connection, t, raw in reader.messages():
-            if connection.topic == cv.BATTERY_TOPIC and (t - start) * 1e-9 > after_s:
-                msg = reader.deserialize(raw, connection.msgtype)
-                stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-                writer.write(connection.topic, cv.battery_msg(types, -float(msg.current), stamp), t)
-            else:
-                writer.write_raw(connection.topic, connection.msgtype, raw, t)
-    return out
+
+    def flip(msg, t_s):
+        if t_s <= after_s:
+            return None
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        return cv.battery_msg(types, -float(msg.current), stamp)
+
+    return rewrite_bag(bag, out, cv.BATTERY_TOPIC, flip)
 
 
 def test_a_current_with_another_sign_on_the_survey_is_named(tmp_path, capsys):

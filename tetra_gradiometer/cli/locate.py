@@ -33,7 +33,7 @@ from ..errors import InputError
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import TARGETS, check_output
 from ..io.params import geometry_from_params, load_params
-from ..pipelines.targets import locate_bag
+from ..pipelines.targets import Search, locate_bag
 from ..reports.targets import write_locate_report
 from ._args import (
     MAX_FALSE_ALARMS_PER_HOUR,
@@ -84,6 +84,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_progress_arguments(parser)
 
 
+def depth_positive_down(search: Search) -> str:
+    """'' or why the odom z looks like a depth (positive down): the whole track and every
+    target above the odom origin, which on an underwater vehicle is at or above the sea
+    surface in REP 103's z up."""
+    z_track = search.survey.positions[:, 2]
+    z_targets = [target.fit.position[2] for target in search.targets]
+    if not z_targets or not (z_track.min() > 0 and min(z_targets) > 0):
+        return ''
+    return (
+        f'/odom z looks like a depth (positive down): the track lies at z = '
+        f'{z_track.min():+.1f} to {z_track.max():+.1f} m and every target above z = 0 '
+        f'(lowest {min(z_targets):+.1f} m), above the odom origin; REP 103 odometry has z up '
+        '(negate a depth), unless the odom origin lies below the whole survey'
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     if args.raw == (args.calibration is not None):
@@ -130,5 +146,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if result.held_summary:
         print(result.held_summary)
+    depth = depth_positive_down(result.main)
+    if depth:
+        print(f'warning: {depth}', file=sys.stderr)
     print(f'{time.perf_counter() - started:.1f} s; targets in {out}')
     return 0
