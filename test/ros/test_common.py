@@ -128,6 +128,11 @@ def test_bad_parameters_are_refused_at_start_with_one_line(name, params, expecte
     ('driver', {'/**': {'ros__parameters': {'mode': 'sim', 'rat': 10.0, 'earth_field_enu': [0.0, 2e-5, -4.5e-5]}}},
      ["unknown parameter 'rat'"]),
     ('compensator', {'/tetra/compensator': {'ros__parameters': {'max_pendng': 10}}}, ["unknown parameter 'max_pendng'"]),
+    # A section rcl would ignore: the node's name misspelt, or under another namespace.
+    ('compensator', {'/tetra/compenstor': {'ros__parameters': {'max_pending': 10}}},
+     ['no section for /tetra/compensator', "is '/tetra/compenstor' meant to be '/tetra/compensator'?"]),
+    ('tensor', {'/auv1/tensor': {'ros__parameters': {'max_pending': 10}}},
+     ['no section for /tetra/tensor', "is '/auv1/tensor' meant to be '/tetra/tensor'?"]),
 ])
 def test_bad_parameters_in_a_params_file_are_refused_at_start_with_one_line(tmp_path, name, document, expected):
     params_file = tmp_path / 'params.yaml'

@@ -341,6 +341,66 @@ def unknown_overrides(node: Any, command_line: Collection[str]) -> list[str]:
     )
 
 
+def params_file_sections(args: list[str] | None) -> list[tuple[str, list[str]]]:
+    """(path, its top-level section names) of each ``--params-file PATH`` in the ROS
+    arguments of ``args`` (``sys.argv`` when None); an unreadable file is rcl's to refuse."""
+    import yaml
+
+    files, ros, expect = [], False, False
+    for token in sys.argv if args is None else args:
+        if expect:
+            files.append(token)
+            expect = False
+        elif token in ('--ros-args', '--'):
+            ros = token == '--ros-args'
+        else:
+            expect = ros and token == '--params-file'
+    out = []
+    for path in files:
+        try:
+            with open(path, encoding='utf-8') as handle:
+                document = yaml.safe_load(handle)
+        except (OSError, yaml.YAMLError):
+            continue
+        if isinstance(document, dict):
+            out.append((path, [str(key) for key in document]))
+    return out
+
+
+def section_matches(section: str, fully_qualified: str) -> bool:
+    """Whether a params-file section (``/**``, ``/tetra/compensator``, ``/*/compensator``,
+    ``/**/compensator``, ``compensator``) applies to the node ``fully_qualified``."""
+    import re
+
+    if not section.startswith('/'):
+        section = '/' + section
+    pattern = re.escape(section).replace(r'\*\*', '.*').replace(r'\*', '[^/]*')
+    return re.fullmatch(pattern, fully_qualified) is not None
+
+
+def misnamed_section(node: Any, args: list[str] | None) -> str | None:
+    """Why a params file given to ``node`` is refused: none of its sections applies to the
+    node while one names it, or nearly (a typo, another namespace: rcl would ignore the
+    whole section without a word), or None. A file whose sections all name other nodes (one
+    launch file for all) is the node's defaults."""
+    import difflib
+
+    fully_qualified = node.get_fully_qualified_name()
+    for path, sections in params_file_sections(args):
+        if any(section_matches(section, fully_qualified) for section in sections):
+            continue
+        name = fully_qualified.rsplit('/', 1)[-1]
+        for section in sections:
+            last = section.rsplit('/', 1)[-1]
+            if difflib.SequenceMatcher(None, last, name).ratio() >= 0.8:
+                return (
+                    f'params file {path} has no section for {fully_qualified} (its sections: '
+                    f'{", ".join(sections)}): is {section!r} meant to be {fully_qualified!r}? '
+                    '(rcl ignores a section that names another node, without a word)'
+                )
+    return None
+
+
 def absolute_topics(value: Any) -> str | None:
     """A string array of absolute topic names (``/thruster1/battery``), none twice."""
     topics = list(value)

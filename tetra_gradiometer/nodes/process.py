@@ -71,8 +71,16 @@ def stop_on_signals() -> threading.Event:
 def _start_refusal(node: Any, args: list[str] | None) -> str | None:
     """Why the overrides of a constructed node are refused (an undeclared name, a ``-p``
     value rcl dropped), or None."""
-    from .common import command_line_parameters, dropped_command_line_value, unknown_overrides
+    from .common import (
+        command_line_parameters,
+        dropped_command_line_value,
+        misnamed_section,
+        unknown_overrides,
+    )
 
+    misnamed = misnamed_section(node, args)
+    if misnamed:
+        return misnamed
     rules = command_line_parameters(args, node.get_name())
     unknown = unknown_overrides(node, rules)
     if unknown:
