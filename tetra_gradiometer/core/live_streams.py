@@ -10,6 +10,11 @@ from .units import NS_PER_S
 
 __all__ = ['LiveStreamCheck']
 
+#: A sensor's period is the median of its last MAX_INTERVALS intervals, once it has
+#: MIN_INTERVALS of them.
+MIN_INTERVALS = 8
+MAX_INTERVALS = 32
+
 
 class LiveStreamCheck:
     """The tensor node's per-message checks (drop and count, never raise): a zero stamp, a
@@ -20,17 +25,26 @@ class LiveStreamCheck:
     against the Earth's range (:meth:`magnitude_text`).
 
     Counts per sensor in :attr:`dropped`: ``{'zero_stamp': n, 'other_clock': n,
-    'duplicate_stamp': n}``. Times: stamps and ``now_ns`` (the node's clock) in ns.
+    'duplicate_stamp': n}``; in :attr:`missing` the messages that never arrived, by the gaps in
+    its stamps against its own period (gaps up to ``silence_s``: a longer one is a silence,
+    which the node names stale). Times: stamps and ``now_ns`` (the node's clock) in ns.
     """
 
     KINDS = ('zero_stamp', 'other_clock', 'duplicate_stamp')
 
     def __init__(
-        self, tolerance_s: float = 10.0, recent_s: float = 2.0, history: int = 64
+        self,
+        tolerance_s: float = 10.0,
+        recent_s: float = 2.0,
+        history: int = 64,
+        silence_s: float = 1.0,
     ) -> None:
         self.tolerance_ns = tolerance_s * NS_PER_S
+        self.silence_ns = silence_s * NS_PER_S
         self.recent_ns = recent_s * NS_PER_S
         self.dropped = [dict.fromkeys(self.KINDS, 0) for _ in range(4)]
+        self.missing = [0] * 4
+        self._intervals: list[list[int]] = [[] for _ in range(4)]
         self._norms = [np.zeros(history) for _ in range(4)]
         self._filled = [0] * 4
         self.reset()
@@ -59,11 +73,38 @@ class LiveStreamCheck:
         last = self._last[sensor]
         if last is not None and stamp_ns == last[0] and last[1] != (x, y, z):
             return self._count(sensor, 'duplicate_stamp')
+        if last is not None and stamp_ns > last[0]:
+            self._count_missing(sensor, stamp_ns - last[0])
         self._last[sensor] = (stamp_ns, (x, y, z))
         norms = self._norms[sensor]
         norms[self._filled[sensor] % len(norms)] = (x * x + y * y + z * z) ** 0.5
         self._filled[sensor] += 1
         return True
+
+    def _count_missing(self, sensor: int, interval_ns: int) -> None:
+        """Messages missing between two accepted stamps, by the sensor's own period (the
+        median of its last intervals): lost before the node (a queue too short, a publisher
+        or the node too slow), which nothing else sees."""
+        intervals = self._intervals[sensor]
+        if len(intervals) >= MIN_INTERVALS:
+            period = float(np.median(intervals))
+            if period > 0 and interval_ns > 1.5 * period:
+                if interval_ns <= self.silence_ns:  # a longer one is a silence (stale)
+                    self.missing[sensor] += int(round(interval_ns / period)) - 1
+                return  # a gap is no interval of the clock
+        intervals.append(interval_ns)
+        del intervals[:-MAX_INTERVALS]
+
+    def missing_text(self, sensor: int, received: int) -> str:
+        """'' or how many messages of ``received`` + missing never reached the node."""
+        missing = self.missing[sensor]
+        if not missing:
+            return ''
+        share = missing / max(missing + received, 1)
+        return (
+            f'{missing} messages missing by their stamps ({share:.1%}): lost before the node '
+            '(a subscription queue too short, or the node or the link too slow for the rate)'
+        )
 
     def _count(self, sensor: int, kind: str) -> bool:
         self.dropped[sensor][kind] += 1

@@ -182,7 +182,10 @@ class TensorNode(ManagedNode):
         self._max_pending = int(p['max_pending'])
         self._jump_back_ns = int(round(p['jump_back_s'] * NS_PER_S))
         self._matcher = self._new_former()
-        self._streams = LiveStreamCheck()  # stamps and units, before the set former
+        # Stamps and units, before the set former; messages lost in shorter gaps than a
+        # silence (stale) are counted.
+        self._streams = LiveStreamCheck(silence_s=self._stale_timeout)
+        self._missing_mark = [0] * 4  # the missing counts at the previous diagnostics
         self._earlier: dict[str, int] = {}  # counts of the matchers reset before
         self._last_stamp: list[int | None] = [None] * 4
         self.resets = 0
@@ -331,8 +334,9 @@ class TensorNode(ManagedNode):
     def _now_ns(self) -> int:
         return int(self.get_clock().now().nanoseconds)
 
-    def _stream_text(self, sensor: int) -> str:
-        """The sensor's stream faults (core/live_streams.LiveStreamCheck), '' when none."""
+    def _stream_text(self, sensor: int, with_missing: bool = True) -> str:
+        """The sensor's stream faults (core/live_streams.LiveStreamCheck), '' when none;
+        ``with_missing``: the messages lost before the node too."""
         counts = self._streams.dropped[sensor]
         what = {
             'zero_stamp': 'with header stamp 0',
@@ -340,10 +344,12 @@ class TensorNode(ManagedNode):
             'duplicate_stamp': 'repeating a stamp with another reading',
         }
         parts = [f'{n} {what[kind]}' for kind, n in counts.items() if n]
-        magnitude = self._streams.magnitude_text(sensor)
-        return '; '.join(
-            ([f'dropped {", ".join(parts)}'] if parts else []) + [magnitude] * bool(magnitude)
-        )
+        notes = [
+            self._streams.magnitude_text(sensor),
+            self._streams.missing_text(sensor, self._received[sensor]) if with_missing else '',
+        ]
+        dropped = [f'dropped {", ".join(parts)}'] if parts else []
+        return '; '.join(dropped + [note for note in notes if note])
 
     def _now_s(self) -> float:
         """The node's clock, s: ROS time, i.e. ``/clock`` under ``use_sim_time`` (a replay at
@@ -362,11 +368,15 @@ class TensorNode(ManagedNode):
             self._rate = [(c - m) / (now - mark_time) for c, m in pairs]
         self._rate_mark = (now, list(self._received))
 
-    def _sensor_status(self, s: int, now: float, stale: bool, clocks: dict[str, float]) -> Any:
+    def _sensor_status(
+        self, s: int, now: float, stale: bool, clocks: dict[str, float], recent_missing: int
+    ) -> Any:
         """One sensor's DiagnosticStatus: stale (ERROR), dropped readings or a stream fault
         (WARN: core/live_streams.LiveStreamCheck), else OK."""
         staleness = now - self._last_arrival[s]
         invalid, streams = self._invalid[s], self._stream_text(s)
+        if not recent_missing:  # lost messages warn while being lost (the count stays)
+            streams = self._stream_text(s, with_missing=False)
         if stale:
             level, text = ERROR, 'no data received'
             if self._ever[s]:
@@ -383,6 +393,7 @@ class TensorNode(ManagedNode):
             'received': self._received[s],
             'dropped_invalid': invalid,
             **{f'dropped_{k}': n for k, n in self._streams.dropped[s].items()},
+            'missing_by_stamp': self._streams.missing[s],
             **clocks,
         }
         return status(self, cv.MAG_TOPICS[s], level, text, cv.MAG_FRAMES[s], values)
@@ -400,15 +411,22 @@ class TensorNode(ManagedNode):
             ]
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
+        missing = list(self._streams.missing)
+        recent = [m - mark for m, mark in zip(missing, self._missing_mark, strict=True)]
+        self._missing_mark = missing
         for s in range(len(cv.MAG_TOPICS)):
-            array.status.append(self._sensor_status(s, now, s in stale, clocks[s]))
+            array.status.append(self._sensor_status(s, now, s in stale, clocks[s], recent[s]))
         counts = self._matcher_counts()
         dropped = sum(counts.get(k, 0) for k in ('dropped_messages', 'skipped_gap', 'evicted'))
-        level = ERROR if stale else (WARN if self.sets_invalid or dropped else OK)
+        # Sensor 1's lost messages are sets never formed (its stamps are the sets' instants).
+        on_sensor_1 = self._timebase.sync == 'interpolate' and not self._timebase.reference_rate_hz
+        never = missing[0] if on_sensor_1 else 0
+        level = ERROR if stale else (WARN if self.sets_invalid or dropped or never and recent[0] else OK)
         text = (
             f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}'
             if stale
             else f'{self.sets_published} tensors published'
+            + (f'; {never} sets never formed: {cv.MAG_TOPICS[0]} messages lost' if never else '')
         )
         array.status.append(
             status(
@@ -421,6 +439,7 @@ class TensorNode(ManagedNode):
                     'sets_published': self.sets_published,
                     'sets_dropped_invalid': self.sets_invalid,
                     'sets_dropped_stale': self.sets_stale,
+                    'sets_never_formed': never,
                     **{MATCHER_KEYS.get(k, f'matcher_{k}'): v for k, v in counts.items()},
                     'matcher_resets': self.resets,
                     # Matched readers of the outputs (rmw, both sides of discovery done): who
