@@ -421,7 +421,8 @@ class TensorNode(ManagedNode):
         # Sensor 1's lost messages are sets never formed (its stamps are the sets' instants).
         on_sensor_1 = self._timebase.sync == 'interpolate' and not self._timebase.reference_rate_hz
         never = missing[0] if on_sensor_1 else 0
-        level = ERROR if stale else (WARN if self.sets_invalid or dropped or never and recent[0] else OK)
+        lost = bool(never and recent[0])
+        level = ERROR if stale else (WARN if self.sets_invalid or dropped or lost else OK)
         text = (
             f'no tensor: stale {", ".join(cv.MAG_TOPICS[s] for s in stale)}'
             if stale
