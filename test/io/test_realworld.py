@@ -158,3 +158,11 @@ def test_a_window_without_attitude_excitation_is_refused_with_the_figures(tmp_pa
     assert len(error) == 1 and 'does not excite the attitudes enough for 36 parameters' in error[0], error
     assert re.search(r'= \d+\.\d+ x noise floor .* \(limit 2x; attitude coverage condition number \d+', error[0])
     assert main([*args, '--window', f'0:{TRIM_S - 1:g}']) == 0 and out.exists()
+    # Forced, the calibration carries the refusal, and every use of it says so.
+    capsys.readouterr()
+    assert main([*args, '--window', '260:330', '--force']) == 0
+    assert main(['compensate', str(tmp_path / 'bag'), '--params', str(params), '--calibration', str(out),
+                 '--csv', str(tmp_path / 'c.csv'), '--no-progress']) == 0
+    err = capsys.readouterr().err
+    assert f'warning: {out} was kept over a failed check: WARNING (--force)' in err
+    assert 'does not excite the attitudes enough' in err

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -280,3 +281,9 @@ def effects_from_args(args: argparse.Namespace) -> EffectsChoice:
     if args.effects_from is not None:
         return EffectsChoice.from_report(args.effects_from, args.current_topics)
     return EffectsChoice.parse(args.effects, args.current_topics)
+
+
+def say_forced(calibration: str, warnings: tuple[str, ...]) -> None:
+    """Every use of a calibration kept over a failed check (``--force``) says so, on stderr."""
+    for warning in warnings:
+        print(f'warning: {calibration} was kept over a failed check: {warning}', file=sys.stderr)

@@ -74,6 +74,7 @@ from ._args import (
     add_force_argument,
     add_progress_arguments,
     positive_float,
+    say_forced,
     timebase_from_args,
 )
 
@@ -164,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
         sensor_noise_nt=args.sensor_noise_nt,
     )
     health = _health_recorder(args, geometry, compensation)
+    say_forced(args.calibration, compensation.forced)
     counts = compensate_bag(
         args.bag,
         geometry,

@@ -41,6 +41,7 @@ from ._args import (
     add_force_argument,
     add_progress_arguments,
     positive_float,
+    say_forced,
     timebase_from_args,
 )
 
@@ -121,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
             calibration, geometry, source=str(args.calibration), target=str(args.params)
         )
         parameters = calibration.parameters
+        say_forced(args.calibration, calibration.forced_warnings())
     settings = LocatorSettings(DetectorSettings(false_alarms_per_hour=args.false_alarms_per_hour))
     result = locate_bag(
         args.bag,

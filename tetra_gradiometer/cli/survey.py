@@ -41,6 +41,7 @@ from ._args import (
     add_force_argument,
     add_progress_arguments,
     positive_float,
+    say_forced,
     timebase_from_args,
 )
 
@@ -128,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
         args.calibration, geometry, target=str(args.params), sensor_noise_nt=args.sensor_noise_nt
     )
     calibration = load_calibration(args.calibration)
+    say_forced(args.calibration, compensation.forced)
     result = survey_bag(
         args.bag,
         geometry,

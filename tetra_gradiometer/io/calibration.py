@@ -101,6 +101,12 @@ class CalibrationFile:
             covariance=calibration.covariance,
         )
 
+    def forced_warnings(self) -> tuple[str, ...]:
+        """The checks this calibration was kept over (``--force``), from its notes: every use
+        of it says them."""
+        notes = self.diagnostics.get('notes') or []
+        return tuple(str(note) for note in notes if str(note).startswith('WARNING ('))
+
     def to_yaml(self) -> str:
         document = {
             'tetra_gradiometer_calibration': FORMAT_VERSION,

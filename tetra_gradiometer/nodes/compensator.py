@@ -281,8 +281,7 @@ class CompensatorNode(ManagedNode):
         self._follow_channels(calibration)
         self._source = f'{source} ({calibration.method}, {calibration.created_utc})'
         self._created = calibration.created_utc
-        notes = calibration.diagnostics.get('notes') or []
-        self._forced = next((str(n) for n in notes if str(n).startswith('WARNING (')), '')
+        self._forced = next(iter(calibration.forced_warnings()), '')
         self._problem = ''
         self._reset_metrics()
         self.get_logger().info(f'compensating with {self._source}')

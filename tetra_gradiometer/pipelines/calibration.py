@@ -44,6 +44,7 @@ from .window_check import (
     KNOWN_GRADIENT_METHODS,
     CheckedCalibration,
     WindowCheck,
+    forced,
     identify_checked,
     joint_attitude,
     orientation_at,
@@ -399,9 +400,7 @@ def sensor_axes_check(fields: FloatArray, window: str, force: bool) -> tuple[str
         'data: mount the sensor as declared or rotate its readings (its driver\'s frame) '
         'before calibrating'
     )
-    if not force:
-        raise AssumptionError(cause)
-    return (f'warning (forced): {cause}',)
+    return forced([AssumptionError(cause)], force)
 
 
 def _terms(

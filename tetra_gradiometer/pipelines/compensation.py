@@ -269,6 +269,7 @@ class Compensation:
     covariance : (P, P) ndarray or None
         That covariance (for the health monitor's calibration-error bound): of ``k``, ``b``
         only when the calibration has terms.
+    forced : the checks the calibration was kept over (``--force``), each use says them
     """
 
     parameters: InterferenceParameters | None
@@ -277,6 +278,7 @@ class Compensation:
     noise_source: str = ''
     with_covariance: bool = False
     covariance: np.ndarray | None = None
+    forced: tuple[str, ...] = ()
 
 
 def load_compensation(
@@ -329,6 +331,7 @@ def load_compensation(
         source,
         calibration.covariance is not None,
         covariance,
+        calibration.forced_warnings(),
     )
 
 
