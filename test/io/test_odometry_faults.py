@@ -153,6 +153,13 @@ def test_the_attitude_test_names_the_convention_that_fits(mission):
     for late in (0.7, -0.4):
         text = _verdict(mission, q, late_s=late).fault()
         assert f'{abs(late):.2f} s {"late" if late > 0 else "early"}' in text, text
+    # The clocks of navigation stacks: GPS against UTC, a time zone (no overlap at all).
+    assert '18.00 s late (GPS time against UTC)' in _verdict(mission, q, late_s=18.0).fault()
+    assert '3600.00 s late (1 h: a time zone)' in _verdict(mission, q, late_s=3600.0).fault()
+    # Any other offset: the two recordings' starts (they began together).
+    assert '1234.50 s late (100% of the field carried' in _verdict(mission, q, late_s=1234.5).fault()
+    foreign = _verdict(mission, q[::-1].copy(), late_s=1234.5).fault()  # and not this vehicle's attitude
+    assert "stamps cover only 0% of the magnetometers' (another clock)" in foreign and 'no clock offset' in foreign
 
 
 def test_a_wrong_attitude_is_refused_and_a_still_one_untested(mission):

@@ -241,6 +241,8 @@ class AttitudeVerdict:
     best : the convention that fits best, its lag (s; > 0: the /odom stamps are late) and
         its ``carried`` and ``unexplained``
     world_field : the declared fit's world field ``w`` (3,) T, in the odometry's world frame
+    field_turn_deg : untested, how much sensor 1's field turns (RMS, degrees)
+    overlap : the share of the field's stamps within the ``/odom`` messages' span
     """
 
     tested: bool
@@ -249,6 +251,7 @@ class AttitudeVerdict:
     best: tuple[str, float, float, float] = ('', 0.0, float('nan'), float('nan'))
     world_field: FloatArray | None = None
     field_turn_deg: float = 0.0
+    overlap: float = 1.0
 
     @property
     def agrees(self) -> bool:
@@ -278,6 +281,14 @@ class AttitudeVerdict:
             f'as declared the attitude carries {self.carried:.0%} of the field as a steady '
             f'world field and leaves {self.unexplained:.0%} of its variation unexplained'
         )
+        if self.overlap < MIN_OVERLAP:
+            declared = f"as stamped, /odom covers only {self.overlap:.0%} of the magnetometers'"
+        if not clear_fit(carried, unexplained) and self.overlap < MIN_OVERLAP:
+            return (
+                f"the /odom stamps cover only {self.overlap:.0%} of the magnetometers' (another "
+                'clock): no clock offset of a navigation stack (18, 19, 37 s, whole hours) or '
+                'of the two recordings\' starts makes its attitude fit the magnetometers'
+            )
         if not clear_fit(carried, unexplained):
             return (
                 f'the /odom orientation does not agree with the magnetometers: {declared} (a '
@@ -287,7 +298,7 @@ class AttitudeVerdict:
         what = name if name != CONVENTIONS_DECLARED else 'as declared'
         if abs(lag) >= 0.5 * LAG_RESOLUTION_S:
             late = 'late' if lag > 0 else 'early'
-            what += f', with the /odom stamps {abs(lag):.2f} s {late}'
+            what += f', with the /odom stamps {abs(lag):.2f} s {late}{_clock_hint(lag)}'
         return (
             f'the /odom orientation fits the magnetometers {what} ({carried:.0%} of the field '
             f'carried, {unexplained:.0%} unexplained); {declared}'
@@ -304,6 +315,8 @@ COARSE_LAG_S = 0.25
 CARRIED_RANGE = (0.7, 1.3)
 #: Above this unexplained share the declared attitude must carry |B| within CARRIED_CLOSE.
 MAX_UNEXPLAINED = 0.3
+#: Below this share of the field's stamps within the /odom span, /odom is on another clock.
+MIN_OVERLAP = 0.5
 #: A declared attitude that leaves less than this needs no search for a better one.
 CLEAR_UNEXPLAINED = 0.02
 CARRIED_CLOSE = 0.05
@@ -315,6 +328,17 @@ MIN_TURN_RAD = 0.1
 #: An attitude that does not turn while sensor 1's field turns by more than this RMS angle,
 #: degrees, is not the vehicle's (an anomaly turns the field by a few degrees at most).
 MIN_FIELD_TURN_DEG = 20.0
+
+
+def _clock_hint(lag_s: float) -> str:
+    """What a clock offset of ``lag_s`` looks like, in parentheses ('' for none known)."""
+    known = {18.0: 'GPS time against UTC', 19.0: 'GPS time against TAI', 37.0: 'TAI against UTC'}
+    size = abs(lag_s)
+    if size in known:
+        return f' ({known[size]})'
+    if size >= 3600.0 and size % 3600.0 == 0.0:
+        return f' ({size / 3600.0:.0f} h: a time zone)'
+    return ''
 
 
 def clear_fit(carried: float, unexplained: float) -> bool:
@@ -371,6 +395,14 @@ def attitude_verdict(
     step = max(1, len(stamps_ns) // AGREEMENT_SAMPLES)
     stamps = np.asarray(stamps_ns, dtype=np.int64)[::step]
     b = np.asarray(body_field_t, dtype=float)[::step]
+    finite = np.all(np.isfinite(b), axis=1)
+    stamps, b = stamps[finite], b[finite]
+    covered = (stamps >= odom_stamps_ns[0]) & (stamps <= odom_stamps_ns[-1])
+    if len(b) >= 10 and covered.mean() < MIN_OVERLAP:  # another clock: its offset, if known
+        nan = float('nan')
+        found = _offset_search(odom_stamps_ns, orientation_xyzw, stamps, b)
+        best = found or (CONVENTIONS_DECLARED, 0.0, nan, nan)
+        return AttitudeVerdict(True, nan, nan, best, None, 0.0, float(covered.mean()))
     margin = int(MAX_LAG_S * 1e9)
     inside = (stamps >= odom_stamps_ns[0] + margin) & (stamps <= odom_stamps_ns[-1] - margin)
     inside &= np.all(np.isfinite(b), axis=1)
@@ -412,7 +444,48 @@ def attitude_verdict(
         for lag in best[1] + np.arange(-COARSE_LAG_S, COARSE_LAG_S + 1e-9, LAG_RESOLUTION_S):
             if abs(lag) <= MAX_LAG_S:
                 best = _better(best, convention, float(lag), at(convention[1], float(lag)), b)
+    if best[:2] == (CONVENTIONS_DECLARED, 0.0):  # nothing within 2 s: another clock?
+        found = _offset_search(odom_stamps_ns, orientation_xyzw, stamps, b)
+        if found is not None and found[3] < BETTER_BY * unexplained - 0.01:
+            best = found
     return AttitudeVerdict(True, carried, unexplained, best, world)
+
+
+#: Clock offsets navigation stacks really have, s: GPS time against UTC (18 s), TAI against
+#: UTC (37 s), and whole hours (a time zone), either way.
+KNOWN_OFFSETS_S = tuple(
+    sign * value for value in (18.0, 19.0, 37.0, *(3600.0 * h for h in range(1, 15)))
+    for sign in (1.0, -1.0)
+)
+
+
+def _offset_search(
+    odom_stamps_ns: np.ndarray,
+    orientation_xyzw: FloatArray,
+    stamps: np.ndarray,
+    b: FloatArray,
+) -> tuple[str, float, float, float] | None:
+    """The declared convention at the clock offsets of :data:`KNOWN_OFFSETS_S` and at the
+    offset of the two streams' starts: the best clear fit (``best`` of
+    :class:`AttitudeVerdict`), or None."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t_odom = (np.asarray(odom_stamps_ns) - odom_stamps_ns[0]) * S_PER_NS
+    slerp = Slerp(t_odom, Rotation.from_quat(orientation_xyzw))
+    t = (stamps - odom_stamps_ns[0]) * S_PER_NS
+    starts = round(float(-t[0]), 1)
+    best = None
+    for lag in (*KNOWN_OFFSETS_S, starts):
+        inside = (t + lag >= 0.0) & (t + lag <= t_odom[-1])
+        if inside.sum() < 50:
+            continue
+        matrices = slerp(t[inside] + lag).as_matrix()
+        if _turn_rms(matrices) < MIN_TURN_RAD:
+            continue
+        carried, unexplained, _ = _fit(matrices, b[inside])
+        if clear_fit(carried, unexplained) and (best is None or unexplained < best[3]):
+            best = (CONVENTIONS_DECLARED, float(lag), carried, unexplained)
+    return best
 
 
 def _field_turn_deg(b: FloatArray) -> float:
