@@ -15,7 +15,8 @@ from cli_helpers import assert_refused, run_cli, snapshot
 from scipy.spatial.transform import Rotation
 from stream_faults import EARTH_ENU, START_NS, short_mission, write_bag, write_params
 
-from tetra_gradiometer.core.odometry import attitude_verdict, check_odometry, world_frame_fault
+from tetra_gradiometer.core.attitude import attitude_verdict, world_frame_fault
+from tetra_gradiometer.core.odometry import check_odometry
 
 
 @pytest.fixture(scope='module')
@@ -208,3 +209,16 @@ def test_the_nodes_live_check_keeps_drops_and_normalizes_as_check_odometry_does(
     assert offline.faults[0].startswith('6 of 14') and offline.faults[1].startswith('5 /odom orientations')
     # The calibrator reads only the orientation: a position not known does not drop it.
     assert live.accept(pose[-1, 3:]) is not None
+
+
+def test_a_jump_between_two_navigation_sources_is_named(mission):
+    """The survey line at 2 m/s, then 35 m east from 10 s on (a second source taking over).
+    (The simulator starts the line at the trim circle's centre: a jump too, left out.)"""
+    line = mission.segment == 1
+    stamps = (mission.t[line] * 1e9).astype(np.int64) + START_NS
+    pose = np.column_stack([mission.position_enu[line], mission.orientation_xyzw[line]])
+    jumped = pose.copy()
+    jumped[100:, 0] += 35.0
+    assert not any('jumps' in f for f in check_odometry(stamps, pose).faults)
+    faults = check_odometry(stamps, jumped).faults
+    assert any(f.startswith('the /odom position jumps 1 time (35.2 m at 10.0 s;') for f in faults), faults  # 35 m + a step

@@ -17,15 +17,9 @@ from typing import Any
 import numpy as np
 
 from ..core import MissionData, SensorStream
+from ..core.attitude import UNTESTED_ATTITUDE, attitude_verdict, world_frame_fault
 from ..core.geometry import interp_orientation
-from ..core.odometry import (
-    COSTS,
-    UNTESTED_ATTITUDE,
-    OdometryCheck,
-    attitude_verdict,
-    check_odometry,
-    world_frame_fault,
-)
+from ..core.odometry import COSTS, OdometryCheck, check_odometry
 from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.streams import StreamReport
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
