@@ -64,6 +64,7 @@ from ..pipelines.compensation import (
     Compensation,
     check_outputs,
     compensate_bag,
+    health_recorder,
     load_compensation,
 )
 from ..pipelines.health import HealthRecorder
@@ -232,19 +233,12 @@ def _health_recorder(
     args: argparse.Namespace, geometry: TetraGeometry, compensation: Compensation
 ) -> HealthRecorder | None:
     """The monitor of every compensation that has a sensor noise (its verdict is printed;
-    ``--report`` writes its folder). None for the raw tensor or without a noise."""
-    if compensation.parameters is None or compensation.sensor_noise_t is None:
-        if args.report is not None:
-            raise InputError('--report needs a calibration and a sensor noise')
-        return None
+    ``--report`` writes its folder)."""
     config = HealthConfig(false_alarms_per_hour=args.false_alarms_per_hour)
-    return HealthRecorder(
-        geometry,
-        compensation.parameters,
-        compensation.sensor_noise_t,
-        compensation.covariance,
-        config,
-    )
+    recorder = health_recorder(geometry, compensation, config)
+    if recorder is None and args.report is not None:
+        raise InputError('--report needs a calibration and a sensor noise')
+    return recorder
 
 
 def _sigma_text(compensation: Compensation) -> str:

@@ -58,7 +58,12 @@ from ..io.outputs import BATCH_BAG, BATCH_SUMMARY, atomic_output, atomic_write_t
 from ..io.params import earth_field_from_params, geometry_from_params, load_params, params_document
 from ..io.scenario import load_scenario
 from ..pipelines.calibration import window_text
-from ..pipelines.compensation import TensorStatistics, compensate_bag, load_compensation
+from ..pipelines.compensation import (
+    TensorStatistics,
+    compensate_bag,
+    health_recorder,
+    load_compensation,
+)
 from ..pipelines.discrepancy import analyze_bag
 from ..pipelines.trim import calibrate_assessed
 from ..pipelines.window_search import find_window
@@ -101,6 +106,7 @@ COLUMNS = (
     'sets_compensated',
     'raw_rms_nT_per_m',
     'compensated_rms_nT_per_m',
+    'checks',
     'gap_initial_nT',
     'gap_final_nT',
     'discrepancy_noise_floor_nT',
@@ -418,20 +424,26 @@ def _compensate(
     """``compensate --csv`` with its defaults, and the RMS of the raw and written tensors."""
     compensation = load_compensation(calibration, geometry, target=str(job.bag.params))
     statistics = TensorStatistics()
+    health = health_recorder(geometry, compensation)
     counts = compensate_bag(
         job.bag.bag,
         geometry,
         compensation.parameters,
         sigma=compensation.sigma,
+        health=health,
         statistics=statistics,
         csv=tmp / CSV_FILE,
         progress=False,
         inputs=(job.bag.bag, job.bag.params, calibration),
     )
+    verdict = None if health is None else health.document()
+    alarms = f'health: {verdict["verdict"]}' if verdict and verdict['alarms'] else ''
+    checks = (alarms, counts.extrapolated, counts.conventions, *compensation.forced)
     row.update(
         sets_compensated=counts.n_sets,
         raw_rms_nT_per_m=statistics.raw_rms * NT_PER_T,
         compensated_rms_nT_per_m=statistics.rms * NT_PER_T,
+        checks=' | '.join(check for check in checks if check) or 'ok',
     )
 
 

@@ -27,7 +27,7 @@ apart, both are named.
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,6 +39,7 @@ __all__ = [
     'SIGNED_PERMUTATIONS',
     'AxesFinding',
     'TensorFinding',
+    'TensorSample',
     'asymmetry_share',
     'describe_axes',
     'relative_axes',
@@ -276,3 +277,41 @@ def tensor_conventions(
 def _frd_reading(text: str) -> str:
     reading = 'the magnetometers read in FRD (y and z negated)'
     return f'{reading} and {text}' if text else reading
+
+
+@dataclass
+class TensorSample:
+    """Every ``stride``-th written tensor (at most about :data:`SAMPLE_SETS`, the stride
+    doubling as the bag goes on), for the self-check of :func:`conventions_text`."""
+
+    stride: int = 1
+    seen: int = 0
+    chunks: list[FloatArray] = field(default_factory=list)
+
+    def add(self, tensors: FloatArray) -> None:
+        """A chunk of written tensors (n, 3, 3) T/m."""
+        offset = (-self.seen) % self.stride
+        self.chunks.append(tensors[offset :: self.stride])
+        self.seen += len(tensors)
+        if sum(len(c) for c in self.chunks) > 2 * SAMPLE_SETS:
+            self.chunks = [np.concatenate(self.chunks)[::2]]
+            self.stride *= 2
+
+    def conventions_text(self, positions: FloatArray) -> str:
+        """'' or what the tensors say of the declared ``positions`` (4, 3) m and reading
+        frame (:func:`tensor_conventions`; the noise of one element from consecutive
+        differences)."""
+        if not self.chunks:
+            return ''
+        tensors = np.concatenate(self.chunks)
+        steps = np.diff(tensors.reshape(len(tensors), 9), axis=0)
+        if not len(steps):
+            return ''
+        # The median absolute step: the noise of one element (a target's passage moves few).
+        noise = float(np.median(np.abs(steps)) / (0.6745 * np.sqrt(2.0)))
+        finding = tensor_conventions(tensors, positions, noise)
+        return '' if finding is None else finding.text()
+
+
+#: The written tensors the self-check keeps (thinned evenly over the bag).
+SAMPLE_SETS = 20_000

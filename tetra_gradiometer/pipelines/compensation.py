@@ -33,7 +33,7 @@ import json
 import os
 from collections.abc import Iterable
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
@@ -41,7 +41,8 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import InterferenceParameters, TetraGeometry, compensate, difference_tensor
-from ..core.conventions import tensor_conventions
+from ..core.conventions import TensorSample
+from ..core.health import HealthConfig
 from ..core.plausibility import DroppedSets, plausible_sets
 from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, TimeBase
 from ..core.uncertainty import SigmaModel
@@ -130,44 +131,6 @@ class CompensationCounts:
     held_summary: str = ''
     extrapolated: str = ''
     conventions: str = ''
-
-
-@dataclass
-class TensorSample:
-    """Every ``stride``-th written tensor (at most about :data:`SAMPLE_SETS`, the stride
-    doubling as the bag goes on), for the self-check of :func:`conventions_text`."""
-
-    stride: int = 1
-    seen: int = 0
-    chunks: list[FloatArray] = field(default_factory=list)
-
-    def add(self, tensors: FloatArray) -> None:
-        """A chunk of written tensors (n, 3, 3) T/m."""
-        offset = (-self.seen) % self.stride
-        self.chunks.append(tensors[offset :: self.stride])
-        self.seen += len(tensors)
-        if sum(len(c) for c in self.chunks) > 2 * SAMPLE_SETS:
-            self.chunks = [np.concatenate(self.chunks)[::2]]
-            self.stride *= 2
-
-    def conventions_text(self, geometry: TetraGeometry) -> str:
-        """'' or what the tensors say of the declared positions and reading frame
-        (:func:`~tetra_gradiometer.core.conventions.tensor_conventions`; the noise of one
-        element from consecutive differences, before thinning at a stride of 1)."""
-        if not self.chunks:
-            return ''
-        tensors = np.concatenate(self.chunks)
-        steps = np.diff(tensors.reshape(len(tensors), 9), axis=0)
-        if not len(steps):
-            return ''
-        # The median absolute step: the noise of one element (a target's passage moves few).
-        noise = float(np.median(np.abs(steps)) / (0.6745 * np.sqrt(2.0)))
-        finding = tensor_conventions(tensors, geometry.positions, noise)
-        return '' if finding is None else finding.text()
-
-
-#: The written tensors the self-check keeps (thinned evenly over the bag).
-SAMPLE_SETS = 20_000
 
 
 @dataclass
@@ -279,6 +242,22 @@ class Compensation:
     with_covariance: bool = False
     covariance: np.ndarray | None = None
     forced: tuple[str, ...] = ()
+
+
+def health_recorder(
+    geometry: TetraGeometry, compensation: Compensation, config: HealthConfig | None = None
+) -> HealthRecorder | None:
+    """The health monitor every compensation runs (None for the raw tensor or without a
+    sensor noise: nothing to judge the compensated tensor against)."""
+    if compensation.parameters is None or compensation.sensor_noise_t is None:
+        return None
+    return HealthRecorder(
+        geometry,
+        compensation.parameters,
+        compensation.sensor_noise_t,
+        compensation.covariance,
+        config,
+    )
 
 
 def load_compensation(
@@ -412,9 +391,8 @@ def compensate_bag(
         _close_read(n_sets, bag_path, dropped, bag, writer)
     # The raw tensor holds the vehicle's interference, not a gradient: not self-checked.
     counts = _counts(n_sets, dropped, (last - first) * S_PER_NS, topic, bag, terms)
-    return dataclasses.replace(
-        counts, conventions='' if parameters is None else sample.conventions_text(geometry)
-    )
+    checked = '' if parameters is None else sample.conventions_text(geometry.positions)
+    return dataclasses.replace(counts, conventions=checked)
 
 
 def _counts(
