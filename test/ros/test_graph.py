@@ -101,26 +101,29 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
         wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'survey', graph)
         # A tensor the loaded test process did not take in time comes again after the reliable
         # writer's next heartbeat (Fast DDS: 3 s), and its queue holds 1000.
-        # The trim's last truth tensors can reach the loaded probe after collecting began:
-        # only the survey's span counts (it ends at the last stamp, 0.1 s a set).
-        def survey_truth():
+        # Trim tensors lost in transit come again after the writer's heartbeat, and can reach
+        # the loaded probe after collecting began: only the survey's span counts (it ends at
+        # the last truth stamp, 0.1 s a set), on every topic.
+        def survey_only():
             with probe.lock:
                 received = probe.tensors['gradient/truth']
                 if received:
                     first = max(received) - (len(survey) - 0.5) * 1e8
-                    for stamp in [s for s in received if s < first]:
-                        del received[stamp]
+                    for tensors in probe.tensors.values():
+                        for stamp in [s for s in tensors if s < first]:
+                            del tensors[stamp]
                 return sorted(received)
 
         deadline = time.monotonic() + 20.0
-        while len(survey_truth()) < len(survey) and time.monotonic() < deadline:
+        while len(survey_only()) < len(survey) and time.monotonic() < deadline:
             time.sleep(0.1)
-        truth = survey_truth()
+        truth = survey_only()
         assert len(truth) == len(survey), (
             f'{len(truth)} of {len(survey)} truth tensors (first {truth[:1]}, last {truth[-1:]}; '
             f'gaps over 0.1 s at {[int(i) for i in np.flatnonzero(np.diff(truth) > 1.5e8)][:10]})'
             f'\n{graph.logs()}')
         time.sleep(1.0)
+        survey_only()
         stamps, g_raw, g_comp, g_true = probe.paired()
         percent = probe.percent
         tensor_status = _diag(probe, 'tetra/tensor: matching')

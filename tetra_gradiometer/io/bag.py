@@ -74,6 +74,8 @@ STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 #: Sensors whose message rates differ by more than this factor are resampled to a grid at
 #: the slowest one's rate (the default time base only).
 MIXED_RATES = 1.8
+#: The rates are told from each sensor's first this many messages.
+RATE_MESSAGES = 64
 #: The message type of each of ``conversions.CONTRACT_TOPICS``.
 CONTRACT_TYPES = (
     *(cv.MAGNETIC_FIELD,) * 4,
@@ -179,14 +181,8 @@ class MagneticBag:
         :attr:`rates_note` says so. A time base asked for is kept."""
         if timebase != DEFAULT_TIMEBASE:
             return timebase
-        duration = self.reader.duration * S_PER_NS
-        counts = [
-            sum(c.msgcount for c in self._connections(topic)) for topic in cv.BAG_MAG_TOPICS
-        ]
-        if duration <= 0 or min(counts) < 2:
-            return timebase
-        rates = np.array(counts) / duration
-        if rates.max() <= MIXED_RATES * rates.min():
+        rates = self._rates()
+        if rates is None or rates.max() <= MIXED_RATES * rates.min():
             return timebase
         slowest = float(f'{rates.min():.3g}')
         self.rates_note = (
@@ -195,6 +191,22 @@ class MagneticBag:
             + f'): resampled to a {slowest:g} Hz grid, the slowest sensor\'s rate'
         )
         return dataclasses.replace(timebase, reference_rate_hz=slowest)
+
+    def _rates(self) -> np.ndarray | None:
+        """Each magnetometer's rate, Hz, from the median interval of its first log times
+        (not its count over the bag: a sensor that stops halfway is no slower), or None when
+        a sensor has too few messages to tell."""
+        connections = [c for t in cv.BAG_MAG_TOPICS for c in self._connections(t)]
+        sensor = {c.id: cv.BAG_MAG_TOPICS.index(self.topic_of(c.topic)) for c in connections}
+        times: list[list[int]] = [[] for _ in range(4)]
+        for read, (connection, t, _) in enumerate(self.reader.messages(connections)):
+            times[sensor[connection.id]].append(t)
+            if min(len(ts) for ts in times) > RATE_MESSAGES or read > 40 * RATE_MESSAGES:
+                break
+        if min(len(ts) for ts in times) < 3:
+            return None
+        periods = np.array([np.median(np.diff(ts)) for ts in times]) * S_PER_NS
+        return None if not np.all(periods > 0) else 1.0 / periods
 
     def assumed_text(self) -> str:
         """'' or the line saying which recorded topics were read as the contract's."""
