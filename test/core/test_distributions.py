@@ -6,8 +6,8 @@ from scipy import stats
 from tetra_gradiometer.core._distributions import chi2_isf, f_ppf, f_sf
 
 
-@pytest.mark.parametrize('dof', [1, 4, 9.5, 300])
-@pytest.mark.parametrize('p', [0.5, 1e-3, 1e-9])
+@pytest.mark.parametrize('dof', [1, 2, 4, 6, 9.5, 300])
+@pytest.mark.parametrize('p', [0.5, 1e-3, 1e-9, 1e-15])
 def test_chi2_isf(dof, p):
     np.testing.assert_allclose(chi2_isf(p, dof), stats.chi2.isf(p, dof), rtol=1e-10)
 

@@ -20,8 +20,9 @@ A change of the vehicle (a sensor's offset jumps, a part is magnetized) shifts t
 earlier alarm), never against a tracked level, so a change is always alarmed and never
 absorbed:
 
-* **windowed GLR** (Lai 1995): for every sample and each window ``w`` (seconds in
-  ``HealthConfig.windows_s``) the mean ``ebar`` of the last ``w`` samples gives
+* **windowed GLR** (Lai 1995): for each window ``w`` (seconds in ``HealthConfig.windows_s``),
+  at every ``w / 16``-th sample (the statistic moves little in between; the long windows cost
+  as little as the short), the mean ``ebar`` of the last ``w`` samples gives
   ``S = ebar^T (Sigma / n_w + sbar I)^-1 ebar`` (~chi2(4) with no change);
 * **drift tracker**: an exponentially weighted mean (time constant
   ``drift_time_constant_s``) of ``e``, i.e. recursive least squares with forgetting on the
@@ -47,11 +48,11 @@ from ..errors import InputError
 from ._distributions import chi2_isf
 from ._filters import exponential_filter
 from ._validate import as_array, as_tensors, as_vectors, same_length
-from .design import CONSTRAINT_ROWS, affine_interference_design, constraint_residual
+from .design import CONSTRAINT_ROWS, constraint_residual
 from .geometry import TetraGeometry
 from .model import InterferenceParameters
 from .types import FloatArray
-from .uncertainty import check_covariance, noise_jacobian
+from .uncertainty import constraint_bias_form, noise_jacobian
 from .units import NT_PER_T
 
 __all__ = ['Alarm', 'HealthConfig', 'HealthMonitor', 'HealthTrace', 'alarm_threshold']
@@ -171,6 +172,10 @@ def alarm_threshold(false_alarms_per_hour: float, sample_rate_hz: float, n_tests
     return float(chi2_isf(min(p, 0.5), 4))
 
 
+#: Each window is tested at this many evenly spaced samples per its length.
+WINDOW_TESTS = 16
+
+
 class HealthMonitor:
     """Sequential change detection on the compensated tensor (see the module docstring).
 
@@ -205,7 +210,7 @@ class HealthMonitor:
         self._y_signatures = [self._basis.T @ m for m in self._signatures]
         physical = _physical_part_matrix() @ noise_jacobian(geometry, parameters)  # (9, 12)
         self._physical_signatures = [physical[:, 3 * s : 3 * s + 3] for s in range(4)]
-        self._bias_form = _bias_form(geometry, covariance)
+        self._bias_form = constraint_bias_form(geometry, covariance)
         self._stamps: list[float] = []
         self._pending: list[tuple[FloatArray, FloatArray, FloatArray]] = []
         self.sample_rate_hz = float('nan')
@@ -407,28 +412,29 @@ class HealthMonitor:
         shift, spread, length = np.zeros((n, 4)), np.ones((n, 4)), np.zeros(n, dtype=int)
         alpha2 = self._differencing**2
         for w in self._windows:
-            recent = (sums[end] - sums[np.maximum(end - w, 0)]) / w
-            earlier = (sums[np.maximum(end - w, 0)] - sums[np.maximum(end - 2 * w, 0)]) / w
+            # Tested every w // WINDOW_TESTS samples (an alarm later by at most that).
+            rows = np.flatnonzero(end % max(1, int(w) // WINDOW_TESTS) == 0)
+            e = end[rows]
+            recent = (sums[e] - sums[np.maximum(e - w, 0)]) / w
+            earlier = (sums[np.maximum(e - w, 0)] - sums[np.maximum(e - 2 * w, 0)]) / w
             physical_sq = np.sum(recent[:, PHYSICAL] ** 2, axis=1)
             # Level test: the mean against the accepted level.
-            level_spread = d / w + (recent[:, 4] + alpha2 * physical_sq)[:, None] + level_var
-            level_stat = np.where(
-                end >= w, np.sum(recent[:, :4] ** 2 / level_spread, axis=1), -np.inf
-            )
+            level_spread = d[rows] / w + (recent[:, 4] + alpha2 * physical_sq)[:, None] + level_var
+            level_sum = np.sum(recent[:, :4] ** 2 / level_spread, axis=1)
+            level_stat = np.where(e >= w, level_sum, -np.inf)
             # Jump test: the mean against the window before it (a smooth source barely moves).
             jump = recent[:, :4] - earlier[:, :4]
             change_sq = np.sum((recent[:, PHYSICAL] - earlier[:, PHYSICAL]) ** 2, axis=1)
-            jump_spread = 2 * d / w + (2 * recent[:, 4] + alpha2 * change_sq)[:, None]
-            jump_stat = np.where(end >= 2 * w, np.sum(jump**2 / jump_spread, axis=1), -np.inf)
+            jump_spread = 2 * d[rows] / w + (2 * recent[:, 4] + alpha2 * change_sq)[:, None]
+            jump_stat = np.where(e >= 2 * w, np.sum(jump**2 / jump_spread, axis=1), -np.inf)
             for stat, mean, var, sign in (
                 (level_stat, recent[:, :4], level_spread, 1),
                 (jump_stat, jump, jump_spread, -1),
             ):
-                better = stat > best
-                best = np.where(better, stat, best)
-                shift = np.where(better[:, None], mean, shift)
-                spread = np.where(better[:, None], var, spread)
-                length = np.where(better, sign * w, length)
+                better = stat > best[rows]
+                where = rows[better]
+                best[where], shift[where], spread[where] = stat[better], mean[better], var[better]
+                length[where] = sign * w
         return best, shift, spread, length
 
     def _detect(
@@ -583,17 +589,3 @@ def _physical_part_matrix() -> FloatArray:
     symmetric = 0.5 * (basis + np.swapaxes(basis, 1, 2))
     trace = np.trace(symmetric, axis1=1, axis2=2)
     return (symmetric - trace[:, None, None] * np.eye(3) / 3.0).reshape(9, 9).T
-
-
-def _bias_form(geometry: TetraGeometry, covariance: np.ndarray | None) -> FloatArray:
-    """``Q`` (4, 4) with ``trace(L A_n C A_n^T L^T) = x_n^T Q x_n``, ``x_n = (B_1', 1)``.
-
-    ``L A_n`` is linear in ``x_n``: ``sum_c x_n[c] H_c``; ``Q[c, d] = trace(H_c C H_d^T)``.
-    Zero without a covariance.
-    """
-    if covariance is None:
-        return np.zeros((4, 4))
-    covariance, symmetric = check_covariance(covariance)
-    design = affine_interference_design(geometry, symmetric=symmetric)  # (4, 9, P)
-    h = np.einsum('kq,cqp->ckp', CONSTRAINT_ROWS, design)  # H_x, H_y, H_z, H_1
-    return np.einsum('ckp,pq,dkq->cd', h, covariance, h)

@@ -36,12 +36,18 @@ import numpy as np
 
 from ..errors import InputError
 from ._validate import as_vectors, frozen_array
-from .design import affine_interference_design
+from .design import CONSTRAINT_ROWS, affine_interference_design
 from .geometry import TetraGeometry
 from .model import InterferenceParameters
 from .types import ArrayLike, FloatArray
 
-__all__ = ['SigmaModel', 'compensated_sigma', 'noise_jacobian', 'noise_sigma']
+__all__ = [
+    'SigmaModel',
+    'compensated_sigma',
+    'constraint_bias_form',
+    'noise_jacobian',
+    'noise_sigma',
+]
 
 
 def noise_jacobian(
@@ -264,3 +270,19 @@ class SigmaModel:
         variance = outer @ self.form.reshape(9, size * size).T
         # A positive semi-definite form can round to -1e-30 where it is ~0: clip, never NaN.
         return np.sqrt(np.maximum(variance, 0.0))
+
+
+def constraint_bias_form(geometry: TetraGeometry, covariance: np.ndarray | None) -> FloatArray:
+    """The calibration error's variance in the four constraint quantities ``L vec(G)`` of a
+    set (core/health), as a quadratic form: ``Q`` (4, 4) with
+    ``trace(L A_n C A_n^T L^T) = x_n^T Q x_n``, ``x_n = (B_1', 1)``.
+
+    ``L A_n`` is linear in ``x_n``: ``sum_c x_n[c] H_c``; ``Q[c, d] = trace(H_c C H_d^T)``.
+    Zero without a covariance.
+    """
+    if covariance is None:
+        return np.zeros((4, 4))
+    covariance, symmetric = check_covariance(covariance)
+    design = affine_interference_design(geometry, symmetric=symmetric)  # (4, 9, P)
+    h = np.einsum('kq,cqp->ckp', CONSTRAINT_ROWS, design)  # H_x, H_y, H_z, H_1
+    return np.einsum('ckp,pq,dkq->cd', h, covariance, h)

@@ -66,18 +66,18 @@ class HealthRecorder:
 
     def _keep(self, trace: HealthTrace) -> None:
         """The largest statistics per plot bin (NaN-free)."""
+        if not len(trace.t_s):
+            return
         bins = np.floor(trace.t_s / BIN_S).astype(np.int64)
-        for b in np.unique(bins):
-            inside = bins == b
-            glr = trace.glr[inside]
-            drift = trace.drift[inside]
-            glr_max = float(np.nanmax(glr)) if np.any(np.isfinite(glr)) else np.nan
-            drift_max = float(np.nanmax(drift)) if np.any(np.isfinite(drift)) else np.nan
-            old = self.bins.get(int(b), (np.nan, np.nan))
-            self.bins[int(b)] = (
-                float(np.fmax(old[0], glr_max)),
-                float(np.fmax(old[1], drift_max)),
-            )
+        order = np.argsort(bins, kind='stable')
+        keys, starts = np.unique(bins[order], return_index=True)
+        largest = [
+            np.fmax.reduceat(np.where(np.isfinite(v), v, np.nan)[order], starts)
+            for v in (trace.glr, trace.drift)
+        ]
+        for b, glr_max, drift_max in zip(keys.tolist(), *largest, strict=True):
+            old = self.bins.get(b, (np.nan, np.nan))
+            self.bins[b] = (float(np.fmax(old[0], glr_max)), float(np.fmax(old[1], drift_max)))
 
     def _cause(self, first_alarm_s: float) -> str:
         """The likely cause of an alarm: from the data's first seconds the calibration never
