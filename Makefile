@@ -72,6 +72,7 @@ bench: setup
 	$(PY) bench/bench_solvers.py
 	$(PY) bench/bench_accuracy.py
 	$(PY) bench/bench_scale.py
+	$(PY) bench/bench_checks.py --json bench/results/checks.json
 	$(PY) bench/bench_chain.py
 	$(PY) bench/bench_discrepancy.py
 	$(PY) bench/bench_openworld.py
