@@ -134,3 +134,15 @@ def test_a_bad_value_set_at_run_time_is_refused():
         output = graph.processes['tensor'].output()  # each change logged at WARN
         assert re.search(r'WARN.*parameter stale_timeout_s set to 2\.0 \(unconfigured\)', output), output
         assert re.search(r'WARN.*change_state: cleanup requested in inactive: done, now unconfigured', output)
+
+
+def test_a_remap_to_a_topic_nobody_publishes_is_named_with_its_resolved_name():
+    """mag3 remapped to /auv1/mag3, where nothing publishes: its ERROR names the resolved
+    topic and its publishers (0); mag1's names its own, where the feeder publishes."""
+    with ros_graph() as (graph, probe, feeder):
+        graph.start('tensor', remaps={'mag3': '/auv1/mag3'}, diagnostics_period_s=0.2)
+        wait_for(lambda: _diag(probe, 'tetra/tensor: mag3').get('message') ==
+                 'no data received on /auv1/mag3 (0 publishers)', 30, 'the remapped topic named', graph)
+        assert _diag(probe, 'tetra/tensor: mag3')['level'] == 2
+        wait_for(lambda: _diag(probe, 'tetra/tensor: mag1').get('message') ==
+                 'no data received on /tetra/mag1 (1 publishers)', 30, 'mag1 with the feeder publishing', graph)

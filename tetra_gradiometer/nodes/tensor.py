@@ -378,8 +378,13 @@ class TensorNode(ManagedNode):
         if not recent_missing:  # lost messages warn while being lost (the count stays)
             streams = self._stream_text(s, with_missing=False)
         if stale:
-            level, text = ERROR, 'no data received'
-            if self._ever[s]:
+            # The resolved name (after remapping) and who publishes there: a remap to a topic
+            # nobody publishes is named, not only its silence.
+            topic = self._subs[s].topic_name
+            level, text = ERROR, f'no data received on {topic}'
+            if not self._ever[s]:
+                text += f' ({self.count_publishers(topic)} publishers)'
+            else:
                 text = f'stale: silent for {staleness:.2f} s (> {self._stale_timeout:g} s)'
         elif invalid or streams:
             level = WARN
