@@ -80,10 +80,13 @@ def test_replay_publishes_clock_and_diagnostics_follow_the_bag_time(bag, rate):
     assert clocks and clocks[0] == T0 and clocks[-1] == last
     assert np.all(np.diff(clocks) > 0)
     # Diagnostics every PERIOD_S of the steady clock: SECONDS / rate / PERIOD_S while playing
-    # (the rates and staleness in them are on the bag's time).
+    # (the rates and staleness in them are on the bag's time). A loaded machine plays slower,
+    # never faster (11 for 6 in a fresh-clone run): up to twice as many; on the bag's time
+    # there would be SECONDS / PERIOD_S (60 at 10x).
     playing = [s for s in statuses if s.get('received', 0) > 0]
     expected = SECONDS / rate / PERIOD_S
-    assert expected - 3 <= len([s for s in playing if s['received'] < RATE_HZ * SECONDS]) <= expected + 3
+    during = len([s for s in playing if s['received'] < RATE_HZ * SECONDS])
+    assert expected - 3 <= during <= 2 * expected + 3
     middle = playing[1:-1]  # the first window starts before the data, the last may be partial
     rates = [s['rate_hz'] for s in middle]
     # 20 %: a loaded machine gave 44 Hz (the node's /clock and data callbacks run late);
