@@ -335,9 +335,9 @@ def odometry_at(
     """``/odom``'s pose on ``stamps_ns`` (N,) ns, checked: zero-norm quaternions dropped,
     unnormalized ones normalized, a frozen orientation or position left out, and the
     orientation tested against ``body_field_t`` (N, 3) T, sensor 1's field (None: not
-    tested; :func:`~tetra_gradiometer.core.odometry.attitude_verdict`: another convention or
-    a lag that fits is named) and, with ``earth_field_enu`` (3,) T, its world frame against
-    the Earth field's direction. ``command`` names what going without costs
+    tested; :func:`~tetra_gradiometer.core.attitude.attitude_verdict`: another convention, a
+    lag or a clock that fits is named) and, with ``earth_field_enu`` (3,) T, its world
+    frame against the Earth field's direction. ``command`` names what going without costs
     (``core.odometry.COSTS``)."""
     series = bag.read_series(cv.ODOM_TOPIC)
     cost = COSTS.get(command, '')

@@ -259,25 +259,32 @@ def _refusal(node: Any, spec: ParamSpec, error: Exception) -> str:
     return f'{head}: {reason or error}'
 
 
+def ros_argument_values(args: list[str] | None, flags: tuple[str, ...]) -> list[str]:
+    """The values following any of ``flags`` (``-p``, ``--params-file``) in the ROS arguments
+    of ``args`` (``sys.argv`` when None): between ``--ros-args`` and ``--``."""
+    values: list[str] = []
+    ros, expect = False, False
+    for token in sys.argv if args is None else args:
+        if expect:
+            values.append(token)
+            expect = False
+        elif token in ('--ros-args', '--'):
+            ros = token == '--ros-args'
+        else:
+            expect = ros and token in flags
+    return values
+
+
 def command_line_parameters(args: list[str] | None, node_name: str) -> dict[str, str]:
     """``{name: value text}`` of the ``-p``/``--param [NODE:]NAME:=VALUE`` rules in the ROS
     arguments of ``args`` (``sys.argv`` when None) that address ``node_name`` (no prefix, or
     a prefix ending in it)."""
     rules: dict[str, str] = {}
-    ros, expect = False, False
-    for token in sys.argv if args is None else args:
-        if expect:
-            target, _, text = token.partition(':=')
-            prefix, _, name = target.rpartition(':')
-            if not prefix or prefix.rsplit('/', 1)[-1] == node_name:
-                rules[name] = text
-            expect = False
-        elif token == '--ros-args':
-            ros = True
-        elif token == '--':
-            ros = False
-        else:
-            expect = ros and token in ('-p', '--param')
+    for rule in ros_argument_values(args, ('-p', '--param')):
+        target, _, text = rule.partition(':=')
+        prefix, _, name = target.rpartition(':')
+        if not prefix or prefix.rsplit('/', 1)[-1] == node_name:
+            rules[name] = text
     return rules
 
 
@@ -346,17 +353,8 @@ def params_file_sections(args: list[str] | None) -> list[tuple[str, list[str]]]:
     arguments of ``args`` (``sys.argv`` when None); an unreadable file is rcl's to refuse."""
     import yaml
 
-    files, ros, expect = [], False, False
-    for token in sys.argv if args is None else args:
-        if expect:
-            files.append(token)
-            expect = False
-        elif token in ('--ros-args', '--'):
-            ros = token == '--ros-args'
-        else:
-            expect = ros and token == '--params-file'
     out = []
-    for path in files:
+    for path in ros_argument_values(args, ('--params-file',)):
         try:
             with open(path, encoding='utf-8') as handle:
                 document = yaml.safe_load(handle)

@@ -334,7 +334,7 @@ class TensorNode(ManagedNode):
     def _now_ns(self) -> int:
         return int(self.get_clock().now().nanoseconds)
 
-    def _stream_text(self, sensor: int, with_missing: bool = True) -> str:
+    def _stream_text(self, sensor: int, with_missing: bool = False) -> str:
         """The sensor's stream faults (core/live_streams.LiveStreamCheck), '' when none;
         ``with_missing``: the messages lost before the node too."""
         counts = self._streams.dropped[sensor]
@@ -374,9 +374,8 @@ class TensorNode(ManagedNode):
         """One sensor's DiagnosticStatus: stale (ERROR), dropped readings or a stream fault
         (WARN: core/live_streams.LiveStreamCheck), else OK."""
         staleness = now - self._last_arrival[s]
-        invalid, streams = self._invalid[s], self._stream_text(s)
-        if not recent_missing:  # lost messages warn while being lost (the count stays)
-            streams = self._stream_text(s, with_missing=False)
+        # Lost messages warn while being lost (the count stays in the values).
+        invalid, streams = self._invalid[s], self._stream_text(s, bool(recent_missing))
         if stale:
             # The resolved name (after remapping) and who publishes there: a remap to a topic
             # nobody publishes is named, not only its silence.
