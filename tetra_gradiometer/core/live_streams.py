@@ -45,6 +45,7 @@ class LiveStreamCheck:
         self.dropped = [dict.fromkeys(self.KINDS, 0) for _ in range(4)]
         self.missing = [0] * 4
         self._intervals: list[list[int]] = [[] for _ in range(4)]
+        self._period = [0.0] * 4  # the median of the intervals, ns
         self._norms = [np.zeros(history) for _ in range(4)]
         self._filled = [0] * 4
         self.reset()
@@ -87,13 +88,16 @@ class LiveStreamCheck:
         or the node too slow), which nothing else sees."""
         intervals = self._intervals[sensor]
         if len(intervals) >= MIN_INTERVALS:
-            period = float(np.median(intervals))
+            period = self._period[sensor]
             if period > 0 and interval_ns > 1.5 * period:
                 if interval_ns <= self.silence_ns:  # a longer one is a silence (stale)
                     self.missing[sensor] += int(round(interval_ns / period)) - 1
                 return  # a gap is no interval of the clock
         intervals.append(interval_ns)
         del intervals[:-MAX_INTERVALS]
+        # The median every MIN_INTERVALS intervals, not per message (the node's hot path).
+        if len(intervals) == MIN_INTERVALS or self._filled[sensor] % MIN_INTERVALS == 0:
+            self._period[sensor] = float(np.median(intervals))
 
     def missing_text(self, sensor: int, received: int) -> str:
         """'' or how many messages of ``received`` + missing never reached the node."""
