@@ -59,8 +59,14 @@ BAD = [
     *[('compensate', '--false-alarms-per-hour', value, ('0 < x <= 60 per hour',)) for value in ('0', '-1', 'nan', '61')],
     # calibrate
     ('calibrate', '--window', '10:5', ('0 <= T0 < T1',)),
-    ('calibrate', '--current-topics', 'battery', ('absolute topic names',)),
-    ('calibrate', '--current-topics', ',', ('absolute topic names',)),
+    ('calibrate', '--current-topics', 'battery', ('battery is not an absolute topic name',)),
+    ('calibrate', '--current-topics', ',', ("no topic in ','",)),
+    # the topic names of every command reading a bag (cli/_args.add_bag_arguments)
+    *[case for command in ('calibrate', 'compensate', 'discrepancy', 'survey') for case in (
+        (command, '--mag-topics', '/a,/b,/c', ('expected 4 topics, got 3',)),
+        (command, '--mag-topics', '/a,/a,/b,/c', ('a topic is named twice',)),
+        (command, '--odom-topic', 'odom', ('odom is not an absolute topic name',)),
+        (command, '--namespace', 'auv 1', ('/auv 1 is not an absolute topic name',)))],
     ('calibrate', '--window', 'a:b', ('T0:T1',)),
     ('calibrate', '--window', '5', ('T0:T1',)),
     ('calibrate', '--window', 'nan:5', ('0 <= T0 < T1',)),

@@ -8,6 +8,7 @@ messages as the plain bag; the plain bag's calibration.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import yaml
 from cli_helpers import assert_refused, run_cli
 from stream_faults import START_NS, short_mission, write_bag, write_params
@@ -16,16 +17,30 @@ from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io.bag import BagWriter
 
 
-def _namespaced(path, mission, prefix):
+def _named(path, mission, mag_topics, odom_topic, scale=1.0, writer=None):
+    """The mission with sensor s on ``mag_topics[s]`` and odometry on ``odom_topic``; sensor
+    2's field times ``scale`` (another vehicle's data)."""
     log = START_NS + np.round(mission.t * 1e9).astype(np.int64)
-    with BagWriter(path) as writer:
+    with writer or BagWriter(path) as writer:
         for i, stamp in enumerate(log):
             for sensor in range(4):
-                data = cv.magnetic_field_cdr(mission.fields_measured[i, sensor], int(stamp), cv.MAG_FRAMES[sensor])
-                writer.write_raw(prefix + cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD, data, int(stamp))
+                field = (scale if sensor == 1 else 1.0) * mission.fields_measured[i, sensor]
+                data = cv.magnetic_field_cdr(field, int(stamp), cv.MAG_FRAMES[sensor])
+                writer.write_raw(mag_topics[sensor], cv.MAGNETIC_FIELD, data, int(stamp))
             msg = cv.odometry_msg(writer.types, mission.position_enu[i], mission.orientation_xyzw[i], int(stamp))
-            writer.write(prefix + cv.ODOM_TOPIC, msg, int(stamp))
+            writer.write(odom_topic, msg, int(stamp))
     return path
+
+
+def _namespaced(path, mission, prefix):
+    return _named(path, mission, [prefix + t for t in cv.BAG_MAG_TOPICS], prefix + cv.ODOM_TOPIC)
+
+
+def _calibration(capsys, tmp_path, name, bag, params, *options):
+    code, out, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--out', tmp_path / f'{name}.yaml',
+                             *options)
+    assert code == 0, err
+    return yaml.safe_load((tmp_path / f'{name}.yaml').read_text())['k_soft'], out
 
 
 def test_a_namespaced_bag_is_read_as_the_plain_one_and_says_so(tmp_path, capsys):
@@ -68,3 +83,67 @@ def test_a_current_topic_the_bag_lacks_is_refused_naming_what_it_has(tmp_path, c
                    '--current-topics /esc1: not a sensor_msgs/BatteryState topic of',
                    'its BatteryState topics: none', '/tetra/mag1')
     assert not (tmp_path / 'c.yaml').exists()
+
+
+def test_topics_named_on_the_command_line_are_read_in_sensor_order(tmp_path, capsys):
+    """A driver's own names, in an order that is not the sensors': --mag-topics gives the
+    sensor order, --odom-topic the navigation; the calibration is the plain bag's."""
+    mission = short_mission(trim_s=40.0, survey_s=5.0)
+    params = write_params(tmp_path / 'params.yaml')
+    plain, _ = _calibration(capsys, tmp_path, 'plain', write_bag(tmp_path / 'plain', mission), params)
+    names = ['/vn300/mag_c', '/vn300/mag_a', '/vn300/mag_d', '/vn300/mag_b']
+    bag = _named(tmp_path / 'vendor', mission, names, '/ins/odometry')
+    named, out = _calibration(capsys, tmp_path, 'named', bag, params, '--mag-topics', ','.join(names),
+                              '--odom-topic', '/ins/odometry')
+    assert np.allclose(named, plain, rtol=0, atol=1e-12)
+    assert 'regional gradient estimated jointly' in out  # the odometry was read
+
+
+def test_a_namespace_chooses_one_vehicle_of_two(tmp_path, capsys):
+    mission = short_mission(trim_s=40.0, survey_s=5.0)
+    params = write_params(tmp_path / 'params.yaml')
+    plain, _ = _calibration(capsys, tmp_path, 'plain', write_bag(tmp_path / 'plain', mission), params)
+    bag = tmp_path / 'fleet'
+    with BagWriter(bag) as writer:
+        for prefix, scale in (('/auv1', 1.0), ('/auv2', 1.01)):
+            _named(bag, mission, [prefix + t for t in cv.BAG_MAG_TOPICS], prefix + cv.ODOM_TOPIC, scale,
+                   writer=_Open(writer))
+    auv1, _ = _calibration(capsys, tmp_path, 'auv1', bag, params, '--namespace', '/auv1')
+    auv2, _ = _calibration(capsys, tmp_path, 'auv2', bag, params, '--namespace', 'auv2/')
+    assert np.allclose(auv1, plain, rtol=0, atol=1e-12)
+    assert np.abs(np.subtract(auv2, plain)).max() > 1e-3  # sensor 2's 1 % scale
+
+
+class _Open:
+    """An open writer lent to :func:`_named` (closed by its owner)."""
+
+    def __init__(self, writer):
+        self.writer = writer
+
+    def __enter__(self):
+        return self.writer
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_a_topic_name_the_bag_lacks_is_refused_naming_what_it_has(tmp_path, capsys):
+    mission = short_mission(trim_s=20.0, survey_s=5.0)
+    bag = write_bag(tmp_path / 'bag', mission)
+    params = write_params(tmp_path / 'params.yaml')
+    for command, extra in (('calibrate', ('--out', tmp_path / 'c.yaml')),
+                           ('compensate', ('--raw', '--csv', tmp_path / 'c.csv')),
+                           ('locate', ('--raw', '--out', tmp_path / 'targets'))):
+        assert_refused(run_cli(capsys, command, bag, '--params', params, '--odom-topic', '/nav/odom', *extra),
+                       'no topic /nav/odom in the bag', '/odom (Odometry)', '/tetra/mag1 (MagneticField)')
+    assert_refused(run_cli(capsys, 'calibrate', bag, '--params', params, '--namespace', '/auv9',
+                           '--out', tmp_path / 'c.yaml'),
+                   '--namespace /auv9: the bag records no magnetometer under it')
+    names = '/tetra/mag1,/tetra/mag2,/tetra/mag3,/odom'
+    assert_refused(run_cli(capsys, 'calibrate', bag, '--params', params, '--mag-topics', names,
+                           '--out', tmp_path / 'c.yaml'),
+                   '/odom holds nav_msgs/msg/Odometry, not sensor_msgs/msg/MagneticField')
+    with pytest.raises(SystemExit) as usage:  # argparse's usage error
+        run_cli(capsys, 'calibrate', bag, '--params', params, '--mag-topics', '/a,/b,/c', '--out', tmp_path / 'c.yaml')
+    assert usage.value.code == 2 and '--mag-topics: expected 4 topics, got 3' in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in ('c.yaml', 'c.csv', 'targets'))

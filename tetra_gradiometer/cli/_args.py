@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from ..core.timebase import SYNC_METHODS, TimeBase
 from ..core.units import S_PER_MS
 from ..errors import InputError
+from ..io.topics import BagSource, topic_list
 
 if TYPE_CHECKING:
     from ..pipelines.terms import EffectsChoice
@@ -30,6 +31,7 @@ __all__ = [
     'add_bag_arguments',
     'add_force_argument',
     'add_progress_arguments',
+    'bag_from_args',
     'timebase_from_args',
     'finite_float',
     'int_range',
@@ -217,6 +219,38 @@ def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
         help='--sync nearest: largest spread of the four header stamps in one set, 0 < ms <= '
         f'{MAX_TOLERANCE_MS:g} (default 2 ms)',
     )
+    names = parser.add_argument_group(
+        'topics',
+        'default: the contract names (README, "Topics"), or the one namespace the bag records '
+        'them under; every name given must be a topic of the bag',
+    )
+    names.add_argument(
+        '--namespace',
+        type=_namespace,
+        metavar='/NS',
+        help='the vehicle namespace the topics are recorded under: /auv1 reads /auv1/tetra/mag1 '
+        'as /tetra/mag1, /auv1/odom as /odom, ...',
+    )
+    names.add_argument(
+        '--mag-topics',
+        type=topics_type(4, '--mag-topics'),
+        default=(),
+        metavar='/M1,/M2,/M3,/M4',
+        help='the four magnetometer topics, in the order of sensor_positions',
+    )
+    names.add_argument(
+        '--odom-topic',
+        type=_one_topic('--odom-topic'),
+        metavar='/TOPIC',
+        help='the nav_msgs/Odometry topic (ENU/FLU, REP 103)',
+    )
+
+
+def bag_from_args(args: argparse.Namespace) -> BagSource:
+    """The input bag of :func:`add_bag_arguments` with the topic names given for it."""
+    return BagSource(
+        str(args.bag), args.namespace or '', tuple(args.mag_topics), args.odom_topic or ''
+    )
 
 
 def timebase_from_args(args: argparse.Namespace) -> TimeBase:
@@ -229,21 +263,35 @@ def timebase_from_args(args: argparse.Namespace) -> TimeBase:
     )
 
 
-def topics_arg(text: str) -> tuple[str, ...]:
-    """``--current-topics /a,/b``: absolute ROS topic names, comma-separated."""
-    topics = tuple(t.strip() for t in text.split(',') if t.strip())
-    bad = [t for t in topics if not t.startswith('/') or ' ' in t]
-    if bad or not topics:
-        raise argparse.ArgumentTypeError(
-            f'{text!r}: give absolute topic names separated by commas (e.g. /thruster1/battery)'
-        )
-    return topics
+def topics_type(count: int | None, what: str) -> Callable[[str], tuple[str, ...]]:
+    """A ``type=`` of absolute ROS topic names, comma-separated (``count`` of them)."""
+
+    def parse(text: str) -> tuple[str, ...]:
+        try:
+            topics = topic_list(text, count, what)
+        except InputError as error:  # argparse names the option
+            raise argparse.ArgumentTypeError(str(error).removeprefix(f'{what}: ')) from None
+        if not topics:
+            raise argparse.ArgumentTypeError(f'{what}: no topic in {text!r}')
+        return topics
+
+    return parse
+
+
+def _namespace(text: str) -> str:
+    """``--namespace``: ``auv1``, ``/auv1`` and ``/auv1/`` are one namespace."""
+    return _one_topic('--namespace')('/' + text.strip().strip('/'))
+
+
+def _one_topic(what: str) -> Callable[[str], str]:
+    many = topics_type(1, what)
+    return lambda text: many(text)[0]
 
 
 def add_current_topics_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         '--current-topics',
-        type=topics_arg,
+        type=topics_type(None, '--current-topics'),
         default=(),
         metavar='T1,T2',
         help='sensor_msgs/BatteryState topics whose current the vehicle_current effect reads, '
@@ -269,7 +317,7 @@ def add_effects_arguments(parser: argparse.ArgumentParser) -> None:
         '--effects-from',
         default=None,
         metavar='REPORT',
-        help="fit the effects a discrepancy report.json named (those of the registry)",
+        help='fit the effects a discrepancy report.json named (those of the registry)',
     )
     add_current_topics_argument(parser)
 

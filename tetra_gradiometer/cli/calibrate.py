@@ -52,6 +52,7 @@ from ._args import (
     add_effects_arguments,
     add_force_argument,
     add_progress_arguments,
+    bag_from_args,
     effects_from_args,
     finite_float,
     int_range,
@@ -160,6 +161,7 @@ def _signer(key_file: str | None) -> Callable[[str], str] | None:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    args.bag = bag_from_args(args)  # the folder and the topic names given for it
     inputs = (args.bag, args.params)
     check_output(args.out, CALIBRATION, force=args.force, inputs=inputs)  # refuse before any work
     if args.report is not None:  # nor over the calibration file it sits beside

@@ -74,6 +74,7 @@ from ._args import (
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
+    bag_from_args,
     positive_float,
     say_forced,
     timebase_from_args,
@@ -145,6 +146,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    args.bag = bag_from_args(args)  # the folder and the topic names given for it
     if args.csv is None and args.out_bag is None and args.report is None:
         raise InputError('nothing to write: give --csv OUT.csv, --out-bag DIR and/or --report DIR')
     if args.raw and args.report is not None:

@@ -15,7 +15,14 @@ from ..io.outputs import REPORT, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.discrepancy import analyze_bag
 from ..reports.discrepancy import channel_warnings, percent_text, write_report
-from ._args import add_bag_arguments, finite_float, int_range, timebase_from_args, window_arg
+from ._args import (
+    add_bag_arguments,
+    bag_from_args,
+    finite_float,
+    int_range,
+    timebase_from_args,
+    window_arg,
+)
 
 #: ``--folds``: at least 2 (one to fit, one to test); the run is cut into ~40 blocks, so more
 #: than 20 folds leave each fewer than 2 blocks.
@@ -105,6 +112,7 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    args.bag = bag_from_args(args)  # the folder and the topic names given for it
     window = args.window  # (t0, t1) or None, checked by argparse (_args.window_arg)
     inputs = (args.bag, args.params)
     check_output(args.out, REPORT, force=args.force, inputs=inputs)  # refuse before the analysis

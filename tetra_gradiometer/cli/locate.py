@@ -40,6 +40,7 @@ from ._args import (
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
+    bag_from_args,
     positive_float,
     say_forced,
     timebase_from_args,
@@ -103,6 +104,7 @@ def depth_positive_down(search: Search) -> str:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    args.bag = bag_from_args(args)  # the folder and the topic names given for it
     if args.raw == (args.calibration is not None):
         raise InputError(
             'give --calibration (the compensated tensor is searched) or --raw (the raw one), '

@@ -40,6 +40,7 @@ from ._args import (
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
+    bag_from_args,
     positive_float,
     say_forced,
     timebase_from_args,
@@ -120,6 +121,7 @@ def _check_origin(args: argparse.Namespace, earth: np.ndarray | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    args.bag = bag_from_args(args)  # the folder and the topic names given for it
     inputs = [args.bag, args.params, args.calibration]
     check_output(args.out, SURVEY, force=args.force, inputs=inputs)  # refuse before the work
     params = load_params(args.params)
@@ -149,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         'calibration_method': calibration.method,
         'effects': ','.join(term.effect for term in calibration.parameters.terms) or 'none',
         'sensor_noise': compensation.noise_source,
-        'bag': args.bag,
+        'bag': str(args.bag),
     }
     out = write_survey(result, args.out, metadata=metadata, force=args.force, inputs=inputs)
     grids = result.grids

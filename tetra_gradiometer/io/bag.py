@@ -62,6 +62,7 @@ from .bag_skips import MAX_SKIPPED_FRACTION, SkippedMessage, guarded_messages, s
 from .matching import MatchCounters, set_former
 from .outputs import BAG, atomic_output, check_output
 from .progress import progress_bar
+from .topics import BagSource, checked_remap, namespaced
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -76,14 +77,6 @@ STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 MIXED_RATES = 1.8
 #: The rates are told from each sensor's first this many messages.
 RATE_MESSAGES = 64
-#: The message type of each of ``conversions.CONTRACT_TOPICS``.
-CONTRACT_TYPES = (
-    *(cv.MAGNETIC_FIELD,) * 4,
-    cv.JOINT_STATE,
-    cv.ODOMETRY,
-    cv.TEMPERATURE,
-    cv.BATTERY_STATE,
-)
 
 
 def typestore() -> Any:
@@ -104,12 +97,15 @@ class MagneticBag:
 
     Parameters
     ----------
-    path : path of the rosbag2 folder
+    path : path of the rosbag2 folder, or a :class:`~.topics.BagSource` (the folder and the
+        topic names the user gave for it: checked against the bag)
     max_skipped_fraction : largest fraction of a topic's messages (the magnetometers
         together in :meth:`iter_sets`) that may be skipped as undecodable or unreadable
         before a read raises :class:`BagError`; default 0.01 (1 %)
     remap : the bag's topic -> the contract's (``conversions.parse_remap``), for a bag recorded
-        under other names (e.g. a vehicle namespace: ``/auv1/tetra/mag1`` -> ``/tetra/mag1``)
+        under other names (e.g. a vehicle namespace: ``/auv1/tetra/mag1`` -> ``/tetra/mag1``);
+        every name in it must be recorded. Without either, a contract topic recorded only
+        under another namespace is read from there (``topics.namespaced``).
 
     Attributes
     ----------
@@ -129,6 +125,7 @@ class MagneticBag:
         max_skipped_fraction: float = MAX_SKIPPED_FRACTION,
         remap: Mapping[str, str] | None = None,
     ) -> None:
+        self.path_given = path
         self.path = Path(path)
         self.remap = dict(remap or {})
         self.assumed: dict[str, str] = {}
@@ -153,26 +150,14 @@ class MagneticBag:
             self._reader.open()
         except Exception as error:  # rosbags raises its own error classes per storage
             raise BagError(f'cannot open bag {self.path}: {error}') from None
-        if not self.remap:
-            self.remap = self.assumed = self._namespaced_topics()
-        return self
-
-    def _namespaced_topics(self) -> dict[str, str]:
-        """Contract topics the bag records only under another namespace (``/auv1/tetra/
-        mag1`` for ``/tetra/mag1``, ``/auv1/odom`` for ``/odom``): the one recorded topic of
-        the contract's type whose name ends in the contract's last name, mapped onto it. A
-        name that ends so on two topics (two vehicles) is left unmapped: the contract check
-        then names what the bag has."""
         recorded = {c.topic: c.msgtype for c in self.reader.connections}
-        assumed = {}
-        for contract, msgtype in zip(cv.CONTRACT_TOPICS, CONTRACT_TYPES, strict=True):
-            if contract in recorded:
-                continue
-            last = '/' + contract.rsplit('/', 1)[-1]
-            found = [t for t, m in recorded.items() if m == msgtype and t.endswith(last)]
-            if len(found) == 1 and found[0] not in assumed:
-                assumed[found[0]] = contract
-        return assumed
+        if isinstance(self.path_given, BagSource) and self.path_given.names_topics:
+            self.remap = self.path_given.remap(recorded)
+        elif self.remap:
+            self.remap = checked_remap(self.path, self.remap, recorded)
+        else:
+            self.remap = self.assumed = namespaced(recorded)
+        return self
 
     def _for_rates(self, timebase: TimeBase) -> TimeBase:
         """The default time base, or with sensors at rates more than :data:`MIXED_RATES`
@@ -188,7 +173,7 @@ class MagneticBag:
         self.rates_note = (
             'sensors at different rates ('
             + ', '.join(f'{i + 1}: {r:.3g} Hz' for i, r in enumerate(rates))
-            + f'): resampled to a {slowest:g} Hz grid, the slowest sensor\'s rate'
+            + f"): resampled to a {slowest:g} Hz grid, the slowest sensor's rate"
         )
         return dataclasses.replace(timebase, reference_rate_hz=slowest)
 
@@ -284,9 +269,7 @@ class MagneticBag:
         if missing:
             present = sorted({c.topic for c in self.reader.connections})
             hint = f'; remapped: {self.remap}' if self.remap else ' (a topic map: remap)'
-            raise BagError(
-                f'{self.path}: missing topic(s) {missing} (present: {present}){hint}'
-            )
+            raise BagError(f'{self.path}: missing topic(s) {missing} (present: {present}){hint}')
         for topic in cv.BAG_MAG_TOPICS:
             wrong = [c.msgtype for c in self._connections(topic) if c.msgtype != cv.MAGNETIC_FIELD]
             if wrong:

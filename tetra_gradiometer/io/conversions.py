@@ -86,9 +86,7 @@ def parse_remap(text: str) -> dict[str, str]:
     for rule in text.replace(',', ' ').split():
         recorded, sep, contract = rule.partition(':=')
         if not sep or not recorded.startswith('/') or not contract.startswith('/'):
-            raise InputError(
-                f'topic map rule {rule!r}: expected /RECORDED_TOPIC:=/CONTRACT_TOPIC'
-            )
+            raise InputError(f'topic map rule {rule!r}: expected /RECORDED_TOPIC:=/CONTRACT_TOPIC')
         if contract not in CONTRACT_TOPICS:
             raise InputError(
                 f'topic map rule {rule!r}: {contract} is not a topic of the bag contract '

@@ -107,9 +107,9 @@ def origin_earth_check(
             f'{swapped * 1e6:.1f} uT; give LAT,LON'
         ), True
     return (
-        f'the IGRF field at --origin {lat:g},{lon:g} differs from the params file\'s '
+        f"the IGRF field at --origin {lat:g},{lon:g} differs from the params file's "
         f'earth_field_enu by {offset * 1e6:.0f} uT (more than {MAX_EARTH_FIELD_OFFSET_T * 1e6:g} '
-        'uT): the origin or earth_field_enu is not this survey\'s'
+        "uT): the origin or earth_field_enu is not this survey's"
     ), False
 
 

@@ -245,9 +245,7 @@ def read_recording(
     ``missing``.
     """
     with MagneticBag(path) as bag:
-        stamps, fields = bag.read_sets(
-            timebase=timebase, window_s=window_s, progress=progress
-        )
+        stamps, fields = bag.read_sets(timebase=timebase, window_s=window_s, progress=progress)
         keep, dropped = plausible_sets(fields)
         if not keep.any():
             raise BagError(f'{path}: every set has an implausible reading ({dropped.text()})')
