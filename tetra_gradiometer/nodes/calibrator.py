@@ -190,7 +190,10 @@ class CalibratorNode(ManagedNode):
         self._diag_pub = self.diagnostics_publisher()
         self._horizon = self._diag_pub.inputs.watch_stamps(p['max_stamp_ahead_s'])
         gated = self.when_active
-        self.create_subscription(JointState, 'gradient/raw', gated(self._on_raw), derived_qos())
+        raw = self.create_subscription(
+            JointState, 'gradient/raw', gated(self._on_raw), derived_qos()
+        )
+        self._diag_pub.inputs.require(raw)
         self.create_subscription(
             MagneticField, 'reference_field', gated(self._on_reference), derived_qos()
         )

@@ -577,4 +577,3 @@ def check_serialization() -> None:
             '(XCDR1, little endian), which this node reads and writes directly '
             '(io/conversions.py); use rmw_fastrtps_cpp or rmw_cyclonedds_cpp'
         )
-

@@ -209,9 +209,10 @@ class CompensatorNode(ManagedNode):
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
         self.create_subscription(String, 'calibration', gated(self._on_calibration), latched_qos())
-        self.create_subscription(
+        raw = self.create_subscription(
             JointState, 'gradient/raw', gated(self._on_raw), derived_qos(), raw=True
         )
+        self._diag_pub.inputs.require(raw)
         self.create_subscription(
             MagneticField, 'reference_field', gated(self._on_reference), derived_qos(), raw=True
         )

@@ -365,7 +365,6 @@ class ManagedNode(LifecycleNode):
         finally:
             self.diagnostics_state = 'inactive'
 
-
     def stop_work(self) -> None:
         """Stop the node's long work (a solve, an open bag) when it is configured: before its
         executor stops (``process.spin_node``), so no callback waits on it."""

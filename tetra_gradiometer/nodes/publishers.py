@@ -13,7 +13,10 @@ every publisher of each of its subscriptions. :class:`InputPublishers` reports
   the driver, the tensor node, the compensator, the navigation, the vehicle),
 
 as a WARN naming the nodes (a log line when a publisher appears, and the ``inputs``
-status on ``/diagnostics`` while it is there). The graph is read once per diagnostics period
+status on ``/diagnostics`` while it is there), and a topic the node cannot work without
+(:meth:`InputPublishers.require`) that nobody has published for :data:`NO_PUBLISHER_S` as an
+ERROR naming the topic as resolved after remapping (a remap to a name nobody publishes,
+or its node not running). The graph is read once per diagnostics period
 and when a calibration arrives, never per sample.
 
 Without SROS2 a node's name is whatever its process chose (``-r __node:=calibrator``), so
@@ -23,10 +26,15 @@ the calibration's signature (:mod:`.authentication`) or SROS2 (docs/ros.md, *Sec
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from typing import Any
 
-from .common import OK, WARN, status
+from .common import ERROR, OK, WARN, status
+
+#: A required input without a publisher this long (s, steady clock) is an ERROR: longer than
+#: a launch's start-up and the discovery of its nodes.
+NO_PUBLISHER_S = 10.0
 
 #: What rmw reports for an endpoint whose node it has not learned yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
@@ -56,6 +64,12 @@ class InputPublishers:
         self.counts: dict[str, int] = {}
         self.horizon: Any = None  # the node's StampHorizon (nodes/stamps.py), if it has one
         self._refused_reported = 0
+        self.required: set[str] = set()
+        self._alone_since: dict[str, float] = {}  # required topic -> steady s, no publisher
+
+    def require(self, *subscriptions: Any) -> None:
+        """The node cannot work without these subscriptions' topics (resolved names)."""
+        self.required |= {s.topic_name for s in subscriptions}
 
     def watch_stamps(self, tolerance_s: float, warn_throttle_s: float = 5.0) -> Any:
         """A :class:`~.stamps.StampHorizon` of the node, its refusals in :meth:`status`."""
@@ -96,6 +110,22 @@ class InputPublishers:
                     self.node.get_logger().warning(self.describe(topic, others))
         # a publisher that left and comes back is reported again
         self._reported &= {(t, n) for t, names in self.unexpected.items() for n in names}
+        now = time.monotonic()
+        for topic in self.required:
+            if self.counts.get(topic, 0):
+                self._alone_since.pop(topic, None)
+            else:
+                self._alone_since.setdefault(topic, now)
+
+    def unpublished(self) -> list[str]:
+        """The required topics nobody has published for :data:`NO_PUBLISHER_S`, each with
+        for how long."""
+        now = time.monotonic()
+        return [
+            f'no publisher on {topic} for {now - since:.0f} s'
+            for topic, since in sorted(self._alone_since.items())
+            if now - since > NO_PUBLISHER_S
+        ]
 
     def describe(self, topic: str, others: list[str]) -> str:
         allowed = self.expected.get(topic)
@@ -107,11 +137,20 @@ class InputPublishers:
         return f'{len(others)} publishers on {topic}: {", ".join(others)} (one expected)'
 
     def status(self) -> Any:
-        """``<node>: inputs``: WARN naming the unexpected publishers, or while messages
-        stamped ahead of the clock are refused (since the last report), else OK."""
+        """``<node>: inputs``: ERROR naming a required topic without a publisher; WARN naming
+        the unexpected publishers, or while messages stamped ahead of the clock are refused
+        (since the last report); else OK."""
         values: dict[str, Any] = {f'{t} publishers': n for t, n in sorted(self.counts.items())}
         if self.horizon is not None:
             values.update(self.horizon.values())
+        unpublished = self.unpublished()
+        if unpublished:
+            text = '; '.join(unpublished) + (
+                ': nothing to work on (a remap to a topic nobody publishes, or its node is not '
+                'running)'
+            )
+            return status(self.node, 'inputs', ERROR, text, '', values)
+        if self.horizon is not None:
             refused = sum(self.horizon.refused.values())
             new, self._refused_reported = refused - self._refused_reported, refused
             if new > 0:

@@ -229,10 +229,13 @@ class TargetNode(ManagedNode):
             p['max_stamp_ahead_s'], p['warn_throttle_s']
         )
         gated = self.when_active
-        self.create_subscription(
+        tensor = self.create_subscription(
             JointState, cv.COMPENSATED_NODE_TOPIC, gated(self._on_tensor), derived_qos(), raw=True
         )
-        self.create_subscription(Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos())
+        odom = self.create_subscription(
+            Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos()
+        )
+        self._diag_pub.inputs.require(tensor, odom)
         self.create_timer(TICK_S, self._tick)
         self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
 
