@@ -222,3 +222,32 @@ def test_a_jump_between_two_navigation_sources_is_named(mission):
     assert not any('jumps' in f for f in check_odometry(stamps, pose).faults)
     faults = check_odometry(stamps, jumped).faults
     assert any(f.startswith('the /odom position jumps 1 time (35.2 m at 10.0 s;') for f in faults), faults  # 35 m + a step
+
+
+def test_ned_odometry_is_named_by_locate_and_survey(mission, params, tmp_path, capsys, good_calibration):
+    """/odom in NED (position N, E, D; attitude FLU -> NED): the world frame is tested against
+    the params file's Earth field (locate) or IGRF at --origin (survey without one), and
+    named; nothing is written. The same bag in ENU passes the same check."""
+    q = (Rotation.from_matrix(NED) * Rotation.from_quat(mission.orientation_xyzw)).as_quat()
+    bag = write_bag(tmp_path / 'ned', mission, odom_xyzw=q, odom_position=mission.position_enu @ NED.T)
+    calibration = tmp_path / 'c.yaml'
+    calibration.write_text(yaml.safe_dump(good_calibration))
+    assert_refused(run_cli(capsys, 'locate', bag, '--params', params, '--raw', '--out', tmp_path / 'targets'),
+                   'the /odom world frame looks NED, not ENU', 'no targets')
+    no_earth = write_params(tmp_path / 'no_earth.yaml', earth=False)
+    # IGRF at 43.2 N 5.3 E points within 8 deg of the mission's Earth field
+    for origin, refused in (('43.2,5.3', True), ('-43.2,5.3', False)):
+        result = run_cli(capsys, 'survey', bag, '--params', no_earth, '--calibration', calibration,
+                         f'--origin={origin}', '--out', tmp_path / 'survey')
+        code, _, err = result  # survey prints its stages on stderr before the error line
+        error = err.splitlines()[-1]
+        assert code == 1 and error.startswith('error: ') and 'Traceback' not in err, err
+        if refused:
+            assert 'the /odom world frame looks NED, not ENU' in error and 'no survey' in error
+        else:  # the southern hemisphere's field points up: neither frame fits, said so
+            assert 'the /odom orientation does not agree with the Earth field' in error
+    assert not (tmp_path / 'targets').exists() and not (tmp_path / 'survey').exists()
+    enu = write_bag(tmp_path / 'enu', mission)
+    code, _, err = run_cli(capsys, 'survey', enu, '--params', no_earth, '--calibration', calibration,
+                           '--origin=43.2,5.3', '--out', tmp_path / 'survey')
+    assert 'compensating and placing the track' in err and '/odom' not in err, err  # the track is used

@@ -32,7 +32,7 @@ from ..core.targets import DetectorSettings, LocatorSettings
 from ..errors import InputError
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import TARGETS, check_output
-from ..io.params import geometry_from_params, load_params
+from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.targets import Search, locate_bag
 from ..reports.targets import write_locate_report
 from ._args import (
@@ -136,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
         on_stage=lambda text: print(f'{text} ...', file=sys.stderr, flush=True),
         allow_missing_channels=args.allow_missing_channels,
+        earth_field_enu=earth_field_from_params(params, str(args.params)),
     )
     out = write_locate_report(
         result, args.out, plots=not args.no_plots, force=args.force, inputs=inputs

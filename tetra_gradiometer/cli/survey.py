@@ -28,7 +28,7 @@ from ..core.targets import DetectorSettings
 from ..errors import InputError
 from ..io.bag import MagneticBag
 from ..io.calibration import load_calibration
-from ..io.geo import origin_earth_check, parse_origin
+from ..io.geo import igrf_at, origin_earth_check, parse_origin
 from ..io.outputs import SURVEY, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.compensation import load_compensation
@@ -105,18 +105,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_progress_arguments(parser)
 
 
-def _check_origin(args: argparse.Namespace, earth: np.ndarray | None) -> None:
-    """``--origin`` against the params file's Earth field (io/geo.origin_earth_check): an
-    origin given as LON,LAT is refused, another mismatch is a warning."""
-    if args.origin is None or earth is None:
-        return
+def _earth_field(args: argparse.Namespace, earth: np.ndarray | None) -> np.ndarray | None:
+    """The Earth field (3,) T ENU the odometry's world frame is tested against: the params
+    file's, checked against IGRF at ``--origin`` (io/geo.origin_earth_check: an origin given as
+    LON,LAT is refused, another mismatch is a warning), or else IGRF at ``--origin``."""
+    if args.origin is None:
+        return earth
     with MagneticBag(args.bag) as bag:
         start_ns = int(bag.reader.start_time)
+    if earth is None:
+        return igrf_at(args.origin, start_ns)
     line, swapped = origin_earth_check(args.origin, earth, start_ns)
     if swapped:
         raise InputError(str(line))
     if line:
         print(f'warning: {line}', file=sys.stderr)
+    return earth
 
 
 def run(args: argparse.Namespace) -> int:
@@ -126,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.out, SURVEY, force=args.force, inputs=inputs)  # refuse before the work
     params = load_params(args.params)
     geometry = geometry_from_params(params, str(args.params))
-    _check_origin(args, earth_field_from_params(params, str(args.params)))
+    earth = _earth_field(args, earth_field_from_params(params, str(args.params)))
     compensation = load_compensation(
         args.calibration, geometry, target=str(args.params), sensor_noise_nt=args.sensor_noise_nt
     )
@@ -144,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
         timebase=timebase_from_args(args),
         progress=args.progress,
         on_stage=lambda text: print(f'{text} ...', file=sys.stderr, flush=True),
+        earth_field_enu=earth,
     )
     print('writing the products ...', file=sys.stderr, flush=True)
     metadata = {

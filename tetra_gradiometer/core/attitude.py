@@ -102,7 +102,7 @@ class AttitudeVerdict:
             return (
                 f'the /odom orientation hardly turns (less than {math.degrees(MIN_TURN_RAD):.0f} '
                 f"deg RMS) while sensor 1's field turns by {self.field_turn_deg:.0f} deg RMS in "
-                'the body frame: the attitude is not this vehicle\'s (frozen, identity, or '
+                "the body frame: the attitude is not this vehicle's (frozen, identity, or "
                 'another source)'
             )
         name, lag, carried, unexplained = self.best
@@ -116,7 +116,7 @@ class AttitudeVerdict:
             return (
                 f"the /odom stamps cover only {self.overlap:.0%} of the magnetometers' (another "
                 'clock): no clock offset of a navigation stack (18, 19, 37 s, whole hours) or '
-                'of the two recordings\' starts makes its attitude fit the magnetometers'
+                "of the two recordings' starts makes its attitude fit the magnetometers"
             )
         if not clear_fit(carried, unexplained):
             return (
@@ -259,8 +259,9 @@ def attitude_verdict(
     carried, unexplained, world = _fit(declared, b)
     if unexplained < CLEAR_UNEXPLAINED and abs(carried - 1.0) <= CARRIED_CLOSE:
         # Nothing can leave less than half of so little: the search is not needed.
-        return AttitudeVerdict(True, carried, unexplained, (CONVENTIONS_DECLARED, 0.0, carried,
-                                                            unexplained), world)
+        return AttitudeVerdict(
+            True, carried, unexplained, (CONVENTIONS_DECLARED, 0.0, carried, unexplained), world
+        )
     best = (CONVENTIONS_DECLARED, 0.0, carried, unexplained)
     # Coarse lags for every convention, then the best convention's lag refined.
     coarse = np.arange(-MAX_LAG_S, MAX_LAG_S + 1e-9, COARSE_LAG_S) if margin else [0.0]
@@ -283,7 +284,8 @@ def attitude_verdict(
 #: Clock offsets navigation stacks really have, s: GPS time against UTC (18 s), TAI against
 #: UTC (37 s), and whole hours (a time zone), either way.
 KNOWN_OFFSETS_S = tuple(
-    sign * value for value in (18.0, 19.0, 37.0, *(3600.0 * h for h in range(1, 15)))
+    sign * value
+    for value in (18.0, 19.0, 37.0, *(3600.0 * h for h in range(1, 15)))
     for sign in (1.0, -1.0)
 )
 
@@ -366,15 +368,15 @@ def world_frame_fault(world_field_t: FloatArray, earth_field_enu_t: FloatArray) 
         return None
     if as_ned <= MAX_WORLD_FIELD_DEG:
         return (
-            f"the /odom world frame looks NED, not ENU: the field it makes steady points "
-            f"{as_ned:.0f} deg from earth_field_enu's direction in NED and {as_enu:.0f} deg "
+            f'the /odom world frame looks NED, not ENU: the field it makes steady points '
+            f"{as_ned:.0f} deg from the Earth field's direction in NED and {as_enu:.0f} deg "
             'from it in ENU (REP 103 odometry is ENU)'
         )
     return (
-        f'the /odom orientation does not agree with earth_field_enu: the field it makes steady '
-        f'points {as_enu:.0f} deg from earth_field_enu (a right attitude: within a few '
-        'degrees): the attitude (reversed, foreign, another convention) or earth_field_enu '
-        'is wrong'
+        f'the /odom orientation does not agree with the Earth field: the field it makes '
+        f'steady points {as_enu:.0f} deg from it (a right attitude: within a few degrees): the '
+        'attitude (reversed, foreign, another convention) or the Earth field declared '
+        '(earth_field_enu, or IGRF at the origin) is wrong'
     )
 
 
@@ -387,4 +389,3 @@ UNTESTED_ATTITUDE = (
     'the /odom orientation was not checked against the magnetometers (it turns by less than '
     f'about {math.degrees(MIN_TURN_RAD):.0f} degrees)'
 )
-

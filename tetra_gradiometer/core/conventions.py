@@ -98,8 +98,10 @@ def describe_axes(matrix: FloatArray) -> str:
         rotvec = Rotation.from_matrix(matrix).as_rotvec()
         angle = float(np.degrees(np.linalg.norm(rotvec)))
         axis = rotvec / np.linalg.norm(rotvec)
-        about = names[int(np.argmax(np.abs(axis)))] if np.max(np.abs(axis)) > 0.99 else (
-            '(' + ', '.join(f'{v:+.2f}' for v in axis) + ')'
+        about = (
+            names[int(np.argmax(np.abs(axis)))]
+            if np.max(np.abs(axis)) > 0.99
+            else ('(' + ', '.join(f'{v:+.2f}' for v in axis) + ')')
         )
         return f'{mapping}: turned {angle:.0f} deg about {about}{frd}'
     return f'{mapping}: mirrored (a left-handed frame)'
@@ -210,8 +212,10 @@ def _position_hypotheses(positions: FloatArray) -> list[tuple[str, FloatArray]]:
             candidate = positions[list(order)]
             parts = []
             if order != (0, 1, 2, 3):
-                listed = 'in reverse order' if order == (3, 2, 1, 0) else (
-                    'in the order ' + ', '.join(str(i + 1) for i in order)
+                listed = (
+                    'in reverse order'
+                    if order == (3, 2, 1, 0)
+                    else ('in the order ' + ', '.join(str(i + 1) for i in order))
                 )
                 parts.append(f'sensor_positions were listed {listed}')
             if mirrored:

@@ -227,4 +227,5 @@ COSTS = {
     'calibrate': 'no regional gradient (assumed zero) and coverage from the body-frame field',
     'discrepancy': "B^b taken as B_1' (no Earth field through /odom)",
     'locate': 'no targets',
+    'survey': 'no survey (its products are gridded on the track)',
 }

@@ -251,7 +251,7 @@ class SigmaModel:
         if self.n_regressors:
             if regressors is None or np.shape(regressors) != (len(b_reference), self.n_regressors):
                 raise InputError(
-                    f'this sigma model needs the terms\' {self.n_regressors} regressors per sample'
+                    f"this sigma model needs the terms' {self.n_regressors} regressors per sample"
                 )
             blocks.append(np.asarray(regressors, dtype=float))
         return self._sigma(np.concatenate(blocks, axis=1)).reshape(-1, 3, 3)

@@ -79,6 +79,16 @@ def parse_origin(text: str) -> tuple[float, float, float]:
 MAX_EARTH_FIELD_OFFSET_T = 10e-6
 
 
+def igrf_at(origin: tuple[float, float, float], when_ns: int) -> FloatArray:
+    """IGRF (3,) T ENU at ``origin`` (lat, lon, h) and ``when_ns`` (ns since the epoch)."""
+    import datetime as dt
+
+    from .scenario import igrf_field_enu
+
+    when = dt.datetime.fromtimestamp(when_ns * 1e-9, tz=dt.UTC).replace(tzinfo=None)
+    return igrf_field_enu(origin[0], origin[1], when, origin[2])
+
+
 def origin_earth_check(
     origin: tuple[float, float, float], earth_field_enu: FloatArray, when_ns: int
 ) -> tuple[str | None, bool]:
@@ -87,19 +97,14 @@ def origin_earth_check(
     :data:`MAX_EARTH_FIELD_OFFSET_T`. Returns (None, False) when it is; else the line, and
     whether the origin given as LON,LAT explains it (the field at the swapped place within
     half the offset, and the bound): then the placement is surely wrong."""
-    import datetime as dt
-
-    from .scenario import igrf_field_enu
-
-    when = dt.datetime.fromtimestamp(when_ns * 1e-9, tz=dt.UTC).replace(tzinfo=None)
     lat, lon, h = origin
     declared = np.asarray(earth_field_enu, dtype=float)
-    offset = float(np.linalg.norm(igrf_field_enu(lat, lon, when, h) - declared))
+    offset = float(np.linalg.norm(igrf_at(origin, when_ns) - declared))
     if offset <= MAX_EARTH_FIELD_OFFSET_T:
         return None, False
     swapped = np.inf
     if -90.0 <= lon <= 90.0:
-        swapped = float(np.linalg.norm(igrf_field_enu(lon, lat, when, h) - declared))
+        swapped = float(np.linalg.norm(igrf_at((lon, lat, h), when_ns) - declared))
     if swapped <= min(0.5 * offset, MAX_EARTH_FIELD_OFFSET_T):
         return (
             f'--origin {lat:g},{lon:g} looks given as LON,LAT: the IGRF field there differs from '

@@ -232,25 +232,28 @@ def read_recording(
     window_s: tuple[float, float] | None = None,
     progress: bool | None = None,
     uses: str = 'discrepancy',
-    earth_field_t: float | None = None,
+    earth_field_enu: FloatArray | None = None,
 ) -> Recording:
     """Read a bag per the data contract into a :class:`Recording` (whole, in memory).
 
     Optional topics are interpolated onto the set stamps (slerp for orientation, linear for
     positions and scalars, held at the ends); an absent topic is named in ``missing``. Sets with an
     implausible reading are dropped and counted in ``dropped``. The streams are checked as
-    they are read (``earth_field_t``: the expected ``|B|``, T; :mod:`~tetra_gradiometer.core.
-    streams`) and ``/odom`` before it is used (:func:`odometry_at`; ``uses`` names the
-    command, for what going without it costs): an unusable pose is left out and named in
-    ``missing``.
+    they are read (against ``earth_field_enu`` (3,) T's norm; :mod:`~tetra_gradiometer.core.
+    streams`) and ``/odom`` before it is used (:func:`odometry_at`, its world frame against
+    ``earth_field_enu``; ``uses`` names the command, for what going without it costs): an
+    unusable pose is left out and named in ``missing``.
     """
     with MagneticBag(path) as bag:
-        stamps, fields = bag.read_sets(timebase=timebase, window_s=window_s, progress=progress)
+        earth_t = None if earth_field_enu is None else float(np.linalg.norm(earth_field_enu))
+        stamps, fields = bag.read_sets(
+            timebase=timebase, window_s=window_s, progress=progress, earth_field_t=earth_t
+        )
         keep, dropped = plausible_sets(fields)
         if not keep.any():
             raise BagError(f'{path}: every set has an implausible reading ({dropped.text()})')
         stamps, fields = stamps[keep], fields[keep]
-        odometry = odometry_at(bag, stamps, fields[:, 0], uses)
+        odometry = odometry_at(bag, stamps, fields[:, 0], uses, earth_field_enu)
         extras: dict[str, np.ndarray | None] = {
             'orientation_xyzw': odometry.orientation_xyzw,
             'position_m': odometry.position_m,

@@ -396,8 +396,8 @@ def sensor_axes_check(fields: FloatArray, window: str, force: bool) -> tuple[str
     text = '; '.join(f.text() for f in findings)
     cause = (
         f'window {window}: {text}. Every sensor reads the same Earth field in the body frame '
-        'up to the vehicle interference, so its axes against sensor 1\'s follow from the '
-        'data: mount the sensor as declared or rotate its readings (its driver\'s frame) '
+        "up to the vehicle interference, so its axes against sensor 1's follow from the "
+        "data: mount the sensor as declared or rotate its readings (its driver's frame) "
         'before calibrating'
     )
     return forced([AssumptionError(cause)], force)

@@ -53,9 +53,8 @@ def analyze_bag(
     BagError
         The bag breaks the data contract, or every set has an implausible reading.
     """
-    earth_t = None if earth_field_enu is None else float(np.linalg.norm(earth_field_enu))
     recording = read_recording(
-        bag_path, timebase=timebase, progress=progress, earth_field_t=earth_t
+        bag_path, timebase=timebase, progress=progress, earth_field_enu=earth_field_enu
     )
     run = RecordedRun(
         recording.t_s,

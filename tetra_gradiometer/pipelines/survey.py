@@ -139,21 +139,27 @@ def survey_bag(
     timebase: TimeBase = DEFAULT_TIMEBASE,
     progress: bool | None = None,
     on_stage: Callable[[str], None] | None = None,
+    earth_field_enu: np.ndarray | None = None,
 ) -> SurveyResult:
     """The survey products of ``bag`` (module docstring), placed by ``origin`` (lat, lon,
-    h) or fitted to the fixes of ``navsat_topic`` (exactly one of them).
+    h) or fitted to the fixes of ``navsat_topic`` (exactly one of them). ``earth_field_enu``
+    (3,) T: the Earth field there (the params file's, or IGRF at ``origin``), against which
+    the odometry's world frame is tested (ENU, not NED).
 
     Raises
     ------
-    BagError : no ``/odom``, the NavSatFix topic is absent or empty, the data contract
+    BagError : no usable ``/odom`` (the cause named), the NavSatFix topic is absent or empty,
+        the data contract
     InputError : both or neither placement, too few fixes, nothing to grid
     """
     timings: dict[str, float] = {}
     clock = time.perf_counter()
     _stage(on_stage, 'reading the bag')
-    recording = read_recording(bag, timebase=timebase, progress=progress)
+    recording = read_recording(
+        bag, timebase=timebase, progress=progress, uses='survey', earth_field_enu=earth_field_enu
+    )
     if recording.position_m is None or recording.orientation_xyzw is None:
-        raise BagError(f'{bag}: no {cv.ODOM_TOPIC} in the bag: the survey is gridded on the track')
+        raise BagError(f'{bag}: {recording.missing[cv.ODOM_TOPIC]}')
     timings['read'] = time.perf_counter() - clock
     clock = time.perf_counter()
     _stage(on_stage, 'compensating and placing the track')

@@ -91,11 +91,13 @@ def locate_bag(
     progress: bool | None = None,
     on_stage: Callable[[str], None] | None = None,
     allow_missing_channels: bool = False,
+    earth_field_enu: np.ndarray | None = None,
 ) -> BagTargets:
     """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
     7, when None) and, with ``comparison``, the raw one too. ``allow_missing_channels``: a
     channel the terms read that the bag lacks holds its terms at their calibration-window
-    mean instead of refusing (``compensate --allow-missing-channels``).
+    mean instead of refusing (``compensate --allow-missing-channels``). ``earth_field_enu``
+    (3,) T, the params file's: the odometry's world frame is tested against it.
 
     Raises
     ------
@@ -104,7 +106,9 @@ def locate_bag(
     InputError
         No straight leg to search (:func:`~tetra_gradiometer.core.targets.detect`).
     """
-    recording = read_recording(bag, timebase=timebase, progress=progress, uses='locate')
+    recording = read_recording(
+        bag, timebase=timebase, progress=progress, uses='locate', earth_field_enu=earth_field_enu
+    )
     raw = difference_tensor(recording.fields, geometry)
     track = survey_of(recording, raw, str(bag))  # the pose once; each search its tensor
     searches: list[Search] = []

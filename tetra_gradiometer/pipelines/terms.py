@@ -482,7 +482,7 @@ class WindowRanges:
             parts.append(
                 f'{self.names[j]} regressor {self.low[j]:.4g} to {self.high[j]:.4g} on '
                 f'{self.outside[j] / self.sets:.0%} of the sets, beyond the calibration '
-                f'window\'s {mean - bound:.4g} to {mean + bound:.4g}{hint}'
+                f"window's {mean - bound:.4g} to {mean + bound:.4g}{hint}"
             )
         return ('extrapolated beyond the calibration: ' + '; '.join(parts)) if parts else ''
 

@@ -92,7 +92,7 @@ def assess_window(
     orientation = result.orientation_xyzw  # read for the joint fit: every set has one
     if orientation is None:  # not read, or some sets lack one: the coverage takes the rest
         with MagneticBag(bag_path) as bag:  # checked (io/recording.odometry_at)
-            odometry = odometry_at(bag, stamps, fields[:, 0], 'calibrate')
+            odometry = odometry_at(bag, stamps, fields[:, 0], 'calibrate', earth_field_enu)
         if odometry.orientation_xyzw is not None and odometry.check is not None:
             check = odometry.check
             orientation = orientation_at(

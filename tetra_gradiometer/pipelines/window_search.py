@@ -116,12 +116,16 @@ class FoundWindow:
         }
 
 
-def _orientation(bag_path: str | os.PathLike[str], sets: WindowSets) -> np.ndarray | None:
+def _orientation(
+    bag_path: str | os.PathLike[str], sets: WindowSets, earth_field_enu: np.ndarray | None
+) -> np.ndarray | None:
     """``/odom``'s attitude on the sets, checked as every command checks it
     (:func:`~tetra_gradiometer.io.recording.odometry_at`); None when absent or unusable (the
     calibration of the chosen window says so)."""
     with MagneticBag(bag_path) as bag:
-        odometry = odometry_at(bag, sets.stamps_ns, sets.fields[:, 0], 'calibrate')
+        odometry = odometry_at(
+            bag, sets.stamps_ns, sets.fields[:, 0], 'calibrate', earth_field_enu
+        )
     return odometry.orientation_xyzw
 
 
@@ -206,7 +210,7 @@ def find_window(
         earth_field_t=earth_norm,
     )
     sensor_axes_check(sets.fields, f'0:{sets.span_s:.1f} s (the whole bag)', force=False)
-    orientation = _orientation(bag_path, sets)
+    orientation = _orientation(bag_path, sets, earth_field_enu)
     earth = earth_field_enu
     if earth is None and orientation is not None:
         earth = odom_earth_field(orientation, sets.fields[:, 0])
