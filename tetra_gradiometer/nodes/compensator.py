@@ -63,6 +63,7 @@ from ..io.calibration import (
 )
 from ..io.channels import channel_topic
 from ..io.matching import StampPairer
+from ..pipelines.health import alarm_cause
 from .authentication import CalibrationGate, Refused, key_file_spec, node_key
 from .channels import LiveEffects, channel_message, subscribe_channels
 from .common import (
@@ -184,6 +185,7 @@ class CompensatorNode(ManagedNode):
         )
         self._health: HealthMonitor | None = None
         self._health_text = 'off: no calibration'
+        self._health_first_s = 0.0  # the monitor's first sample, s
         self._health_buffer: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._health_sent: dict[int, bool] = {}  # alarm index -> settled when published
         self._effects: LiveEffects | None = None
@@ -359,6 +361,8 @@ class CompensatorNode(ManagedNode):
             return
         self._health_buffer = []
         t_s, g, b = (np.array(column) for column in zip(*buffered, strict=True))
+        if not monitor.samples:
+            self._health_first_s = float(t_s[0])
         try:
             monitor.update(t_s, g, b)
         except InputError as error:  # stamps that do not advance: the monitor stops
@@ -572,7 +576,8 @@ class CompensatorNode(ManagedNode):
             values.update(kind=alarm.kind, sensors=str(list(alarm.sensors)), t_s=alarm.t_s)
             text = (
                 f'ALARM: {alarm.kind} at t={alarm.t_s:.1f} s, sensors {list(alarm.sensors)}: '
-                'the calibration no longer holds; recalibrate'
+                'the calibration no longer holds; '
+                + alarm_cause(monitor.alarms[0].t_s - self._health_first_s, 'run')
             )
             return status(self, 'health', ERROR, text, '', values)
         rising = max(monitor.last_glr, monitor.last_drift) > 0.5 * monitor.threshold

@@ -12,7 +12,7 @@ from ..core.health import HealthConfig, HealthMonitor, HealthTrace
 from ..core.model import InterferenceParameters
 from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS
 
-__all__ = ['BIN_S', 'HealthRecorder']
+__all__ = ['BIN_S', 'HealthRecorder', 'alarm_cause']
 
 #: Set stamps further than this from the bag's first log time are on another clock.
 SAME_CLOCK_NS = 86_400 * NS_PER_S
@@ -21,6 +21,21 @@ SAME_CLOCK_NS = 86_400 * NS_PER_S
 FROM_START_S = 10.0
 #: Plot bins, seconds (the largest statistic of each).
 BIN_S = 1.0
+
+
+def alarm_cause(after_first_s: float, data: str) -> str:
+    """The likely cause of an alarm ``after_first_s`` seconds after the first set of the
+    ``data`` (``recording``, ``run``): from the data's first seconds the calibration never held
+    (made for another vehicle or time, or the array changed since); later, the vehicle changed
+    during it."""
+    if after_first_s <= FROM_START_S:
+        return (
+            f'it does not hold from the start of the data (alarm {after_first_s:.1f} s after '
+            "the first set): this calibration is not this vehicle's as it is now (another "
+            "vehicle's, an old one, or the array changed since the trim: a sensor turned or "
+            f'moved, the positions or frame edited); calibrate on a trim of this {data}'
+        )
+    return f'the vehicle changed during the {data}; recalibrate (a new trim)'
 
 
 class HealthRecorder:
@@ -79,21 +94,6 @@ class HealthRecorder:
             old = self.bins.get(b, (np.nan, np.nan))
             self.bins[b] = (float(np.fmax(old[0], glr_max)), float(np.fmax(old[1], drift_max)))
 
-    def _cause(self, first_alarm_s: float) -> str:
-        """The likely cause of an alarm: from the data's first seconds the calibration never
-        held (made for another vehicle or time, or the array changed since); later, the
-        vehicle changed during the recording."""
-        start = self._first_s if self._first_s is not None else 0.0
-        if first_alarm_s - start <= FROM_START_S:
-            return (
-                f'it does not hold from the start of the data (alarm {first_alarm_s - start:.1f} '
-                "s after the first set): this calibration is not this vehicle's as it is now "
-                "(another vehicle's, an old one, or the array changed since the trim: a sensor "
-                'turned or moved, the positions or frame edited); calibrate on a trim of this '
-                'recording'
-            )
-        return 'the vehicle changed during the recording; recalibrate (a new trim)'
-
     def document(self) -> dict:
         """The content of ``report.json``."""
         monitor, config = self.monitor, self.monitor.config
@@ -104,7 +104,7 @@ class HealthRecorder:
                 f'{len(alarms)} alarm(s): first at {first["t_s"]:.1f} s, {first["kind"]}'
                 + (f', sensor(s) {first["sensors"]}' if first['sensors'] else '')
                 + ': the calibration no longer holds; '
-                + self._cause(float(first['t_s']))
+                + alarm_cause(float(first['t_s']) - (self._first_s or 0.0), 'recording')
             )
         else:
             verdict = 'no change detected'
