@@ -8,7 +8,16 @@ import pytest
 
 from tetra_gradiometer.errors import BagError, InputError
 from tetra_gradiometer.io.bag import BagWriter, typestore
-from tetra_gradiometer.io.geo import Fixes, Georeference, fit_fixes, parse_origin, read_fixes, utm_epsg
+from tetra_gradiometer.io.geo import (
+    FIX_RESIDUAL_WARN_M,
+    MAX_FIX_RESIDUAL_M,
+    Fixes,
+    Georeference,
+    fit_fixes,
+    parse_origin,
+    read_fixes,
+    utm_epsg,
+)
 
 pyproj = pytest.importorskip('pyproj')
 
@@ -87,17 +96,59 @@ def test_navsatfix_topic_is_read_from_a_bag_without_the_no_fix_ones(tmp_path):
     Header = store.types['std_msgs/msg/Header']
     Time = store.types['builtin_interfaces/msg/Time']
     with BagWriter(tmp_path / 'bag', storage='mcap') as writer:
-        for i in range(5):
+        for i in range(6):
             status = -1 if i == 2 else 0
+            lat, lon = (0.0, 0.0) if i == 5 else (43.0 + i * 1e-4, 5.0)  # 5: a receiver's 0, 0
             msg = NavSatFix(
                 header=Header(stamp=Time(sec=100 + i, nanosec=5), frame_id='gps'),
-                status=Status(status=status, service=1), latitude=43.0 + i * 1e-4,
-                longitude=5.0, altitude=0.5, position_covariance=np.zeros(9),
+                status=Status(status=status, service=1), latitude=lat,
+                longitude=lon, altitude=0.5, position_covariance=np.zeros(9),
                 position_covariance_type=0)
             writer.write('/fix', msg, (100 + i) * 1_000_000_000)
     fixes = read_fixes(tmp_path / 'bag', '/fix')
     np.testing.assert_array_equal(fixes.stamps_ns, [(100 + i) * 1_000_000_000 + 5 for i in (0, 1, 3, 4)])
     np.testing.assert_allclose(fixes.lat_deg, [43.0, 43.0001, 43.0003, 43.0004])
+    assert fixes.unlocked == 2
     with pytest.raises(BagError, match='no /gps'):
         read_fixes(tmp_path / 'bag', '/gps')
 
+
+
+def _track_fixes(odom_enu, drift=None):
+    """Fixes of the odom track (N, 3) placed by a known transform, plus ``drift`` (N, 2) m."""
+    truth = Georeference((43.2, 5.3, 0.0), math.radians(-35.0), (60.0, 10.0, 0.0))
+    enu = truth.to_enu(odom_enu)
+    if drift is not None:
+        enu[:, :2] += drift
+    lonlat = truth.to_lonlat(truth.from_enu(enu))
+    return Fixes(np.arange(len(odom_enu)), lonlat[:, 1], lonlat[:, 0], lonlat[:, 2], unlocked=3)
+
+
+def _lawnmower(n=120):
+    """Three 1 km legs 200 m apart, as a survey's fixes at the surface."""
+    t = np.linspace(0.0, 1.0, n // 3)
+    legs = [np.column_stack([1000 * (t if k % 2 == 0 else 1 - t), np.full(len(t), 200.0 * k)]) for k in range(3)]
+    xy = np.vstack(legs)
+    return np.column_stack([xy, np.zeros(len(xy))])
+
+
+def test_fixes_that_miss_the_track_by_kilometres_are_refused_naming_the_cause():
+    odom = _lawnmower()
+    fixes = _track_fixes(odom)
+    assert fit_fixes(fixes, odom, '/fix').residual_m < 0.01
+    ned = odom[:, [1, 0, 2]] * [1, 1, -1]  # the same track published N, E, D
+    with pytest.raises(InputError, match=r'miss the /odom track by \d+ m RMS.*look NED'):
+        fit_fixes(fixes, ned, '/fix')
+    foreign = odom[::-1] * [1.0, 3.0, 1.0]  # another vehicle's track
+    with pytest.raises(InputError, match="not this track's"):
+        fit_fixes(fixes, foreign, '/fix')
+
+
+def test_fixes_that_drift_from_dead_reckoning_are_used_and_said_so():
+    odom = _lawnmower()
+    drift = np.column_stack([np.linspace(0, 150, len(odom)), np.zeros(len(odom))])  # 150 m over the dive
+    fitted = fit_fixes(_track_fixes(odom, drift), odom, '/fix')
+    assert FIX_RESIDUAL_WARN_M < fitted.residual_m < MAX_FIX_RESIDUAL_M
+    line = fitted.describe()
+    assert 'warning: the fixes follow the odometry to' in line and '3 unlocked fixes left out' in line
+    assert 'warning' not in fit_fixes(_track_fixes(odom, drift / 10), odom, '/fix').describe()

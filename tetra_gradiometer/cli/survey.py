@@ -19,6 +19,7 @@ sample's (the calibration's sensor noise, or ``--sensor-noise-nt``, and its cova
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -105,14 +106,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_progress_arguments(parser)
 
 
+def _start_ns(bag: str | os.PathLike[str]) -> int:
+    """The bag's first log time, ns since the epoch."""
+    with MagneticBag(bag) as reader:
+        return int(reader.reader.start_time)
+
+
 def _earth_field(args: argparse.Namespace, earth: np.ndarray | None) -> np.ndarray | None:
     """The Earth field (3,) T ENU the odometry's world frame is tested against: the params
     file's, checked against IGRF at ``--origin`` (io/geo.origin_earth_check: an origin given as
     LON,LAT is refused, another mismatch is a warning), or else IGRF at ``--origin``."""
     if args.origin is None:
         return earth
-    with MagneticBag(args.bag) as bag:
-        start_ns = int(bag.reader.start_time)
+    start_ns = _start_ns(args.bag)
     if earth is None:
         return igrf_at(args.origin, start_ns)
     line, swapped = origin_earth_check(args.origin, earth, start_ns)
@@ -161,6 +167,10 @@ def run(args: argparse.Namespace) -> int:
     out = write_survey(result, args.out, metadata=metadata, force=args.force, inputs=inputs)
     grids = result.grids
     print(result.georeference.describe())
+    if args.navsat_topic and earth is not None:  # the fixes' place against the params' field
+        line, _ = origin_earth_check(result.georeference.origin, earth, _start_ns(args.bag))
+        if line:
+            print(f'warning: {line.replace("--origin", "the fixes at")}', file=sys.stderr)
     print(
         f'{result.crs}: {grids.mask.shape[1]} x {grids.mask.shape[0]} cells of '
         f'{grids.cell_m:.2f} m '

@@ -51,6 +51,13 @@ NAVSATFIX = 'sensor_msgs/msg/NavSatFix'
 WGS84_LONLAT = 'EPSG:4326'
 #: Fewest fixes :func:`fit_fixes` accepts (a rotation and a translation: 3 unknowns).
 MIN_FIXES = 3
+#: Fixes that follow the odometry worse than this, m RMS, are said to (GNSS at the surface
+#: agrees to a few metres; dead reckoning between surfacings drifts by tens).
+FIX_RESIDUAL_WARN_M = 25.0
+#: Worse than this, m RMS, or than this share of the track's RMS spread, they are not this
+#: track's (another vehicle's fixes, another frame): refused.
+MAX_FIX_RESIDUAL_M = 500.0
+MAX_FIX_RESIDUAL_SHARE = 0.25
 
 
 def _pyproj() -> Any:
@@ -137,6 +144,7 @@ class Georeference:
     source : where it came from ('--origin' or the NavSatFix topic)
     residual_m : RMS horizontal misfit of the fixes, m (NaN for '--origin')
     n_fixes : fixes used (0 for '--origin')
+    n_unlocked : fixes left out as unlocked (NO_FIX, non-finite, or 0, 0)
     """
 
     origin: tuple[float, float, float]
@@ -145,6 +153,7 @@ class Georeference:
     source: str = '--origin'
     residual_m: float = float('nan')
     n_fixes: int = 0
+    n_unlocked: int = 0
 
     @property
     def rotation(self) -> FloatArray:
@@ -210,23 +219,34 @@ class Georeference:
         if self.n_fixes:
             text += (
                 f' ({self.n_fixes} fixes, yaw {math.degrees(self.yaw_rad):.3f} deg, '
-                f'residual {self.residual_m:.3f} m RMS)'
+                f'residual {self.residual_m:.3f} m RMS'
+                + (f'; {self.n_unlocked} unlocked fixes left out' if self.n_unlocked else '')
+                + ')'
+            )
+        if self.residual_m > FIX_RESIDUAL_WARN_M:
+            text += (
+                f'; warning: the fixes follow the odometry to {self.residual_m:.0f} m RMS, not '
+                'the few metres of GNSS: dead-reckoning drift between fixes, or fixes taken '
+                'under water; products are placed no better'
             )
         return text
 
 
 @dataclass(frozen=True)
 class Fixes:
-    """A NavSatFix topic's fixes: stamps (N,) ns, lat, lon (N,) degrees, alt (N,) m."""
+    """A NavSatFix topic's fixes: stamps (N,) ns, lat, lon (N,) degrees, alt (N,) m;
+    ``unlocked`` the messages left out (NO_FIX, non-finite or at 0, 0)."""
 
     stamps_ns: np.ndarray
     lat_deg: FloatArray
     lon_deg: FloatArray
     alt_m: FloatArray
+    unlocked: int = 0
 
 
 def read_fixes(bag_path: str | os.PathLike[str], topic: str) -> Fixes:
-    """The fixes of ``topic`` (status >= 0, finite lat/lon) in the bag, by header stamp.
+    """The fixes of ``topic`` in the bag, by header stamp: status >= 0, finite lat/lon, and
+    not exactly 0, 0 (a receiver's value before its first fix); the rest counted.
 
     Raises
     ------
@@ -235,7 +255,7 @@ def read_fixes(bag_path: str | os.PathLike[str], topic: str) -> Fixes:
     """
     from .bag import MagneticBag
 
-    stamps, rows = [], []
+    stamps, rows, unlocked = [], [], 0
     with MagneticBag(bag_path) as bag:
         reader = bag.reader
         connections = [c for c in reader.connections if c.topic == topic]
@@ -246,13 +266,20 @@ def read_fixes(bag_path: str | os.PathLike[str], topic: str) -> Fixes:
         for connection, _, raw in reader.messages(connections=connections):
             msg: Any = reader.deserialize(raw, connection.msgtype)
             row = (msg.latitude, msg.longitude, msg.altitude)
-            if msg.status.status >= 0 and all(math.isfinite(v) for v in row[:2]):
-                stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
-                rows.append(row)
+            locked = msg.status.status >= 0 and all(math.isfinite(v) for v in row[:2])
+            if not locked or row[:2] == (0.0, 0.0):
+                unlocked += 1
+                continue
+            stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+            rows.append(row)
     if not rows:
-        raise BagError(f'{bag_path}: {topic} holds no fix (every status is NO_FIX)')
+        raise BagError(
+            f'{bag_path}: {topic} holds no fix ({unlocked} messages, every one NO_FIX, '
+            'non-finite or at 0, 0)'
+        )
     values = np.asarray(rows, float)
-    return Fixes(np.asarray(stamps, np.int64), values[:, 0], values[:, 1], values[:, 2])
+    stamps_ns = np.asarray(stamps, np.int64)
+    return Fixes(stamps_ns, values[:, 0], values[:, 1], values[:, 2], unlocked)
 
 
 def fit_fixes(fixes: Fixes, odom_m: FloatArray, source: str) -> Georeference:
@@ -262,7 +289,9 @@ def fit_fixes(fixes: Fixes, odom_m: FloatArray, source: str) -> Georeference:
     Raises
     ------
     InputError
-        Fewer than :data:`MIN_FIXES` fixes, or fixes all at one place (no rotation).
+        Fewer than :data:`MIN_FIXES` fixes, fixes all at one place (no rotation), or fixes
+        that miss the track by more than :data:`MAX_FIX_RESIDUAL_M` RMS or a quarter of its
+        spread (the odometry's x and y swapped named when that fits: NED positions).
     """
     odom = np.asarray(odom_m, float)
     if len(odom) < MIN_FIXES:
@@ -271,16 +300,37 @@ def fit_fixes(fixes: Fixes, odom_m: FloatArray, source: str) -> Georeference:
     tangent = Georeference(origin)
     geodetic = np.column_stack([fixes.lon_deg, fixes.lat_deg, fixes.alt_m])
     enu = tangent.from_lonlat(geodetic)  # yaw 0, offset 0: the tangent frame itself
-    a, b = odom[:, :2], enu[:, :2]
-    a_mean, b_mean = a.mean(axis=0), b.mean(axis=0)
-    cross = (a - a_mean).T @ (b - b_mean)
-    if np.sqrt(np.sum(np.square(a - a_mean), axis=1)).max() < 1.0:
+    if np.sqrt(np.sum(np.square(odom[:, :2] - odom[:, :2].mean(axis=0)), axis=1)).max() < 1.0:
         raise InputError(f'{source}: the fixes lie within 1 m of each other: no heading to fit')
-    yaw = math.atan2(cross[0, 1] - cross[1, 0], cross[0, 0] + cross[1, 1])
-    fitted = Georeference(origin, yaw)
-    horizontal = b_mean - fitted.rotation[:2, :2] @ a_mean
+    yaw, horizontal, residual = _plane_fit(odom[:, :2], enu[:, :2])
+    swapped = _plane_fit(odom[:, 1::-1], enu[:, :2])[2] if residual > FIX_RESIDUAL_WARN_M else 0
+    # a misfit near the track's own size is no placement: the fit only centred it
+    spread = float(np.sqrt(np.mean(np.sum(np.square(odom[:, :2] - odom[:, :2].mean(0)), axis=1))))
+    limit = min(MAX_FIX_RESIDUAL_M, max(FIX_RESIDUAL_WARN_M, MAX_FIX_RESIDUAL_SHARE * spread))
+    if residual > max(4.0 * swapped, FIX_RESIDUAL_WARN_M) or residual > limit:
+        cause = (
+            f'with its x and y swapped the track fits them to {swapped:.1f} m: the /odom '
+            'positions look NED (x north, y east; REP 103 is ENU)'
+            if 4.0 * swapped < residual
+            else "the fixes are not this track's (another vehicle's or another time's), or the "
+            'odometry is in another frame'
+        )
+        raise InputError(
+            f'{source}: the {len(odom)} fixes miss the /odom track by {residual:.0f} m RMS '
+            f'(GNSS: a few metres): {cause}'
+        )
     vertical = float(np.mean(enu[:, 2] - odom[:, 2]))
     offset = (float(horizontal[0]), float(horizontal[1]), vertical)
-    misfit = b - (a @ fitted.rotation[:2, :2].T + horizontal)
-    residual = float(np.sqrt(np.mean(np.sum(misfit**2, axis=1))))
-    return Georeference(origin, yaw, offset, source, residual, len(odom))
+    return Georeference(origin, yaw, offset, source, residual, len(odom), fixes.unlocked)
+
+
+def _plane_fit(a: FloatArray, b: FloatArray) -> tuple[float, FloatArray, float]:
+    """The rotation about up (yaw, rad) and translation (2,) m taking points ``a`` (N, 2)
+    onto ``b`` (N, 2) in least squares (2D Kabsch), and the RMS misfit, m."""
+    a_mean, b_mean = a.mean(axis=0), b.mean(axis=0)
+    cross = (a - a_mean).T @ (b - b_mean)
+    yaw = math.atan2(cross[0, 1] - cross[1, 0], cross[0, 0] + cross[1, 1])
+    rotation = Georeference((0.0, 0.0, 0.0), yaw).rotation[:2, :2]
+    horizontal = b_mean - rotation @ a_mean
+    misfit = b - (a @ rotation.T + horizontal)
+    return yaw, horizontal, float(np.sqrt(np.mean(np.sum(misfit**2, axis=1))))

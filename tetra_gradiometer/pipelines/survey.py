@@ -274,7 +274,11 @@ def georeference_of(
         [np.interp(fixes.stamps_ns[inside], stamps, c) for c in recording.position_m.T]
     )
     used = Fixes(
-        fixes.stamps_ns[inside], fixes.lat_deg[inside], fixes.lon_deg[inside], fixes.alt_m[inside]
+        fixes.stamps_ns[inside],
+        fixes.lat_deg[inside],
+        fixes.lon_deg[inside],
+        fixes.alt_m[inside],
+        fixes.unlocked,
     )
     return fit_fixes(used, odom, navsat_topic)
 
