@@ -129,3 +129,15 @@ def test_compensate_names_positions_listed_in_reverse_and_is_quiet_when_right(tm
     assert 'not a gradient' not in texts['right']
     assert 'warning: the compensated tensor is not a gradient' in texts['reversed']
     assert 'sensor_positions were listed in reverse order' in texts['reversed']
+
+
+def test_frame_ids_are_read_as_evidence_of_order_and_frame():
+    from tetra_gradiometer.core.conventions import frame_id_hints
+
+    assert frame_id_hints(['tetra_mag1', 'tetra_mag2', 'tetra_mag3', 'tetra_mag4']) == ''
+    assert frame_id_hints(['sensor_0', 'sensor_1', 'sensor_2', 'sensor_3']) == ''  # numbered from 0
+    assert frame_id_hints(['base_link'] * 4) == ''  # one frame for all: says nothing of order
+    reversed_order = frame_id_hints(['Magnetometer-4', 'magnetometer-3', 'magnetometer-2', 'magnetometer-1'])
+    assert "sensor 1: 'Magnetometer-4'" in reversed_order and 'another order' in reversed_order
+    assert 'declares NED' in frame_id_hints(['mag1_ned', 'mag2', 'mag3', 'mag4'])
+    assert frame_id_hints(['friday_mag1', 'mag2', 'mag3', 'mag4']) == ''  # 'frd' only as a word

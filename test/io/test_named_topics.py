@@ -17,7 +17,7 @@ from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io.bag import BagWriter
 
 
-def _named(path, mission, mag_topics, odom_topic, scale=1.0, writer=None):
+def _named(path, mission, mag_topics, odom_topic, scale=1.0, writer=None, frames=cv.MAG_FRAMES):
     """The mission with sensor s on ``mag_topics[s]`` and odometry on ``odom_topic``; sensor
     2's field times ``scale`` (another vehicle's data)."""
     log = START_NS + np.round(mission.t * 1e9).astype(np.int64)
@@ -25,7 +25,7 @@ def _named(path, mission, mag_topics, odom_topic, scale=1.0, writer=None):
         for i, stamp in enumerate(log):
             for sensor in range(4):
                 field = (scale if sensor == 1 else 1.0) * mission.fields_measured[i, sensor]
-                data = cv.magnetic_field_cdr(field, int(stamp), cv.MAG_FRAMES[sensor])
+                data = cv.magnetic_field_cdr(field, int(stamp), frames[sensor])
                 writer.write_raw(mag_topics[sensor], cv.MAGNETIC_FIELD, data, int(stamp))
             msg = cv.odometry_msg(writer.types, mission.position_enu[i], mission.orientation_xyzw[i], int(stamp))
             writer.write(odom_topic, msg, int(stamp))
@@ -147,3 +147,21 @@ def test_a_topic_name_the_bag_lacks_is_refused_naming_what_it_has(tmp_path, caps
         run_cli(capsys, 'calibrate', bag, '--params', params, '--mag-topics', '/a,/b,/c', '--out', tmp_path / 'c.yaml')
     assert usage.value.code == 2 and '--mag-topics: expected 4 topics, got 3' in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in ('c.yaml', 'c.csv', 'targets'))
+
+
+def test_frame_ids_of_other_sensors_or_frames_are_said(tmp_path, capsys):
+    """The driver's frame_ids are evidence: mag1..4 carrying the frames of sensors 3, 1, 4,
+    2 (topics in another order), or an FRD frame, are named on the reader's line."""
+    mission = short_mission(trim_s=40.0, survey_s=5.0)
+    params = write_params(tmp_path / 'params.yaml')
+    topics = list(cv.BAG_MAG_TOPICS)
+    for name, frames, said in (
+            ('order', ('imu/mag3', 'imu/mag1', 'imu/mag4', 'imu/mag2'), "sensor 1: 'imu/mag3'"),
+            ('frd', ('mag1_frd', 'mag2_frd', 'mag3_frd', 'mag4_frd'), "declares FRD (x forward"),
+            ('plain', cv.MAG_FRAMES, None)):
+        bag = _named(tmp_path / name, mission, topics, cv.ODOM_TOPIC, frames=frames)
+        _, out = _calibration(capsys, tmp_path, name, bag, params)
+        if said is None:
+            assert 'carry frame_ids' not in out and 'declares' not in out
+        else:
+            assert said in out

@@ -27,6 +27,8 @@ apart, both are named.
 from __future__ import annotations
 
 import itertools
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +44,7 @@ __all__ = [
     'TensorSample',
     'asymmetry_share',
     'describe_axes',
+    'frame_id_hints',
     'relative_axes',
     'tensor_conventions',
 ]
@@ -319,3 +322,35 @@ class TensorSample:
 
 #: The written tensors the self-check keeps (thinned evenly over the bag).
 SAMPLE_SETS = 20_000
+
+
+#: A frame_id's sensor number: ``mag3``, ``magnetometer_3``, ``sensor-3``, ``tetra_mag3``.
+_SENSOR_NUMBER = re.compile(r'(?:mag|magnetometer|sensor)[_-]?(\d+)', re.IGNORECASE)
+#: frame_id words that declare a frame other than REP 103's FLU.
+_OTHER_FRAMES = {'frd': 'FRD (x forward, y right, z down)', 'ned': 'NED (x north, y east, z down)'}
+
+
+def frame_id_hints(frame_ids: Sequence[str]) -> str:
+    """'' or what the magnetometers' ``frame_id`` (sensor order, one each) say against the
+    declared array: numbered sensors in another order than the topics', or a frame other
+    than FLU. Evidence, not proof: a frame_id is whatever the driver was configured with."""
+    hints = []
+    numbers = [_SENSOR_NUMBER.search(frame) for frame in frame_ids]
+    if all(numbers):
+        found = [int(m.group(1)) for m in numbers if m]
+        first = min(found)
+        if sorted(found) == list(range(first, first + len(found))) and found != sorted(found):
+            order = ', '.join(f"sensor {i + 1}: '{f}'" for i, f in enumerate(frame_ids))
+            hints.append(
+                f'the magnetometer topics carry frame_ids of other sensors ({order}): the '
+                'topics may be listed in another order than sensor_positions'
+            )
+    words = {w for frame in frame_ids for w in re.split(r'[_\-/.]', frame.lower())}
+    for word, frame in _OTHER_FRAMES.items():
+        if word in words:
+            named = sorted({f for f in frame_ids if word in re.split(r'[_\-/.]', f.lower())})
+            hints.append(
+                f'the frame_id {", ".join(repr(f) for f in named)} declares {frame}, not REP '
+                "103's FLU: the readings' axes are checked from the data"
+            )
+    return '; '.join(hints)

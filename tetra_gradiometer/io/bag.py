@@ -44,6 +44,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from ..core.conventions import frame_id_hints
 from ..core.streams import StreamChecker, StreamReport
 from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, ResampleCounters, TimeBase
 from ..core.units import S_PER_NS
@@ -130,6 +131,7 @@ class MagneticBag:
         self.remap = dict(remap or {})
         self.assumed: dict[str, str] = {}
         self.rates_note = ''
+        self.frames_note: str | None = None  # the magnetometers' frame_ids, once read
         if not self.path.exists():
             raise BagError(f'bag not found: {self.path}')
         if not 0.0 <= max_skipped_fraction <= 1.0:
@@ -193,6 +195,22 @@ class MagneticBag:
         periods = np.array([np.median(np.diff(ts)) for ts in times]) * S_PER_NS
         return None if not np.all(periods > 0) else 1.0 / periods
 
+    def _frame_ids(self) -> list[str]:
+        """Each magnetometer's ``frame_id``, from its first message that decodes ('' for
+        none)."""
+        frames = []
+        for topic in cv.BAG_MAG_TOPICS:
+            frame = ''
+            for connection, _, raw in self.reader.messages(self._connections(topic)):
+                try:
+                    msg: Any = self.reader.deserialize(raw, connection.msgtype)
+                    frame = str(msg.header.frame_id)
+                except Exception:  # a damaged message: the read skips and counts it
+                    continue
+                break
+            frames.append(frame)
+        return frames
+
     def assumed_text(self) -> str:
         """'' or the line saying which recorded topics were read as the contract's."""
         if not self.assumed:
@@ -222,7 +240,12 @@ class MagneticBag:
         messages (/tetra/mag2 at log time 12.3 s: payload cut short; ...)', log times from
         the bag's start, at most three shown."""
         start = self._reader.start_time if self._reader is not None else 0
-        lines = (self.assumed_text(), self.rates_note, summary(self.skipped, start))
+        lines = (
+            self.assumed_text(),
+            self.rates_note,
+            self.frames_note or '',
+            summary(self.skipped, start),
+        )
         return '; '.join(line for line in lines if line)
 
     def record_skip(self, record: SkippedMessage) -> int:
@@ -309,6 +332,8 @@ class MagneticBag:
         if chunk_size < 1:
             raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
         timebase = self._for_rates(timebase)
+        if self.frames_note is None:
+            self.frames_note = frame_id_hints(self._frame_ids())
         form = set_former(timebase)
         self.counters, self.clocks = form.counters, None
         checker = StreamChecker(earth_field_t, str(self.path), timebase.reference_rate_hz)
