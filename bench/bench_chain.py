@@ -18,13 +18,17 @@ the pause between steps (and at the start) the resampler needs two earlier sampl
 sensor before it interpolates, so with offsets those sets are skipped by design.
 
     .venv/bin/python bench/bench_chain.py [--rates 100 200 300 400] [--seconds 5]
-        [--sync interpolate|nearest] [--offsets-ms 0 0.5 2.1 4.0]
+        [--sync interpolate|nearest] [--offsets-ms 0 0.5 2.1 4.0] [--busy 2]
+
+The ``diag`` column is the tensor node's worst ``/diagnostics`` level during the step, and
+below it what its WARN and ERROR statuses said: a chain that loses sets must say so.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import resource
+import subprocess
 import sys
 import tempfile
 import threading
@@ -50,6 +54,10 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument('--seconds', type=float, default=5.0, help='duration of each rate step')
     parser.add_argument('--sync', choices=('interpolate', 'nearest'), default='interpolate',
                         help="the tensor node's parameter sync")
+    parser.add_argument('--queue-depth', type=int, default=200,
+                        help="the tensor node's sensor_queue_depth")
+    parser.add_argument('--busy', type=int, default=0,
+                        help='processes spinning on the CPUs beside the chain (a busy machine)')
     parser.add_argument('--offsets-ms', type=float, nargs=4, default=[0.0] * 4,
                         metavar=('O1', 'O2', 'O3', 'O4'),
                         help="each sensor's publication instant after the reference instant, ms")
@@ -108,6 +116,21 @@ class Driver:
         self.lock = threading.Lock()
         self.node.create_subscription(JointState, 'gradient/compensated', self._on_compensated,
                                       derived_qos(), raw=True)
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.statuses: dict[str, tuple[int, str]] = {}  # the tensor node's, worst of the step
+        self.collecting = False
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        with self.lock:
+            if not self.collecting:
+                return
+            for status in msg.status:
+                if status.name.startswith('tetra/tensor: '):
+                    level = status.level[0] if isinstance(status.level, bytes) else status.level
+                    if level >= self.statuses.get(status.name, (-1, ''))[0]:
+                        self.statuses[status.name] = (level, status.message)
 
     def _on_compensated(self, data: bytes) -> None:
         now = time.time_ns()
@@ -133,6 +156,8 @@ class Driver:
         """One rate step: ``(rate, achieved, sent, received, drops, p50, p99, max)``, ms."""
         with self.lock:
             self.received.clear()
+            self.statuses.clear()
+            self.collecting = True
         n = int(rate * seconds)
         reference: dict[int, int] = {}  # set index -> sensor 1's stamp
         events = schedule(rate, LEAD_IN_SETS + n, offsets_ms)
@@ -145,7 +170,10 @@ class Driver:
             if 0 in sensors:
                 reference[i] = stamp
         achieved = n / max(time.monotonic() - start - LEAD_IN_SETS / rate, 1e-9)
-        time.sleep(1.0)
+        time.sleep(0.8)  # the last sets, and the diagnostics that saw them (every 1 s)
+        with self.lock:
+            self.collecting = False  # the silence after the step is not the step's
+        time.sleep(0.7)
         sent = [reference[i] for i in range(LEAD_IN_SETS, LEAD_IN_SETS + n)]
         with self.lock:
             latencies = np.array([self.received[s] - s for s in sent if s in self.received]) * 1e-6
@@ -175,11 +203,15 @@ def own_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def print_step(result: tuple) -> None:
+def print_step(result: tuple, statuses: dict[str, tuple[int, str]]) -> None:
     rate, achieved, n, count, drops, p50, p99, worst = result
     short = '' if achieved > 0.98 * rate else f'  (publisher reached only {achieved:.0f}/s)'
-    print(f'{rate:8.0f} {n:6d} {count:6d} {drops:6d} {p50:8.2f} {p99:8.2f} {worst:8.2f}{short}',
-          flush=True)
+    level = max((lv for lv, _ in statuses.values()), default=-1)
+    print(f'{rate:8.0f} {n:6d} {count:6d} {drops:6d} {p50:8.2f} {p99:8.2f} {worst:8.2f} '
+          f'{"OK WARN ERROR".split()[level] if level >= 0 else "none":>6}{short}', flush=True)
+    for name, (lv, text) in sorted(statuses.items()):
+        if lv > 0:  # what the tensor node said of the step (its worst)
+            print(f'    {name}: {text}', flush=True)
 
 
 def print_result(results: list[tuple]) -> None:
@@ -202,8 +234,9 @@ def main() -> int:
 
     domain = unique_domain()
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    busy = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(args.busy)]
     calibration, fields = write_calibration(Path(tempfile.mkdtemp(prefix='tg_bench_')))
-    processes = [NodeProcess('tensor', domain, {'sensor_queue_depth': 200, 'sync': args.sync}),
+    processes = [NodeProcess('tensor', domain, {'sensor_queue_depth': args.queue_depth, 'sync': args.sync}),
                  NodeProcess('compensator', domain, {'calibration_file': str(calibration)})]
     rclpy.init(domain_id=domain)
     driver = Driver(fields)
@@ -219,20 +252,23 @@ def main() -> int:
               f'separate processes; sensor offsets {offsets} ms; {os.cpu_count()} CPUs (shared), '
               f'load average {os.getloadavg()[0]:.2f}', flush=True)
         print(f'{"rate/s":>8} {"sent":>6} {"recv":>6} {"drops":>6} {"p50 ms":>8} {"p99 ms":>8} '
-              f'{"max ms":>8}')
+              f'{"max ms":>8} {"diag":>6}')
         results, cpu = [], []
         for rate in args.rates:
             before = [session_cpu_s(p.process.pid) for p in processes] + [own_cpu_s()]
             results.append(driver.run_step(rate, args.seconds, args.offsets_ms))
             after = [session_cpu_s(p.process.pid) for p in processes] + [own_cpu_s()]
-            cpu.append([(b - a) / results[-1][3] * 1000 for a, b in zip(before, after)])
-            print_step(results[-1])
+            cpu.append([(b - a) / results[-1][3] * 1000 for a, b in zip(before, after, strict=True)])
+            with driver.lock:
+                print_step(results[-1], dict(driver.statuses))
         print_result(results)
-        for (rate, *_), (tensor, compensator, bench) in zip(results, cpu):
+        for (rate, *_), (tensor, compensator, bench) in zip(results, cpu, strict=True):
             print(f'CPU per 1000 sets at {rate:.0f}/s: tensor {tensor:.2f} s, compensator '
                   f'{compensator:.2f} s, bench driver {bench:.2f} s (total '
                   f'{tensor + compensator + bench:.2f} s)')
     finally:
+        for process in busy:
+            process.kill()
         executor.shutdown(timeout_sec=2)
         if spinner.is_alive():
             spinner.join(timeout=5)

@@ -10,10 +10,19 @@ from .units import NS_PER_S
 
 __all__ = ['LiveStreamCheck']
 
-#: A sensor's period is the median of its last MAX_INTERVALS intervals, once it has
-#: MIN_INTERVALS of them.
+#: A sensor's last MAX_INTERVALS intervals (up to a silence, gaps too: a window of its own
+#: choosing could lock onto a wrong rate) give its period, every MIN_INTERVALS. Regular
+#: stamps (the median interval at least half the mean) have the median as period and usual
+#: interval: robust to losing a third of the messages, and to stalls that catch up. Stamps
+#: taken on arrival come in bursts: the period is the mean interval and the usual one the
+#: window's longest (a burst's boundary is no loss); there only gaps longer than any recent
+#: interval are counted, fewer than were lost, never more. A gap is an interval over
+#: LOSS_FACTOR usual ones; it misses (gap - usual) / period messages, less what the regular
+#: stream's next intervals under a period make up (1 - interval / period each, within twice
+#: the gap's periods: the late messages of a stall that catches up).
 MIN_INTERVALS = 8
-MAX_INTERVALS = 32
+MAX_INTERVALS = 128
+LOSS_FACTOR = 1.5
 
 
 class LiveStreamCheck:
@@ -43,9 +52,12 @@ class LiveStreamCheck:
         self.silence_ns = silence_s * NS_PER_S
         self.recent_ns = recent_s * NS_PER_S
         self.dropped = [dict.fromkeys(self.KINDS, 0) for _ in range(4)]
-        self.missing = [0] * 4
+        self._gaps = [0.0] * 4  # periods the gaps in the stamps miss
+        self._early = [0.0] * 4  # periods the intervals under a period make up after a gap
+        self._owed = [(0.0, 0)] * 4  # a recent gap's periods not yet made up, for n intervals
         self._intervals: list[list[int]] = [[] for _ in range(4)]
-        self._period = [0.0] * 4  # the median of the intervals, ns
+        self._period = [0.0] * 4  # the mean of the intervals, ns
+        self._usual = [0.0] * 4  # the longest usual interval, ns
         self._norms = [np.zeros(history) for _ in range(4)]
         self._filled = [0] * 4
         self.reset()
@@ -83,21 +95,40 @@ class LiveStreamCheck:
         return True
 
     def _count_missing(self, sensor: int, interval_ns: int) -> None:
-        """Messages missing between two accepted stamps, by the sensor's own period (the
-        median of its last intervals): lost before the node (a queue too short, a publisher
-        or the node too slow), which nothing else sees."""
+        """Messages missing between two accepted stamps, by the sensor's own period where
+        the gap exceeds its usual intervals (:data:`LOSS_FACTOR`): lost before
+        the node (a queue too short, the node or the link too slow) or never sent, which
+        nothing else sees."""
+        if interval_ns > self.silence_ns:  # a silence (stale), no interval of the clock
+            return
+        period, usual = self._period[sensor], self._usual[sensor]
+        owed, within = self._owed[sensor]
+        if period > 0 and interval_ns > LOSS_FACTOR * usual:
+            gap = max((interval_ns - usual) / period, 1.0)
+            self._gaps[sensor] += gap
+            owed, within = owed + gap, int(2 * (owed + gap)) + 2
+        elif owed > 0 and usual == period and interval_ns < period:  # regular stamps only
+            made_up = min(owed, 1.0 - interval_ns / period)
+            self._early[sensor] += made_up
+            owed -= made_up
+        self._owed[sensor] = (owed, within - 1) if within > 1 else (0.0, 0)
         intervals = self._intervals[sensor]
-        if len(intervals) >= MIN_INTERVALS:
-            period = self._period[sensor]
-            if period > 0 and interval_ns > 1.5 * period:
-                if interval_ns <= self.silence_ns:  # a longer one is a silence (stale)
-                    self.missing[sensor] += int(round(interval_ns / period)) - 1
-                return  # a gap is no interval of the clock
         intervals.append(interval_ns)
         del intervals[:-MAX_INTERVALS]
-        # The median every MIN_INTERVALS intervals, not per message (the node's hot path).
-        if len(intervals) == MIN_INTERVALS or self._filled[sensor] % MIN_INTERVALS == 0:
-            self._period[sensor] = float(np.median(intervals))
+        # Every MIN_INTERVALS intervals, not per message (the node's hot path).
+        if len(intervals) >= MIN_INTERVALS and self._filled[sensor] % MIN_INTERVALS == 0:
+            common, mean = float(np.median(intervals)), float(np.mean(intervals))
+            if common >= 0.5 * mean:
+                self._period[sensor] = self._usual[sensor] = common
+            else:
+                self._period[sensor], self._usual[sensor] = mean, float(max(intervals))
+
+    @property
+    def missing(self) -> list[int]:
+        """Per sensor, the messages that never arrived: those its gaps miss less those that
+        came late (a publisher that stalls and then catches up, stamping on sending, loses
+        nothing)."""
+        return [max(round(g - e), 0) for g, e in zip(self._gaps, self._early, strict=True)]
 
     def missing_text(self, sensor: int, received: int) -> str:
         """'' or how many messages of ``received`` + missing never reached the node."""
@@ -107,7 +138,8 @@ class LiveStreamCheck:
         share = missing / max(missing + received, 1)
         return (
             f'{missing} messages missing by their stamps ({share:.1%}): lost before the node '
-            '(a subscription queue too short, or the node or the link too slow for the rate)'
+            'or never sent (a subscription queue too short, or the node, the link or the '
+            'driver too slow for the rate)'
         )
 
     def _count(self, sensor: int, kind: str) -> bool:
