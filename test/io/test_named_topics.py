@@ -165,3 +165,29 @@ def test_frame_ids_of_other_sensors_or_frames_are_said(tmp_path, capsys):
             assert 'carry frame_ids' not in out and 'declares' not in out
         else:
             assert said in out
+
+
+def test_optional_topics_of_another_type_are_skipped_with_a_line(tmp_path, capsys):
+    """/odom, /tetra/temperature and /battery_state recorded as std_msgs/Float64 (a driver's
+    own choice): every command runs on the magnetometers and says what it did not read."""
+    mission = short_mission(trim_s=40.0, survey_s=5.0)
+    params = write_params(tmp_path / 'params.yaml')
+    log = START_NS + np.round(mission.t * 1e9).astype(np.int64)
+    with BagWriter(tmp_path / 'bag') as writer:
+        for i, stamp in enumerate(log):
+            for sensor in range(4):
+                data = cv.magnetic_field_cdr(mission.fields_measured[i, sensor], int(stamp), cv.MAG_FRAMES[sensor])
+                writer.write_raw(cv.BAG_MAG_TOPICS[sensor], cv.MAGNETIC_FIELD, data, int(stamp))
+            for topic in (cv.ODOM_TOPIC, '/tetra/temperature', '/battery_state'):
+                writer.write(topic, writer.types['std_msgs/msg/Float64'](data=1.0), int(stamp))
+    lines = {topic: f'{topic} holds std_msgs/msg/Float64, not {kind}: not read'
+             for topic, kind in ((cv.ODOM_TOPIC, cv.ODOMETRY), ('/tetra/temperature', cv.TEMPERATURE),
+                                 ('/battery_state', cv.BATTERY_STATE))}
+    _, out = _calibration(capsys, tmp_path, 'c', tmp_path / 'bag', params)
+    assert all(line in out for line in lines.values()), out
+    code, out, err = run_cli(capsys, 'discrepancy', tmp_path / 'bag', '--params', params, '--out', tmp_path / 'd',
+                             '--no-plots')
+    assert code == 0 and all(f'input: {line}' in err for line in lines.values()), err
+    code, out, err = run_cli(capsys, 'compensate', tmp_path / 'bag', '--params', params, '--calibration',
+                             tmp_path / 'c.yaml', '--csv', tmp_path / 'o.csv')
+    assert code == 0, err

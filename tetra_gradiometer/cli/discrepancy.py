@@ -128,6 +128,9 @@ def run(args: argparse.Namespace) -> int:
         timebase=timebase_from_args(args),
     )
     out = write_report(report, args.out, plots=not args.no_plots, force=args.force, inputs=inputs)
+    for reason in recording.missing.values():  # why each optional input was not read
+        if not reason.endswith('is not in the bag'):
+            print(f'input: {reason}', file=sys.stderr)
     for note in report.notes:
         print(f'note: {note}', file=sys.stderr)
     for name, reason in report.untestable.items():

@@ -132,6 +132,7 @@ class MagneticBag:
         self.assumed: dict[str, str] = {}
         self.rates_note = ''
         self.frames_note: str | None = None  # the magnetometers' frame_ids, once read
+        self.unread: dict[str, str] = {}  # optional topics of another type: why not read
         if not self.path.exists():
             raise BagError(f'bag not found: {self.path}')
         if not 0.0 <= max_skipped_fraction <= 1.0:
@@ -244,6 +245,7 @@ class MagneticBag:
             self.assumed_text(),
             self.rates_note,
             self.frames_note or '',
+            *self.unread.values(),
             summary(self.skipped, start),
         )
         return '; '.join(line for line in lines if line)
@@ -448,7 +450,8 @@ class MagneticBag:
     def read_series(self, topic: str) -> Series | None:
         """``/odom`` (the pose: ``conversions.odometry_pose``), ``/tetra/temperature`` (degC) or
         a BatteryState topic (``/battery_state``, a thruster's: current, A) by header stamp;
-        None when the topic is absent."""
+        None when the topic is absent, or of another type (an optional channel: skipped, and
+        :attr:`unread` says so)."""
         connections = self._connections(topic)
         if not connections:
             return None
@@ -458,7 +461,12 @@ class MagneticBag:
             cv.BATTERY_STATE: lambda m: np.array([m.current]),
         }.get(connections[0].msgtype)
         if extract is None:
-            raise BagError(f'{self.path}: {topic} has unsupported type {connections[0].msgtype}')
+            expected = {cv.ODOM_TOPIC: cv.ODOMETRY, cv.TEMPERATURE_TOPIC: cv.TEMPERATURE}
+            self.unread[topic] = (
+                f'{topic} holds {connections[0].msgtype}, not '
+                f'{expected.get(topic, cv.BATTERY_STATE)}: not read'
+            )
+            return None
         stamps, values = [], []
         lost = [0]
 

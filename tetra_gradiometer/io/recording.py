@@ -268,7 +268,7 @@ def read_recording(
             series = bag.read_series(topic)
             if series is None:
                 extras[name] = None
-                missing[topic] = f'{topic} is not in the bag'
+                missing[topic] = bag.unread.get(topic, f'{topic} is not in the bag')
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
         currents = _extra_currents(bag, stamps, missing)
@@ -343,7 +343,8 @@ def odometry_at(
     series = bag.read_series(cv.ODOM_TOPIC)
     cost = COSTS.get(command, '')
     if series is None:
-        return Odometry(None, None, (f'no {cv.ODOM_TOPIC} in the bag: {cost}',))
+        absent = bag.unread.get(cv.ODOM_TOPIC, f'no {cv.ODOM_TOPIC} in the bag')
+        return Odometry(None, None, (f'{absent}: {cost}',))
     check = check_odometry(series.stamps_ns, series.values)
     notes = list(check.faults)
     orientation = position = None

@@ -186,11 +186,12 @@ def window_channels(
     stamps_ns: IntArray,
     fields: FloatArray,
     current_topics: tuple[str, ...] = (),
-) -> tuple[Channels, dict[str, ChannelSeries]]:
+) -> tuple[Channels, dict[str, ChannelSeries], tuple[str, ...]]:
     """The recorded channels on the sets ``stamps_ns`` (n,) with readings ``fields``
     (n, 4, 3) T: the temperature and the currents the bag has: ``/battery_state``,
     ``current_topics`` and every other ``sensor_msgs/BatteryState`` topic it records (one per
-    thruster ESC, say: a current the calibration does not read would be misfit)."""
+    thruster ESC, say: a current the calibration does not read would be misfit); and a line
+    per channel topic of another type, not read."""
     from ..io.bag import MagneticBag
 
     with MagneticBag(bag_path) as bag:
@@ -204,7 +205,7 @@ def window_channels(
             )
         names = (TEMPERATURE_CHANNEL, *current_channels((*current_topics, *recorded)))
         series = read_channels(bag, names)
-    return channels_on(stamps_ns, fields[:, 0, :], series), series
+    return channels_on(stamps_ns, fields[:, 0, :], series), series, tuple(bag.unread.values())
 
 
 #: The note of ``--effects none``.
@@ -232,9 +233,10 @@ def window_terms(
     """
     if choice.names == ():
         return WindowTerms(notes=(NONE_NOTE,))
-    channels, series = window_channels(bag_path, stamps_ns, fields, choice.current_topics)
+    channels, series, unread = window_channels(bag_path, stamps_ns, fields, choice.current_topics)
     pairs = _pairs(fields[used], geometry)
-    return terms_on(channels, series, pairs, used, geometry, choice, orientation_xyzw)
+    terms = terms_on(channels, series, pairs, used, geometry, choice, orientation_xyzw)
+    return replace(terms, notes=(*unread, *terms.notes)) if unread else terms
 
 
 def terms_on(

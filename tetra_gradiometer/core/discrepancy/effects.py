@@ -525,7 +525,7 @@ CANDIDATES: tuple[Candidate, ...] = (
             'frame)'
         ),
         no_odom_reason=(
-            'no /odom in the bag: the world frame is unknown, and the pair differences '
+            'no usable /odom: the world frame is unknown, and the pair differences '
             "B_i' - B_1' cancel a field that is the same at all sensors"
         ),
     ),

@@ -539,7 +539,7 @@ def _pieces(
 
 #: Why a candidate that needs a recorded input cannot be tested without it.
 _NO_ODOM = (
-    'no /odom in the bag: without an absolute attitude reference only the pair differences '
+    'no usable /odom: without an absolute attitude reference only the pair differences '
     "B_i' - B_1' are observable; sensor 1's own soft and hard iron is absorbed into "
     'K_i1 (I + K_1)^-1 (its small non-symmetric remainder would look like sensor_misalignment)'
 )
@@ -551,7 +551,7 @@ def _untestable_reason(candidate: Candidate, prep: Prepared) -> str | None:
         return candidate.no_odom_reason or _NO_ODOM
     if 'temperature' in candidate.requires:
         if prep.temperature_c is None:
-            return 'no /tetra/temperature in the bag: the drift has no regressor'
+            return 'no /tetra/temperature read: the drift has no regressor'
         if np.ptp(prep.temperature_c) < 1e-3:
             return (
                 'the recorded temperature does not vary (< 0.001 degC): a drift is a '
@@ -560,7 +560,7 @@ def _untestable_reason(candidate: Candidate, prep: Prepared) -> str | None:
     elif 'current' in candidate.requires:
         currents = recorded_currents(prep.current_a, prep.extra_currents)
         if not currents:
-            return 'no /battery_state in the bag: the field has no regressor'
+            return 'no /battery_state read: the field has no regressor'
         if all(np.ptp(values) < 1e-3 for _, values in currents):
             return 'the recorded current does not vary (< 1 mA): its field is a constant offset'
     return None
