@@ -30,6 +30,7 @@ only when more than ``max_skipped_fraction`` (default 1 %) of a topic's messages
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 from collections.abc import Callable, Generator, Iterable, Iterator, Mapping
@@ -166,7 +167,10 @@ class MagneticBag:
         """The default time base, or with sensors at rates more than :data:`MIXED_RATES`
         apart a grid at the slowest one's rate (sets at the fastest sensor's stamps would
         interpolate the slow ones between samples far apart, a misfit no model explains);
-        :attr:`rates_note` says so. A time base asked for is kept."""
+        :attr:`rates_note` says so. A time base asked for is kept. The magnetometers'
+        frame_ids are read here too, once (:attr:`frames_note`)."""
+        if self.frames_note is None:
+            self.frames_note = frame_id_hints(self._frame_ids())
         if timebase != DEFAULT_TIMEBASE:
             return timebase
         rates = self._rates()
@@ -197,19 +201,14 @@ class MagneticBag:
         return None if not np.all(periods > 0) else 1.0 / periods
 
     def _frame_ids(self) -> list[str]:
-        """Each magnetometer's ``frame_id``, from its first message that decodes ('' for
-        none)."""
-        frames = []
-        for topic in cv.BAG_MAG_TOPICS:
-            frame = ''
+        """Each magnetometer's ``frame_id``, from its first message that decodes, or ''."""
+        frames = [''] * 4
+        for sensor, topic in enumerate(cv.BAG_MAG_TOPICS):
             for connection, _, raw in self.reader.messages(self._connections(topic)):
-                try:
+                with contextlib.suppress(Exception):  # a damaged message: the read counts it
                     msg: Any = self.reader.deserialize(raw, connection.msgtype)
-                    frame = str(msg.header.frame_id)
-                except Exception:  # a damaged message: the read skips and counts it
-                    continue
-                break
-            frames.append(frame)
+                    frames[sensor] = str(msg.header.frame_id)
+                    break
         return frames
 
     def assumed_text(self) -> str:
@@ -334,8 +333,6 @@ class MagneticBag:
         if chunk_size < 1:
             raise InputError(f'chunk_size must be >= 1, got {chunk_size}')
         timebase = self._for_rates(timebase)
-        if self.frames_note is None:
-            self.frames_note = frame_id_hints(self._frame_ids())
         form = set_former(timebase)
         self.counters, self.clocks = form.counters, None
         checker = StreamChecker(earth_field_t, str(self.path), timebase.reference_rate_hz)

@@ -142,9 +142,8 @@ def survey_bag(
     earth_field_enu: np.ndarray | None = None,
 ) -> SurveyResult:
     """The survey products of ``bag`` (module docstring), placed by ``origin`` (lat, lon,
-    h) or fitted to the fixes of ``navsat_topic`` (exactly one of them). ``earth_field_enu``
-    (3,) T: the Earth field there (the params file's, or IGRF at ``origin``), against which
-    the odometry's world frame is tested (ENU, not NED).
+    h) or fitted to the fixes of ``navsat_topic`` (exactly one of them); the odometry's world
+    frame tested against ``earth_field_enu`` (3,) T (the params file's, or IGRF at origin).
 
     Raises
     ------
