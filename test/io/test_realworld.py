@@ -15,7 +15,7 @@ from tetra_gradiometer.core.units import NS_PER_S
 from tetra_gradiometer.errors import AssumptionError
 from tetra_gradiometer.io.bag import MagneticBag
 from tetra_gradiometer.pipelines.calibration import calibrate_bag
-from tetra_gradiometer.pipelines.terms import EffectsChoice
+from tetra_gradiometer.pipelines.effects_choice import EffectsChoice
 from tetra_gradiometer.io.recording import write_mission_bag
 
 NT = 1e-9

@@ -9,7 +9,7 @@ import yaml
 from cli_helpers import assert_refused, run_cli
 
 from tetra_gradiometer.io.calibration import load_calibration
-from tetra_gradiometer.pipelines.terms import EffectsChoice
+from tetra_gradiometer.pipelines.effects_choice import EffectsChoice
 
 SCENARIO = {
     'seed': 31,

@@ -13,7 +13,8 @@ from tetra_gradiometer.core.effects import TEMPERATURE, term_regressors
 from tetra_gradiometer.errors import InputError
 from tetra_gradiometer.io.channels import ChannelSeries
 from tetra_gradiometer.nodes.channels import PRUNE_STEP, ChannelBuffer, LiveEffects, sample_terms
-from tetra_gradiometer.pipelines.terms import EffectsChoice, channels_on
+from tetra_gradiometer.pipelines.effects_choice import EffectsChoice
+from tetra_gradiometer.pipelines.terms import channels_on
 
 T0 = 1_767_225_600 * 10**9
 GEOMETRY = core.TetraGeometry.regular(0.5)

@@ -21,7 +21,7 @@ from ..errors import InputError
 from ..io.topics import BagSource, topic_list
 
 if TYPE_CHECKING:
-    from ..pipelines.terms import EffectsChoice
+    from ..pipelines.effects_choice import EffectsChoice
 
 __all__ = [
     'MAX_FALSE_ALARMS_PER_HOUR',
@@ -323,8 +323,8 @@ def add_effects_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def effects_from_args(args: argparse.Namespace) -> EffectsChoice:
-    """The :class:`~tetra_gradiometer.pipelines.terms.EffectsChoice` of the arguments."""
-    from ..pipelines.terms import EffectsChoice
+    """The :class:`~tetra_gradiometer.pipelines.effects_choice.EffectsChoice` of the arguments."""
+    from ..pipelines.effects_choice import EffectsChoice
 
     if args.effects_from is not None:
         return EffectsChoice.from_report(args.effects_from, args.current_topics)

@@ -23,13 +23,14 @@ parameters. The assessment is printed, and ``--report DIR`` writes it with plots
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from ..core.effects import EFFECTS, Term
+from ..core.effects import Term, effect
 from ..core.geometry import TetraGeometry
 from ..core.identification import (
     CALIBRATION_METHODS,
@@ -42,7 +43,12 @@ from ..core.units import NT_PER_T
 from ..errors import AssumptionError, IdentifiabilityError
 from ..io.calibration import save_calibration
 from ..io.outputs import CALIBRATION, CALIBRATION_REPORT, check_output
-from ..io.params import earth_field_from_params, geometry_from_params, load_params
+from ..io.params import (
+    earth_field_from_params,
+    geometry_from_params,
+    load_params,
+    vehicle_signals_from_params,
+)
 from ..pipelines.calibration import DEFAULT_MAX_SETS, MIN_SETS, BagCalibration
 from ..pipelines.trim import WindowAssessment, calibrate_assessed
 from ..pipelines.window_search import find_window
@@ -170,7 +176,8 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     geometry = geometry_from_params(params, source=args.params)
     earth = earth_field_from_params(params, str(args.params))
-    result, window_assessment, why = _calibrate(args, geometry, earth)
+    signals = vehicle_signals_from_params(params, str(args.params))
+    result, window_assessment, why = _calibrate(args, geometry, earth, signals)
     save_calibration(args.out, result.record, force=args.force, inputs=inputs, sign=signer)
     _print_summary(args, result)
     if why:
@@ -192,7 +199,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _calibrate(
-    args: argparse.Namespace, geometry: TetraGeometry, earth: np.ndarray | None
+    args: argparse.Namespace,
+    geometry: TetraGeometry,
+    earth: np.ndarray | None,
+    signals: tuple[str, ...] = (),
 ) -> tuple[BagCalibration, WindowAssessment, str]:
     """The calibration on ``--window``, or on the window found in the bag without one
     (:func:`~tetra_gradiometer.pipelines.window_search.find_window`), with a line saying
@@ -208,7 +218,7 @@ def _calibrate(
         timebase=timebase_from_args(args),
         max_sets=args.max_sets,
         progress=args.progress,
-        effects=effects_from_args(args),
+        effects=dataclasses.replace(effects_from_args(args), signals=signals),
     )
     if args.window is None:
         try:
@@ -339,7 +349,7 @@ def _print_terms(terms: tuple[Term, ...], errors: np.ndarray | None) -> None:
     it reads, and the held-out test that kept it."""
     offset = 0
     for term in terms:
-        spec = EFFECTS[term.effect]
+        spec = effect(term.effect)
         values = term.coefficients * spec.file_factor
         sigma = (
             None if errors is None else errors[offset : offset + values.size] * spec.file_factor

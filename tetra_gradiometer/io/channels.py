@@ -8,7 +8,8 @@ BatteryState topics the user names (one per thruster ESC, say). A channel is int
 linearly between its messages (by header stamp) onto each set's stamp; a set further than
 :data:`MAX_GAP_S` from every message of the channel (a gap, or beyond the channel's ends)
 gets NaN there: **stale, never taken as zero**. The pipelines drop and count such sets, and
-say which channel and when.
+say which channel and when. ``signal:TOPIC#FIELD`` is a declared signal's field
+(:mod:`.signals`).
 """
 
 from __future__ import annotations
@@ -19,10 +20,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..core.effects import CURRENT_PREFIX, TEMPERATURE, current_channel
+from ..core.effects import CURRENT_PREFIX, SIGNAL_PREFIX, TEMPERATURE, current_channel
 from ..core.units import S_PER_NS
 from ..errors import BagError
 from . import conversions as cv
+from .signals import read_signal
 
 if TYPE_CHECKING:  # only an annotation: the nodes import this module without rosbags
     from .bag import MagneticBag
@@ -33,7 +35,7 @@ MAX_GAP_S = {TEMPERATURE: 10.0, CURRENT_PREFIX: 2.0}
 
 
 def max_gap_s(name: str) -> float:
-    """:data:`MAX_GAP_S` of channel ``name``."""
+    """:data:`MAX_GAP_S` of channel ``name`` (a declared signal's: a current's)."""
     return MAX_GAP_S[TEMPERATURE if name == TEMPERATURE else CURRENT_PREFIX]
 
 
@@ -43,6 +45,8 @@ def channel_topic(name: str) -> str:
         return cv.TEMPERATURE_TOPIC
     if name.startswith(CURRENT_PREFIX):
         return name.removeprefix(CURRENT_PREFIX)
+    if name.startswith(SIGNAL_PREFIX):
+        return name.removeprefix(SIGNAL_PREFIX).partition('#')[0]
     raise BagError(f'{name!r} is not a recorded channel')
 
 
@@ -96,7 +100,11 @@ def read_channels(bag: MagneticBag, names: Sequence[str]) -> dict[str, ChannelSe
     stamp."""
     out = {}
     for name in names:
-        series = bag.read_series(channel_topic(name))
+        if name.startswith(SIGNAL_PREFIX):
+            topic, _, path = name.removeprefix(SIGNAL_PREFIX).partition('#')
+            series = read_signal(bag, topic, path)
+        else:
+            series = bag.read_series(channel_topic(name))
         if series is not None and len(series.stamps_ns):
             out[name] = ChannelSeries(name, series.stamps_ns, series.values[:, 0])
     return out

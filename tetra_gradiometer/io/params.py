@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from ..core import TetraGeometry
+from ..core.effects import parse_declaration
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..errors import InputError, ParamsError
 from ._yaml import read_yaml
@@ -36,7 +37,7 @@ KNOWN_PARAMETERS = frozenset(
     reference_rate_hz
     replay_remap sample_rate_hz scenario seed sensor_frame_ids sensor_noise_t sensor_positions
     sensor_queue_depth stale_timeout_s stamp_tolerance_s start_paused sync update_period_s
-    warn_throttle_s use_sim_time""".split()
+    vehicle_signals warn_throttle_s use_sim_time""".split()
 )
 #: The package's nodes: a section named after one (``/tetra/calibrator``, ``calibrator``) is
 #: the package's own, its names checked like ``/**``'s.
@@ -145,6 +146,28 @@ def earth_field_from_params(params: dict[str, Any], source: str = 'params') -> n
             f'(the Earth field is ~5e-5 T), got {values!r}'
         )
     return field
+
+
+def vehicle_signals_from_params(params: dict[str, Any], source: str = 'params') -> tuple[str, ...]:
+    """The effect names of ``vehicle_signals`` (a list of ``TOPIC#FIELD:BASIS``,
+    :mod:`~tetra_gradiometer.core.effects.recorded_signal`), () when absent.
+
+    Raises
+    ------
+    ParamsError
+        Not a list of strings, or a declaration that is not one (named).
+    """
+    values = params.get('vehicle_signals') or []
+    if not isinstance(values, list) or not all(isinstance(v, str) for v in values):
+        raise ParamsError(
+            f'{source}: vehicle_signals must be a list of TOPIC#FIELD:BASIS strings, got '
+            f'{values!r}'
+        )
+    try:
+        names = [parse_declaration(v, f'{source}: vehicle_signals').effect_name for v in values]
+    except InputError as error:
+        raise ParamsError(str(error)) from None
+    return tuple(dict.fromkeys(names))
 
 
 def params_document(params: dict[str, Any]) -> str:

@@ -96,7 +96,8 @@ from ..io.calibration import CalibrationFile, CalibrationFileError
 from ..io.channels import TEMPERATURE, channel_topic, current_channels
 from ..io.matching import StampPairer
 from ..io.outputs import CALIBRATION, atomic_write_text
-from ..pipelines.terms import EffectsChoice, WindowTerms
+from ..pipelines.effects_choice import EffectsChoice
+from ..pipelines.terms import WindowTerms
 from ..pipelines.window_check import (
     KNOWN_GRADIENT_METHODS,
     AttitudeHistory,

@@ -16,7 +16,7 @@ from ..core.identification import (
 )
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..errors import InputError
-from ..pipelines.terms import EffectsChoice
+from ..pipelines.effects_choice import EffectsChoice
 from .authentication import key_file_spec
 from .common import (
     POSITIONS_SPEC,

@@ -46,7 +46,8 @@ from ..core.identification import DEFAULT_METHOD
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
 from ..io.channels import TEMPERATURE, ChannelSeries, channel_topic, max_gap_s
-from ..pipelines.terms import EffectsChoice, WindowTerms, channels_on, terms_on
+from ..pipelines.effects_choice import EffectsChoice
+from ..pipelines.terms import WindowTerms, channels_on, terms_on
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -39,7 +39,8 @@ from ..io import conversions as cv
 from ..io.bag import MagneticBag, SetCounters
 from ..io.calibration import CalibrationFile
 from ..io.recording import odometry_at
-from .terms import EffectsChoice, WindowTerms, window_terms
+from .effects_choice import EffectsChoice
+from .terms import WindowTerms, window_terms
 from .window_check import (
     KNOWN_GRADIENT_METHODS,
     CheckedCalibration,

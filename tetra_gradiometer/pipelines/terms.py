@@ -17,17 +17,21 @@ samples and channel messages it collected. This module imports ``rosbags`` (thro
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
-from ..core.effects import EFFECTS, REFERENCE_RATE, Channels, Term, term_regressors, terms_channels
+from ..core.effects import (
+    REFERENCE_RATE,
+    Channels,
+    Term,
+    term_regressors,
+    terms_channels,
+)
 from ..core.geometry import TetraGeometry
 from ..core.identification.terms import (
     ALPHA,
@@ -54,66 +58,13 @@ from ..io.channels import (
 
 if TYPE_CHECKING:
     from ..io.bag import MagneticBag
+    from .effects_choice import EffectsChoice
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: Robust standard deviation of a normal sample from its median absolute deviation.
 MAD_TO_SIGMA = 1.4826
-
-
-@dataclass(frozen=True)
-class EffectsChoice:
-    """The effects a calibration may fit.
-
-    Attributes
-    ----------
-    names : None for automatic selection; () for none; else exactly these effects
-    current_topics : BatteryState topics read besides ``/battery_state``
-    source : how it was chosen, for notes ('auto', 'none', '--effects', a report's path)
-    """
-
-    names: tuple[str, ...] | None = None
-    current_topics: tuple[str, ...] = ()
-    source: str = 'auto'
-
-    @classmethod
-    def parse(cls, text: str, current_topics: tuple[str, ...] = ()) -> EffectsChoice:
-        """``auto``, ``none`` or comma-separated registry names."""
-        word = text.strip()
-        if word == 'auto':
-            return cls(None, current_topics, 'auto')
-        if word == 'none':
-            return cls((), current_topics, 'none')
-        names = tuple(dict.fromkeys(n.strip() for n in word.split(',') if n.strip()))
-        unknown = [n for n in names if n not in EFFECTS]
-        if unknown or not names:
-            raise InputError(
-                f'--effects {text!r}: {"unknown " + ", ".join(unknown) if unknown else "empty"};'
-                f' choose auto, none or names of {", ".join(EFFECTS)}'
-            )
-        return cls(names, current_topics, '--effects')
-
-    @classmethod
-    def from_report(
-        cls, path: str | os.PathLike[str], current_topics: tuple[str, ...] = ()
-    ) -> EffectsChoice:
-        """The registry effects a discrepancy ``report.json`` named (others it named, such as
-        a time skew, are not vehicle effects a calibration carries: listed in the error when
-        none is)."""
-        try:
-            document = json.loads(Path(path).read_text(encoding='utf-8'))
-        except (OSError, ValueError) as error:
-            raise InputError(f'--effects-from {path}: cannot read it: {error}') from None
-        named = document.get('named_effects') if isinstance(document, dict) else None
-        if not isinstance(named, list):
-            raise InputError(f'--effects-from {path}: not a discrepancy report.json')
-        names = tuple(dict.fromkeys(str(n) for n in named if n in EFFECTS))
-        return cls(names, current_topics, str(path))
-
-    @property
-    def automatic(self) -> bool:
-        return self.names is None
 
 
 @dataclass(frozen=True)
@@ -186,6 +137,7 @@ def window_channels(
     stamps_ns: IntArray,
     fields: FloatArray,
     current_topics: tuple[str, ...] = (),
+    signal_channels: tuple[str, ...] = (),
 ) -> tuple[Channels, dict[str, ChannelSeries], tuple[str, ...]]:
     """The recorded channels on the sets ``stamps_ns`` (n,) with readings ``fields``
     (n, 4, 3) T: the temperature and the currents the bag has: ``/battery_state``,
@@ -203,7 +155,11 @@ def window_channels(
                 f'{bag_path} (its BatteryState topics: {", ".join(recorded) or "none"}; all its '
                 f'topics: {", ".join(bag.topics())})'
             )
-        names = (TEMPERATURE_CHANNEL, *current_channels((*current_topics, *recorded)))
+        names = (
+            TEMPERATURE_CHANNEL,
+            *current_channels((*current_topics, *recorded)),
+            *signal_channels,
+        )
         series = read_channels(bag, names)
     return channels_on(stamps_ns, fields[:, 0, :], series), series, tuple(bag.unread.values())
 
@@ -233,7 +189,9 @@ def window_terms(
     """
     if choice.names == ():
         return WindowTerms(notes=(NONE_NOTE,))
-    channels, series, unread = window_channels(bag_path, stamps_ns, fields, choice.current_topics)
+    channels, series, unread = window_channels(
+        bag_path, stamps_ns, fields, choice.current_topics, choice.signal_channels
+    )
     pairs = _pairs(fields[used], geometry)
     terms = terms_on(channels, series, pairs, used, geometry, choice, orientation_xyzw)
     return replace(terms, notes=(*unread, *terms.notes)) if unread else terms
@@ -262,7 +220,7 @@ def terms_on(
     if choice.names == ():
         return WindowTerms(notes=(NONE_NOTE,))
     found = {name: channel_topic(name) for name in series}
-    candidates, lacking = candidates_for(channels, choice.names)
+    candidates, lacking = candidates_for(channels, choice.names, choice.signals)
     if choice.names is not None and lacking:
         raise InputError(
             'effects asked for ('
@@ -277,6 +235,7 @@ def terms_on(
                 channel_noise=(
                     tuple(_series_noise(series[name]) for name in c.inputs)
                     if all(name in series for name in c.inputs)
+                    and len(c.inputs) == c.regressors.shape[1]  # one regressor per channel
                     else _regressor_noise(c.regressors)
                 ),
             )

@@ -5,7 +5,9 @@ Each effect is one module here (:mod:`.vehicle_current`, :mod:`.eddy_current`,
 and live, and its file form (:mod:`.base` says what an effect is). :data:`EFFECTS` is the
 registry that calibration (selection and the joint fit), compensation (offline and in the
 compensator node), the calibration file, the simulator and the discrepancy search read.
-Adding an effect is one module and one line in :data:`EFFECTS`.
+Adding an effect is one module and one line in :data:`EFFECTS`, or, for a signal the
+vehicle records, one line in the params file's ``vehicle_signals``
+(:mod:`.recorded_signal`: :func:`effect` makes the effect of a ``signal:`` name).
 
 Model: ``D = (k B_1' + b + sum_terms W x(t)) a^-1`` (the pair differences' interference
 times eq. 7's ``a^-1``): :func:`pair_interference` is the terms' part.
@@ -30,6 +32,7 @@ from .base import (
     current_channel,
 )
 from .eddy_current import REFERENCE_RATE, EddyCurrent, causal_rate
+from .recorded_signal import SIGNAL_PREFIX, Declaration, RecordedSignal, parse_declaration
 from .thermal_drift import ThermalDrift
 from .vehicle_current import VehicleCurrent
 
@@ -37,6 +40,10 @@ __all__ = [
     'CURRENT_PREFIX',
     'EFFECTS',
     'REFERENCE_RATE',
+    'SIGNAL_PREFIX',
+    'Declaration',
+    'RecordedSignal',
+    'parse_declaration',
     'TEMPERATURE',
     'Channels',
     'Effect',
@@ -44,6 +51,7 @@ __all__ = [
     'Term',
     'causal_rate',
     'current_channel',
+    'effect',
     'pair_interference',
     'term_from_dict',
     'term_regressors',
@@ -58,9 +66,14 @@ EFFECTS: dict[str, Effect] = {
 
 
 def effect(name: str) -> Effect:
-    """The registry's effect ``name``, or an :class:`InputError` listing the known ones."""
+    """The registry's effect ``name``, or a declared signal's (``signal:TOPIC#FIELD:BASIS``),
+    or an :class:`InputError` listing the known ones."""
+    if str(name).startswith(SIGNAL_PREFIX):
+        return RecordedSignal(parse_declaration(name, 'effect'))
     if name not in EFFECTS:
-        raise InputError(f'unknown effect {name!r}; known: {", ".join(EFFECTS)}')
+        raise InputError(
+            f'unknown effect {name!r}; known: {", ".join(EFFECTS)}, or signal:TOPIC#FIELD:BASIS'
+        )
     return EFFECTS[name]
 
 
@@ -147,10 +160,11 @@ def term_from_dict(data: Any, where: str) -> Term:
     ``where`` and the key when it is not one."""
     if not isinstance(data, dict):
         raise InputError(f'{where}: a term must be a mapping, got {type(data).__name__}')
-    name = data.get('effect')
-    if name not in EFFECTS:
-        raise InputError(f'{where}: unknown effect {name!r}; known: {", ".join(EFFECTS)}')
-    spec = EFFECTS[name]
+    name = str(data.get('effect'))
+    try:
+        spec = effect(name)
+    except InputError as error:
+        raise InputError(f'{where}: {error}') from None
     try:
         inputs = tuple(str(v) for v in data.get('inputs', ()))
         coefficients = np.asarray(data['coefficients'], dtype=float) / spec.file_factor

@@ -94,13 +94,13 @@ class Effect(ABC):
     """One physical effect of the vehicle; subclasses are the registry's entries."""
 
     #: The effect's one name (registry key, calibration file, reports).
-    name: ClassVar[str]
+    name: str
     #: What it is, for reports and docs.
     physics: ClassVar[str]
     #: Unit of a coefficient in the calibration file (nT per regressor unit), and the
     #: factor from SI to it.
-    file_unit: ClassVar[str]
-    file_factor: ClassVar[float]
+    file_unit: str
+    file_factor: float
 
     @abstractmethod
     def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:

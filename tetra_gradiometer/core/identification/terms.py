@@ -204,15 +204,16 @@ class Candidate:
 
 
 def candidates_for(
-    channels: Channels, names: tuple[str, ...] | None = None
+    channels: Channels, names: tuple[str, ...] | None = None, signals: tuple[str, ...] = ()
 ) -> tuple[list[Candidate], dict[str, str]]:
-    """The registry's effects that ``channels`` can fit (all, or ``names``), with their
-    regressors on the samples; and, per effect that cannot, what it lacks."""
+    """The effects that ``channels`` can fit (all the registry's and the declared
+    ``signals``' effect names, or ``names``), with their regressors on the samples; and, per
+    effect that cannot, what it lacks."""
     from ..effects import EFFECTS
 
     available = tuple(channels.series)
     out, lacking = [], {}
-    for name in names if names is not None else tuple(EFFECTS):
+    for name in names if names is not None else (*EFFECTS, *signals):
         spec = effect(name)
         inputs = spec.inputs(available)
         if not inputs:

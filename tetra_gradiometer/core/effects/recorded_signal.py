@@ -1,0 +1,168 @@
+"""Signals the vehicle records on its own topics (a fin's angle, a load's current, a pump
+switching), declared without code: ``TOPIC#FIELD:BASIS`` in the params file's
+``vehicle_signals``, e.g. ``/joint_states#position[fin1]:harmonic``,
+``/power/sonar#data:linear``.
+
+``FIELD`` is a path into the message: attribute names joined by dots, an element by index
+(``data[2]``) or, in an array beside a ``name`` array (``sensor_msgs/JointState``), by name
+(``position[fin1]``). ``BASIS`` says how the signal ``x`` enters the field at the sensors,
+each regressor with a 3-vector per sensor (per pair in the tensor):
+
+* ``linear``: ``x`` (a current through a cable: Biot-Savart, proportional to it);
+* ``harmonic``: ``cos x``, ``sin x``, ``x`` in radians (a magnet turning with a fin or a
+  rudder: a dipole turned by ``x`` about a fixed axis is ``m_par + cos x m_perp + sin x
+  (a x m_perp)``; its constant part is hard iron, ``b``'s);
+* ``onoff``: 1 while ``x`` is above the middle of its range on the calibration window, else
+  0 (a load switched on and off: a sonar, a pump).
+
+The effect of a declaration is named ``signal:`` + the declaration; it reads the channel
+``signal:TOPIC#FIELD``. Chosen, and written down: the harmonic basis stops at the first
+harmonic (a finite magnet 2 m away differs from a dipole by ~(size / distance)^2, 1 %);
+a rate basis (d/dt, eddy currents in a moving fin) is not offered yet.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import InputError
+from ..types import FloatArray
+from ..units import NT_PER_T
+from .base import Channels, Effect, LiveRegressor
+
+#: The prefix of a declared signal's effect and channel names.
+SIGNAL_PREFIX = 'signal:'
+BASES = ('linear', 'harmonic', 'onoff')
+_PATH = re.compile(r'[A-Za-z_]\w*(\[[^\[\]]+\])?(\.[A-Za-z_]\w*(\[[^\[\]]+\])?)*')
+_TOPIC = re.compile(r'(/[A-Za-z_~][\w]*)+')
+
+
+@dataclass(frozen=True)
+class Declaration:
+    """One declared signal: ``topic`` (absolute), ``field`` (a path into its message),
+    ``basis`` (one of :data:`BASES`)."""
+
+    topic: str
+    field: str
+    basis: str
+
+    @property
+    def channel(self) -> str:
+        """The channel name of the recorded value: ``signal:TOPIC#FIELD``."""
+        return f'{SIGNAL_PREFIX}{self.topic}#{self.field}'
+
+    @property
+    def effect_name(self) -> str:
+        return f'{self.channel}:{self.basis}'
+
+    @property
+    def text(self) -> str:
+        """The declaration as the params file writes it."""
+        return f'{self.topic}#{self.field}:{self.basis}'
+
+
+def parse_declaration(text: str, where: str = 'vehicle_signals') -> Declaration:
+    """``TOPIC#FIELD:BASIS`` (or the effect name, ``signal:`` in front) as a declaration.
+
+    Raises
+    ------
+    InputError
+        Naming the part that is not one: the topic, the field path or the basis.
+    """
+    body = str(text).strip().removeprefix(SIGNAL_PREFIX)
+    topic, hash_, rest = body.partition('#')
+    path, colon, basis = rest.rpartition(':')
+    if not hash_ or not colon:
+        raise InputError(
+            f'{where}: {text!r} is not TOPIC#FIELD:BASIS (e.g. /joint_states#position[fin1]:'
+            f'harmonic; bases: {", ".join(BASES)})'
+        )
+    if not _TOPIC.fullmatch(topic):
+        raise InputError(f'{where}: {text!r}: {topic!r} is not an absolute topic name')
+    if not _PATH.fullmatch(path):
+        raise InputError(
+            f'{where}: {text!r}: {path!r} is not a field path (names joined by dots, an '
+            'element as [index] or [joint name])'
+        )
+    if basis not in BASES:
+        raise InputError(f'{where}: {text!r}: basis {basis!r} is not one of {", ".join(BASES)}')
+    return Declaration(topic, path, basis)
+
+
+def basis_columns(basis: str, x: FloatArray, reference: tuple[float, ...]) -> FloatArray:
+    """The regressors (N, m) of signal values ``x`` (N,) in ``basis``; NaN where ``x`` is."""
+    x = np.asarray(x, dtype=float)
+    if basis == 'harmonic':
+        return np.column_stack([np.cos(x), np.sin(x)])
+    if basis == 'onoff':
+        on = np.where(x > reference[0], 1.0, 0.0)
+        return np.where(np.isfinite(x), on, np.nan)[:, None]
+    return x[:, None]
+
+
+class _Live(LiveRegressor):
+    def __init__(self, channel: str, basis: str, reference: tuple[float, ...]) -> None:
+        self.channel, self.basis, self.reference = channel, basis, reference
+
+    def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
+        x = np.array([values.get(self.channel, np.nan)], dtype=float)
+        return basis_columns(self.basis, x, self.reference)[0]
+
+    def reset(self) -> None:
+        return None
+
+
+class RecordedSignal(Effect):
+    """The effect of one :class:`Declaration`."""
+
+    physics = (
+        "A signal the vehicle records on its own topics (a fin's angle, a load's current, a "
+        'switched load), declared as TOPIC#FIELD:BASIS: each basis function of it times a '
+        '3-vector per sensor (nT per unit of the function).'
+    )
+    file_factor = NT_PER_T
+
+    def __init__(self, declaration: Declaration) -> None:
+        self.declaration = declaration
+        self.name = declaration.effect_name
+        self.file_unit = {'linear': 'nT per signal unit', 'harmonic': 'nT', 'onoff': 'nT'}[
+            declaration.basis
+        ]
+
+    def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
+        channel = self.declaration.channel
+        return (channel,) if channel in available else ()
+
+    def missing(self, available: tuple[str, ...]) -> str:
+        if self.inputs(available):
+            return ''
+        d = self.declaration
+        return f'{d.field} of {d.topic} (declared in vehicle_signals)'
+
+    def labels(self, inputs: tuple[str, ...]) -> tuple[str, ...]:
+        d = self.declaration
+        where = f'{d.topic}#{d.field}'
+        return {
+            'harmonic': (f'cos {where}', f'sin {where}'),
+            'onoff': (f'{where} on',),
+        }.get(d.basis, (where,))
+
+    def reference(self, channels: Channels, inputs: tuple[str, ...]) -> tuple[float, ...]:
+        if self.declaration.basis != 'onoff':
+            return ()
+        x = np.asarray(channels.series[self.declaration.channel], dtype=float)
+        x = x[np.isfinite(x)]
+        return (0.5 * float(x.min() + x.max()),) if len(x) else (0.0,)
+
+    def regressors(
+        self, channels: Channels, inputs: tuple[str, ...], reference: tuple[float, ...]
+    ) -> FloatArray:
+        x = channels.series[self.declaration.channel]
+        return basis_columns(self.declaration.basis, x, reference)
+
+    def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
+        return _Live(self.declaration.channel, self.declaration.basis, reference)
