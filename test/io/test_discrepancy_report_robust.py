@@ -236,7 +236,7 @@ def test_percent_text_keeps_a_small_share_visible():
 def test_cli_summary_says_how_much_was_excluded(tmp_path, capsys, monkeypatch):
     """The printed summary line names the excluded share (analysis stood in for)."""
     report = _report([[], ['time_skew@sensor_2']], ['time_skew'], excluded_fraction=0.032)
-    recording = SimpleNamespace(dropped=SimpleNamespace(total=0), skipped_messages=0)
+    recording = SimpleNamespace(dropped=SimpleNamespace(total=0), skipped_messages=0, missing={})
     monkeypatch.setattr(
         'tetra_gradiometer.cli.discrepancy.analyze_bag', lambda *a, **k: (report, recording)
     )

@@ -86,6 +86,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..core import TetraGeometry
+from ..core.effects import parse_declaration
 from ..core.guidance import TrimAssessment, TrimStatistics, assess, trim_statistics
 from ..core.identification import Options, attitude_coverage
 from ..core.plausibility import plausible_readings
@@ -107,7 +108,13 @@ from ..pipelines.window_check import (
 )
 from .authentication import key_id, node_key, sign
 from .calibrator_params import DEFAULT_NOISE_T, PARAMETERS
-from .channels import ChannelHistory, channel_message, sample_terms, subscribe_channels
+from .channels import (
+    ChannelHistory,
+    channel_message,
+    channel_stamp,
+    sample_terms,
+    subscribe_channels,
+)
 from .common import (
     OK,
     WARN,
@@ -177,7 +184,14 @@ class CalibratorNode(ManagedNode):
         self._odom = AttitudeHistory()
         # The channels' messages (temperature, currents) for the vehicle effects' terms.
         self._current_topics = tuple(p['current_topics'])
-        self._channels = ChannelHistory((TEMPERATURE, *current_channels(self._current_topics)))
+        self._signals = tuple(parse_declaration(d).effect_name for d in p['vehicle_signals'])
+        self._channels = ChannelHistory(
+            (
+                TEMPERATURE,
+                *current_channels(self._current_topics),
+                *(parse_declaration(d).channel for d in self._signals),
+            )
+        )
         self._epoch = 0  # counts ~/start: a tick that straddles one discards its work
         self._added: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (g, b, q)
         self._removed: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -255,7 +269,7 @@ class CalibratorNode(ManagedNode):
 
     def _on_channel(self, name: str, msg: Any) -> None:
         """A temperature or current message: kept whether or not collecting, as odom."""
-        stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+        stamp_ns = channel_stamp(msg, self.get_clock().now().nanoseconds)
         if self.active and not self._horizon.refuse(channel_topic(name), stamp_ns):
             self._channels.add(name, stamp_ns, channel_message(name, msg))
 
@@ -461,6 +475,7 @@ class CalibratorNode(ManagedNode):
         if not attitude_coverage(b) <= options.max_coverage_condition:
             return WindowTerms()
         choice = EffectsChoice.parse(self.get_parameter('effects').value, self._current_topics)
+        choice = dataclasses.replace(choice, signals=self._signals)
         series = self._channels.series()
         orientation = options.orientation_xyzw
         return sample_terms(method, t, g, b, series, self._geometry, choice, orientation)

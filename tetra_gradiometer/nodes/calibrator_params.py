@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from ..core.effects import parse_declaration
 from ..core.identification import (
     CALIBRATION_METHODS,
     DEFAULT_METHOD,
@@ -44,6 +45,15 @@ def _field_enu(value: Any) -> str | None:
     field = np.asarray(value, dtype=float)
     if field.shape != (3,) or not plausible_readings(field):
         return f'must be 3 finite floats, tesla ENU, with |B| <= {MAX_FIELD_T:g} T, got {value!r}'
+    return None
+
+
+def _signals(value: Any) -> str | None:
+    try:
+        for declaration in value:
+            parse_declaration(declaration)
+    except InputError as error:
+        return str(error)
     return None
 
 
@@ -152,6 +162,16 @@ PARAMETERS = [
         'reads, besides /battery_state (absolute names, e.g. /thruster1/battery; empty: none), '
         'as calibrate --current-topics. Read-only after start-up.',
         absolute_topics,
+        string_array=True,
+    ),
+    ParamSpec(
+        'vehicle_signals',
+        (),
+        "The vehicle's own recorded signals fitted as effects, TOPIC#FIELD:BASIS (bases: "
+        'linear, harmonic, onoff; e.g. /joint_states#position[fin1]:harmonic), as the params '
+        "file's vehicle_signals for calibrate; each topic's type is the graph's at configure. "
+        'Read-only after start-up.',
+        _signals,
         string_array=True,
     ),
     key_file_spec('signs'),

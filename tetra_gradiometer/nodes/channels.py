@@ -32,6 +32,7 @@ the channel's last (a restarted replay) forgets the channel's earlier messages.
 from __future__ import annotations
 
 import bisect
+import importlib
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
@@ -41,11 +42,13 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import TetraGeometry
-from ..core.effects import REFERENCE_RATE, LiveTerms, Term
+from ..core.effects import REFERENCE_RATE, SIGNAL_PREFIX, LiveTerms, Term
 from ..core.identification import DEFAULT_METHOD
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
+from ..io import conversions as cv
 from ..io.channels import TEMPERATURE, ChannelSeries, channel_topic, max_gap_s
+from ..io.signals import field_value
 from ..pipelines.effects_choice import EffectsChoice
 from ..pipelines.terms import WindowTerms, channels_on, terms_on
 
@@ -161,15 +164,43 @@ class ChannelBuffer:
 
 
 def channel_message(name: str, msg: Any) -> float:
-    """The channel's value in a ``sensor_msgs/Temperature`` (degC) or ``BatteryState`` (A)."""
+    """The channel's value in a ``sensor_msgs/Temperature`` (degC) or ``BatteryState`` (A),
+    or a declared signal's field (NaN when this message lacks it: a joint not reported)."""
+    if name.startswith(SIGNAL_PREFIX):
+        try:
+            return field_value(msg, name.partition('#')[2])
+        except (ValueError, TypeError):
+            return float('nan')
     return float(msg.temperature if name == TEMPERATURE else msg.current)
+
+
+def channel_stamp(msg: Any, now_ns: int) -> int:
+    """A channel message's stamp, ns: its header's, or ``now_ns`` (the node's clock) for a
+    message without one (``std_msgs/Float64``, as offline its log time)."""
+    header = getattr(msg, 'header', None)
+    return now_ns if header is None else cv.stamp_to_ns(header.stamp)
+
+
+def message_class(node: Any, topic: str) -> Any:
+    """The message class of ``topic`` as the ROS graph has it now, or None (not published
+    yet, or a type whose package this install lacks)."""
+    for name, types in node.get_topic_names_and_types():
+        if name == topic and types:
+            package, _, kind = types[0].partition('/msg/')
+            try:
+                return getattr(importlib.import_module(f'{package}.msg'), kind, None)
+            except ImportError:
+                return None
+    return None
 
 
 def subscribe_channels(
     node: Any, names: Iterable[str], on_message: Callable[[str, Any], None], **kwargs: Any
 ) -> dict[str, Any]:
     """Subscriptions of ``node`` to the channels ``names`` (name -> subscription), each
-    calling ``on_message(name, msg)``; ``kwargs`` go to ``create_subscription``."""
+    calling ``on_message(name, msg)``; ``kwargs`` go to ``create_subscription``. A declared
+    signal's message type is the graph's when the node configures: one not published then
+    is logged and not read (its channel has no message: named on ``/diagnostics``)."""
     from sensor_msgs.msg import BatteryState, Temperature
 
     from .common import sensor_qos
@@ -177,6 +208,14 @@ def subscribe_channels(
     out = {}
     for name in names:
         kind = Temperature if name == TEMPERATURE else BatteryState
+        if name.startswith(SIGNAL_PREFIX):
+            kind = message_class(node, channel_topic(name))
+            if kind is None:
+                node.get_logger().warning(
+                    f'{channel_topic(name)} is not published (or its message package is not '
+                    f'installed): {name} is not read; configure the node again once it is'
+                )
+                continue
         out[name] = node.create_subscription(
             kind,
             channel_topic(name),

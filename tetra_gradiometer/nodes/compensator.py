@@ -65,7 +65,7 @@ from ..io.channels import channel_topic
 from ..io.matching import StampPairer
 from ..pipelines.health import alarm_cause
 from .authentication import CalibrationGate, Refused, key_file_spec, node_key
-from .channels import LiveEffects, channel_message, subscribe_channels
+from .channels import LiveEffects, channel_message, channel_stamp, subscribe_channels
 from .common import (
     ARRAY_FRAME_SPEC,
     ERROR,
@@ -310,7 +310,7 @@ class CompensatorNode(ManagedNode):
     def _on_channel(self, name: str, msg: Any) -> None:
         """A channel message (ignored while inactive, as the sets are)."""
         if self.active and self._effects is not None and name in self._effects.channels:
-            stamp_ns = cv.stamp_to_ns(msg.header.stamp)
+            stamp_ns = channel_stamp(msg, self.get_clock().now().nanoseconds)
             if not self._horizon.refuse(channel_topic(name), stamp_ns):  # a later stamp
                 self._effects.add(name, stamp_ns, channel_message(name, msg))  # would reset it
                 self._release_held()
