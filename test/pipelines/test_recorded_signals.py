@@ -10,6 +10,7 @@ uses; the simulator's true gradient.
 """
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -165,3 +166,25 @@ def test_a_clean_vehicle_recording_moving_fins_and_currents_selects_no_signal(ca
                              '--window', '0:119.9', '--out', tmp_path / 'c.yaml')
     assert code == 0, err
     assert 'signal:' not in yaml.safe_dump(yaml.safe_load((tmp_path / 'c.yaml').read_text()).get('terms', []))
+
+
+def test_discrepancy_finds_the_recorded_signals_and_calibrate_takes_its_declaration(capsys, vehicle):
+    """Nothing declared: the search tries every numeric field the bag records beyond the
+    contract, names the ones responsible by topic and field, and nothing else; the report's
+    declaration, given to calibrate, brings the survey to the floor."""
+    root, mission, survey, floor, _ = vehicle
+    code, out, err = run_cli(capsys, 'discrepancy', root / 'bag', '--params', root / 'plain.yaml',
+                             '--window', '0:239.9', '--out', root / 'report', '--no-plots')
+    assert code == 0, err
+    document = json.loads((root / 'report' / 'report.json').read_text())
+    named = document['named_effects']
+    assert named and all(n.startswith('signal:') for n in named), (named, out)
+    topics = {n.removeprefix('signal:').split('#')[0] for n in named}
+    assert topics == {'/joint_states', '/power/sonar', '/power/thrusters'}, named
+    assert 'declare them in the params file: vehicle_signals: [' in out
+    assert document['gap_final_nT'] <= 2.0 * document['noise_floor_nT']
+    found = root / 'found.yaml'  # the plain params: the declaration comes from the report
+    found.write_text((root / 'plain.yaml').read_text())
+    residual, out = _survey_residual(capsys, root, mission, survey, found,
+                                     '--effects-from', root / 'report' / 'report.json')
+    assert residual is not None and residual <= 1.2 * floor, (residual and residual / floor, out)

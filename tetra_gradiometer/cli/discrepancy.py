@@ -147,6 +147,17 @@ def run(args: argparse.Namespace) -> int:
         )
     for warning in channel_warnings(report):
         print(f'not tested: {warning}')
+    signals = report.data.get('signals_read', [])
+    if signals:
+        print(
+            f'recorded signals tested: {len(signals)} ({", ".join(signals[:6])}'
+            + (', ...)' if len(signals) > 6 else ')')
+        )
+    for note in report.data.get('signals_left_out', []):
+        print(f'signal left out: {note}', file=sys.stderr)
+    if report.data.get('vehicle_signals'):
+        declared = ', '.join(f"'{d}'" for d in report.data['vehicle_signals'])
+        print(f'declare them in the params file: vehicle_signals: [{declared}]')
     named = ', '.join(report.named_effects) or 'none'
     if report.unresolved_effects:
         named += f' (unresolved, not named: {", ".join(report.unresolved_effects)})'

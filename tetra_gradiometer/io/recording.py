@@ -28,6 +28,7 @@ from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
 from .bag import BagWriter, MagneticBag
+from .channels import ChannelSeries
 from .progress import progress_bar
 
 
@@ -189,6 +190,9 @@ class Recording:
         (one per thruster, say), by topic; a topic whose ``current`` is never known (NaN)
         is left out and named in ``missing``
     missing : topic -> why it is unavailable
+    signals : ``signal:TOPIC#FIELD`` -> (N,) values: every further numeric signal the bag
+        records (``discover``: :mod:`.discovery`), NaN where stale; ``signal_notes`` what
+        was left out, and why
     dropped : sets dropped as implausible (:mod:`~tetra_gradiometer.core.plausibility`)
     skipped_messages : messages skipped as undecodable or unreadable (``MagneticBag.skipped``)
     streams : the magnetometer streams' faults (:mod:`~tetra_gradiometer.core.streams`)
@@ -202,6 +206,8 @@ class Recording:
     current_a: np.ndarray | None = None
     extra_currents: dict[str, np.ndarray] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)
+    signals: dict[str, np.ndarray] = field(default_factory=dict)
+    signal_notes: tuple[str, ...] = ()
     dropped: DroppedSets = field(default_factory=DroppedSets)
     skipped_messages: int = 0
     streams: StreamReport = field(default_factory=StreamReport)
@@ -233,6 +239,7 @@ def read_recording(
     progress: bool | None = None,
     uses: str = 'discrepancy',
     earth_field_enu: FloatArray | None = None,
+    discover: bool = False,
 ) -> Recording:
     """Read a bag per the data contract into a :class:`Recording` (whole, in memory).
 
@@ -272,17 +279,44 @@ def read_recording(
             else:
                 extras[name] = np.interp(stamps, series.stamps_ns, series.values[:, 0])
         currents = _extra_currents(bag, stamps, missing)
+        signals, signal_notes = _signals(bag, stamps) if discover else ({}, ())
         skipped, streams = bag.skipped_messages, bag.streams
     return Recording(
         stamps,
         fields,
         extra_currents=currents,
         missing=missing,
+        signals=signals,
+        signal_notes=signal_notes,
         dropped=dropped,
         skipped_messages=skipped,
         streams=streams,
         **extras,
     )
+
+
+#: A discovered signal stale (NaN) on more than this share of the sets is left out: the
+#: sets it would cost are more than it can explain.
+MAX_STALE_SHARE = 0.05
+
+
+def _signals(
+    bag: MagneticBag, stamps: np.ndarray
+) -> tuple[dict[str, np.ndarray], tuple[str, ...]]:
+    """Every further numeric signal of the bag on ``stamps`` (:func:`.discovery.
+    discover_signals`), and what was left out."""
+    from .discovery import discover_signals
+
+    found, notes = discover_signals(bag)
+    out = {}
+    for name, series in found.items():
+        values = ChannelSeries(name, series.stamps_ns, series.values[:, 0]).on(stamps)
+        stale = float(np.mean(~np.isfinite(values)))
+        if stale > MAX_STALE_SHARE:
+            notes.append(f'{name.removeprefix("signal:")}: stale on {stale:.0%} of the sets')
+            continue
+        out[name] = values
+    return out, tuple(notes)
 
 
 def _extra_currents(

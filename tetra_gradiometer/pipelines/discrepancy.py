@@ -20,6 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from ..core import TetraGeometry
 from ..core.discrepancy import RecordedRun, Report, Settings, analyze
+from ..core.effects import SIGNAL_PREFIX
 from ..core.timebase import DEFAULT_TIMEBASE, TimeBase
 from ..io.recording import Recording, read_recording
 
@@ -54,7 +55,11 @@ def analyze_bag(
         The bag breaks the data contract, or every set has an implausible reading.
     """
     recording = read_recording(
-        bag_path, timebase=timebase, progress=progress, earth_field_enu=earth_field_enu
+        bag_path,
+        timebase=timebase,
+        progress=progress,
+        earth_field_enu=earth_field_enu,
+        discover=settings is None or settings.candidates is None,
     )
     run = RecordedRun(
         recording.t_s,
@@ -65,6 +70,7 @@ def analyze_bag(
         recording.missing,
         recording.extra_currents,
         recording.position_m,
+        recording.signals,
     )
     # One BLAS thread: the analysis is many small solves and products, where a second
     # thread only spins; on the shared 2-core machine (load 3-9) the clean 1,000 s survey
@@ -73,5 +79,15 @@ def analyze_bag(
     # run time (the environment variables act only before numpy loads).
     with threadpool_limits(limits=1, user_api='blas'):
         report = analyze(run, geometry, earth_field_enu, settings=settings, window_s=window)
-    report = dataclasses.replace(report, data={**report.data, **recording.input_counts()})
+    declared = [
+        n.removeprefix(SIGNAL_PREFIX) for n in report.named_effects if n.startswith(SIGNAL_PREFIX)
+    ]
+    signals = {
+        'vehicle_signals': declared,  # the params file's declaration of what was named
+        'signals_read': [n.removeprefix(SIGNAL_PREFIX) for n in recording.signals],
+        'signals_left_out': list(recording.signal_notes),
+    }
+    report = dataclasses.replace(
+        report, data={**report.data, **recording.input_counts(), **signals}
+    )
     return report, recording

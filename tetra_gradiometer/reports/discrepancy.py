@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.discrepancy import CANDIDATES, LIBRARY, Report, criterion_text
+from ..core.effects import RecordedSignal, parse_declaration
 from ..io import conversions as cv
 from ..io.outputs import REPORT, atomic_output
 from .discrepancy_targets import excluded_section, targets_section
@@ -395,7 +396,7 @@ def _steps_section(report: Report, figures: dict[str, str]) -> list[str]:
         lines += [
             f'### {i}. {s.effect}',
             '',
-            f'**What it is.** {LIBRARY[s.effect].physics}',
+            f'**What it is.** {_physics(s.effect)}',
             '',
             f'**Evidence.** {s.evidence}.',
             '',
@@ -584,3 +585,10 @@ def _plot_step_effect(report: Report, i: int, path: Path) -> None:
     shown = tuple(k for k in range(4) if np.any(field[:, k])) or s['sensors']
     title = f'Field attributed to {name} (final fit)'
     _plot_residuals(path, s['t'], shown, [(name, field)], title, [])
+
+
+def _physics(name: str) -> str:
+    """The library's text of effect ``name``, or a recorded signal's (``signal:...``)."""
+    if name in LIBRARY:
+        return LIBRARY[name].physics
+    return RecordedSignal(parse_declaration(name, 'effect')).physics

@@ -56,6 +56,7 @@ from .prepare import Prepared, RunLike, prepare, testable
 from .relocation import outside_detector, relocate
 from .result import Report, Settings
 from .search import SearchResult, search_effects
+from .signals import signal_candidates
 from .summary import RunInfo, build_report
 from .targets import TargetSpans, find_target_spans
 
@@ -99,6 +100,8 @@ def analyze(
     candidates = _candidates(settings)
     window_s = _checked_window(window_s)
     prep = prepare(recording, earth_field_enu, settings.max_samples, window_s)
+    if settings.candidates is None:  # the recorded signals beside the library
+        candidates += signal_candidates(dict(prep.signals))
     testable_candidates, untestable = testable(prep, candidates)
     targets, located, target_notes = TargetSpans(), None, []
     track: Track | None = None

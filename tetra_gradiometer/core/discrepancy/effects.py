@@ -65,6 +65,7 @@ class Context:
     open_world : the steps and spectral lines the scans found (:mod:`.openworld`)
     extra_currents : further current channels, (BatteryState topic, (N,) A) each (one per
         thruster, say)
+    signals : further recorded signals, ``signal:TOPIC#FIELD`` -> (N,) values
     """
 
     t: Array
@@ -80,6 +81,7 @@ class Context:
     knot_s: float = 30.0
     open_world: OpenWorld = field(default_factory=OpenWorld)
     extra_currents: tuple[tuple[str, Array], ...] = ()
+    signals: dict[str, Array] = field(default_factory=dict)
 
 
 def _required(value: Array | None, what: str) -> Array:

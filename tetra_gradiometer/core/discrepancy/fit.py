@@ -194,6 +194,7 @@ def _context(prep: Prepared, basis: Array, knot_s: float) -> Context:
         knot_s,
         prep.open_world,
         prep.extra_currents,
+        dict(prep.signals),
     )
 
 

@@ -67,6 +67,8 @@ class RecordedRun:
         thruster, say): ``vehicle_current`` fits a field per channel
     position_m : (N, 3) m, the body origin in the odom frame (ENU) from ``/odom``, or None:
         the track that places a target's field (:mod:`.dipoles`)
+    signals : ``signal:TOPIC#FIELD`` -> (N,) values: the further signals the run records,
+        candidates of their own (:mod:`.signals`)
     """
 
     t_s: Array
@@ -77,6 +79,7 @@ class RecordedRun:
     missing: Mapping[str, str] = field(default_factory=dict)
     extra_currents: Mapping[str, Array] = field(default_factory=dict)
     position_m: Array | None = None
+    signals: Mapping[str, Array] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -101,6 +104,7 @@ class Prepared:
     rotation : (N, 3, 3) body -> ENU, or None
     open_world : the steps and spectral lines the scans of the residual found
     extra_currents : the further current channels, (BatteryState topic, (N,) A) each
+    signals : the further recorded signals, (channel, (N,) values) each
     position : (N, 3) m, the track (body origin, odom frame), or None
     target_cols : (N, 4, 3, 3K) nT per A m^2, the fitted targets' field per unit moment
         (odom axes), appended to ``base_cols`` (their moments are fitted with the base
@@ -128,6 +132,7 @@ class Prepared:
     open_world: OpenWorld = field(default_factory=OpenWorld)
     extra_currents: tuple[tuple[str, Array], ...] = ()
     position: Array | None = None
+    signals: tuple[tuple[str, Array], ...] = ()
     target_cols: Array | None = None
     target_labels: Labels = field(default_factory=list)
     target_background: Array | None = None
@@ -146,6 +151,7 @@ class _Samples:
     notes: tuple[str, ...]
     extra_currents: tuple[tuple[str, Array], ...] = ()
     position: Array | None = None
+    signals: tuple[tuple[str, Array], ...] = ()
 
 
 def prepare(
@@ -192,6 +198,11 @@ def _samples(
     for topic, value in (getattr(recording, 'extra_currents', None) or {}).items():
         extra[topic] = np.asarray(value, dtype=float)
         keep &= np.isfinite(extra[topic])
+    signals = {
+        k: np.asarray(v, float) for k, v in (getattr(recording, 'signals', None) or {}).items()
+    }
+    for value in signals.values():
+        keep &= np.isfinite(value)
     if keep.sum() < _MIN_SAMPLES:
         raise InputError(
             f'the recording has {int(keep.sum())} usable samples; the workflow needs at least 50'
@@ -228,6 +239,7 @@ def _samples(
         tuple(notes),
         tuple((topic, value[index]) for topic, value in extra.items()),
         picked['position_m'],
+        tuple((name, value[index]) for name, value in signals.items()),
     )
 
 
@@ -300,6 +312,7 @@ def _absolute_view(samples: _Samples, quat: Array, earth_field_enu: object) -> P
         temperature_c=samples.temperature_c,
         current_a=samples.current_a,
         extra_currents=samples.extra_currents,
+        signals=samples.signals,
         attitude=attitude,
         earth_field_nT=earth,
         notes=tuple(notes),
@@ -335,6 +348,7 @@ def _pair_view(samples: _Samples) -> Prepared:
         temperature_c=samples.temperature_c,
         current_a=samples.current_a,
         extra_currents=samples.extra_currents,
+        signals=samples.signals,
         attitude=None,
         earth_field_nT=None,
         notes=notes,

@@ -15,6 +15,7 @@ import numpy as np
 import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
 
+from ..effects import SIGNAL_PREFIX
 from .cv import ALL_SENSORS, Fit, Gram, block_length, flat, noise_floor
 from .discovery import open_world_move
 from .effects import Candidate
@@ -173,8 +174,9 @@ def search_effects(
         if not prep.absolute:
             residual = residual - residual[:, :1]  # pair view: B_i' - B_1' against the model
         floor, _ = noise_floor(flat(residual, prep.sensors))
-        more = len(steps) < settings.max_effects
-        cands = _candidates(prep, fit, testable, y) if more else _Candidates([])
+        pool = _pool(testable, steps, settings)
+        more = bool(pool)
+        cands = _candidates(prep, fit, pool, y) if more else _Candidates([])
         rnd = _round(prep, fit, cands, y, floor, block_s, settings)
         cur = rnd.gram.evaluate(rnd.sel_idx, rnd.ty)
         gap_cur = float(np.sqrt(cur.cv / rnd.gram.n))
@@ -223,6 +225,23 @@ def search_effects(
         block_s,
         confounded,
     )
+
+
+#: The recorded signals the search may name beside ``Settings.max_effects`` library effects.
+MAX_SIGNAL_EFFECTS = 16
+
+
+def _pool(
+    testable: tuple[Candidate, ...], steps: list[Step], settings: Settings
+) -> tuple[Candidate, ...]:
+    """The candidates still offered: the library's until ``max_effects`` of its effects are
+    named, the recorded signals' until :data:`MAX_SIGNAL_EFFECTS` of theirs are."""
+    signal = [s.effect.startswith(SIGNAL_PREFIX) for s in steps]
+    room = {
+        True: sum(signal) < MAX_SIGNAL_EFFECTS,
+        False: len(signal) - sum(signal) < settings.max_effects,
+    }
+    return tuple(c for c in testable if room[c.name.startswith(SIGNAL_PREFIX)])
 
 
 def _candidates(

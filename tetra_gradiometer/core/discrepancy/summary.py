@@ -14,7 +14,6 @@ from ..geometry import TetraGeometry
 from .cv import ALL_SENSORS
 from .diagnostics import diagnostics, tensor_rms
 from .dipoles import Located, Track, describe
-from .effects import LIBRARY
 from .findings import findings
 from .fit import column_bounds, effect_field
 from .prepare import Prepared
@@ -70,7 +69,7 @@ def _final_steps(search: SearchResult) -> tuple[list[Step], list[Array]]:
             values.append(c)
             fld += effect_field(active[k], c)
         parameters = format_parameters(labels, np.concatenate(values), prep.absolute)
-        parameters['units'] = LIBRARY[step.effect].parameters
+        parameters['units'] = active[members[0]].candidate.parameters if members else ''
         parameters['rms_contribution_nT'] = {
             f'sensor_{s + 1}': float(np.sqrt(np.mean(fld[:, s] ** 2)))
             for s in ALL_SENSORS

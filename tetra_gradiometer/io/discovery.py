@@ -1,0 +1,97 @@
+"""Every numeric signal a bag records beyond the data contract, as candidate channels for
+the discrepancy search: ``signal:TOPIC#FIELD`` (:mod:`.signals`), found in the first
+message of each other topic.
+
+A field is a candidate when it is a number (not a header or a stamp), an element of a short
+array (at most :data:`MAX_ELEMENTS`), or an element named by a ``name`` array beside it
+(``sensor_msgs/JointState``: ``position[fin1]``). At most :data:`MAX_SIGNALS` are read; one
+that never changes on the run is no regressor and is left out, said with why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..core.effects import SIGNAL_PREFIX
+from . import conversions as cv
+from .signals import read_signal
+
+if TYPE_CHECKING:
+    from .bag import MagneticBag, Series
+
+__all__ = ['MAX_SIGNALS', 'discover_signals', 'numeric_fields']
+
+#: Arrays longer than this (an image, a point cloud) are not signals.
+MAX_ELEMENTS = 16
+#: At most this many signals are read from a bag.
+MAX_SIGNALS = 48
+#: Fields that place a message, not measure the vehicle.
+_SKIPPED = {'header', 'stamp', 'frame_id', 'child_frame_id', 'covariance', 'name'}
+
+
+def numeric_fields(msg: Any, prefix: str = '') -> list[str]:
+    """The paths (:func:`~.signals.field_value`'s) of the numbers in ``msg``."""
+    out: list[str] = []
+    names = [str(n) for n in getattr(msg, 'name', ())] if hasattr(msg, 'name') else []
+    for item in dataclasses.fields(msg) if dataclasses.is_dataclass(msg) else ():
+        key = item.name
+        if key in _SKIPPED or key.endswith('covariance') or key.startswith('_'):
+            continue
+        value, path = getattr(msg, key), f'{prefix}{key}'
+        if isinstance(value, bool) or isinstance(value, str):
+            continue
+        if isinstance(value, (int, float, np.number)):
+            out.append(path)
+        elif isinstance(value, (list, tuple, np.ndarray)):
+            numbers = np.asarray(value)
+            if numbers.dtype.kind not in 'iuf' or numbers.ndim != 1:
+                continue
+            if names and len(names) == len(numbers):
+                out += [f'{path}[{n}]' for n in names]
+            elif 0 < len(numbers) <= MAX_ELEMENTS:
+                out += [f'{path}[{i}]' for i in range(len(numbers))]
+        elif dataclasses.is_dataclass(value):
+            out += numeric_fields(value, f'{path}.')
+    return out
+
+
+def discover_signals(bag: MagneticBag) -> tuple[dict[str, Series], list[str]]:
+    """The numeric signals of the bag's topics beyond the contract (channel name -> its
+    series), and a line per topic or field left out (why)."""
+    contract = set(cv.CONTRACT_TOPICS)
+    found: dict[str, Series] = {}
+    notes: list[str] = []
+    for topic in bag.topics():
+        if topic in contract or topic.startswith(cv.NAMESPACE + '/'):
+            continue
+        if bag.topics_of_type(cv.BATTERY_STATE).count(topic):
+            continue  # a current channel already (vehicle_current)
+        first = _first_message(bag, topic)
+        if first is None:
+            notes.append(f'{topic}: not decoded (no message definition)')
+            continue
+        for path in numeric_fields(first):
+            if len(found) >= MAX_SIGNALS:
+                notes.append(f'{topic}#{path} and further fields: beyond {MAX_SIGNALS} signals')
+                return found, notes
+            series = read_signal(bag, topic, path)
+            if series is None or len(series.stamps_ns) < 3:
+                continue
+            if np.ptp(series.values[:, 0]) == 0.0:
+                notes.append(f'{topic}#{path}: constant on the run (no regressor)')
+                continue
+            found[f'{SIGNAL_PREFIX}{topic}#{path}'] = series
+    return found, notes
+
+
+def _first_message(bag: MagneticBag, topic: str) -> Any:
+    connections = [c for c in bag.reader.connections if bag.topic_of(c.topic) == topic]
+    for connection, _, raw in bag.reader.messages(connections):
+        try:
+            return bag.reader.deserialize(raw, connection.msgtype)
+        except Exception:  # a damaged first message, an unknown type: the next one, or none
+            continue
+    return None
