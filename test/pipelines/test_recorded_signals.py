@@ -149,6 +149,10 @@ def test_declared_signals_bring_a_vehicle_of_fins_and_cables_to_the_floor(capsys
     assert declared <= 1.2 * floor, (declared / floor, out)
     for name in DECLARED:  # each declared signal is selected by its held-out test
         assert f'signal:{name}' in (root / 'declared_calib.yaml').read_text()
+    code, _, err = run_cli(capsys, 'calibrate', root / 'bag', '--params', root / 'plain.yaml', '--window',
+                           '0:239.9', '--out', root / 'refused.yaml')
+    # refused, the signals it records named as a cause beside a field's
+    assert code == 1 and 'a signal it records explains (/joint_states, /power/sonar, /power/thrusters' in err, err
     plain, out = _survey_residual(capsys, root, mission, survey, root / 'plain.yaml', '--force')
     assert plain is None or plain > 10 * floor, (plain, out)  # without them: far from it
     document = yaml.safe_load((root / 'declared_calib.yaml').read_text())

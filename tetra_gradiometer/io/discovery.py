@@ -22,7 +22,7 @@ from .signals import read_signal
 if TYPE_CHECKING:
     from .bag import MagneticBag, Series
 
-__all__ = ['MAX_SIGNALS', 'discover_signals', 'numeric_fields']
+__all__ = ['MAX_SIGNALS', 'discover_signals', 'numeric_fields', 'signal_topics']
 
 #: Arrays longer than this (an image, a point cloud) are not signals.
 MAX_ELEMENTS = 16
@@ -58,17 +58,23 @@ def numeric_fields(msg: Any, prefix: str = '') -> list[str]:
     return out
 
 
+#: Topics of the ROS graph's own, never a vehicle signal.
+INFRASTRUCTURE = ('/tf', '/tf_static', '/rosout', '/parameter_events', '/diagnostics', '/clock')
+
+
+def signal_topics(bag: MagneticBag) -> tuple[str, ...]:
+    """The bag's topics beyond the contract, its current channels (BatteryState) and the
+    graph's own: where a vehicle signal may be."""
+    skip = {*cv.CONTRACT_TOPICS, *bag.topics_of_type(cv.BATTERY_STATE), *INFRASTRUCTURE}
+    return tuple(t for t in bag.topics() if t not in skip and not t.startswith(cv.NAMESPACE + '/'))
+
+
 def discover_signals(bag: MagneticBag) -> tuple[dict[str, Series], list[str]]:
     """The numeric signals of the bag's topics beyond the contract (channel name -> its
     series), and a line per topic or field left out (why)."""
-    contract = set(cv.CONTRACT_TOPICS)
     found: dict[str, Series] = {}
     notes: list[str] = []
-    for topic in bag.topics():
-        if topic in contract or topic.startswith(cv.NAMESPACE + '/'):
-            continue
-        if bag.topics_of_type(cv.BATTERY_STATE).count(topic):
-            continue  # a current channel already (vehicle_current)
+    for topic in signal_topics(bag):
         first = _first_message(bag, topic)
         if first is None:
             notes.append(f'{topic}: not decoded (no message definition)')

@@ -23,6 +23,7 @@ import numpy.typing as npt
 
 from ..core import TetraGeometry, difference_tensor
 from ..core.conventions import relative_axes
+from ..core.effects import SIGNAL_PREFIX, parse_declaration
 from ..core.identification import (
     DEFAULT_METHOD,
     MAX_COVERAGE_CONDITION,
@@ -43,6 +44,7 @@ from .effects_choice import EffectsChoice
 from .terms import WindowTerms, window_terms
 from .window_check import (
     KNOWN_GRADIENT_METHODS,
+    UNREAD,
     CheckedCalibration,
     WindowCheck,
     forced,
@@ -381,9 +383,27 @@ def _solve(
         first_ns=sets.first_ns,
         force=force,
         notes=(*axes_note, *note, *terms.notes),
-        lacking=terms.lacking,
+        lacking={**terms.lacking, **_unread_signals(bag_path, effects)},
     )
     return checked, options, terms
+
+
+def _unread_signals(
+    bag_path: str | os.PathLike[str], effects: EffectsChoice | None
+) -> dict[str, str]:
+    """``{UNREAD: 'topic, ...'}`` for the bag's topics that may carry a vehicle signal and
+    that no declared signal reads, or {}."""
+    from ..io.discovery import signal_topics
+
+    with MagneticBag(bag_path) as bag:
+        choice = effects or EffectsChoice()
+        declared = {
+            parse_declaration(n).topic
+            for n in (*choice.signals, *(choice.names or ()))
+            if n.startswith(SIGNAL_PREFIX)
+        }
+        unread = [t for t in signal_topics(bag) if t not in declared]
+    return {UNREAD: ', '.join(unread[:6]) + (' ...' if len(unread) > 6 else '')} if unread else {}
 
 
 def sensor_axes_check(fields: FloatArray, window: str, force: bool) -> tuple[str, ...]:

@@ -161,6 +161,11 @@ class AttitudeHistory:
         return orientation_at(stamps, quats, stamps_ns)
 
 
+#: The key of ``lacking`` (:meth:`WindowCheck.cause`) that names the recorded signals the
+#: fit does not read.
+UNREAD = 'unread signals'
+
+
 @dataclass(frozen=True)
 class WindowCheck:
     """The fit's test of its own assumption on the window.
@@ -184,14 +189,24 @@ class WindowCheck:
 
     def cause(self, lacking: dict[str, str] | None = None) -> str:
         """What the misfit's shape says it is (:mod:`~tetra_gradiometer.core.
-        identification.misfit`), naming the effects whose channels the data lack."""
+        identification.misfit`), naming the effects whose channels the data lack and the
+        recorded signals the fit does not read (``lacking[UNREAD]``): a magnet or a current
+        outside the array is symmetric and traceless too, so only a signal that explains
+        it can tell the vehicle from a target."""
+        lacking = dict(lacking or {})
+        unread = lacking.pop(UNREAD, '')
+        vehicle = (
+            f'; or a source on the vehicle that a signal it records explains ({unread}: '
+            '`discrepancy` tests them, vehicle_signals declares them)'
+            if unread
+            else ''
+        )
         share = self.field_share
         if share is not None and share >= FIELD_SHARE:
             return (
                 f'a target or a spatially varying field: {share:.0%} of the misfit above the '
-                'noise is symmetric and traceless, as a field gradient is'
+                f'noise is symmetric and traceless, as a field gradient is{vehicle}'
             )
-        lacking = lacking or {}
         shape = (
             ''
             if share is None
@@ -202,9 +217,12 @@ class WindowCheck:
             names = '; '.join(f'{name} needs {what}' for name, what in lacking.items())
             return (
                 f'{shape}not a field but an effect of the vehicle the model lacks; the data '
-                f'lack the channel of an effect that may explain it ({names})'
+                f'lack the channel of an effect that may explain it ({names}){vehicle}'
             )
-        return f'{shape}not a field but an effect of the vehicle the model lacks, or a bad stretch'
+        return (
+            f'{shape}not a field but an effect of the vehicle the model lacks, or a bad '
+            f'stretch{vehicle}'
+        )
 
     def text(self, sub_window: str = '--window {0:g}:{1:g}') -> str:
         """One line: the verdict with the figures, the failing part, the passing window
