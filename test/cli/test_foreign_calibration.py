@@ -61,3 +61,19 @@ def test_another_vehicles_calibration_is_named_without_being_asked(vehicles, tmp
     assert code == 0
     assert 'warning: health:' in err and 'does not hold from the start of the data' in err, err
     assert "this calibration is not this vehicle's as it is now" in err
+
+
+@pytest.mark.parametrize('command', ['locate', 'survey'])
+def test_locate_and_survey_check_their_compensated_tensor_too(vehicles, tmp_path, capsys, command):
+    """The same check in the commands that hand products to a client: the foreign
+    calibration is named, the own one passes."""
+    params, out = vehicles
+    extra = ('--origin', '43.2,5.3') if command == 'survey' else ()
+    for bag_of, calibration_of, foreign in (('b', 'a', True), ('a', 'a', False)):
+        code, stdout, err = run_cli(capsys, command, out[bag_of][0], '--params', params, '--calibration',
+                                    out[calibration_of][1], '--out', tmp_path / f'{command}_{bag_of}', *extra)
+        text = stdout + err
+        if foreign:
+            assert "this calibration is not this vehicle's as it is now" in text, text
+        else:
+            assert "not this vehicle's" not in text, text

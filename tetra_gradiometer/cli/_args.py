@@ -32,6 +32,7 @@ __all__ = [
     'add_force_argument',
     'add_progress_arguments',
     'bag_from_args',
+    'say_health',
     'timebase_from_args',
     'finite_float',
     'int_range',
@@ -329,6 +330,15 @@ def effects_from_args(args: argparse.Namespace) -> EffectsChoice:
     if args.effects_from is not None:
         return EffectsChoice.from_report(args.effects_from, args.current_topics)
     return EffectsChoice.parse(args.effects, args.current_topics)
+
+
+def say_health(document: dict, where: str = '') -> None:
+    """The health monitor's verdict (``document``: ``pipelines.health``'s report), always:
+    a warning on stderr when it alarms."""
+    if document['alarms']:
+        print(f'warning: health: {document["verdict"]}{where}', file=sys.stderr)
+    else:
+        print(f'health: {document["verdict"]}{where}')
 
 
 def say_forced(calibration: str, warnings: tuple[str, ...]) -> None:

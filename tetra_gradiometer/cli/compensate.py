@@ -77,6 +77,7 @@ from ._args import (
     bag_from_args,
     positive_float,
     say_forced,
+    say_health,
     timebase_from_args,
 )
 
@@ -225,10 +226,7 @@ def _health_verdict(
     if args.report is not None:
         write_health_report(health, args.report, force=args.force, inputs=inputs)
         where = f'; report: {args.report}'
-    if document['alarms']:
-        print(f'warning: health: {document["verdict"]}{where}', file=sys.stderr)
-    else:
-        print(f'health: {document["verdict"]}{where}')
+    say_health(document, where)
 
 
 def _health_recorder(

@@ -33,6 +33,7 @@ from ..errors import InputError
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import TARGETS, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
+from ..pipelines.health import HealthRecorder
 from ..pipelines.targets import Search, locate_bag
 from ..reports.targets import write_locate_report
 from ._args import (
@@ -43,6 +44,7 @@ from ._args import (
     bag_from_args,
     positive_float,
     say_forced,
+    say_health,
     timebase_from_args,
 )
 
@@ -126,6 +128,11 @@ def run(args: argparse.Namespace) -> int:
         parameters = calibration.parameters
         say_forced(args.calibration, calibration.forced_warnings())
     settings = LocatorSettings(DetectorSettings(false_alarms_per_hour=args.false_alarms_per_hour))
+    health = None  # the compensated tensor checks itself (the file's noise figure needed)
+    if args.calibration is not None and calibration.sensor_noise_t is not None:
+        health = HealthRecorder(
+            geometry, calibration.parameters, calibration.sensor_noise_t, calibration.covariance
+        )
     result = locate_bag(
         args.bag,
         geometry,
@@ -137,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         on_stage=lambda text: print(f'{text} ...', file=sys.stderr, flush=True),
         allow_missing_channels=args.allow_missing_channels,
         earth_field_enu=earth_field_from_params(params, str(args.params)),
+        health=health,
     )
     out = write_locate_report(
         result, args.out, plots=not args.no_plots, force=args.force, inputs=inputs
@@ -151,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if result.held_summary:
         print(result.held_summary)
+    if health is not None:
+        say_health(health.document())
     depth = depth_positive_down(result.main)
     if depth:
         print(f'warning: {depth}', file=sys.stderr)

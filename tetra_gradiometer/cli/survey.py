@@ -44,6 +44,7 @@ from ._args import (
     bag_from_args,
     positive_float,
     say_forced,
+    say_health,
     timebase_from_args,
 )
 
@@ -178,5 +179,6 @@ def run(args: argparse.Namespace) -> int:
         f'{len(result.targets)} targets; {len(result.health["alarms"])} health alarms'
     )
     print(residual_table(result))
+    say_health(result.health)
     print(f'{time.perf_counter() - started:.1f} s; survey in {out}')
     return 0

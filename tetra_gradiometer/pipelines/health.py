@@ -62,6 +62,16 @@ class HealthRecorder:
         self._first_s: float | None = None
         self.bins: dict[int, tuple[float, float]] = {}
 
+    def add_recording(
+        self, stamps_ns: np.ndarray, fields: np.ndarray, tensors: np.ndarray
+    ) -> None:
+        """A whole recording's sets (times from its first set), those with a compensated
+        tensor (a set whose channel was stale has none)."""
+        known = np.all(np.isfinite(tensors.reshape(len(tensors), 9)), axis=1)
+        if known.any():
+            stamps = stamps_ns[known]
+            self.add(stamps, fields[known], tensors[known], bag_start_ns=int(stamps[0]))
+
     def add(
         self, stamps_ns: np.ndarray, fields: np.ndarray, tensors: np.ndarray, *, bag_start_ns: int
     ) -> None:

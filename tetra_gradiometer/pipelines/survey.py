@@ -328,10 +328,7 @@ def _health(
     recorder = HealthRecorder(
         geometry, compensation.parameters, compensation.sensor_noise_t, compensation.covariance
     )
-    known = np.all(np.isfinite(body.reshape(len(body), 9)), axis=1)
-    stamps = recording.stamps_ns[known]
-    if len(stamps):
-        recorder.add(stamps, recording.fields[known], body[known], bag_start_ns=int(stamps[0]))
+    recorder.add_recording(recording.stamps_ns, recording.fields, body)
     return recorder.document()
 
 

@@ -22,6 +22,7 @@ from ..errors import BagError
 from ..io import conversions as cv
 from ..io.bag import MagneticBag
 from ..io.recording import Recording, read_recording
+from .health import HealthRecorder
 from .terms import StreamRegressors
 
 
@@ -92,12 +93,14 @@ def locate_bag(
     on_stage: Callable[[str], None] | None = None,
     allow_missing_channels: bool = False,
     earth_field_enu: np.ndarray | None = None,
+    health: HealthRecorder | None = None,
 ) -> BagTargets:
     """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
     7, when None) and, with ``comparison``, the raw one too. ``allow_missing_channels``: a
     channel the terms read that the bag lacks holds its terms at their calibration-window
     mean instead of refusing (``compensate --allow-missing-channels``). ``earth_field_enu``
-    (3,) T, the params file's: the odometry's world frame is tested against it.
+    (3,) T, the params file's: the odometry's world frame is tested against it. ``health``
+    (pipelines/health) is fed the compensated sets: the output checks itself.
 
     Raises
     ------
@@ -120,6 +123,8 @@ def locate_bag(
         )
         b1 = recording.fields[:, 0, :]
         kinds.append(('compensated', compensate(raw, b1, parameters, geometry, x)))
+        if health is not None:
+            health.add_recording(recording.stamps_ns, recording.fields, kinds[-1][1])
     if parameters is None or comparison:
         kinds.append(('raw', raw))
     for tensor, tensors in kinds:
