@@ -79,6 +79,7 @@ bench: setup
 	$(PY) bench/bench_health.py
 	$(PY) bench/bench_targets.py --speed
 	$(PY) bench/bench_window.py
+	$(PY) bench/bench_signals.py --json bench/results/signals.json
 
 clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants
