@@ -233,7 +233,7 @@ def test_the_node_locates_the_simulated_dipole_and_latches_its_outputs():
         wait_for(settled, 45, 'the search of the whole survey', graph)
         wait_for(lambda: outputs.get('detections') is not None
                  and cv.stamp_to_ns(outputs.get('detections').header.stamp) == final, 5, 'detections', graph)
-        wait_for(lambda: probe.status(STATUS).get('searched_samples') == str(n - 1), 5, 'diagnostics', graph)
+        wait_for(lambda: probe.status(STATUS).get('searched_samples') == str(n - 1), 20, 'diagnostics', graph)
         status = probe.status(STATUS)
         poses, document = outputs.get('targets'), json.loads(outputs.get('targets/json').data)
         markers, detections = outputs.get('targets/markers').markers, outputs.get('detections')

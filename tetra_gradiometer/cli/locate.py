@@ -33,7 +33,7 @@ from ..errors import InputError
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import TARGETS, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
-from ..pipelines.health import HealthRecorder
+from ..pipelines.compensation import health_recorder, load_compensation
 from ..pipelines.targets import Search, locate_bag
 from ..reports.targets import write_locate_report
 from ._args import (
@@ -130,9 +130,8 @@ def run(args: argparse.Namespace) -> int:
     settings = LocatorSettings(DetectorSettings(false_alarms_per_hour=args.false_alarms_per_hour))
     health = None  # the compensated tensor checks itself (the file's noise figure needed)
     if args.calibration is not None and calibration.sensor_noise_t is not None:
-        health = HealthRecorder(
-            geometry, calibration.parameters, calibration.sensor_noise_t, calibration.covariance
-        )
+        compensation = load_compensation(args.calibration, geometry, target=str(args.params))
+        health = health_recorder(geometry, compensation)
     result = locate_bag(
         args.bag,
         geometry,
