@@ -114,8 +114,19 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
                             del tensors[stamp]
                 return sorted(received)
 
-        deadline = time.monotonic() + 20.0
-        while len(survey_only()) < len(survey) and time.monotonic() < deadline:
+        newest = {'stamp': 0, 'since': time.monotonic()}
+
+        def whole_survey() -> bool:
+            # Trim tensors repaired late can fill the count before the survey's end arrives
+            # (the stamps run on across the hold): the newest stamp must also stay the newest
+            # for a writer's heartbeat (3 s), the survey's last, as the driver has finished.
+            stamps = survey_only()
+            if stamps and stamps[-1] != newest['stamp']:
+                newest.update(stamp=stamps[-1], since=time.monotonic())
+            return len(stamps) >= len(survey) and time.monotonic() - newest['since'] > 3.0
+
+        deadline = time.monotonic() + 25.0
+        while not whole_survey() and time.monotonic() < deadline:
             time.sleep(0.1)
         truth = survey_only()
         assert len(truth) == len(survey), (
