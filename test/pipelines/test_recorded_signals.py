@@ -192,3 +192,25 @@ def test_discrepancy_finds_the_recorded_signals_and_calibrate_takes_its_declarat
     residual, out = _survey_residual(capsys, root, mission, survey, found,
                                      '--effects-from', root / 'report' / 'report.json')
     assert residual is not None and residual <= 1.2 * floor, (residual and residual / floor, out)
+
+
+def test_a_field_only_some_messages_have_is_left_out_with_why_not_a_refused_run(tmp_path):
+    """Joints that come and go (a servo reported every other message): the discovery names
+    the field it could not read and goes on with the rest."""
+    from tetra_gradiometer.io.bag import MagneticBag
+    from tetra_gradiometer.io.discovery import discover_signals
+
+    with BagWriter(tmp_path / 'bag') as writer:
+        JointState, Header, Time = (writer.types[f'{p}/msg/{n}'] for p, n in (
+            ('sensor_msgs', 'JointState'), ('std_msgs', 'Header'), ('builtin_interfaces', 'Time')))
+        for i in range(50):
+            stamp = START_NS + i * 10**8
+            names = ['fin1', 'fin2'] if i % 2 == 0 else ['fin1']
+            writer.write('/joint_states', JointState(
+                header=Header(stamp=Time(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id=''),
+                name=names, position=np.full(len(names), 0.01 * i), velocity=np.zeros(0),
+                effort=np.zeros(0)), stamp)
+    with MagneticBag(tmp_path / 'bag') as bag:
+        found, notes = discover_signals(bag)
+    assert list(found) == ['signal:/joint_states#position[fin1]']
+    assert any(n.startswith('/joint_states#position[fin2]: ') and "no 'fin2' in name" in n for n in notes), notes

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..core.effects import SIGNAL_PREFIX
+from ..errors import BagError
 from . import conversions as cv
 from .signals import read_signal
 
@@ -83,7 +84,11 @@ def discover_signals(bag: MagneticBag) -> tuple[dict[str, Series], list[str]]:
             if len(found) >= MAX_SIGNALS:
                 notes.append(f'{topic}#{path} and further fields: beyond {MAX_SIGNALS} signals')
                 return found, notes
-            series = read_signal(bag, topic, path)
+            try:
+                series = read_signal(bag, topic, path)
+            except BagError as error:  # a field only some messages have: a candidate less
+                notes.append(f'{topic}#{path}: {error}')
+                continue
             if series is None or len(series.stamps_ns) < 3:
                 continue
             if np.ptp(series.values[:, 0]) == 0.0:
