@@ -19,13 +19,14 @@ import numpy as np
 import pytest
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'io'))
+sys.path[:0] = [str(Path(__file__).resolve().parents[1] / d) for d in ('io', 'ros')]
 from cli_helpers import run_cli  # noqa: E402
 from stream_faults import EARTH_ENU, GEOMETRY, START_NS, short_mission  # noqa: E402
 
 from tetra_gradiometer.core.metrics import noise_floor  # noqa: E402
 from tetra_gradiometer.io import conversions as cv  # noqa: E402
 from tetra_gradiometer.io.bag import BagWriter  # noqa: E402
+from tetra_gradiometer.io.channels import channel_topic  # noqa: E402
 from tetra_gradiometer.io.params import params_document  # noqa: E402
 
 FINS = ('fin1', 'fin2', 'fin3', 'fin4')
@@ -141,7 +142,7 @@ def _survey_residual(capsys, root, mission, survey, params, *options):
     return float(np.sqrt(np.mean(error**2))), out
 
 
-def test_declared_signals_bring_a_vehicle_of_fins_and_cables_to_the_floor(capsys, vehicle):
+def test_declared_signals_bring_a_vehicle_of_fins_and_cables_to_the_floor(capsys, vehicle, monkeypatch):
     root, mission, survey, floor, swing = vehicle
     assert swing > 20e-9  # the interference moves the readings by tens of nT
     declared, out = _survey_residual(capsys, root, mission, survey, root / 'declared.yaml')
@@ -158,6 +159,36 @@ def test_declared_signals_bring_a_vehicle_of_fins_and_cables_to_the_floor(capsys
     document = yaml.safe_load((root / 'declared_calib.yaml').read_text())
     fin = next(t for t in document['terms'] if t['effect'] == f'signal:{DECLARED[0]}')
     assert fin['labels'] == ['cos /joint_states#position[fin1]', 'sin /joint_states#position[fin1]']
+    _silent_signals_are_named_live(monkeypatch, root / 'bag', root / 'declared_calib.yaml')
+
+
+def _silent_signals_are_named_live(monkeypatch, bag_path, calibration):
+    """The compensator node with the declared calibration and sets but no signal message:
+    nothing is compensated (never with a zero signal) and /diagnostics names each signal."""
+    from in_process import node_in_process
+    from rclpy.time import Time
+
+    from tetra_gradiometer.core import difference_tensor
+    from tetra_gradiometer.io.bag import MagneticBag
+    from tetra_gradiometer.nodes.compensator import CompensatorNode
+
+    with MagneticBag(bag_path) as bag:
+        stamps, fields = bag.read_sets()
+    stamps, fields = stamps[:20], fields[:20]
+    tensor_cdr = cv.TensorCdr('tetra_array')
+    with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration), use_sim_time=True,
+                         sensor_positions=GEOMETRY.to_flat()) as (node, published):
+        for stamp, field, g in zip(stamps, fields, difference_tensor(fields, GEOMETRY)):
+            node.get_clock().set_ros_time_override(Time(nanoseconds=int(stamp)))
+            node._on_reference(cv.magnetic_field_cdr(field[0], int(stamp), cv.MAG_FRAMES[0]))
+            node._on_raw(tensor_cdr.write(g, int(stamp)))
+        node._publish_diagnostics()
+    assert not [m for topic, m in published if topic == '/tetra/gradient/compensated']
+    status = [s for topic, m in published if topic == '/diagnostics' for s in m.status
+              if s.name == 'tetra/compensator: channels'][-1]  # the last: after the sets
+    assert status.level == bytes([1]), status
+    for name in DECLARED:
+        assert f'signal:{name}' in status.message or name.split('#')[0] in status.message, status.message
 
 
 @pytest.mark.parametrize('seed', [21, 22, 23])
@@ -172,10 +203,11 @@ def test_a_clean_vehicle_recording_moving_fins_and_currents_selects_no_signal(ca
     assert 'signal:' not in yaml.safe_dump(yaml.safe_load((tmp_path / 'c.yaml').read_text()).get('terms', []))
 
 
-def test_discrepancy_finds_the_recorded_signals_and_calibrate_takes_its_declaration(capsys, vehicle):
+def test_discrepancy_finds_the_recorded_signals_and_calibrate_takes_its_declaration(capsys, vehicle, monkeypatch):
     """Nothing declared: the search tries every numeric field the bag records beyond the
     contract, names the ones responsible by topic and field, and nothing else; the report's
-    declaration, given to calibrate, brings the survey to the floor."""
+    declaration, given to calibrate, brings the survey to the floor, offline and in the
+    compensator node."""
     root, mission, survey, floor, _ = vehicle
     code, out, err = run_cli(capsys, 'discrepancy', root / 'bag', '--params', root / 'plain.yaml',
                              '--window', '0:239.9', '--out', root / 'report', '--no-plots')
@@ -192,6 +224,58 @@ def test_discrepancy_finds_the_recorded_signals_and_calibrate_takes_its_declarat
     residual, out = _survey_residual(capsys, root, mission, survey, found,
                                      '--effects-from', root / 'report' / 'report.json')
     assert residual is not None and residual <= 1.2 * floor, (residual and residual / floor, out)
+
+    # Live: the compensator node follows that calibration, reading the signals' messages.
+    offline = np.loadtxt(root / 'found.csv', delimiter=',', skiprows=1, usecols=range(1, 10)) * 1e-9
+    stamps, live = _compensator_live(monkeypatch, root / 'bag', root / 'found_calib.yaml')
+    assert len(live) >= 0.95 * len(offline), (len(live), len(offline))  # the last wait for a message
+    index = np.searchsorted(np.round(mission.t * 1e9).astype(np.int64) + START_NS, stamps)
+    worst = np.max(np.abs(live.reshape(-1, 9) - offline[index])) / floor
+    assert worst <= 0.01, worst
+    live_survey = mission.segment[index] > 0
+    error = live[live_survey] - mission.g_true[index][live_survey]
+    live_ratio = np.sqrt(np.mean(error**2)) / floor
+    print(f'\ncompensator node: {len(live)} of {len(offline)} sets, max |dG| {worst:.1e} x floor from '
+          f'compensate; survey {live_ratio:.3f} x floor')
+    assert live_ratio <= 1.2
+
+
+def _compensator_live(monkeypatch, bag_path, calibration):
+    """The bag's sets and signal messages handed to the compensator node in this process, in
+    log order (a message before the sets of its log time), its clock at each message's log
+    time: the stamps (n,) ns and tensors (n, 3, 3) T/m it publishes on gradient/compensated."""
+    from in_process import node_in_process
+    from rclpy.time import Time
+    from rosbags.highlevel import AnyReader
+
+    from tetra_gradiometer.core import difference_tensor
+    from tetra_gradiometer.io.bag import MagneticBag
+    from tetra_gradiometer.nodes.compensator import CompensatorNode
+
+    with MagneticBag(bag_path) as bag:
+        stamps, fields = bag.read_sets()
+    g_raw = difference_tensor(fields, GEOMETRY)
+    with AnyReader([Path(bag_path)]) as reader:
+        connections = [c for c in reader.connections if c.topic in ('/joint_states', '/power/sonar', '/power/thrusters')]
+        messages = [(log, c.topic, reader.deserialize(raw, c.msgtype)) for c, log, raw in reader.messages(connections)]
+    tensor_cdr = cv.TensorCdr('tetra_array')
+    with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration), use_sim_time=True,
+                         sensor_positions=GEOMETRY.to_flat()) as (node, published):
+        channels = node._effects.channels  # the names its terms read, each a topic and field
+        assert {channel_topic(n) for n in channels} == {'/joint_states', '/power/sonar', '/power/thrusters'}
+        events = sorted([(log, 0, k) for k, (log, _, _) in enumerate(messages)]
+                        + [(int(s), 1, i) for i, s in enumerate(stamps)])
+        for log, kind, k in events:
+            node.get_clock().set_ros_time_override(Time(nanoseconds=log))
+            if kind == 0:
+                for name in channels:
+                    if channel_topic(name) == messages[k][1]:
+                        node._on_channel(name, messages[k][2])
+            else:
+                node._on_reference(cv.magnetic_field_cdr(fields[k, 0], log, cv.MAG_FRAMES[0]))
+                node._on_raw(tensor_cdr.write(g_raw[k], log))
+    out = [tensor_cdr.read(msg) for topic, msg in published if topic == '/tetra/gradient/compensated']
+    return np.array([s for s, _ in out]), np.array([g for _, g in out])
 
 
 def test_a_field_only_some_messages_have_is_left_out_with_why_not_a_refused_run(tmp_path):

@@ -1,0 +1,36 @@
+"""A node in this process, without a DDS graph to wait on: constructed (configured and
+activated by ``autostart``), driven by calling its callbacks, what it publishes captured.
+
+Nothing is spun: no timer fires and no message arrives but the ones the test hands to a
+callback, so what the node publishes follows from the test's inputs alone."""
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import Any
+
+from ros_helpers import unique_domain
+
+
+@contextlib.contextmanager
+def node_in_process(node_class: type, monkeypatch: Any, **parameters: Any) -> Iterator[tuple[Any, list]]:
+    """``(node, published)``: a ``node_class`` built with ``parameters`` in a context of its
+    own; ``published`` receives ``(topic, message)`` for every publish of any publisher (a
+    serialized message stays bytes)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from rclpy.publisher import Publisher
+
+    published: list[tuple[str, Any]] = []
+    monkeypatch.setattr(Publisher, 'publish', lambda self, msg: published.append((self.topic_name, msg)))
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=unique_domain())
+    node = None
+    try:
+        node = node_class(context=context,
+                          parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()])
+        yield node, published
+    finally:
+        if node is not None:
+            node.destroy_node()
+        context.try_shutdown()
