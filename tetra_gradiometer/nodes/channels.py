@@ -186,12 +186,18 @@ def message_class(node: Any, topic: str) -> Any:
     yet, or a type whose package this install lacks)."""
     for name, types in node.get_topic_names_and_types():
         if name == topic and types:
-            package, _, kind = types[0].partition('/msg/')
-            try:
-                return getattr(importlib.import_module(f'{package}.msg'), kind, None)
-            except ImportError:
-                return None
+            return message_class_named(types[0])
     return None
+
+
+def message_class_named(msgtype: str) -> Any:
+    """The message class of ``msgtype`` (``package/msg/Name``), or None when this install
+    lacks its package."""
+    package, _, kind = msgtype.partition('/msg/')
+    try:
+        return getattr(importlib.import_module(f'{package}.msg'), kind, None)
+    except ImportError:
+        return None
 
 
 def subscribe_channels(

@@ -20,8 +20,9 @@ so in the suite's namespace (``/tetra/odom``), never the vehicle's own ``/odom``
 vehicle effects the bag records, on their own (absolute) topics as the calibrator and
 compensator read them: ``/tetra/temperature`` (sensor_msgs/Temperature) and every
 sensor_msgs/BatteryState topic (``/battery_state``, a thruster's), the latter carrying only
-``current`` (the rest NaN). A
-magnetometer message keeps its recorded covariance; one recorded without (all zero) gets
+``current`` (the rest NaN); and the topics where the vehicle's own signals may be (any other
+topic: fin angles, a power board's currents) as recorded. A magnetometer message keeps its
+recorded covariance; one recorded without (all zero) gets
 ``diag(sensor_noise_t^2)``, or REP 145's unknown (-1 first) with ``sensor_noise_t`` 0.
 
 Pacing: ``rate`` times real time (by sample time in sim, by log time in replay; a frame
@@ -59,6 +60,7 @@ from ..core.units import NS_PER_S
 from ..errors import InputError, ParamsError
 from ..io import conversions as cv
 from . import replay
+from .channels import message_class_named
 from .common import (
     OK,
     POSITIONS_SPEC,
@@ -74,7 +76,7 @@ from .common import (
 )
 from .managed import ManagedNode
 from .process import spin_node
-from .replay import CHANNEL, MAG, ODOM, TRUTH, Frame
+from .replay import CHANNEL, MAG, ODOM, SIGNAL, TRUTH, Frame
 
 #: rate 0: the topics whose messages may pace the replay (``pace_topic``).
 PACE_TOPICS = ('gradient/raw', 'gradient/compensated')
@@ -276,6 +278,14 @@ class DriverNode(ManagedNode):
         for i, topic in enumerate(channels):
             kind = Temperature if topic == cv.TEMPERATURE_TOPIC else BatteryState
             self._pubs[(CHANNEL, i)] = self.create_publisher(kind, topic, derived_qos())
+        # Its signal topics, as recorded (serialized): each with its recorded type.
+        for i, (topic, msgtype) in enumerate(self.info.get('signals', ())):
+            kind = message_class_named(msgtype)
+            if kind is None:
+                self.get_logger().warning(f'replay: {topic} ({msgtype}) is not played: its '
+                                          'message package is not installed')
+                continue
+            self._pubs[(SIGNAL, i)] = self.create_publisher(kind, topic, derived_qos())
         self._diag_pub = self.diagnostics_publisher()
         self._clock_pub = (
             self.create_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
@@ -340,7 +350,8 @@ class DriverNode(ManagedNode):
         info = replay.describe_bag(path, remap)
         self.get_logger().info(
             f'replay: {path}: {info["messages"]} magnetometer messages; topics {info["topics"]}'
-            f'; channels published: {info["channels"] or "none"}'
+            f'; channels published: {info["channels"] or "none"}; signal topics played: '
+            f'{", ".join(t for t, _ in info["signals"]) or "none"}'
         )
         frames = replay.iter_frames(
             path,
@@ -398,7 +409,9 @@ class DriverNode(ManagedNode):
             self._clock_ns = frame.clock_ns  # before the frame: no message is ahead of /clock
             self._clock_pub.publish(cv.clock_msg(self._types, frame.clock_ns))
         for key, sensor, msg in frame.items:
-            self._pubs[(key, sensor)].publish(msg)
+            publisher = self._pubs.get((key, sensor))
+            if publisher is not None:  # None: a signal whose type is not installed
+                publisher.publish(msg)
         if frame.mag1_stamp is not None:
             self.sets_published += 1
             if self._rate == 0:
@@ -469,6 +482,7 @@ class DriverNode(ManagedNode):
                     'pace_restarts': self.pace_restarts,
                     'rate': self._rate,
                     **self.info,
+                    'signals': ', '.join(t for t, _ in self.info.get('signals', ())),
                     # Matched readers per output (rmw): a reader not yet matched misses what
                     # is played before (volatile), e.g. a node started after the replay.
                     **{

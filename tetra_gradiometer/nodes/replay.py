@@ -9,6 +9,9 @@ frames of messages ready to publish (built with a :class:`~.conversions.MessageT
   at the set's own instant, and the live compensator takes a channel's value from the
   messages it has when the set arrives (nodes/channels.py), as a vehicle's channel measured
   at that instant would be there before the set has gone through the tensor node. It opens
+  the bag's other topics, where the vehicle's own signals are (``io/discovery.signal_topics``:
+  fin angles, a power board's currents), are played as recorded (serialized, any type whose
+  package is installed), as ``ros2 bag play`` would. The driver opens
   the bag in a ``with`` block, so closing the generator (or exhausting it) closes the bag.
   A message that does not decode and an unreadable storage chunk are skipped (as
   :meth:`~.bag.MagneticBag.iter_sets` does), counted and logged.
@@ -46,9 +49,10 @@ LOG = logging.getLogger(__name__)
 if TYPE_CHECKING:
     from ..io.bag import MagneticBag
 
-#: Publisher keys of a frame's messages: magnetometer ``sensor`` 0..3, truth, odometry, and
-#: a vehicle effect's channel (``sensor``: its index in :func:`channel_topics`).
-MAG, TRUTH, ODOM, CHANNEL = 'mag', 'truth', 'odom', 'channel'
+#: Publisher keys of a frame's messages: magnetometer ``sensor`` 0..3, truth, odometry, a
+#: vehicle effect's channel (``sensor``: its index in :func:`channel_topics`) and a recorded
+#: signal's topic (its index in :func:`signal_topics`; the message stays serialized).
+MAG, TRUTH, ODOM, CHANNEL, SIGNAL = 'mag', 'truth', 'odom', 'channel', 'signal'
 
 #: Replayed topics -> (key, sensor).
 REPLAY_TOPICS: dict[str, tuple[str, int]] = {
@@ -91,8 +95,9 @@ def describe_bag(
     path: str | os.PathLike, remap: Mapping[str, str] | None = None
 ) -> dict[str, Any]:
     """Check a bag's contract and describe it: ``messages`` (magnetometer messages),
-    ``topics`` (the replayed topics present, comma separated, as recorded) and ``channels``
-    (the channel topics replayed, :func:`channel_topics`, comma separated, as published).
+    ``topics`` (the replayed topics present, comma separated, as recorded), ``channels``
+    (the channel topics replayed, :func:`channel_topics`, comma separated, as published) and
+    ``signals`` (:func:`signal_topics`: ``(topic, message type)`` pairs).
 
     ``remap``: the bag's topic -> the contract's (``conversions.parse_remap``).
 
@@ -108,7 +113,9 @@ def describe_bag(
             {c.topic for c in bag.reader.connections if bag.topic_of(c.topic) in replayed}
         )
         channels = channel_topics(bag)
-    return {'messages': count, 'topics': ', '.join(topics), 'channels': ', '.join(channels)}
+        signals = signal_topics(bag)
+    return {'messages': count, 'topics': ', '.join(topics), 'channels': ', '.join(channels),
+            'signals': signals}
 
 
 def channel_topics(bag: MagneticBag) -> tuple[str, ...]:
@@ -120,11 +127,21 @@ def channel_topics(bag: MagneticBag) -> tuple[str, ...]:
     return (cv.TEMPERATURE_TOPIC,) * temperature + bag.topics_of_type(cv.BATTERY_STATE)
 
 
+def signal_topics(bag: MagneticBag) -> tuple[tuple[str, str], ...]:
+    """The bag's topics where a vehicle signal may be (``io/discovery.signal_topics``), each
+    with its message type (``package/msg/Name``), sorted."""
+    from ..io.discovery import signal_topics as topics
+
+    recorded = {bag.topic_of(c.topic): c.msgtype for c in bag.reader.connections}
+    return tuple((topic, recorded[topic]) for topic in topics(bag))
+
+
 def _replayed(bag: MagneticBag) -> dict[str, tuple[str, int]]:
-    """Replayed topic (the contract's name) -> (key, sensor): :data:`REPLAY_TOPICS` and the
-    bag's channels."""
+    """Replayed topic (the contract's name) -> (key, sensor): :data:`REPLAY_TOPICS`, the
+    bag's channels and its signal topics."""
     channels = {topic: (CHANNEL, i) for i, topic in enumerate(channel_topics(bag))}
-    return {**REPLAY_TOPICS, **channels}
+    signals = {topic: (SIGNAL, i) for i, (topic, _) in enumerate(signal_topics(bag))}
+    return {**REPLAY_TOPICS, **channels, **signals}
 
 
 def iter_frames(
@@ -136,8 +153,9 @@ def iter_frames(
     skipped: list[SkippedMessage] | None = None,
     remap: Mapping[str, str] | None = None,
 ) -> Generator[Frame, None, None]:
-    """Yield one frame per recorded message of :data:`REPLAY_TOPICS` and of the bag's
-    channels (:func:`channel_topics`), in log-time order (channels first within one log time).
+    """Yield one frame per recorded message of :data:`REPLAY_TOPICS`, of the bag's channels
+    (:func:`channel_topics`) and of its signal topics (:func:`signal_topics`, serialized), in
+    log-time order (channels and signals first within one log time).
 
     Parameters
     ----------
@@ -177,12 +195,15 @@ def iter_frames(
         try:
             for connection, log_ns, raw in guarded_messages(reader, connections, on_skip):
                 try:
-                    msg: Any = reader.deserialize(raw, connection.msgtype)
                     topic = bag.topic_of(connection.topic)
                     key, sensor = replayed[topic]
-                    stamp = checked_stamp_ns(msg.header.stamp)
-                    frame_msg = _rebuild(types, key, msg, stamp, default_covariance, topic)
                     log_ns = int(log_ns)
+                    if key == SIGNAL:  # as recorded: any type, a stamp or none
+                        stamp, frame_msg = log_ns, bytes(raw)
+                    else:
+                        msg: Any = reader.deserialize(raw, connection.msgtype)
+                        stamp = checked_stamp_ns(msg.header.stamp)
+                        frame_msg = _rebuild(types, key, msg, stamp, default_covariance, topic)
                 except Exception as error:  # a malformed message costs itself
                     on_skip(SkippedMessage(connection.topic, log_ns, skip_reason(error)))
                     continue
@@ -201,8 +222,9 @@ def iter_frames(
 
 
 def _channels_first(frames: list[Frame]) -> list[Frame]:
-    """``frames`` of one log time with the channels' first (else in recorded order)."""
-    return sorted(frames, key=lambda frame: frame.items[0][0] != CHANNEL)
+    """``frames`` of one log time with the channels' and signals' first (else in recorded
+    order)."""
+    return sorted(frames, key=lambda frame: frame.items[0][0] not in (CHANNEL, SIGNAL))
 
 
 def _rebuild(
