@@ -128,17 +128,23 @@ def vehicle(tmp_path_factory):
     return root, mission, survey, floor, np.ptp(interference, axis=0).max()
 
 
-def _survey_residual(capsys, root, mission, survey, params, *options):
+def _survey_residual(capsys, root, mission, survey, params, *options, window='0:239.9'):
+    """Calibrate on the trim (``window``) and compensate the bag: the survey's RMS error
+    against the simulator's truth, T/m (None and the output when calibrate refuses)."""
     name = Path(params).stem
-    code, out, err = run_cli(capsys, 'calibrate', root / 'bag', '--params', params, '--window', '0:239.9',
+    code, out, err = run_cli(capsys, 'calibrate', root / 'bag', '--params', params, '--window', window,
                              '--out', root / f'{name}_calib.yaml', *options)
     if code != 0:
         return None, out + err
     code, _, err = run_cli(capsys, 'compensate', root / 'bag', '--params', params, '--calibration',
                            root / f'{name}_calib.yaml', '--csv', root / f'{name}.csv', '--force')
     assert code == 0, err
-    g = np.loadtxt(root / f'{name}.csv', delimiter=',', skiprows=1, usecols=range(1, 10)).reshape(-1, 3, 3) * 1e-9
-    error = g[survey] - mission.g_true[survey]
+    table = np.loadtxt(root / f'{name}.csv', delimiter=',', skiprows=1, dtype=str)
+    stamps = np.array([int(sec) * 10**9 + int(ns) for sec, ns in (c.split('.') for c in table[:, 0])])
+    index = np.searchsorted(START_NS + np.round(mission.t * 1e9).astype(np.int64), stamps)
+    g = table[:, 1:10].astype(float).reshape(-1, 3, 3) * 1e-9
+    on = survey[index]
+    error = g[on] - mission.g_true[index][on]
     return float(np.sqrt(np.mean(error**2))), out
 
 
@@ -298,3 +304,39 @@ def test_a_field_only_some_messages_have_is_left_out_with_why_not_a_refused_run(
         found, notes = discover_signals(bag)
     assert list(found) == ['signal:/joint_states#position[fin1]']
     assert any(n.startswith('/joint_states#position[fin2]: ') and "no 'fin2' in name" in n for n in notes), notes
+
+
+def test_a_rate_declared_follows_a_current_recorded_as_its_charge(capsys, tmp_path):
+    """The power board records only its coulomb counter (C, a Float64 without header); the
+    harness carries its rate, the current. Declared ``rate``, the survey reaches the floor;
+    declared ``linear`` (the charge itself), it does not."""
+    mission = short_mission(trim_s=120.0, survey_s=40.0, seed=31)
+    fine = np.linspace(0.0, mission.t[-1], 200 * len(mission.t))
+    current = 7.0 + 5.0 * np.sin(2 * np.pi * fine / 23.0) * np.cos(2 * np.pi * fine / 61.0)  # A
+    charge = np.concatenate([[0.0], np.cumsum(0.5 * (current[1:] + current[:-1]) * np.diff(fine))])
+    currents = np.column_stack([np.interp(mission.t, fine, current), np.zeros(len(mission.t))])
+    fields = mission.fields_measured + _wire_field(currents, 7)
+    log = START_NS + np.round(mission.t * 1e9).astype(np.int64)
+    with BagWriter(tmp_path / 'bag') as writer:
+        for i, stamp in enumerate(log):
+            for s in range(4):
+                data = cv.magnetic_field_cdr(fields[i, s], int(stamp), cv.MAG_FRAMES[s])
+                writer.write_raw(cv.BAG_MAG_TOPICS[s], cv.MAGNETIC_FIELD, data, int(stamp))
+            writer.write(cv.ODOM_TOPIC, cv.odometry_msg(writer.types, mission.position_enu[i],
+                                                         mission.orientation_xyzw[i], int(stamp)), int(stamp))
+            writer.write('/power/charge', writer.types['std_msgs/msg/Float64'](
+                data=float(np.interp(mission.t[i], fine, charge))), int(stamp))
+    values = {'sensor_positions': GEOMETRY.to_flat(), 'earth_field_enu': EARTH_ENU.tolist()}
+    survey, floor = mission.segment > 0, noise_floor(1e-10, GEOMETRY)
+    ratios = {}
+    for basis in ('rate', 'linear'):
+        (tmp_path / f'{basis}.yaml').write_text(params_document(
+            {**values, 'vehicle_signals': [f'/power/charge#data:{basis}']}))
+        residual, out = _survey_residual(capsys, tmp_path, mission, survey, tmp_path / f'{basis}.yaml', '--force',
+                                         window='0:119.9')
+        ratios[basis] = residual / floor
+    print(f'\ncharge recorded, current in the harness: survey / floor, declared rate '
+          f'{ratios["rate"]:.3f}, linear {ratios["linear"]:.1f}')
+    assert ratios['rate'] <= 1.2 and ratios['linear'] > 5.0, ratios
+    document = yaml.safe_load((tmp_path / 'rate_calib.yaml').read_text())
+    assert [t['labels'] for t in document['terms'] if t['effect'].startswith('signal:')] == [['d/dt /power/charge#data']]

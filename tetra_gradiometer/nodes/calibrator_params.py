@@ -168,9 +168,9 @@ PARAMETERS = [
         'vehicle_signals',
         (),
         "The vehicle's own recorded signals fitted as effects, TOPIC#FIELD:BASIS (bases: "
-        'linear, harmonic, onoff; e.g. /joint_states#position[fin1]:harmonic), as the params '
-        "file's vehicle_signals for calibrate; each topic's type is the graph's at configure. "
-        'Read-only after start-up.',
+        'linear, harmonic, onoff, rate; e.g. /joint_states#position[fin1]:harmonic), as the '
+        "params file's vehicle_signals for calibrate; each topic's type is the graph's at "
+        'configure. Read-only after start-up.',
         _signals,
         string_array=True,
     ),

@@ -235,3 +235,27 @@ def test_a_term_that_is_not_one_is_refused_naming_where_and_what(data, fragment)
     with pytest.raises(InputError) as refused:
         term_from_dict(data, 'where')
     assert fragment in str(refused.value), str(refused.value)
+
+
+@pytest.mark.parametrize('basis', ['rate', 'harmonic', 'onoff', 'linear'])
+def test_a_declared_signal_live_gives_its_offline_regressors_and_a_rate_the_derivative(basis):
+    """Sample by sample as on the whole window; the rate of x = sin(0.7 t) is 0.7 cos(0.7 t)."""
+    from tetra_gradiometer.core.effects import effect
+
+    rng = np.random.default_rng(9)
+    t = np.cumsum(rng.uniform(0.09, 0.11, 600))
+    x = np.sin(0.7 * t)
+    x[300:305] = np.nan  # a gap: unknown there and (rate) while it is in the window
+    name = 'signal:/board#data'
+    signal = effect(f'{name}:{basis}')
+    channels = Channels(t, np.zeros((len(t), 3)), {name: x})
+    reference = signal.reference(channels, (name,))
+    offline = signal.regressors(channels, (name,), reference)
+    live = signal.live((name,), reference)
+    pushed = np.array([live.push(ti, np.zeros(3), {name: xi}) for ti, xi in zip(t, x, strict=True)])
+    np.testing.assert_allclose(pushed, offline, rtol=1e-9, atol=1e-12, equal_nan=True)
+    if basis == 'rate':
+        known = np.isfinite(offline[:, 0])
+        assert known.sum() > 580 and not known[300:305].any()
+        # within 1 % of its amplitude: a causal quadratic over 4 periods lags a sine a little
+        np.testing.assert_allclose(offline[known, 0], 0.7 * np.cos(0.7 * t[known]), atol=7e-3)

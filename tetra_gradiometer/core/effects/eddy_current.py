@@ -125,31 +125,50 @@ def jump_free_rate(t_s: np.ndarray, b_reference: np.ndarray, window_s: float) ->
     return rate
 
 
-class _Live(LiveRegressor):
+class LiveRate:
+    """:func:`causal_rate` one sample at a time (a node's path): the samples of the last
+    ``window_s`` seconds are kept."""
+
     def __init__(self, window_s: float) -> None:
         self.window_s = window_s
         self.history: deque[tuple[float, np.ndarray]] = deque()
 
-    def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
+    def push(self, t_s: float, value: np.ndarray) -> FloatArray:
+        """The rate (k,) per second at ``t_s`` of ``value`` (k,), this sample included."""
+        value = np.asarray(value, dtype=float)
         if self.history and t_s <= self.history[-1][0]:
             self.history.clear()  # time went back: a restarted replay
-        self.history.append((t_s, np.asarray(b_reference, dtype=float)))
+        self.history.append((t_s, value))
         while self.history and self.history[0][0] <= t_s - self.window_s:
             self.history.popleft()
-        t = np.array([item[0] for item in self.history])
-        y = np.array([item[1] for item in self.history]) - b_reference
+        t, values = self.window()
         tau = t - t_s
         powers = tau[:, None] ** np.arange(5)
         s = powers.sum(axis=0)[None]
-        r = (powers[:, :3, None] * y[:, None, :]).sum(axis=0)[None]
-        rate = _slopes(s, r, np.array([len(t)]))[0]
-        b = np.array([item[1] for item in self.history])
-        if np.any(jumps(t, b)[1:]):
+        r = (powers[:, :3, None] * (values - value)[:, None, :]).sum(axis=0)[None]
+        return _slopes(s, r, np.array([len(t)]))[0]
+
+    def window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The kept samples: times (n,) s and values (n, k)."""
+        return (np.array([item[0] for item in self.history]),
+                np.array([item[1] for item in self.history]))
+
+    def reset(self) -> None:
+        self.history.clear()
+
+
+class _Live(LiveRegressor):
+    def __init__(self, window_s: float) -> None:
+        self.rate = LiveRate(window_s)
+
+    def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
+        rate = self.rate.push(t_s, b_reference)
+        if np.any(jumps(*self.rate.window())[1:]):
             rate[:] = np.nan
         return rate
 
     def reset(self) -> None:
-        self.history.clear()
+        self.rate.reset()
 
 
 class EddyCurrent(Effect):

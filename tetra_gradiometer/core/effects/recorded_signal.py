@@ -13,12 +13,15 @@ each regressor with a 3-vector per sensor (per pair in the tensor):
   rudder: a dipole turned by ``x`` about a fixed axis is ``m_par + cos x m_perp + sin x
   (a x m_perp)``; its constant part is hard iron, ``b``'s);
 * ``onoff``: 1 while ``x`` is above the middle of its range on the calibration window, else
-  0 (a load switched on and off: a sonar, a pump).
+  0 (a load switched on and off: a sonar, a pump);
+* ``rate``: ``dx/dt``, causal, over the last 4 sample periods as the eddy currents' rate
+  (eddy currents in a conducting fin as it turns, an inductive load as its current changes).
 
 The effect of a declaration is named ``signal:`` + the declaration; it reads the channel
 ``signal:TOPIC#FIELD``. Chosen, and written down: the harmonic basis stops at the first
 harmonic (a finite magnet 2 m away differs from a dipole by ~(size / distance)^2, 1 %);
-a rate basis (d/dt, eddy currents in a moving fin) is not offered yet.
+the discrepancy search tries one basis per signal (``core/discrepancy/signals.py``), so a
+rate is declared, not discovered.
 """
 
 from __future__ import annotations
@@ -33,10 +36,11 @@ from ...errors import InputError
 from ..types import FloatArray
 from ..units import NT_PER_T
 from .base import Channels, Effect, LiveRegressor
+from .eddy_current import LiveRate, causal_rate, window_for
 
 #: The prefix of a declared signal's effect and channel names.
 SIGNAL_PREFIX = 'signal:'
-BASES = ('linear', 'harmonic', 'onoff')
+BASES = ('linear', 'harmonic', 'onoff', 'rate')
 _PATH = re.compile(r'[A-Za-z_]\w*(\[[^\[\]]+\])?(\.[A-Za-z_]\w*(\[[^\[\]]+\])?)*')
 _TOPIC = re.compile(r'(/[A-Za-z_~][\w]*)+')
 
@@ -94,7 +98,8 @@ def parse_declaration(text: str, where: str = 'vehicle_signals') -> Declaration:
 
 
 def basis_columns(basis: str, x: FloatArray, reference: tuple[float, ...]) -> FloatArray:
-    """The regressors (N, m) of signal values ``x`` (N,) in ``basis``; NaN where ``x`` is."""
+    """The regressors (N, m) of signal values ``x`` (N,) in ``basis``, but ``rate`` (which
+    needs the times: :meth:`RecordedSignal.regressors`); NaN where ``x`` is."""
     x = np.asarray(x, dtype=float)
     if basis == 'harmonic':
         return np.column_stack([np.cos(x), np.sin(x)])
@@ -107,13 +112,17 @@ def basis_columns(basis: str, x: FloatArray, reference: tuple[float, ...]) -> Fl
 class _Live(LiveRegressor):
     def __init__(self, channel: str, basis: str, reference: tuple[float, ...]) -> None:
         self.channel, self.basis, self.reference = channel, basis, reference
+        self.rate = LiveRate(reference[0]) if basis == 'rate' else None
 
     def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
         x = np.array([values.get(self.channel, np.nan)], dtype=float)
+        if self.rate is not None:
+            return self.rate.push(t_s, x)
         return basis_columns(self.basis, x, self.reference)[0]
 
     def reset(self) -> None:
-        return None
+        if self.rate is not None:
+            self.rate.reset()
 
 
 class RecordedSignal(Effect):
@@ -129,9 +138,12 @@ class RecordedSignal(Effect):
     def __init__(self, declaration: Declaration) -> None:
         self.declaration = declaration
         self.name = declaration.effect_name
-        self.file_unit = {'linear': 'nT per signal unit', 'harmonic': 'nT', 'onoff': 'nT'}[
-            declaration.basis
-        ]
+        self.file_unit = {
+            'linear': 'nT per signal unit',
+            'harmonic': 'nT',
+            'onoff': 'nT',
+            'rate': 'nT per signal unit per s',
+        }[declaration.basis]
 
     def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
         channel = self.declaration.channel
@@ -149,9 +161,12 @@ class RecordedSignal(Effect):
         return {
             'harmonic': (f'cos {where}', f'sin {where}'),
             'onoff': (f'{where} on',),
+            'rate': (f'd/dt {where}',),
         }.get(d.basis, (where,))
 
     def reference(self, channels: Channels, inputs: tuple[str, ...]) -> tuple[float, ...]:
+        if self.declaration.basis == 'rate':
+            return (window_for(channels.t_s),)
         if self.declaration.basis != 'onoff':
             return ()
         x = np.asarray(channels.series[self.declaration.channel], dtype=float)
@@ -162,6 +177,8 @@ class RecordedSignal(Effect):
         self, channels: Channels, inputs: tuple[str, ...], reference: tuple[float, ...]
     ) -> FloatArray:
         x = channels.series[self.declaration.channel]
+        if self.declaration.basis == 'rate':
+            return causal_rate(channels.t_s, np.asarray(x, dtype=float)[:, None], reference[0])
         return basis_columns(self.declaration.basis, x, reference)
 
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
