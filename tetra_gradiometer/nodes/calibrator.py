@@ -189,7 +189,7 @@ class CalibratorNode(ManagedNode):
             (
                 TEMPERATURE,
                 *current_channels(self._current_topics),
-                *(parse_declaration(d).channel for d in self._signals),
+                *EffectsChoice(signals=self._signals).signal_channels,  # installed effects' too
             )
         )
         self._epoch = 0  # counts ~/start: a tick that straddles one discards its work

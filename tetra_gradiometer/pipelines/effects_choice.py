@@ -34,9 +34,18 @@ class EffectsChoice:
 
     @property
     def signal_channels(self) -> tuple[str, ...]:
-        """The channels of the declared signals and of signal effects named."""
+        """The signal channels to read: the declared signals', the signal effects named and
+        those the registry's effects declare (an installed effect's) that may be fitted."""
         named = tuple(n for n in self.names or () if n.startswith(SIGNAL_PREFIX))
-        return tuple(dict.fromkeys(parse_declaration(n).channel for n in (*self.signals, *named)))
+        declared = [parse_declaration(n).channel for n in (*self.signals, *named)]
+        registry = [
+            channel
+            for name, effect in EFFECTS.items()
+            if self.names is None or name in self.names
+            for channel in effect.channels
+            if channel.startswith(SIGNAL_PREFIX)
+        ]
+        return tuple(dict.fromkeys((*declared, *registry)))
 
     @classmethod
     def parse(cls, text: str, current_topics: tuple[str, ...] = ()) -> EffectsChoice:

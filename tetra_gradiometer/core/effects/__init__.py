@@ -5,9 +5,16 @@ Each effect is one module here (:mod:`.vehicle_current`, :mod:`.eddy_current`,
 and live, and its file form (:mod:`.base` says what an effect is). :data:`EFFECTS` is the
 registry that calibration (selection and the joint fit), compensation (offline and in the
 compensator node), the calibration file, the simulator and the discrepancy search read.
-Adding an effect is one module and one line in :data:`EFFECTS`, or, for a signal the
-vehicle records, one line in the params file's ``vehicle_signals``
-(:mod:`.recorded_signal`: :func:`effect` makes the effect of a ``signal:`` name).
+Adding an effect is one of:
+
+* for a signal the vehicle records, one line in the params file's ``vehicle_signals``
+  (:mod:`.recorded_signal`: :func:`effect` makes the effect of a ``signal:`` name);
+* for what a declaration cannot express, one module in any installed package, named by an
+  entry point of the group :data:`ENTRY_POINT_GROUP` (``name = module:EffectClass``): an
+  :class:`Effect` subclass setting ``name`` (the entry point's), ``physics``, ``file_unit``,
+  ``file_factor``, ``channels`` (the recorded channels it reads) and implementing
+  ``labels`` and ``regressors`` (``live`` defaults to ``regressors`` on each sample);
+* here, one module and one line in :data:`EFFECTS`.
 
 Model: ``D = (k B_1' + b + sum_terms W x(t)) a^-1`` (the pair differences' interference
 times eq. 7's ``a^-1``): :func:`pair_interference` is the terms' part.
@@ -15,6 +22,7 @@ times eq. 7's ``a^-1``): :func:`pair_interference` is the terms' part.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -39,6 +47,7 @@ from .vehicle_current import VehicleCurrent
 __all__ = [
     'CURRENT_PREFIX',
     'EFFECTS',
+    'ENTRY_POINT_GROUP',
     'REFERENCE_RATE',
     'SIGNAL_PREFIX',
     'Declaration',
@@ -59,10 +68,41 @@ __all__ = [
     'terms_channels',
 ]
 
-#: name -> effect: the one registry of the vehicle effects the operational model carries.
-EFFECTS: dict[str, Effect] = {
-    effect.name: effect for effect in (VehicleCurrent(), EddyCurrent(), ThermalDrift())
-}
+#: The entry-point group of the effects other installed packages add to :data:`EFFECTS`.
+ENTRY_POINT_GROUP = 'tetra_gradiometer.effects'
+
+
+def _installed_effects(taken: Mapping[str, Effect]) -> dict[str, Effect]:
+    """The effects of the entry points of :data:`ENTRY_POINT_GROUP`; one that does not load,
+    is not an :class:`Effect` named as its entry point, or takes a name in ``taken`` is left
+    out with a warning naming it and why (the others still work)."""
+    from importlib.metadata import entry_points
+
+    out: dict[str, Effect] = {}
+    for point in entry_points(group=ENTRY_POINT_GROUP):
+        where = f'effect entry point {point.name} = {point.value}'
+        try:
+            made = point.load()
+            made = made() if isinstance(made, type) else made
+        except Exception as error:  # another package's bug: its effect is missing, named
+            warnings.warn(f'{where}: not loaded: {error!r}', stacklevel=2)
+            continue
+        if not isinstance(made, Effect) or made.name != point.name or point.name in taken:
+            why = (
+                'a built-in effect has that name'
+                if point.name in taken
+                else f'not an Effect named {point.name!r}'
+            )
+            warnings.warn(f'{where}: left out: {why}', stacklevel=2)
+            continue
+        out[made.name] = made
+    return out
+
+
+_BUILT_IN = {effect.name: effect for effect in (VehicleCurrent(), EddyCurrent(), ThermalDrift())}
+#: name -> effect: the one registry of the vehicle effects the operational model carries
+#: (the built-in ones, then the installed packages').
+EFFECTS: dict[str, Effect] = {**_BUILT_IN, **_installed_effects(_BUILT_IN)}
 
 
 def effect(name: str) -> Effect:

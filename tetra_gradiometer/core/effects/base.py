@@ -90,6 +90,21 @@ class LiveRegressor(ABC):
         """Forget the history (a gap, a restarted replay)."""
 
 
+class _Memoryless(LiveRegressor):
+    """An effect's regressors on each sample alone."""
+
+    def __init__(self, effect: Effect, inputs: tuple[str, ...], reference: tuple[float, ...]):
+        self.effect, self.inputs, self.reference = effect, inputs, reference
+
+    def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
+        series = {name: np.array([values.get(name, np.nan)], dtype=float) for name in self.inputs}
+        sample = Channels(np.array([t_s]), np.asarray(b_reference, float)[None], series)
+        return np.asarray(self.effect.regressors(sample, self.inputs, self.reference), float)[0]
+
+    def reset(self) -> None:
+        return None
+
+
 class Effect(ABC):
     """One physical effect of the vehicle; subclasses are the registry's entries."""
 
@@ -102,14 +117,20 @@ class Effect(ABC):
     file_unit: str
     file_factor: float
 
-    @abstractmethod
+    #: The recorded channels the effect reads, declared as data (``temperature``,
+    #: ``current:TOPIC``, ``signal:TOPIC#FIELD``): what the default :meth:`inputs`,
+    #: :meth:`missing` and the bag readers and nodes go by. The built-in effects that read
+    #: whichever of a family is recorded (every current) say so in :meth:`inputs` instead.
+    channels: ClassVar[tuple[str, ...]] = ()
+
     def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
         """The channels the effect reads, from the channel names ``available``; () when a
         channel it needs is missing (the effect cannot be fitted)."""
+        return self.channels if set(self.channels) <= set(available) else ()
 
-    @abstractmethod
     def missing(self, available: tuple[str, ...]) -> str:
         """What the effect needs that ``available`` lacks, for a message ('' if nothing)."""
+        return ', '.join(name for name in self.channels if name not in available)
 
     @abstractmethod
     def labels(self, inputs: tuple[str, ...]) -> tuple[str, ...]:
@@ -125,9 +146,10 @@ class Effect(ABC):
     ) -> FloatArray:
         """Regressors (N, m) on every sample of ``channels``, SI; NaN where unknown."""
 
-    @abstractmethod
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
-        """The per-sample form of :meth:`regressors`."""
+        """The per-sample form of :meth:`regressors` (by default :meth:`regressors` on each
+        sample alone: right for an effect without memory of earlier samples)."""
+        return _Memoryless(self, inputs, reference)
 
     #: How the simulator and a scenario file give the effect's per-sensor coefficients
     #: (None: the simulator does not produce it).
