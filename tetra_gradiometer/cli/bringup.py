@@ -1,6 +1,10 @@
 """``python -m tetra_gradiometer bringup [--params FILE] [--mode sim|replay] [--bag PATH]
-[--unconfigured]``: the four nodes in one process until Ctrl-C (the data path on rclpy's
-EventsExecutor, the calibrator on a MultiThreadedExecutor of its own).
+[--loop] [--unconfigured]``: the four nodes in one process (the data path on rclpy's
+EventsExecutor, the calibrator on a MultiThreadedExecutor of its own) until the driver has
+played its source (a bag, a simulated mission) and the chain has drained, then a summary:
+sets played, tensors, compensated and dropped. ``--loop`` plays the source again and again
+until Ctrl-C (the driver's ``loop``); so does ``--unconfigured``, which leaves the nodes
+to an external manager.
 
 The nodes are lifecycle nodes (nodes/managed.py): bringup creates them unconfigured and
 then configures and activates each in the order tensor, calibrator, compensator, driver (the
@@ -37,6 +41,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         '--calibration-file', help='calibration file of calibrator and compensator'
     )
     parser.add_argument(
+        '--loop',
+        action='store_true',
+        help='play the source again from its start each time it ends, until Ctrl-C',
+    )
+    parser.add_argument(
         '--unconfigured',
         action='store_true',
         help='leave the nodes unconfigured for an external lifecycle manager',
@@ -65,6 +74,8 @@ def driver_overrides(args: argparse.Namespace) -> list[Any]:
             out.append(Parameter('mode', value='replay'))
     if args.rate is not None:
         out.append(Parameter('rate', value=float(args.rate)))
+    if args.loop:
+        out.append(Parameter('loop', value=True))
     if args.scenario:
         out.append(Parameter('scenario', value=os.path.abspath(args.scenario)))
     return out
@@ -131,7 +142,11 @@ def run(args: argparse.Namespace) -> int:
         if not args.unconfigured:
             for node in nodes:
                 node.bring_up()
+            if not args.loop:
+                threading.Thread(target=stop_when_played, args=(nodes, stop), daemon=True).start()
         spin(data_path, stop=stop)
+        if played(nodes):
+            print(summary(nodes), flush=True)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -139,3 +154,54 @@ def run(args: argparse.Namespace) -> int:
             node.stop_work()
         stop_graph([data_path, calibrator], worker, nodes)
     return 0
+
+
+#: The chain has drained once its counts stay the same this long after the driver has played
+#: its source, s; bringup stops waiting for it after DRAIN_LIMIT_S.
+QUIET_S, DRAIN_LIMIT_S = 1.0, 30.0
+
+
+def played(nodes: Sequence[Any]) -> bool:
+    """The driver (the last of ``nodes``) has played its whole source."""
+    return bool(nodes) and getattr(nodes[-1], 'state', '') == 'finished'
+
+
+def _counts(nodes: Sequence[Any]) -> tuple[int, ...]:
+    tensor, _, compensator, _ = nodes
+    return (tensor.sets_published, tensor.sets_invalid, tensor.sets_stale,
+            compensator.published, compensator.dropped_non_finite)
+
+
+def stop_when_played(nodes: Sequence[Any], stop: Any, poll_s: float = 0.1) -> None:
+    """Set ``stop`` once the driver has played its source and the tensor and compensator
+    nodes' counts have stayed the same for :data:`QUIET_S` (or :data:`DRAIN_LIMIT_S` passed)."""
+    import time
+
+    last: tuple[int, ...] = ()
+    since = finished = 0.0
+    while not stop.wait(poll_s):
+        if not played(nodes):
+            continue
+        now, counts = time.monotonic(), _counts(nodes)
+        finished = finished or now
+        if counts != last:
+            last, since = counts, now
+        elif now - since >= QUIET_S or now - finished >= DRAIN_LIMIT_S:
+            stop.set()
+
+
+def summary(nodes: Sequence[Any]) -> str:
+    """What the chain made of the source: sets played, tensors, compensated, dropped."""
+    tensor, _, compensator, driver = nodes
+    played_sets = driver.sets_published
+    share = 100.0 * compensator.compensated / played_sets if played_sets else 0.0
+    passed = compensator.published - compensator.compensated
+    lines = [
+        f'bringup: played {played_sets} sets; tensor node: {tensor.sets_published} tensors, '
+        f'{tensor.sets_invalid} invalid, {tensor.sets_stale} stale;',
+        f'compensator: {compensator.compensated} compensated ({share:.1f} % of the sets '
+        f'played), {passed} passed through uncompensated (no calibration yet), '
+        f'{tensor.sets_published - compensator.published} dropped (non-finite, or a '
+        'channel unknown: never compensated with zero)',
+    ]
+    return '\n'.join(lines)

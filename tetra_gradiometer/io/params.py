@@ -30,7 +30,7 @@ KNOWN_PARAMETERS = frozenset(
     calibration_key_file calibration_publisher current_topics
     diagnostics_period_s earth_field_enu effects false_alarms_per_hour force ga_generations
     ga_seed health_false_alarms_per_hour health_min_source_range_edges history_s
-    hold_between_segments jump_back_s max_coverage_condition max_duration_s max_field_t
+    hold_between_segments jump_back_s loop max_coverage_condition max_duration_s max_field_t
     max_gap_periods max_in_flight max_stamp_ahead_s max_pending max_samples max_solve_s
     method min_samples min_subscribers mode odom_frame_id pace_topic publish_clock publisher_depth
     rate

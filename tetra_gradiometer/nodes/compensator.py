@@ -192,6 +192,7 @@ class CompensatorNode(ManagedNode):
         self._channel_subscriptions: dict[str, Any] = {}
         self._set_sigma(None)
         self.published = 0
+        self.compensated = 0  # of those published, with a calibration
         self.dropped_non_finite = 0
         self._reset_metrics()
 
@@ -460,6 +461,7 @@ class CompensatorNode(ManagedNode):
             if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
                 self._sigma_pub.publish(self._cdr.write(sigma, stamp_ns))
         self.published += 1
+        self.compensated += self._interference is not None
         self._pair_truth(0, stamp_ns, (g_raw, g))
 
     def _drop(self, stamp_ns: int | None, what: str) -> None:

@@ -138,6 +138,12 @@ PARAMETERS = [
     ),
     ParamSpec('start_paused', False, 'Wait for ~/resume before publishing.'),
     ParamSpec(
+        'loop',
+        False,
+        'Play the source again from its start each time it is played through (as ros2 bag '
+        'play --loop; the passes are counted on /diagnostics). False: finished at its end.',
+    ),
+    ParamSpec(
         'min_subscribers',
         0,
         'Do not publish until every magnetometer topic has at least this many '
@@ -253,6 +259,8 @@ class DriverNode(ManagedNode):
         self._types = cv.rclpy_types()
         self._frames, self.info, period = self._open_source(p)
         self._next: Frame | None = next(self._frames, None)
+        self._loop, self._source = bool(p['loop']), dict(p)
+        self.passes = 1
         self.state = 'paused' if p['start_paused'] else 'playing'
         self.segment = self._next.segment if self._next is not None else -1
         self.sets_published = 0
@@ -381,6 +389,8 @@ class DriverNode(ManagedNode):
             self._last_progress = now
             return
         for _ in range(10_000):
+            if self._next is None and self._loop and self.passes < 2**31:
+                self._play_again(now)
             frame = self._next
             if frame is None:
                 self._set_state('finished')
@@ -427,6 +437,16 @@ class DriverNode(ManagedNode):
             self._in_flight.popleft()
         self._last_progress = time.monotonic()
         self._tick()
+
+    def _play_again(self, now: float) -> None:
+        """``loop``: the source from its start (the nodes take the earlier stamps as a
+        restarted replay)."""
+        self._frames.close()
+        self._frames, _, _ = self._open_source(self._source)
+        self._next = next(self._frames, None)
+        self._origin = (now, self._next.pace_ns if self._next else 0)
+        self.passes += 1
+        self.get_logger().info(f'loop: pass {self.passes} ({self.sets_published} sets published)')
 
     def _set_state(self, state: str) -> None:
         if state != self.state:
@@ -480,6 +500,7 @@ class DriverNode(ManagedNode):
                     'sets_published': self.sets_published,
                     'ack_timeouts': self.ack_timeouts,
                     'pace_restarts': self.pace_restarts,
+                    'passes': self.passes,
                     'rate': self._rate,
                     **self.info,
                     'signals': ', '.join(t for t, _ in self.info.get('signals', ())),

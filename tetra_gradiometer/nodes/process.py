@@ -197,6 +197,12 @@ def spin(
         return
     context = context or rclpy.get_default_context()
     never = Future()  # dispatch events until the timeout, not one per Python loop
+    if isinstance(stop, threading.Event):
+        # Busy without a pause (a replay at rate 0), the events executor keeps dispatching
+        # past its timeout: the future done stops it at once.
+        done = threading.Thread(target=lambda: stop.wait() and never.set_result(None))
+        done.daemon = True
+        done.start()
     try:
         while context.ok() and not (stop and stop.is_set()):
             if isinstance(executor, Executor):
