@@ -100,3 +100,24 @@ def test_the_command_block_runs_as_written(ran, name):
     text = _run_blocks()[name]
     for path in re.findall(r'--(?:out|csv) (\S+)', text):
         assert (folder / path).exists(), (name, path)
+
+
+#: A commit hash (hex with a digit and a letter: not a decimal number, not a word), an issue
+#: number or a load average: history, which git holds, not what the docs say is true now.
+HISTORY = re.compile(
+    r'\b(?=[0-9a-f]*[0-9])(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b|issue [0-9]+|load average')
+
+
+def test_the_history_pattern_finds_history_only():
+    assert HISTORY.findall('at 94ead96, see issue 31; load average 2.4') == [
+        '94ead96', 'issue 31', 'load average']
+    assert HISTORY.findall('seed 20140611 at 1767225600.100000000, a deadbeef, 0.14142') == []
+
+
+def test_the_readme_is_a_guide_and_the_docs_carry_no_history():
+    readme = (REPO / 'README.md').read_text(encoding='utf-8')
+    assert len(readme.splitlines()) <= 300
+    documents = [REPO / 'README.md', REPO / 'bags' / 'README.md', *(REPO / 'docs').glob('*.md')]
+    for path in sorted(documents):
+        found = HISTORY.findall(path.read_text(encoding='utf-8'))
+        assert found == [], (path.name, found)
