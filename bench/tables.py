@@ -72,7 +72,7 @@ def solvers() -> Table:
     ms = {(t['n_samples'], t['solver']): t['seconds'] * 1e3 for t in timings}
     rows = [[f'{n:,}'.replace(',', ' ')] + [f'{ms[n, s]:.3g} ms' for s in names] for n in sizes]
     return ('**Solvers** (`bench/bench_solvers.py`, median wall time; target: 27 parameters from '
-            '10 000 samples in < 50 ms)', ['samples'] + [f'`{s}`' for s in names], rows)
+            '10 000 samples in < 50 ms)', ['samples', *names], rows)
 
 
 def accuracy() -> Table:
