@@ -38,8 +38,7 @@ check: setup
 # The tests on one pytest-xdist worker per core plus two (TEST_WORKERS=0: one process, e.g.
 # for pdb); a whole test module goes to one worker (pytest.ini, docs/testing.md). The extra
 # workers run while others wait on wall-clock time (ROS replays, node start-up, discovery, a
-# Dask cluster): with one per core a quiet 2-core machine was busy 74 % of the run, with one
-# more ~90 %; at 401fb5b, one more again: 4 min 43 s against 5 min 01 s (docs/testing.md).
+# Dask cluster), which keeps the cores busy.
 TEST_WORKERS ?= $(shell echo $$(($$(nproc) + 2)))
 test: setup
 	$(MAKE) --no-print-directory -j2 check tests
@@ -68,18 +67,26 @@ test-noble: $(NOBLE_STAMP)
 paper: setup
 	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper --force
 
+# The benchmarks, each writing its results to bench/results/NAME.json, then the README's
+# tables from those files (bench/tables.py; --measured-here records this machine for them).
+# bench_chain prints its figures only, and bench_targets --speed times one bag: their tables
+# keep the data of the runs recorded in chain.json and targets.json.
+BENCH_JSON := paper solvers accuracy scale checks discrepancy openworld health window signals
 bench: setup
-	$(PY) bench/bench_solvers.py
-	$(PY) bench/bench_accuracy.py
-	$(PY) bench/bench_scale.py
+	$(PY) -m tetra_gradiometer paper --out $(OUT)/paper --force
+	cp $(OUT)/paper/results.json bench/results/paper.json
+	$(PY) bench/bench_solvers.py --json bench/results/solvers.json
+	$(PY) bench/bench_accuracy.py --json bench/results/accuracy.json
+	$(PY) bench/bench_scale.py --json bench/results/scale.json
 	$(PY) bench/bench_checks.py --json bench/results/checks.json
 	$(PY) bench/bench_chain.py
-	$(PY) bench/bench_discrepancy.py
-	$(PY) bench/bench_openworld.py
-	$(PY) bench/bench_health.py
+	$(PY) bench/bench_discrepancy.py --seeds 5 --json bench/results/discrepancy.json
+	$(PY) bench/bench_openworld.py --json bench/results/openworld.json
+	$(PY) bench/bench_health.py --json bench/results/health.json
 	$(PY) bench/bench_targets.py --speed
-	$(PY) bench/bench_window.py
+	$(PY) bench/bench_window.py --json bench/results/window.json
 	$(PY) bench/bench_signals.py --json bench/results/signals.json
+	$(PY) bench/tables.py --measured-here $(addsuffix .json,$(BENCH_JSON))
 
 clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants

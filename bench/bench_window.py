@@ -1,4 +1,4 @@
-"""A calibration that finds its own window (issue 30): ``calibrate BAG`` without ``--window``.
+"""A calibration that finds its own window: ``calibrate BAG`` without ``--window``.
 
 For each mission: simulate it (or take a sample bag), run ``calibrate`` **without** a window
 through the command line, ``compensate`` the survey with the calibration, and compare the
@@ -6,7 +6,7 @@ CSV with the truth on the survey (the simulator's ``g_true`` where the segment i
 ``bags/survey`` its ``/tetra/gradient/truth`` topic). Prints the window found and the RMS
 residual over the noise floor (``metrics.noise_floor`` of the scenario's noise).
 
-    .venv/bin/python bench/bench_window.py [--out DIR]
+    .venv/bin/python bench/bench_window.py [--out DIR] [--json FILE]
 
 Target: every survey within 1.2x the noise floor.
 """
@@ -14,6 +14,7 @@ Target: every survey within 1.2x the noise floor.
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import subprocess
 import sys
@@ -123,7 +124,9 @@ def window_of(output: str) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--out', default=None)
-    out = Path(parser.parse_args().out or tempfile.mkdtemp(prefix='bench_window_'))
+    parser.add_argument('--json', type=Path, default=None, help='also write the rows here')
+    args = parser.parse_args()
+    out = Path(args.out or tempfile.mkdtemp(prefix='bench_window_'))
     out.mkdir(parents=True, exist_ok=True)
     (out / 'shuffled.yaml').write_text(yaml.safe_dump(SHUFFLED), encoding='utf-8')
     (out / 'gentle.yaml').write_text(yaml.safe_dump(GENTLE), encoding='utf-8')
@@ -160,6 +163,10 @@ def main() -> None:
     print('|---|---|---:|---:|---:|')
     for name, window, rms, floor in rows:
         print(f'| {name} | {window} | {rms:.4f} | {floor:.4f} | {rms / floor:.3f} |')
+    if args.json is not None:
+        args.json.write_text(json.dumps([
+            {'mission': name, 'window_s': window, 'rms_nT_per_m': rms, 'floor_nT_per_m': floor,
+             'floor_ratio': rms / floor} for name, window, rms, floor in rows], indent=1) + '\n')
 
 
 if __name__ == '__main__':

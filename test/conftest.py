@@ -25,7 +25,8 @@ _PHASE_START = pytest.StashKey[float]()
 #: ``--dist loadfile --no-loadscope-reorder``), so that none of them starts last and runs alone
 #: at the end. Every other module follows in its usual order. test_docs_commands leads: its
 #: worker waits while the documented command blocks run in processes of their own, whose
-#: longest chain (the README's, ~25 s CPU one command after another) then ends early.
+#: longest chain (docs/offline.md's mission, ~25 s CPU one command after another) then ends
+#: early.
 SLOW_FIRST = (
     'cli/test_docs_commands.py',
     'ros/test_effects.py',

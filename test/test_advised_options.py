@@ -1,4 +1,4 @@
-"""No message advises an option that does not exist (issue 30: ``calibrate`` advised "fit
+"""No message advises an option that does not exist (``calibrate`` advised "fit
 without orientation_xyzw"): every ``--option`` written in a string of the package (messages,
 notes, help texts, docstrings) is an option of one of the commands, or one of ROS 2's own
 command-line arguments (``ros2 run ... --ros-args --params-file FILE``)."""

@@ -1,4 +1,4 @@
-"""``python -m tetra_gradiometer batch DIR --out OUT`` (issue 14, part 6): a fleet of seven
+"""``python -m tetra_gradiometer batch DIR --out OUT``: a fleet of seven
 bags, one truncated, against a real Dask scheduler and two workers started from this
 environment; every row against the single-bag commands run on the same bag; the rerun skip,
 ``--force`` and the default LocalCluster."""
@@ -228,7 +228,7 @@ def _assert_row_is_the_single_bag_result(row, out, ref, calibrated, analysed, st
     assert _close(row['discrepancy_noise_floor_nT'], report['noise_floor_nT'])
     assert row['adequate'] == ('yes' if report['adequate'] else 'no')
     named = ', '.join(report['named_effects']) or 'none'
-    if report['unresolved_effects']:  # issue 31: fitted, not named
+    if report['unresolved_effects']:  # fitted, not named
         named += f" (unresolved, not named: {', '.join(report['unresolved_effects'])})"
     assert analysed[0] == 0 and f'named effects: {named};' in analysed[1]
     if status == 'refused':

@@ -1,4 +1,4 @@
-"""``batch`` and a channel the vehicle's effects need (issue 28). ``batch`` calibrates each bag
+"""``batch`` and a channel the vehicle's effects need. ``batch`` calibrates each bag
 on its own window, so its calibration only ever reads channels that bag records: the
 without-channel option of ``compensate`` and ``locate`` (a calibration from another bag)
 has nothing to do there. A bag whose vehicle has a current effect but no ``/battery_state``

@@ -1,5 +1,5 @@
 """``calibrate --key-file``: an offline calibration signed as the calibrator node signs, so a
-compensator configured with the key loads it (issue 34). The signature is recomputed here
+compensator configured with the key loads it. The signature is recomputed here
 with ``hmac``/``hashlib`` from the file's own content, independently of the signer."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""calibrate without --window finds its own window (issue 30): the manoeuvring spans of the
+"""calibrate without --window finds its own window: the manoeuvring spans of the
 bag (pipelines/window_check.excited_spans), ranked by the trim guidance's prediction, each
 checked as --window would check it; a failing --window names the best passing window of the
 bag. Truth: the simulator's segments and g_true, the sample bags' recorded truth. The spans

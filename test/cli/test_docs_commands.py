@@ -1,10 +1,10 @@
-"""Every command line the README, docs/offline.md and bags/README.md show is run as written
-(issue 30): each ```sh block is marked, the line before it, as run by this test or not run
-(with why); the run blocks are executed by bash, each in its own temporary folder holding
-the repository's .venv and config and a copy of bags/, all at once (the README's block is
-~25 s of CPU, batch's ~20 s; measured 163-246 s wall while other jobs held the shared
-2-core machine at load 11-15). A block that is the first lines of another (docs/offline.md's
-is the README's without ``survey``) is checked by that block's run, not run twice."""
+"""Every command line the README, docs/offline.md and bags/README.md show is run as written:
+each ```sh block is marked, the line before it, as run by this test or not run (with why);
+the run blocks are executed by bash, each in its own temporary folder holding the
+repository's .venv and config and a copy of bags/, all at once (the README's walk-through is
+~15 s of CPU, docs/offline.md's mission ~25 s, batch's ~20 s). A block that is the first
+lines of another (bags/README.md's is the README's walk-through without its last three
+commands) is checked by that block's run, not run twice."""
 import re
 import shutil
 import subprocess
@@ -51,9 +51,9 @@ def _run_blocks() -> dict[str, str]:
 
 def _runner(name: str, blocks: dict[str, str]) -> str:
     """The block whose run checks block ``name``: the longest run block that begins with
-    every line of it (docs/offline.md's block is the README's without its last command: the
-    README's run executes those commands as written, in that order, in one folder), else
-    the block itself. Each such run is ~25 s of CPU: once, not twice."""
+    every line of it (bags/README.md's block is the README's walk-through without its last
+    commands: the README's run executes those commands as written, in that order, in one
+    folder), else the block itself. Each such run is ~15-25 s of CPU: once, not twice."""
     lines = blocks[name].splitlines()
     covering = [other for other, text in blocks.items() if text.splitlines()[: len(lines)] == lines]
     return max(covering, key=lambda other: len(blocks[other]))
@@ -63,7 +63,7 @@ def test_a_block_is_run_within_a_block_beginning_with_its_lines_or_on_its_own():
     blocks = {'short': 'a\nb\n', 'long': 'a\nb\nc\n', 'other': 'a\nB\n', 'partial': 'a\nb c\n'}
     assert {name: _runner(name, blocks) for name in blocks} == {
         'short': 'long', 'long': 'long', 'other': 'other', 'partial': 'partial'}
-    assert _runner('docs/offline.md:1', _run_blocks()) == 'README.md:0'  # the case it is for
+    assert _runner('bags/README.md:3', _run_blocks()) == 'README.md:0'  # the case it is for
 
 
 @pytest.fixture(scope='module')
@@ -100,3 +100,45 @@ def test_the_command_block_runs_as_written(ran, name):
     text = _run_blocks()[name]
     for path in re.findall(r'--(?:out|csv) (\S+)', text):
         assert (folder / path).exists(), (name, path)
+
+
+#: A commit hash (hex with a digit and a letter: not a decimal number, not a word), an issue
+#: number or a load average: history, which git holds, not what the docs say is true now.
+HISTORY = re.compile(
+    r'\b(?=[0-9a-f]*[0-9])(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b|issue [0-9]+|load average')
+
+
+def test_the_history_pattern_finds_history_only():
+    assert HISTORY.findall('at 94ead96, see issue 31; load average 2.4') == [
+        '94ead96', 'issue 31', 'load average']
+    assert HISTORY.findall('seed 20140611 at 1767225600.100000000, a deadbeef, 0.14142') == []
+
+
+def test_the_readme_is_a_guide_and_the_docs_carry_no_history():
+    readme = (REPO / 'README.md').read_text(encoding='utf-8')
+    assert len(readme.splitlines()) <= 300
+    documents = [REPO / 'README.md', REPO / 'bags' / 'README.md', *(REPO / 'docs').glob('*.md')]
+    for path in sorted(documents):
+        found = HISTORY.findall(path.read_text(encoding='utf-8'))
+        assert found == [], (path.name, found)
+
+
+def test_the_vehicle_walk_through_names_what_the_nodes_offer():
+    """The README's `ros2 service call`s and `ros2 topic echo`s (not run here: they need a ROS
+    install) name services and topics the suite's security policy grants, which
+    test/ros/test_security_policy.py holds to the live graph; each service is a Trigger in
+    its node's source."""
+    readme = (REPO / 'README.md').read_text(encoding='utf-8')
+    policy = (REPO / 'security' / 'policy.xml').read_text(encoding='utf-8')
+    calls = re.findall(r'ros2 service call (\S+) (\S+)', readme)
+    assert len(calls) >= 3
+    for name, kind in calls:
+        assert f'<service>{name}</service>' in policy, name
+        namespace, node, service = name.strip('/').split('/')
+        source = (REPO / 'tetra_gradiometer' / 'nodes' / f'{node}.py').read_text(encoding='utf-8')
+        assert namespace == 'tetra' and kind == 'std_srvs/srv/Trigger'
+        assert re.search(rf"create_service\(\s*Trigger, '~/{service}'", source), name
+    topics = re.findall(r'ros2 topic echo [^\n]*?(/\S+)', readme)
+    assert topics
+    for topic in topics:
+        assert f'<topic>{topic}</topic>' in policy, topic

@@ -1,4 +1,4 @@
-"""No traceback, no litter (issue 30): SIGTERM as SIGINT, a closed pipe, a full disk, a
+"""No traceback, no litter: SIGTERM as SIGINT, a closed pipe, a full disk, a
 file-size limit, and the temporaries of a killed run removed by the next run of the same
 output. Each: the exit status, one line (or none), the bytes of the previous output, no
 `.partial` folder left."""

@@ -1,4 +1,4 @@
-"""docs/offline.md's options table is the parsers' (issue 30): every numeric option of every
+"""docs/offline.md's options table is the parsers': every numeric option of every
 command is a row naming that command, and the row's range is the one its ``type=`` refuses
 outside of (read from the type's own error message)."""
 import argparse

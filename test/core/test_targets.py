@@ -1,4 +1,4 @@
-"""core/targets (issue 16): the array's view of a dipole against magpylib (an independent
+"""core/targets: the array's view of a dipole against magpylib (an independent
 implementation), tensors between frames against scipy's rotations, and the survey pipeline
 against the simulator's targets (ground truth)."""
 from __future__ import annotations

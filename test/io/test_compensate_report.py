@@ -1,4 +1,4 @@
-"""``compensate --report DIR`` (issue 12): the health monitor over a bag, end to end through
+"""``compensate --report DIR``: the health monitor over a bag, end to end through
 ``__main__.main``. A simulated bag (trim, then survey passes over a dipole) is calibrated on
 its trim; a 2 nT offset jump is injected into sensor 2's readings at a known time before
 the bag is written, so the alarm's time and sensor are checked against what was done."""

@@ -1,4 +1,4 @@
-"""``compensate --csv`` with its nine sigma columns (issue 12), end to end in-process through
+"""``compensate --csv`` with its nine sigma columns, end to end in-process through
 ``__main__.main``: a simulated bag (trim, then a pass over a dipole), ``calibrate`` on the
 trim, ``compensate`` of the whole bag; the columns against the simulator's ``g_true``
 (92-98 % of the survey's components within 2 sigma), the noise option, and the refusals."""

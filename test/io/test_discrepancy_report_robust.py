@@ -1,4 +1,4 @@
-"""The discrepancy report is never lost (issue 11, part 4): report.json is written first and
+"""The discrepancy report is never lost: report.json is written first and
 never depends on the figures; a figure that raises is left out, named in report.md and on
 stderr; the gap figure's tick labels come from the rounds, so a search that revised a step
 (removed, replaced, merged) still gets its figure. Hand-built reports, no analysis."""

@@ -1,4 +1,4 @@
-"""Fault table, odometry (issue 30): ``/odom`` is checked before use (core/odometry.py through
+"""Fault table, odometry: ``/odom`` is checked before use (core/odometry.py through
 io/recording.odometry_at). Zero-norm quaternions, a frozen pose and an attitude that does not
 agree with the magnetometers are named; ``calibrate`` and ``discrepancy`` go on without
 ``/odom`` and say what that costs, ``locate`` refuses with one line (no track, no targets).
@@ -187,7 +187,7 @@ def test_check_odometry_counts_what_it_changes():
 
 
 def test_the_nodes_live_check_keeps_drops_and_normalizes_as_check_odometry_does():
-    """One rule (issue 30 item 2): message by message, the nodes' check keeps, drops and
+    """One rule: message by message, the nodes' check keeps, drops and
     normalizes exactly the messages `check_odometry` does, at norms either side of its bounds
     (zero-norm 1e-6, unit tolerance 1e-3), non-finite orientations and positions."""
     from tetra_gradiometer.core.odometry import LiveOdometryCheck

@@ -1,4 +1,4 @@
-"""io/params.py reads strictly (issue 30): numbers are numbers, unknown names in the
+"""io/params.py reads strictly: numbers are numbers, unknown names in the
 package's sections are refused with the closest known one, repeated keys are refused."""
 from pathlib import Path
 

@@ -1,4 +1,4 @@
-"""Fault table, stream health (issue 30): each magnetometer stream is checked before sets are
+"""Fault table, stream health: each magnetometer stream is checked before sets are
 formed (core/streams.py, through the bag reader), and what is wrong is named with the sensor
 and the time span. Refused: one ``error:`` line, exit 1, nothing written, the bag's bytes
 unchanged. Warned: exit 0, the fault in the summary line and the calibration file's

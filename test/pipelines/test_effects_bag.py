@@ -1,4 +1,4 @@
-"""The vehicle effects on bags (issue 28): ``calibrate`` selects and fits the terms the trim
+"""The vehicle effects on bags: ``calibrate`` selects and fits the terms the trim
 calls for, ``compensate`` and ``locate`` apply them, a missing channel is named, never zero.
 Truth: the simulator's ``g_true`` (the sidecar ``.truth.npz``) and its effects."""
 import json

@@ -1,4 +1,4 @@
-"""Collinear and constant current channels (issue 28): a hotel load that does not change makes
+"""Collinear and constant current channels: a hotel load that does not change makes
 the battery current (hotel + thrusters) the sum of the thrusters' it also records plus a
 constant, and a battery alone with a constant load is a constant. ``calibrate`` leaves the
 redundant channel out with a note (never a singular solve: before, the battery and thruster

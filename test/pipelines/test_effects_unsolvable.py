@@ -1,4 +1,4 @@
-"""A candidate whose held-out solve fails is named, never dropped silently (issue 28).
+"""A candidate whose held-out solve fails is named, never dropped silently.
 
 A thruster's ESC reports exactly 0 A while it is off; one that runs only in the last fifth of
 the trim leaves its current column zero on the other four held-out blocks, so the

@@ -205,7 +205,7 @@ def _feeder_class() -> type:
         def calibration(self) -> Any:
             """The publisher on ``calibration``, created when a test first uses it: a compensator
             refuses calibrations while a node other than its calibration_publisher publishes
-            there (issue 34)."""
+            there."""
             if self._calibration is None:
                 self._calibration = self.create_publisher(String, 'calibration', latched_qos())
             return self._calibration

@@ -69,7 +69,7 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
 
         # The paper's objective on the same samples: the compensated training tensors become
         # symmetric and traceless, as eqs. 21-22 ask. The method decides what is written:
-        # refused while configured (issue 34), set after cleanup, the samples fed again.
+        # refused while configured, set after cleanup, the samples fed again.
         result = set_parameter(probe, graph, 'calibrator', 'method', 'constraint_lstsq')
         assert not result.successful and 'read-only while calibrator is configured' in result.reason
         reconfigure(probe, graph, 'calibrator', method='constraint_lstsq')
@@ -272,7 +272,7 @@ def _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q) -> None:
 
 
 def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a_target(tmp_path):
-    """~/calibrate as `calibrate` does (issue 15): with the vehicle's /odom (remapped to the
+    """~/calibrate as `calibrate` does: with the vehicle's /odom (remapped to the
     calibrator's odom), the simulator's 4 nT/m regional gradient is recovered within 3 sigma
     and stored; a trim over a magnetic target (its gradient changes along the circle) is
     refused with the figures and nothing written, and written with the warning only with
@@ -309,7 +309,7 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
         assert re.search(r'does not fit the model \(.*\): .*x the noise.*force:=true', reply.message), \
             reply.message
         assert not calibration_file.exists()
-        refused = set_parameter(probe, graph, 'calibrator', 'force', True)  # issue 34
+        refused = set_parameter(probe, graph, 'calibrator', 'force', True)
         assert not refused.successful and 'read-only while calibrator is configured' in refused.reason
         reconfigure(probe, graph, 'calibrator', force=True)
         time.sleep(1.0)  # the new subscriptions matched by the feeder and odom

@@ -1,4 +1,4 @@
-"""Live = offline when the channels come late (issue 28): a 1 Hz BatteryState (a usual rate)
+"""Live = offline when the channels come late: a 1 Hz BatteryState (a usual rate)
 whose messages reach the compensator 0.3 s after their stamps, behind the 20 Hz sets. The
 compensator holds each set until the battery and temperature messages at or after its stamp
 have arrived, so every compensated tensor is the offline one (``compensate``'s channels

@@ -1,4 +1,4 @@
-"""``MagneticField.magnetic_field_covariance`` through the graph (issue 12, REP 145), over
+"""``MagneticField.magnetic_field_covariance`` through the graph (REP 145), over
 real DDS: the tensor node's ``reference_field`` carries the covariance of its set's own
 ``mag1`` message (a non-finite or all-zero one as REP 145's unknown, -1 first); the driver replaying a bag recorded
 without covariance fills ``diag(sensor_noise_t^2)``, and the tensor node passes it on."""

@@ -1,4 +1,4 @@
-"""The driver's start-up refusals (issue 14): no source chosen (it fabricates no vehicle data
+"""The driver's start-up refusals: no source chosen (it fabricates no vehicle data
 by default), and, one source of the array geometry, a scenario whose array is not the
 ``sensor_positions`` the tensor node differences with."""
 from __future__ import annotations

@@ -49,7 +49,7 @@ def _scenario() -> dict:
     """Three effects on a clean-reference vehicle: a short trim, then a line."""
     rng = np.random.default_rng(28)
     return {
-        'description': 'issue 28 nodes: trim and line with current, eddy and thermal effects',
+        'description': 'nodes: trim and line with current, eddy and thermal effects',
         'seed': 2028,
         'geometry': {'regular_edge_m': 0.5},
         'earth_field': {'enu_nT': [0.0, 21000.0, -45376.2]},
@@ -513,7 +513,7 @@ def test_the_calibrator_reads_the_further_current_topics_and_refuses_a_bad_effec
         assert probe.status(CALIBRATION)['effects'] == 'none'
         refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal')
         assert not refused.successful and 'unknown thermal' in refused.reason
-        refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal_drift')  # issue 34
+        refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal_drift')
         assert not refused.successful and 'read-only while calibrator is configured' in refused.reason
         refused = set_parameter(probe, graph, 'calibrator', 'current_topics', '/x')
         assert not refused.successful

@@ -1,4 +1,4 @@
-"""Frame ids (REP 103/105, issue 14) as a user sees them on the topics: the simulating
+"""Frame ids (REP 103/105) as a user sees them on the topics: the simulating
 driver's odometry (/tetra/odom, never the vehicle's /odom) is odom -> base_link and its magnetometers tetra_mag1..4 by default, every
 frame id is a parameter, the tensor publishes its gradient in ``array_frame_id`` and
 reference_field in the frame of the mag1 message it came from; a frame id with a leading

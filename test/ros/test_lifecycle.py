@@ -164,7 +164,7 @@ def test_every_node_configures_activates_and_cleans_up_in_process(name, tmp_path
             assert all(not timer.is_canceled() for timer in node.timers)
             node.trigger_deactivate()
             assert node.state_label == 'inactive' and not node.active
-            # Only the diagnostics timer runs on (WARN 'inactive' statuses, issue 34).
+            # Only the diagnostics timer runs on (WARN 'inactive' statuses).
             running = [timer for timer in node.timers if not timer.is_canceled()]
             assert len(running) == 1 and running[0].clock.clock_type.name == 'STEADY_TIME'
             node.trigger_cleanup()

@@ -1,4 +1,4 @@
-"""Lifecycle requests cannot kill a node (issue 34): every transition id and label, valid or
+"""Lifecycle requests cannot kill a node: every transition id and label, valid or
 not, from every state of every node, through the node's ``~/change_state`` callback in
 process; the invalid ones answered ``success=false`` (the reason logged) and the node still
 working. A deactivated node keeps publishing WARN ``inactive`` statuses on the steady clock

@@ -1,4 +1,4 @@
-"""security/policy.xml (SROS2, issue 34) against the graph the nodes build: each node's
+"""security/policy.xml (SROS2) against the graph the nodes build: each node's
 enclave grants exactly the topics it publishes and subscribes and the services it serves
 (the five nodes brought up in process, use_sim_time on, the compensator with a calibration
 whose terms read the vehicle's channels, the driver at rate 0: every endpoint a node can

@@ -10,7 +10,7 @@ The nodes run as their console scripts do (setup.py: ``process.main_<node>`` und
 ``sys.exit``, what ``ros2 run`` and the launch file start), all at once, each in a namespace
 of its own; once every one answers ``get_state`` (so it spins) they are stopped a few at a
 time. Before the fix a second SIGINT raised KeyboardInterrupt in the teardown or the
-interpreter's exit (exit -2 in nearly every run, issue 33 item 3), the cancelled solve's
+interpreter's exit (exit -2 in nearly every run), the cancelled solve's
 reply was lost, and a SIGINT during the imports was lost when SIGINT was inherited ignored
 (the node then spun for good: the issue's 15 s "inside MultiThreadedExecutor.spin"), else it
 ended the process with a KeyboardInterrupt traceback (-2), and SIGTERM there killed it (-15).

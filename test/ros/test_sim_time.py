@@ -1,8 +1,8 @@
 """Sim time on replay, over real DDS: the replaying driver publishes ``/clock`` from the bag's
 log times, and a tensor node with ``use_sim_time`` reports the bag's rates and staleness on
 ``/diagnostics`` whatever the playback speed (10x gives the same figures as 1x; on the wall
-clock 10x would show 500 Hz). The statuses themselves come on the steady clock (issue 34:
-sim time cannot freeze them), so 10x gives a tenth as many."""
+clock 10x would show 500 Hz). The statuses themselves come on the steady clock (sim
+time cannot freeze them), so 10x gives a tenth as many."""
 from __future__ import annotations
 
 import threading

@@ -267,7 +267,7 @@ def test_the_node_locates_the_simulated_dipole_and_latches_its_outputs():
 def test_bad_input_is_dropped_and_counted_and_never_searched():
     """A 90 s straight leg over nothing: four non-finite tensors, two stamps out of order, a
     malformed tensor message, a 3 s odometry outage, a NaN odometry message, an unfilled
-    (zero-norm) orientation, dropped, and one scaled by 3, normalized (issue 30 item 2)."""
+    (zero-norm) orientation, dropped, and one scaled by 3, normalized."""
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import JointState
 

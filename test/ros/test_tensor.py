@@ -125,7 +125,7 @@ def test_a_bad_value_set_at_run_time_is_refused():
         graph.start('tensor')
         result = set_parameter(probe, graph, 'tensor', 'stale_timeout_s', -0.5)
         assert not result.successful and 'stale_timeout_s' in result.reason
-        # How data is judged is read-only while configured (issue 34): only after cleanup.
+        # How data is judged is read-only while configured: only after cleanup.
         result = set_parameter(probe, graph, 'tensor', 'stale_timeout_s', 2.0)
         assert not result.successful and 'read-only while tensor is configured' in result.reason
         for name, value in (('max_field_t', 5e-4), ('use_sim_time', True)):

@@ -22,7 +22,7 @@ Fast paths (the generic ones stay, and a test checks both agree):
   and the tensor JointState directly (``conversions.magnetic_field_cdr``,
   ``conversions.TensorCdr``: the nodes' writers), byte-identical to rosbags' serializer.
 
-Damage (issue 13): a message that does not decode (cut short, absurd frame_id length,
+Damage: a message that does not decode (cut short, absurd frame_id length,
 unknown encapsulation, header nanosec >= 1e9) and an unreadable storage chunk
 (:mod:`.bag_skips`) are skipped and recorded in :attr:`MagneticBag.skipped`; a read fails
 only when more than ``max_skipped_fraction`` (default 1 %) of a topic's messages are lost.

@@ -1,5 +1,5 @@
 """Decoding ``sensor_msgs/MagneticField`` CDR with numpy, message by message when a batch
-holds a malformed message (io/bag.py's fast path; issue 13: a bad message costs itself).
+holds a malformed message (io/bag.py's fast path: a bad message costs itself).
 
 Layout: encapsulation header, ``int32 sec``, ``uint32 nanosec``, ``frame_id`` (uint32 length
 incl. NUL, bytes), padding to 8 (counted from the end of the 4-byte encapsulation header),

@@ -1,5 +1,5 @@
 """Reading a rosbag2 bag past its damage: a corrupt message or storage chunk costs that
-message or chunk, not the run (issue 13).
+message or chunk, not the run.
 
 :func:`guarded_messages` yields ``(connection, log_ns, raw)`` like rosbags'
 ``AnyReader.messages`` and reports what it could not read as :class:`SkippedMessage`

@@ -1,6 +1,6 @@
 """ROS 2 parameter files (``/**: ros__parameters:``) as the offline tools read them.
 
-Read strictly (issue 30): a repeated key is refused; in the package's own sections (``/**``
+Read strictly: a repeated key is refused; in the package's own sections (``/**``
 and the sections of its nodes) an unknown name is refused with the closest known one
 (:data:`KNOWN_PARAMETERS`, the nodes' declarations as ``config/tetra_gradiometer.yaml``
 holds them; a test keeps the two equal); ``sensor_positions`` and ``earth_field_enu`` must be

@@ -1,5 +1,5 @@
 """What ``calibrate`` and the calibrator node's ``~/calibrate`` add around a known-gradient
-solve (issue 15): the attitude from ``/odom`` so that a regional gradient is estimated
+solve: the attitude from ``/odom`` so that a regional gradient is estimated
 jointly, and the test of the fit's own assumption (a constant gradient over the window)
 with its verdict, the part of the window that fails and a sub-window that would pass.
 :func:`identify_checked` is the one path both take: solve, check, refuse or keep a forced

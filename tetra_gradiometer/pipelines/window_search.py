@@ -1,4 +1,4 @@
-"""A calibration that finds its own window (issue 30): ``calibrate BAG`` without ``--window``,
+"""A calibration that finds its own window: ``calibrate BAG`` without ``--window``,
 and the best passing window a failing ``--window`` is pointed to.
 
 The bag's sets are segmented by attitude excitation (:func:`~.window_check.excited_spans`:

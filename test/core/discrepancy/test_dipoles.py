@@ -1,4 +1,4 @@
-"""Targets modelled as dipoles (issue 31): with the track (/odom position) and the
+"""Targets modelled as dipoles: with the track (/odom position) and the
 geometry, a target passed close to the track is fitted as a point dipole in the base model
 instead of excluded; its position is checked against the simulator's truth, and the effects
 named are exactly the hidden ones."""

@@ -1,5 +1,5 @@
 """Targets modelled as dipoles beside real open-world effects and with tails over the whole
-line (issue 31's tests): a magnetization step and a rotating magnet's line are still found at
+line: a magnetization step and a rotating magnet's line are still found at
 their time and frequency with a target on the line, and a target whose field is above the
 noise everywhere on a short line is modelled, not excluded, and nothing else is named. All
 against the simulator's truth (the dipole) and the injected step and line."""

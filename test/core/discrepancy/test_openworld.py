@@ -1,4 +1,4 @@
-"""Open-world effects (issue 11): the scans against known truth (steps, spectral lines in
+"""Open-world effects: the scans against known truth (steps, spectral lines in
 noise), and the workflow naming a magnetization step, a rotating magnet's line and a
 confounded delay on recorded-style runs it is not told about."""
 from dataclasses import replace

@@ -69,7 +69,7 @@ def test_target_pass_is_excluded_and_the_hidden_effect_named(hidden):
         settings=EXCLUDE,
     )
     assert report.named_effects == list(effects), (report.named_effects, report.excluded_spans)
-    # The passage is a third of the run: never "adequate" on what is left (issue 11).
+    # The passage is a third of the run: never "adequate" on what is left.
     assert report.excluded_fraction > 0.1 and not report.adequate
     assert any('cannot be called adequate' in note for note in report.notes)
     assert report.gap_final_nT <= 1.1 * report.noise_floor_nT

@@ -1,4 +1,4 @@
-"""The unresolved rule (issue 31, item 2): a line at the manoeuvre's frequency, or a step
+"""The unresolved rule: a line at the manoeuvre's frequency, or a step
 within a target's pass or at an excluded span's edge, is reported as unresolved with the data
 that would separate it, not named; a line elsewhere and a step away from the targets are
 still named (test_dipoles_survey.py). Against the simulator's manoeuvre and analytic tracks."""

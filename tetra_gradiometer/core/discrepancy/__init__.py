@@ -1,4 +1,4 @@
-"""Discrepancy workflow (issue 5): find where the simulated (model-predicted) and the
+"""Discrepancy workflow: find where the simulated (model-predicted) and the
 measured sensor readings of a recorded run disagree, name the missing physical effect from
 a library of candidates, add it, and show the held-out gap shrink to the noise floor.
 

@@ -1,4 +1,4 @@
-"""The unresolved rule (issue 31): a finding whose evidence another explanation fits as well
+"""The unresolved rule: a finding whose evidence another explanation fits as well
 is reported as *unresolved*, with the data that would separate the two, not named.
 
 Two kinds of evidence are open to a second reading (the choice, written down in
@@ -9,9 +9,9 @@ docs/discrepancy.md):
   track is within sqrt(2) x its closest approach (|x| <= d along a straight line: the
   field is above ~35 % of its peak and changes fastest), the same half-width the tests
   keep real steps out of; an excluded span reaches half its length beyond either end (its
-  tails, which the model does not hold, are what the change-point scan splits at: issue 31's
-  12 spurious steps all sat there). A target's field that the dipole model or the exclusion
-  leaves slightly wrong changes there like a step.
+  tails, which the model does not hold, are what the change-point scan splits at: on a
+  survey modelled without its targets, 12 spurious steps all sat there). A target's field
+  that the dipole model or the exclusion leaves slightly wrong changes there like a step.
 * **At a recorded frequency** (``periodic_interference``): a line where a recorded channel
   has one too (the scan's ``recorded``: the field rate, i.e. the manoeuvre's roll, pitch and
   heading rates, the temperature, a current). A missing effect of that channel, which the
