@@ -60,7 +60,7 @@ class Settings:
     max_effects: int = 6
     adequate_ratio: float = 1.25
     candidates: tuple[str, ...] | None = None
-    max_samples: int = 12000
+    max_samples: int = 6000
     exclude_targets: bool = True
     target_high: float = 12.0
     target_low: float = 2.5

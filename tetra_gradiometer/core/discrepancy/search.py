@@ -308,21 +308,30 @@ def _round(
     """Z = [current columns | unit columns | plain units | target | unit offsets | active
     offsets], its per-fold Gram matrices and the index of each part."""
     units = cands.units + list(cands.plain.values())
-    allcols = np.concatenate([fit.cols] + [u.cols for u in units], axis=-1)
-    a = flat(allcols, prep.sensors)
-    norm = np.sqrt(np.einsum('nmp,nmp->p', a, a))
-    usable = norm > 0
-    norm[~usable] = 1.0
     extra = [flat(y - fit.offset, prep.sensors)[..., None]]
-    ty = a.shape[-1]
+    ty = fit.cols.shape[-1] + sum(u.cols.shape[-1] for u in units)
     n_cur = fit.cols.shape[-1]
-    unit_cols = _column_ranges(usable, n_cur, [u.cols.shape[-1] for u in units])
     unit_off = _offsets(units, prep.sensors, extra, ty)
     # Offsets of the units already in the model, to add back when one is taken out.
     active_off = _offsets(fit.active, prep.sensors, extra, ty)
+    # Z filled in place, each block normalised as it goes in (the columns of a long record
+    # are hundreds of MB: one array, no concatenated copies).
+    z = np.empty((len(prep.t), 3 * len(prep.sensors), ty + len(extra)))
+    usable = np.zeros(ty, dtype=bool)
+    start = 0
+    for block in [fit.cols] + [u.cols for u in units] + extra:
+        part = flat(block, prep.sensors) if block.ndim == 4 else block
+        stop = start + part.shape[-1]
+        z[..., start:stop] = part
+        if stop <= ty:
+            norm = np.sqrt(np.einsum('nmp,nmp->p', part, part))
+            usable[start:stop] = norm > 0
+            z[..., start:stop] /= np.where(norm > 0, norm, 1.0)
+        start = stop
+    unit_cols = _column_ranges(usable, n_cur, [u.cols.shape[-1] for u in units])
     base_p = prep.base_cols.shape[-1]
     active_cols = _column_ranges(usable, base_p, [f.cols.shape[-1] for f in fit.active])
-    gram = Gram(np.concatenate([a / norm] + extra, axis=-1), prep.t, block_s, settings.n_folds)
+    gram = Gram(z, prep.t, block_s, settings.n_folds)
     return _Round(
         gram=gram,
         ty=ty,
