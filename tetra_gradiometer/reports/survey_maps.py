@@ -228,10 +228,13 @@ def _columns(aspect: float) -> int:
 
 
 def _colour(values: np.ndarray, name: str) -> dict[str, Any]:
-    """Colour map and limits: diverging about 0 for a signed quantity, else sequential."""
+    """Colour map and limits: diverging about 0 for a signed quantity, else sequential with
+    the largest magnitude brightest (I1 is never positive for a field in free space)."""
     finite = values[np.isfinite(values)]
-    if name == 'nss' or not len(finite) or finite.min() >= 0 or finite.max() <= 0:
+    if not len(finite) or finite.min() >= 0 or name == 'nss':
         return {'cmap': 'viridis'}
+    if finite.max() <= 0:
+        return {'cmap': 'viridis_r'}
     limit = float(np.abs(finite).max())
     return {'cmap': 'RdBu_r', 'vmin': -limit, 'vmax': limit}
 
