@@ -1,6 +1,7 @@
 """``python -m tetra_gradiometer survey BAG --params FILE --calibration CALIB --out DIR
 (--origin LAT,LON[,ALT] | --navsat-topic TOPIC) [--crs EPSG:NNNN] [--cell-m C]
-[--max-distance-m D] [--sensor-noise-nt S] [--vehicle NAME] [--force]``.
+[--max-distance-m D] [--all-samples] [--sensor-noise-nt S] [--false-alarms-per-hour F]
+[--vehicle NAME] [--force]``.
 
 Survey products of a recorded survey: the compensated tensor along the ``/odom`` track in
 the world frame (E, N, U), placed on the Earth (``--origin``: the odom frame is ENU at that
