@@ -269,6 +269,8 @@ def quantities_png(result: SurveyResult, records: list[dict[str, Any]]) -> bytes
         ax.set_visible(False)
     for ax in axes.flat:
         ax.label_outer()
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc='outside upper center', ncols=len(labels), fontsize=7)
     fig.supxlabel(f'easting, m ({result.crs})', fontsize=8)
     fig.supylabel(f'northing, m ({result.crs})', fontsize=8)
     return _png(fig)
