@@ -480,6 +480,7 @@ def _survey(job: BagJob, tmp: Path, geometry: TetraGeometry, calibration: Path) 
         'calibration': str(job.out_dir / CALIBRATION_FILE),
         'bag': str(job.bag.bag),
         'params': str(job.bag.params),
+        'sensor_noise': compensation.noise_source,
         'command': 'batch (its survey step, with the defaults)',
     }
     write_survey(

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-__all__ = ['MAP_QUANTITIES', 'TARGET_COLOUR', 'gridded_box', 'overview_png', 'quantities_png']
+__all__ = ['MAP_QUANTITIES', 'TARGET_COLOUR', 'overview_png', 'quantities_png']
 
 #: The targets' colour (no colour map of the panels contains it).
 TARGET_COLOUR = '#ff00ff'
@@ -63,7 +63,7 @@ def _png(fig: Figure) -> bytes:
     return buffer.getvalue()
 
 
-def gridded_box(result: SurveyResult) -> tuple[slice, slice]:
+def _gridded_box(result: SurveyResult) -> tuple[slice, slice]:
     """Rows and columns of the grid that hold gridded cells."""
     rows = np.flatnonzero(result.grids.mask.any(axis=1))
     columns = np.flatnonzero(result.grids.mask.any(axis=0))
@@ -184,7 +184,7 @@ def overview_png(result: SurveyResult, records: list[dict[str, Any]]) -> bytes:
     from matplotlib.patches import Rectangle
 
     grids, xy = result.grids, _targets_xy(result, records)
-    rows, columns = gridded_box(result)
+    rows, columns = _gridded_box(result)
     half = grids.cell_m / 2
     x0, x1 = grids.x[columns][0] - half, grids.x[columns][-1] + half
     y0, y1 = grids.y[rows][0] - half, grids.y[rows][-1] + half
@@ -242,7 +242,7 @@ def _colour(values: np.ndarray, name: str) -> dict[str, Any]:
 def quantities_png(result: SurveyResult, records: list[dict[str, Any]]) -> bytes:
     """One panel per quantity of :data:`MAP_QUANTITIES` (module docstring)."""
     grids, xy = result.grids, _targets_xy(result, records)
-    rows, columns = gridded_box(result)
+    rows, columns = _gridded_box(result)
     x, y = grids.x[columns], grids.y[rows]
     limits = _limits(x, y, grids.cell_m)
     aspect = (limits[0][1] - limits[0][0]) / (limits[1][1] - limits[1][0])

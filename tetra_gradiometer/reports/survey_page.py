@@ -301,6 +301,7 @@ def _calibration(calibration: CalibrationFile | None, metadata: Mapping[str, Any
             check.get('text') or f'{d.get("residual_rms_nT_per_m", np.nan):.3f} nT/m',
         ),
         ('Sensor noise', f'{noise * NT_PER_T:.4f} nT per axis' if noise else 'not estimated'),
+        ('Noise behind the 1-sigma', metadata.get('sensor_noise', 'not recorded')),
         (
             'Conditioning',
             f'condition number {d.get("condition_number", np.nan):.1f}; attitude '
