@@ -194,7 +194,7 @@ def overview_png(result: SurveyResult, records: list[dict[str, Any]]) -> bytes:
     span = max(np.ptp(every_x), np.ptp(every_y), 1.0)
     limits = _limits(every_x, every_y, 0.05 * span, min_aspect=OVERVIEW_MIN_ASPECT)
     aspect = (limits[1][1] - limits[1][0]) / (limits[0][1] - limits[0][0])
-    fig = _figure(8.0, min(6.8 * aspect, 9.0) + 0.6)
+    fig = _figure(8.0, min(6.0 * aspect, 9.0) + 0.7)
     ax = fig.subplots()
     ax.add_patch(
         Rectangle(
@@ -217,7 +217,7 @@ def overview_png(result: SurveyResult, records: list[dict[str, Any]]) -> bytes:
     ax.set_xlabel(f'easting, m ({result.crs})', fontsize=8)
     ax.set_ylabel(f'northing, m ({result.crs})', fontsize=8)
     ax.grid(color='0.9', lw=0.5)
-    ax.legend(fontsize=7, loc='best', framealpha=0.9)
+    fig.legend(*ax.get_legend_handles_labels(), loc='outside right upper', fontsize=7)
     return _png(fig)
 
 
