@@ -221,8 +221,28 @@ def _maps(result: SurveyResult, records: list[dict[str, Any]]) -> str:
     )
 
 
-def _quality(result: SurveyResult) -> str:
-    legs = [
+LEG_HEADER = (
+    'leg',
+    'from, s',
+    'to, s',
+    'residual, nT/m',
+    'noise floor (1σ), nT/m',
+    'residual / floor',
+)
+#: What the per-leg check measures, under its table.
+LEG_NOTE = (
+    'Residual: the RMS of the part of the compensated tensor that no magnetic field has (its '
+    'trace and antisymmetric part); noise floor: the RMS of its 1-sigma from the sensor noise '
+    "and the calibration's covariance. It rises above the floor where the gradient is strong "
+    '(near a target) with no fault: the gradient changes across the array, and the '
+    'differences of the four sensors read that as a non-field part. Times are seconds from '
+    'the first tensor set.'
+)
+
+
+def _legs(result: SurveyResult) -> str:
+    """The per-leg residual against the noise floor, nT/m."""
+    rows = [
         (
             i,
             f'{leg.start_s:.1f}',
@@ -233,48 +253,32 @@ def _quality(result: SurveyResult) -> str:
         )
         for i, leg in enumerate(result.leg_residuals)
     ]
-    text = '<h3>Residual per straight leg</h3>'
-    text += (
-        _table(
-            (
-                'leg',
-                'from, s',
-                'to, s',
-                'residual, nT/m',
-                'noise floor (1σ), nT/m',
-                'residual / floor',
-            ),
-            legs,
-            numeric=1,
-        )
-        if legs
-        else '<p>No straight leg was found.</p>'
-    )
-    text += (
-        '<p class="note">Residual: the RMS of the part of the compensated tensor that no '
-        'magnetic field has (its trace and antisymmetric part); noise floor: the RMS of its '
-        "1-sigma from the sensor noise and the calibration's covariance. It rises above "
-        'the floor where the gradient is strong (near a target) with no fault: the gradient '
-        'changes across the array, and the differences of the four sensors read that as a '
-        'non-field part. Times are seconds from the first tensor set.</p>'
-        '<h3>Lost and refused spans</h3>'
-    )
-    spans = [
+    table = _table(LEG_HEADER, rows, numeric=1) if rows else '<p>No straight leg was found.</p>'
+    return f'{table}<p class="note">{_e(LEG_NOTE)}</p>'
+
+
+def _spans(result: SurveyResult) -> str:
+    """The lost and refused spans, s."""
+    rows = [
         (s.kind, f'{s.start_s:.1f}', f'{s.stop_s:.1f}', f'{s.stop_s - s.start_s:.1f}')
         for s in result.spans
     ]
-    text += (
-        _table(('kind', 'from, s', 'to, s', 'length, s'), spans, numeric=1)
-        if spans
-        else ('<p>None: no gap of more than three sample periods, no set refused.</p>')
-    )
+    if not rows:
+        return '<p>None: no gap of more than three sample periods, no set refused.</p>'
+    return _table(('kind', 'from, s', 'to, s', 'length, s'), rows, numeric=1)
+
+
+def _quality(result: SurveyResult) -> str:
     alarms = [(f'{a["t_s"]:.1f}', a['kind']) for a in result.health['alarms']]
-    text += '<h3>Calibration health along the survey</h3>'
-    text += f'<p>{_e(result.health["verdict"])}.</p>'
-    if alarms:
-        text += _table(('at, s', 'alarm'), alarms)
     counts = [(k.replace('_', ' '), v) for k, v in result.input_counts.items()]
-    return text + '<h3>Input</h3>' + _table(('sets or messages', 'count'), counts, numeric=1)
+    return (
+        f'<h3>Residual per straight leg</h3>{_legs(result)}'
+        f'<h3>Lost and refused spans</h3>{_spans(result)}'
+        f'<h3>Calibration health along the survey</h3><p>{_e(result.health["verdict"])}.</p>'
+        + (_table(('at, s', 'alarm'), alarms) if alarms else '')
+        + '<h3>Input</h3>'
+        + _table(('sets or messages', 'count'), counts, numeric=1)
+    )
 
 
 def _calibration(calibration: CalibrationFile | None, metadata: Mapping[str, Any]) -> str:
