@@ -44,6 +44,8 @@ SLOW_FIRST = (
     'cli/test_locate.py',
     'ros/test_demo.py',
     'cli/test_survey.py',
+    'reports/test_figures_readable.py',
+    'reports/test_survey_report.py',
     'cli/test_interrupts_and_full_disk.py',
     'ros/test_calibration_authentication.py',
     'ros/test_tensor_replay.py',

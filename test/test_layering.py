@@ -20,7 +20,7 @@ ALLOWED = {
     'core': {'core', 'errors'},
     'io': {'core', 'io', 'errors', '_optional'},
     'pipelines': {'core', 'io', 'pipelines', 'errors', '_optional'},
-    # _optional: the survey report's plotly
+    # _optional: the survey report's pyproj
     'reports': {'core', 'io', 'pipelines', 'reports', 'errors', '_optional'},
     'nodes': {'core', 'io', 'pipelines', 'nodes', 'errors', '_optional'},
     'cli': {'core', 'io', 'pipelines', 'reports', 'nodes', 'cli', 'errors', '_optional'},
@@ -31,7 +31,7 @@ NODES = ('driver', 'tensor', 'calibrator', 'compensator', 'target')
 #: Packages a rosdep install of package.xml does not have, and one no node should load.
 OFFLINE_ONLY = (
     'rosbags', 'ppigrf', 'dask', 'distributed', 'matplotlib',
-    'verde', 'xarray', 'h5netcdf', 'rioxarray', 'rasterio', 'pyproj', 'plotly',
+    'verde', 'xarray', 'h5netcdf', 'rioxarray', 'rasterio', 'pyproj',
 )
 
 

@@ -21,6 +21,7 @@ import argparse
 import errno
 import importlib
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -118,6 +119,8 @@ def _main(argv: list[str] | None) -> int:
         prog=f'python -m tetra_gradiometer {name}', description=COMMANDS[name][1]
     )
     module.add_arguments(parser)
+    # the command as typed, for the files that say how they were made
+    parser.set_defaults(command_line=f'{parser.prog} {shlex.join(argv[1:])}')
     args = parser.parse_args(argv[1:])
     _install_signal_handlers()
     try:

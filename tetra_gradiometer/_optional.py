@@ -2,7 +2,7 @@
 
 A vehicle computer installs with rosdep, which knows ``numpy``, ``scipy``, ``yaml`` and the
 ROS packages but not ``rosbags``, ``ppigrf``, ``dask`` or the survey's ``verde``,
-``xarray``, ``h5netcdf``, ``rioxarray``, ``pyproj``, ``plotly`` (package.xml). The
+``xarray``, ``h5netcdf``, ``rioxarray``, ``pyproj`` (package.xml). The
 on-vehicle nodes never import these; a path that does (the driver's replay, a scenario's
 IGRF field, ``batch``, ``survey``) calls :func:`require` first, so a missing package is
 one ``error:`` line naming the package and the pip command, not a traceback.
@@ -21,14 +21,13 @@ PIP_ONLY = {
     'ppigrf': 'ppigrf==2.1.0',
     'dask': 'dask[distributed]==2026.8.0',
     'distributed': 'dask[distributed]==2026.8.0',
-    # the survey command's gridding, grids, files, coordinates and report
+    # the survey command's gridding, grids, files and coordinates
     'verde': 'verde==1.9.0',
     'xarray': 'xarray==2026.9.0',
     'h5netcdf': 'h5netcdf==1.8.2',
     'rioxarray': 'rioxarray==0.19.0',
     'rasterio': 'rasterio==1.4.4',
     'pyproj': 'pyproj==3.7.2',
-    'plotly': 'plotly==7.1.0',
 }
 
 

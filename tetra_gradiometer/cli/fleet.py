@@ -53,7 +53,7 @@ from ..core import TetraGeometry
 from ..core.units import NT_PER_T
 from ..errors import AssumptionError, IdentifiabilityError, InputError, ParamsError, TetraError
 from ..io._yaml import read_yaml
-from ..io.calibration import save_calibration
+from ..io.calibration import load_calibration, save_calibration
 from ..io.outputs import BATCH_BAG, BATCH_SUMMARY, atomic_output, atomic_write_text
 from ..io.params import earth_field_from_params, geometry_from_params, load_params, params_document
 from ..io.scenario import load_scenario
@@ -476,8 +476,20 @@ def _survey(job: BagJob, tmp: Path, geometry: TetraGeometry, calibration: Path) 
     result = survey_bag(
         job.bag.bag, geometry, compensation, origin=origin, navsat_topic=topic, progress=False
     )
-    metadata = {'calibration': str(job.out_dir / CALIBRATION_FILE), 'bag': str(job.bag.bag)}
-    write_survey(result, tmp / SURVEY_FOLDER, metadata=metadata, inputs=(job.bag.bag,))
+    metadata = {
+        'calibration': str(job.out_dir / CALIBRATION_FILE),
+        'bag': str(job.bag.bag),
+        'params': str(job.bag.params),
+        'sensor_noise': compensation.noise_source,
+        'command': 'batch (its survey step, with the defaults)',
+    }
+    write_survey(
+        result,
+        tmp / SURVEY_FOLDER,
+        metadata=metadata,
+        inputs=(job.bag.bag,),
+        calibration=load_calibration(calibration),
+    )
 
 
 def _json_scalar(value: Any) -> Any:

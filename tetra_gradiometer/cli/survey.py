@@ -1,6 +1,7 @@
 """``python -m tetra_gradiometer survey BAG --params FILE --calibration CALIB --out DIR
 (--origin LAT,LON[,ALT] | --navsat-topic TOPIC) [--crs EPSG:NNNN] [--cell-m C]
-[--max-distance-m D] [--sensor-noise-nt S] [--force]``.
+[--max-distance-m D] [--all-samples] [--sensor-noise-nt S] [--false-alarms-per-hour F]
+[--vehicle NAME] [--force]``.
 
 Survey products of a recorded survey: the compensated tensor along the ``/odom`` track in
 the world frame (E, N, U), placed on the Earth (``--origin``: the odom frame is ENU at that
@@ -103,6 +104,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DetectorSettings.false_alarms_per_hour,
         help="the target detector's false-alarm rate on noise, per hour of straight legs",
     )
+    parser.add_argument(
+        '--vehicle', default='', help="the vehicle's name for report.html (default: not named)"
+    )
     add_force_argument(parser, 'a previous survey folder at --out')
     add_progress_arguments(parser)
 
@@ -164,8 +168,18 @@ def run(args: argparse.Namespace) -> int:
         'effects': ','.join(term.effect for term in calibration.parameters.terms) or 'none',
         'sensor_noise': compensation.noise_source,
         'bag': str(args.bag),
+        'params': str(args.params),
+        'vehicle': args.vehicle,
+        'command': getattr(args, 'command_line', ''),
     }
-    out = write_survey(result, args.out, metadata=metadata, force=args.force, inputs=inputs)
+    out = write_survey(
+        result,
+        args.out,
+        metadata=metadata,
+        force=args.force,
+        inputs=inputs,
+        calibration=calibration,
+    )
     grids = result.grids
     print(result.georeference.describe())
     if args.navsat_topic and earth is not None:  # the fixes' place against the params' field

@@ -2,7 +2,8 @@
 
 ``calibration`` (``calibrate --report``), ``health`` (``compensate --report``),
 ``discrepancy`` (the ``discrepancy`` report folder), ``targets`` (``locate``'s folder),
-``paper`` (the section 6 reproduction). Each folder is written atomically
+``paper`` (the section 6 reproduction), ``survey`` (the survey folder; its ``report.html``
+by ``survey_page`` with the maps of ``survey_maps``). Each folder is written atomically
 (``io.outputs.atomic_output``); matplotlib is imported inside the plotting functions only.
 
 Layering: a report imports ``core``, ``io`` and ``pipelines`` (for the result types), never

@@ -109,10 +109,10 @@ def report_json(report: Report) -> str:
 
 
 def _figure(figsize: tuple[float, float]) -> Figure:
-    """A figure of matplotlib's object API: no pyplot, no global backend state."""
+    """A figure of matplotlib's object API (no pyplot), laid out to keep its texts on it."""
     from matplotlib.figure import Figure
 
-    return Figure(figsize=figsize)
+    return Figure(figsize=figsize, layout='constrained')
 
 
 def _thin(n: int) -> slice:
@@ -147,7 +147,6 @@ def _plot_residuals(
         axes[-1, col].set_xlabel('time, s', fontsize=7)
     axes[0, 0].legend(fontsize=6, loc='upper right')
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
     fig.savefig(path, format='png', dpi=90)
 
 
@@ -179,20 +178,23 @@ def round_labels(report: Report, n: int) -> list[str]:
 
 
 def _plot_gap(report: Report, path: Path) -> None:
-    """Bars of the held-out gap (nT, RMS) per round against the noise floor (nT)."""
+    """Bars of the held-out gap (nT, RMS) per round, first on top, against the noise floor
+    (nT); the rounds' labels beside the bars, as long as they are."""
     gaps = report.series['gaps']
     floors = report.series['floors']
-    fig = _figure((1.6 + 1.3 * len(gaps), 3.4))
+    labels = [label.replace('\n', ', ') for label in round_labels(report, len(gaps))]
+    longest = max(map(len, labels))  # characters; about 0.055 in each at 7 pt
+    fig = _figure((max(6.4, 3.8 + 0.055 * longest), 1.5 + 0.4 * len(gaps)))
     ax = fig.subplots()
-    x = np.arange(len(gaps))
-    ax.bar(x, gaps, color='tab:blue', label='held-out gap')
-    ax.plot(x, floors, 'k--', marker='o', label='noise floor')
-    ax.set_yscale('log')
-    ax.set_xticks(x, round_labels(report, len(gaps)), fontsize=7, rotation=15)
-    ax.set_ylabel('RMS, nT')
-    ax.set_title('Held-out gap (measured - simulated) per round', fontsize=9)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
+    y = np.arange(len(gaps))
+    ax.barh(y, gaps, color='tab:blue', label='held-out gap')
+    ax.plot(floors, y, 'k--', marker='o', label='noise floor')
+    ax.set_xscale('log')
+    ax.set_yticks(y, labels, fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlabel('RMS, nT')
+    fig.suptitle('Held-out gap (measured - simulated) per round', fontsize=9)
+    ax.legend(fontsize=7, loc='lower right')
     fig.savefig(path, format='png', dpi=90)
 
 
@@ -211,20 +213,23 @@ def _plot_diagnostics(report: Report, path: Path) -> None:
         if series[key] is not None:
             drivers.append((label, series[key]))
     k = _thin(len(series['t']))
-    fig = _figure((2.3 * len(drivers) + 0.5, 1.8 * len(sensors) + 0.8))
-    axes = fig.subplots(len(sensors), len(drivers), squeeze=False)
+    fig = _figure((max(2.3 * len(drivers) + 0.5, 6.0), 1.8 * len(sensors) + 1.0))
+    axes = fig.subplots(len(sensors), len(drivers), squeeze=False, sharex='col')
     for row, s in enumerate(sensors):
         for col, (label, d) in enumerate(drivers):
             ax = axes[row, col]
             for a in range(3):
                 ax.plot(d[k], residual[k, s, a], '.', ms=1, alpha=0.5, label=_AXES[a])
+            ax.locator_params(axis='x', nbins=4)
             ax.tick_params(labelsize=6)
             if row == len(sensors) - 1:
                 ax.set_xlabel(label, fontsize=7)
             if col == 0:
                 ax.set_ylabel(f'sensor {s + 1}, nT', fontsize=7)
     fig.suptitle('Base-model residual (measured - simulated) against the drivers', fontsize=9)
-    fig.tight_layout()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    labels = [f'residual along {a}' for a in labels]
+    fig.legend(handles, labels, loc='outside lower center', ncols=3, fontsize=7, markerscale=6)
     fig.savefig(path, format='png', dpi=90)
 
 
