@@ -312,10 +312,8 @@ def _round(
     ty = fit.cols.shape[-1] + sum(u.cols.shape[-1] for u in units)
     n_cur = fit.cols.shape[-1]
     unit_off = _offsets(units, prep.sensors, extra, ty)
-    # Offsets of the units already in the model, to add back when one is taken out.
-    active_off = _offsets(fit.active, prep.sensors, extra, ty)
-    # Z filled in place, each block normalised as it goes in (the columns of a long record
-    # are hundreds of MB: one array, no concatenated copies).
+    active_off = _offsets(fit.active, prep.sensors, extra, ty)  # added back when taken out
+    # Z filled in place, normalised block by block: a long record's columns are 100s of MB.
     z = np.empty((len(prep.t), 3 * len(prep.sensors), ty + len(extra)))
     usable = np.zeros(ty, dtype=bool)
     start = 0
