@@ -183,8 +183,9 @@ def signals() -> Table:
     def cell(value: float | None) -> str:
         return 'refused' if value is None else ratio(value)
 
-    rows = [[name, 'refused' if v['plain_refused'] else 'calibrated', cell(v['plain_forced']),
-             cell(v['declared']), cell(v['discovered'])]
+    rows = [[name, f"{'refused' if v['paper_refused'] else 'calibrated'}, forced "
+             f"{cell(v['paper_forced'])}", cell(v['default']), cell(v['declared']),
+             cell(v['discovered'])]
             for name, v in d.get('vehicles', {}).items()]
     kept = len(d.get('clean_seeds_keeping_a_signal', ()))
     return ('**Recorded signals** (`bench/bench_signals.py`, magpylib vehicles: survey residual '
@@ -195,7 +196,7 @@ def signals() -> Table:
             f'{d.get("mission_discrepancy_s", float("nan")):.1f} s (target < 60 s); a clean '
             f'vehicle recording moving fins and currents keeps a signal term in {kept} of '
             f'{d.get("clean_seeds", 0)} seeds)',
-            ['vehicle', 'default, signals not declared', 'forced', 'declared',
+            ['vehicle', "the paper's k, b alone", 'default (finds the signals)', 'declared',
              "discrepancy's declaration"], rows)
 
 

@@ -156,11 +156,16 @@ def test_declared_signals_bring_a_vehicle_of_fins_and_cables_to_the_floor(capsys
     assert declared <= 1.2 * floor, (declared / floor, out)
     for name in DECLARED:  # each declared signal is selected by its held-out test
         assert f'signal:{name}' in (root / 'declared_calib.yaml').read_text()
+    # Not declared: calibrate finds them in the bag, each in the basis its name and values say.
+    found, out = _survey_residual(capsys, root, mission, survey, root / 'plain.yaml')
+    assert found is not None and found <= 1.2 * floor, (found and found / floor, out)
+    offered = next(line for line in out.splitlines() if 'signals found in the bag, offered to the selection' in line)
+    assert '/joint_states#position[fin1]:harmonic' in offered and '/power/thrusters#data:linear' in offered
+    # Fitting the paper's k, b alone: refused, the signals it records named as a cause.
     code, _, err = run_cli(capsys, 'calibrate', root / 'bag', '--params', root / 'plain.yaml', '--window',
-                           '0:239.9', '--out', root / 'refused.yaml')
-    # refused, the signals it records named as a cause beside a field's
+                           '0:239.9', '--out', root / 'refused.yaml', '--effects', 'none')
     assert code == 1 and 'a signal it records explains (/joint_states, /power/sonar, /power/thrusters' in err, err
-    plain, out = _survey_residual(capsys, root, mission, survey, root / 'plain.yaml', '--force')
+    plain, out = _survey_residual(capsys, root, mission, survey, root / 'plain.yaml', '--force', '--effects', 'none')
     assert plain is None or plain > 10 * floor, (plain, out)  # without them: far from it
     document = yaml.safe_load((root / 'declared_calib.yaml').read_text())
     fin = next(t for t in document['terms'] if t['effect'] == f'signal:{DECLARED[0]}')
@@ -199,14 +204,16 @@ def _silent_signals_are_named_live(monkeypatch, bag_path, calibration):
 
 @pytest.mark.parametrize('seed', [21, 22, 23])
 def test_a_clean_vehicle_recording_moving_fins_and_currents_selects_no_signal(capsys, tmp_path, seed):
-    """The same signals recorded, no interference from them: none is kept (each would
-    only fit noise)."""
+    """The same signals recorded, no interference from them: none is kept, declared or found
+    in the bag (each would only fit noise)."""
     mission = short_mission(trim_s=120.0, survey_s=10.0, seed=seed)
     _write(tmp_path, mission, _fin_angles(mission.t, seed), _currents(mission.t, seed), mission.fields_measured)
-    code, out, err = run_cli(capsys, 'calibrate', tmp_path / 'bag', '--params', tmp_path / 'declared.yaml',
-                             '--window', '0:119.9', '--out', tmp_path / 'c.yaml')
-    assert code == 0, err
-    assert 'signal:' not in yaml.safe_dump(yaml.safe_load((tmp_path / 'c.yaml').read_text()).get('terms', []))
+    for params in ('declared.yaml', 'plain.yaml'):  # declared, or found in the bag
+        code, out, err = run_cli(capsys, 'calibrate', tmp_path / 'bag', '--params', tmp_path / params,
+                                 '--window', '0:119.9', '--out', tmp_path / f'c_{params}')
+        assert code == 0, err
+        terms = yaml.safe_load((tmp_path / f'c_{params}').read_text()).get('terms', [])
+        assert 'signal:' not in yaml.safe_dump(terms), (params, out)
 
 
 def test_discrepancy_finds_the_recorded_signals_and_calibrate_takes_its_declaration(capsys, vehicle, monkeypatch):

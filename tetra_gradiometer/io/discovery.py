@@ -1,11 +1,13 @@
 """Every numeric signal a bag records beyond the data contract, as candidate channels for
-the discrepancy search: ``signal:TOPIC#FIELD`` (:mod:`.signals`), found in the first
-message of each other topic.
+the discrepancy search and ``calibrate``'s automatic selection: ``signal:TOPIC#FIELD``
+(:mod:`.signals`), found in the first message of each other topic.
 
-A field is a candidate when it is a number (not a header or a stamp), an element of a short
-array (at most :data:`MAX_ELEMENTS`), or an element named by a ``name`` array beside it
-(``sensor_msgs/JointState``: ``position[fin1]``). At most :data:`MAX_SIGNALS` are read; one
-that never changes on the run is no regressor and is left out, said with why.
+Topics that place the vehicle in the world (:data:`NAVIGATION_TYPES`: a GNSS fix, an IMU,
+a pose, a depth) are not candidates. A field is a candidate when it is a number (not a
+header or a stamp), an element of a short array (at most :data:`MAX_ELEMENTS`), or an
+element named by a ``name`` array beside it (``sensor_msgs/JointState``:
+``position[fin1]``). At most :data:`MAX_SIGNALS` are read; one that never changes on the
+run is no regressor and is left out, said with why.
 """
 
 from __future__ import annotations
@@ -61,12 +63,35 @@ def numeric_fields(msg: Any, prefix: str = '') -> list[str]:
 
 #: Topics of the ROS graph's own, never a vehicle signal.
 INFRASTRUCTURE = ('/tf', '/tf_static', '/rosout', '/parameter_events', '/diagnostics', '/clock')
+#: Messages that place the vehicle in the world or read a field (a position, an attitude, a
+#: depth, another magnetometer): offered as regressors they would fit what is fixed to the
+#: world (geology, a target, the Earth field turning with the attitude), which is signal,
+#: never the vehicle's own interference. The attitude enters through /odom.
+NAVIGATION_TYPES = frozenset(
+    f'{package}/msg/{name}'
+    for package, names in {
+        'sensor_msgs': ('NavSatFix', 'Imu', 'MagneticField', 'FluidPressure'),
+        'nav_msgs': ('Odometry', 'Path'),
+        'geometry_msgs': (
+            'PoseStamped',
+            'PoseWithCovarianceStamped',
+            'TwistStamped',
+            'TwistWithCovarianceStamped',
+            'QuaternionStamped',
+            'PointStamped',
+            'TransformStamped',
+        ),
+        'geographic_msgs': ('GeoPoint', 'GeoPointStamped', 'GeoPoseStamped'),
+    }.items()
+    for name in names
+)
 
 
 def signal_topics(bag: MagneticBag) -> tuple[str, ...]:
-    """The bag's topics beyond the contract, its current channels (BatteryState) and the
-    graph's own: where a vehicle signal may be."""
+    """The bag's topics beyond the contract, its current channels (BatteryState), the
+    graph's own and those of :data:`NAVIGATION_TYPES`: where a vehicle signal may be."""
     skip = {*cv.CONTRACT_TOPICS, *bag.topics_of_type(cv.BATTERY_STATE), *INFRASTRUCTURE}
+    skip |= {t for kind in NAVIGATION_TYPES for t in bag.topics_of_type(kind)}
     return tuple(t for t in bag.topics() if t not in skip and not t.startswith(cv.NAMESPACE + '/'))
 
 

@@ -25,12 +25,16 @@ class EffectsChoice:
     source : how it was chosen, for notes ('auto', 'none', '--effects', a report's path)
     signals : the declared signals' effect names (the params file's ``vehicle_signals``),
         candidates of the automatic selection beside the registry's
+    discover : the automatic selection also offers every numeric signal a bag records
+        beyond the contract, each in the basis :func:`~..core.effects.recorded_signal.
+        basis_for` gives it (a declared signal keeps its declared basis)
     """
 
     names: tuple[str, ...] | None = None
     current_topics: tuple[str, ...] = ()
     source: str = 'auto'
     signals: tuple[str, ...] = ()
+    discover: bool = True
 
     @property
     def signal_channels(self) -> tuple[str, ...]:

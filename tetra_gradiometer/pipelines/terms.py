@@ -27,11 +27,14 @@ import numpy.typing as npt
 
 from ..core.effects import (
     REFERENCE_RATE,
+    SIGNAL_PREFIX,
     Channels,
     Term,
+    parse_declaration,
     term_regressors,
     terms_channels,
 )
+from ..core.effects.recorded_signal import basis_for
 from ..core.geometry import TetraGeometry
 from ..core.identification.terms import (
     ALPHA,
@@ -138,13 +141,17 @@ def window_channels(
     fields: FloatArray,
     current_topics: tuple[str, ...] = (),
     signal_channels: tuple[str, ...] = (),
+    discover: bool = False,
 ) -> tuple[Channels, dict[str, ChannelSeries], tuple[str, ...]]:
     """The recorded channels on the sets ``stamps_ns`` (n,) with readings ``fields``
     (n, 4, 3) T: the temperature and the currents the bag has: ``/battery_state``,
     ``current_topics`` and every other ``sensor_msgs/BatteryState`` topic it records (one per
-    thruster ESC, say: a current the calibration does not read would be misfit); and a line
-    per channel topic of another type, not read."""
+    thruster ESC, say: a current the calibration does not read would be misfit), the
+    ``signal_channels`` and, with ``discover``, every numeric signal the bag records beyond
+    the contract (``io/discovery.discover_signals``); and a line per channel topic of another
+    type, not read, and per signal left out."""
     from ..io.bag import MagneticBag
+    from ..io.discovery import discover_signals
 
     with MagneticBag(bag_path) as bag:
         recorded = bag.topics_of_type(cv.BATTERY_STATE)
@@ -155,13 +162,17 @@ def window_channels(
                 f'{bag_path} (its BatteryState topics: {", ".join(recorded) or "none"}; all its '
                 f'topics: {", ".join(bag.topics())})'
             )
+        found, left_out = discover_signals(bag) if discover else ({}, [])
         names = (
             TEMPERATURE_CHANNEL,
             *current_channels((*current_topics, *recorded)),
-            *signal_channels,
+            *(name for name in signal_channels if name not in found),
         )
         series = read_channels(bag, names)
-    return channels_on(stamps_ns, fields[:, 0, :], series), series, tuple(bag.unread.values())
+        for name, signal in found.items():
+            series[name] = ChannelSeries(name, signal.stamps_ns, signal.values[:, 0])
+    notes = (*bag.unread.values(), *(f'signal left out: {note}' for note in left_out))
+    return channels_on(stamps_ns, fields[:, 0, :], series), series, notes
 
 
 #: The note of ``--effects none``.
@@ -190,8 +201,20 @@ def window_terms(
     if choice.names == ():
         return WindowTerms(notes=(NONE_NOTE,))
     channels, series, unread = window_channels(
-        bag_path, stamps_ns, fields, choice.current_topics, choice.signal_channels
+        bag_path, stamps_ns, fields, choice.current_topics, choice.signal_channels,
+        discover=choice.automatic and choice.discover,
     )
+    declared = {parse_declaration(name).channel for name in choice.signals}
+    found = []
+    for name in channels.series:
+        if name.startswith(SIGNAL_PREFIX) and name not in declared:
+            basis = basis_for(name, channels.series[name])
+            if basis is not None:
+                found.append(f'{name}:{basis}')
+    if found:  # what the bag records is offered beside the declared signals
+        choice = replace(choice, signals=(*choice.signals, *found))
+        unread = (*unread, f'signals found in the bag, offered to the selection: '
+                  f'{", ".join(n.removeprefix(SIGNAL_PREFIX) for n in found)}')
     pairs = _pairs(fields[used], geometry)
     terms = terms_on(channels, series, pairs, used, geometry, choice, orientation_xyzw)
     return replace(terms, notes=(*unread, *terms.notes)) if unread else terms

@@ -3,39 +3,21 @@ load's current): each becomes a family of the same protocol as the declared sign
 effects (:mod:`tetra_gradiometer.core.effects.recorded_signal`), in the bases a user would
 declare, so that a family the search names is the declaration ``calibrate`` takes.
 
-Bases offered, one per signal (chosen, and written down: two bases of one signal are
-nearly collinear for small angles, sin x ~ x, and the search would split one physical
-source between them): ``harmonic`` for an angle, a field whose name says so (a
-``JointState`` position, or a name with angle, yaw, pitch, roll, heading, rudder, fin,
-servo) and whose values stay within +-2 pi: a magnet turning with a fin is cos, sin of its
-angle; ``linear`` for everything else (a current, a switched load: two levels are linear).
+One basis per signal, ``calibrate``'s for a signal it finds
+(:func:`~tetra_gradiometer.core.effects.recorded_signal.basis_for`).
 """
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
 
 import numpy as np
 
 from ..effects import Channels, RecordedSignal, parse_declaration
+from ..effects.recorded_signal import basis_for
 from .effects import Array, Built, Candidate, Context, Estimate, registry_columns
 
 __all__ = ['signal_candidates']
-
-#: An angle's values stay within this of zero, rad.
-ANGLE_BOUND_RAD = 2 * np.pi
-_ANGLE_WORDS = re.compile(r'position\[|angle|yaw|pitch|roll|heading|rudder|fin|servo', re.I)
-
-
-def _bases(channel: str, values: Array) -> tuple[str, ...]:
-    finite = values[np.isfinite(values)]
-    if not len(finite):
-        return ()
-    field = channel.partition('#')[2]
-    angle = bool(_ANGLE_WORDS.search(field)) and np.abs(finite).max() <= ANGLE_BOUND_RAD
-    return ('harmonic',) if angle else ('linear',)
-
 
 def _builder(effect: RecordedSignal):
     channel = effect.declaration.channel
@@ -55,7 +37,8 @@ def signal_candidates(values: Mapping[str, Array]) -> tuple[Candidate, ...]:
     basis."""
     out = []
     for channel, series in values.items():
-        for basis in _bases(channel, np.asarray(series, dtype=float)):
+        basis = basis_for(channel, np.asarray(series, dtype=float))
+        if basis is not None:
             effect = RecordedSignal(parse_declaration(f'{channel}:{basis}', 'a recorded signal'))
             out.append(
                 Candidate(

@@ -20,8 +20,10 @@ each regressor with a 3-vector per sensor (per pair in the tensor):
 The effect of a declaration is named ``signal:`` + the declaration; it reads the channel
 ``signal:TOPIC#FIELD``. Chosen, and written down: the harmonic basis stops at the first
 harmonic (a finite magnet 2 m away differs from a dipole by ~(size / distance)^2, 1 %);
-the discrepancy search tries one basis per signal (``core/discrepancy/signals.py``), so a
-rate is declared, not discovered.
+a signal found in a recording rather than declared (``calibrate``'s automatic selection,
+the discrepancy search) gets one basis, :func:`basis_for`: two bases of one signal are
+nearly collinear for small angles (sin x ~ x) and would split one physical source between
+them, so a rate is declared, not discovered.
 """
 
 from __future__ import annotations
@@ -95,6 +97,26 @@ def parse_declaration(text: str, where: str = 'vehicle_signals') -> Declaration:
     if basis not in BASES:
         raise InputError(f'{where}: {text!r}: basis {basis!r} is not one of {", ".join(BASES)}')
     return Declaration(topic, path, basis)
+
+
+#: An angle's values stay within this of zero, rad.
+ANGLE_BOUND_RAD = 2 * np.pi
+_ANGLE_WORDS = re.compile(r'position\[|angle|yaw|pitch|roll|heading|rudder|fin|servo', re.I)
+
+
+def basis_for(channel: str, values: FloatArray) -> str | None:
+    """The basis a recorded signal found in the data is offered in: ``harmonic`` for an angle
+    (a field whose name says so: a ``JointState`` position, or a name with angle, yaw, pitch,
+    roll, heading, rudder, fin, servo; and whose values stay within +-2 pi: a magnet turning
+    with a fin is cos, sin of its angle), ``linear`` for everything else (a current; a
+    switched load's two levels are linear); None when ``values`` (N,) has no finite value."""
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if not len(finite):
+        return None
+    field = channel.partition('#')[2]
+    angle = bool(_ANGLE_WORDS.search(field)) and np.abs(finite).max() <= ANGLE_BOUND_RAD
+    return 'harmonic' if angle else 'linear'
 
 
 def basis_columns(basis: str, x: FloatArray, reference: tuple[float, ...]) -> FloatArray:
