@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..core.effects import CURRENT_PREFIX, SIGNAL_PREFIX, TEMPERATURE, current_channel
+from ..core.effects.recorded_signal import parse_channel
 from ..core.units import S_PER_NS
 from ..errors import BagError
 from . import conversions as cv
@@ -46,7 +47,7 @@ def channel_topic(name: str) -> str:
     if name.startswith(CURRENT_PREFIX):
         return name.removeprefix(CURRENT_PREFIX)
     if name.startswith(SIGNAL_PREFIX):
-        return name.removeprefix(SIGNAL_PREFIX).partition('#')[0]
+        return parse_channel(name)[0]
     raise BagError(f'{name!r} is not a recorded channel')
 
 
@@ -101,8 +102,7 @@ def read_channels(bag: MagneticBag, names: Sequence[str]) -> dict[str, ChannelSe
     out = {}
     for name in names:
         if name.startswith(SIGNAL_PREFIX):
-            topic, _, path = name.removeprefix(SIGNAL_PREFIX).partition('#')
-            series = read_signal(bag, topic, path)
+            series = read_signal(bag, *parse_channel(name))
         else:
             series = bag.read_series(channel_topic(name))
         if series is not None and len(series.stamps_ns):

@@ -43,6 +43,7 @@ import numpy.typing as npt
 
 from ..core import TetraGeometry
 from ..core.effects import REFERENCE_RATE, SIGNAL_PREFIX, LiveTerms, Term
+from ..core.effects.recorded_signal import parse_channel
 from ..core.identification import DEFAULT_METHOD
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
@@ -168,7 +169,7 @@ def channel_message(name: str, msg: Any) -> float:
     or a declared signal's field (NaN when this message lacks it: a joint not reported)."""
     if name.startswith(SIGNAL_PREFIX):
         try:
-            return field_value(msg, name.partition('#')[2])
+            return field_value(msg, parse_channel(name)[1])
         except (ValueError, TypeError):
             return float('nan')
     return float(msg.temperature if name == TEMPERATURE else msg.current)

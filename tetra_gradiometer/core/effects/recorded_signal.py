@@ -71,6 +71,12 @@ class Declaration:
         return f'{self.topic}#{self.field}:{self.basis}'
 
 
+def parse_channel(name: str) -> tuple[str, str]:
+    """A signal channel's ``(topic, field)``: ``signal:TOPIC#FIELD`` split."""
+    topic, _, field = name.removeprefix(SIGNAL_PREFIX).partition('#')
+    return topic, field
+
+
 def parse_declaration(text: str, where: str = 'vehicle_signals') -> Declaration:
     """``TOPIC#FIELD:BASIS`` (or the effect name, ``signal:`` in front) as a declaration.
 
@@ -114,7 +120,7 @@ def basis_for(channel: str, values: FloatArray) -> str | None:
     finite = finite[np.isfinite(finite)]
     if not len(finite):
         return None
-    field = channel.partition('#')[2]
+    field = parse_channel(channel)[1]
     angle = bool(_ANGLE_WORDS.search(field)) and np.abs(finite).max() <= ANGLE_BOUND_RAD
     return 'harmonic' if angle else 'linear'
 
