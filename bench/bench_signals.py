@@ -112,7 +112,7 @@ def _residual(out: Path, mission, params: Path, *options: str) -> float | None:
     refused)."""
     from stream_faults import START_NS
 
-    name = f'{params.stem}{"".join(options)}'.replace('/', '_').replace('.', '_')
+    name = f'calib_{params.stem}{"".join(options)}'.replace('/', '_').replace('.', '_')
     if cli(['calibrate', str(out / 'bag'), '--params', str(params), '--window', '0:239.9',
             '--out', str(out / f'{name}.yaml'), *options]) != 0:
         return None
