@@ -117,10 +117,15 @@ def test_the_history_pattern_finds_history_only():
 def test_the_readme_is_a_guide_and_the_docs_carry_no_history():
     readme = (REPO / 'README.md').read_text(encoding='utf-8')
     assert len(readme.splitlines()) <= 300
-    documents = [REPO / 'README.md', REPO / 'bags' / 'README.md', *(REPO / 'docs').glob('*.md')]
+    documents = [REPO / 'README.md', REPO / 'bags' / 'README.md', *(REPO / 'docs').glob('*.md'),
+                 *(REPO / 'tetra_gradiometer').rglob('*.py')]
     for path in sorted(documents):
         found = HISTORY.findall(path.read_text(encoding='utf-8'))
         assert found == [], (path.name, found)
+    for path in sorted((REPO / 'test').rglob('test_*.py')):  # keys in hex are test data
+        if path != Path(__file__).resolve():  # its own examples of history
+            found = re.findall(r'issue [0-9]+|load average', path.read_text(encoding='utf-8'))
+            assert found == [], (path.name, found)
 
 
 def test_the_vehicle_walk_through_names_what_the_nodes_offer():

@@ -1,4 +1,4 @@
-"""Authenticated calibrations (issue 34): the calibrator signs what it writes and publishes,
+"""Authenticated calibrations: the calibrator signs what it writes and publishes,
 the compensator adopts only what verifies.
 
 HMAC-SHA256 (Python's :mod:`hmac` and :mod:`hashlib`: no home-made cryptography) with a

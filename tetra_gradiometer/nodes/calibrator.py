@@ -42,7 +42,7 @@ blocks the other callbacks until the solve ends.
 default ``known_gradient_lstsq_general``: the true gradient is taken as zero, a trim far
 from targets).
 
-Vehicle effects (issue 28): the node keeps the messages of the channels the effects read
+Vehicle effects: the node keeps the messages of the channels the effects read
 (``/tetra/temperature``, sensor_msgs/Temperature; the ``current`` of sensor_msgs/BatteryState
 on ``/battery_state`` and on each of ``current_topics``), whether or not it collects, and
 ``~/calibrate`` fits the terms ``effects`` asks for (``auto``: those whose channels have

@@ -22,7 +22,7 @@ same stamp it publishes the running ``epsilon`` (eq. 24, over the samples compen
 with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
 (std_msgs/Float64). A new calibration, or ``~/reset_metrics``, restarts the running metric.
 
-Vehicle effects (issue 28): a calibration with terms (``vehicle_current``, ``eddy_current``,
+Vehicle effects: a calibration with terms (``vehicle_current``, ``eddy_current``,
 ``thermal_drift``: ``D = (k B_1' + b + sum W x) a^-1``) makes the node subscribe to the
 channels they read (``/tetra/temperature``, sensor_msgs/Temperature; the BatteryState topic
 of each ``current:<topic>``; :mod:`.channels`), evaluate the terms' regressors on each set

@@ -1,4 +1,4 @@
-"""Who publishes on a node's inputs (issue 34): another process on the vehicle's ROS domain
+"""Who publishes on a node's inputs: another process on the vehicle's ROS domain
 can publish on any topic, and nothing in a message says who sent it.
 
 rclpy hands a subscription callback no publisher identity on the EventsExecutor the nodes

@@ -1,4 +1,4 @@
-"""Stamps from the future (issue 34): a reading stamped ahead of the node's clock is refused
+"""Stamps from the future: a reading stamped ahead of the node's clock is refused
 and counted before it reaches the set former, pairing buffer or track.
 
 Why: the set formers keep each input in stamp order, so one message stamped 500 ms ahead
