@@ -45,6 +45,11 @@ def test_cli_names_the_hidden_effects(tmp_path, capsys, storage, effects):
     assert report['adequate'] is True
     assert (out / 'report.md').exists() and (out / 'gap.png').exists()
     assert 'named effects:' in capsys.readouterr().out
+    # Each row of a round's table names its sensor: a candidate tried per sensor is told apart.
+    rounds = (out / 'report.md').read_text().split('## Candidates per round')[1]
+    first_round = rounds.split('\nRound 2')[0].split('Round 1')[1]
+    tried = [line.split(' | ')[1] for line in first_round.splitlines() if line.startswith(f'| {effects[0]} | ')]
+    assert len(tried) >= 3 and len(set(tried)) == len(tried), first_round
 
 
 def test_cli_with_topics_missing_says_which_candidates_were_untestable(tmp_path, capsys):

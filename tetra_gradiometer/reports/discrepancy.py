@@ -436,13 +436,14 @@ def _rounds_section(report: Report) -> list[str]:
             f'Round {i + 1} (model: {model}; held-out gap {r["gap_nT"]:.4g} nT, noise floor '
             f'{r["noise_floor_nT"]:.4g} nT):',
             '',
-            '| candidate | parameters | gap after, nT | explained RMS, nT | CV-BIC change | F | p '
-            '| passes |',
-            '|---|---|---|---|---|---|---|---|',
+            '| candidate | sensor | parameters | gap after, nT | explained RMS, nT | CV-BIC '
+            'change | F | p | passes |',
+            '|---|---|---|---|---|---|---|---|---|',
         ]
         for c in r['candidates']:
             lines.append(
-                f'| {c["effect"]} | {c["n_parameters"]} | {c["gap_after_nT"]:.4g} | '
+                f'| {c["effect"]} | {c.get("sensor", "-")} | {c["n_parameters"]} | '
+                f'{c["gap_after_nT"]:.4g} | '
                 f'{c["explained_rms_nT"]:.3g} | {c["delta_bic"]:+.4g} | {c["f_statistic"]:.4g} | '
                 f'{c["p_value"]:.3g} | {"yes" if c["passes"] else "no"} |'
             )
