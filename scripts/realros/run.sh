@@ -410,10 +410,16 @@ check "ros2 param set refuses read-only parameters (tensor sync, calibrator cali
 out=$(timeout 30 ros2 param describe /tetra/tensor max_field_t 2>&1)
 check "ros2 param describe: description and range" "$(echo "$out" | grep -q 'Max value: 0.001'; echo $?)"
 
-# the flow: start collecting, play the trim, stop, calibrate, play the survey
-o1=$(trigger /tetra/calibrator/start); o2=$(trigger /tetra/driver/resume)
-check "ros2 service call /tetra/calibrator/start, /tetra/driver/resume" \
+# the flow: start collecting, play the trim, stop, calibrate, play the survey; the trim by
+# the README's own block (walk-through 2, *Trim*), its lines run as written
+mapfile -t TRIM_LINES < <(sed -n '/scripts\/realros\/run.sh runs them as written/,/^```$/p' "$SRC/README.md" | sed '1,2d;$d')
+readme_line() { timeout "${2:-30}" bash -c "${TRIM_LINES[$1]}" 2>&1; }
+o1=$(readme_line 0 | grep -o 'Trigger_Response(.*'); o2=$(trigger /tetra/driver/resume)
+check "README trim block: '${TRIM_LINES[0]}', then /tetra/driver/resume" \
   "$(echo "$o1 $o2" | grep -o 'success=True' | wc -l | grep -qx 2; echo $?)" "$o1 | $o2"
+out=$(readme_line 1 20)
+check "README trim block: '${TRIM_LINES[1]%%#*}' gives the guidance JSON" \
+  "$(echo "$out" | grep -q '"enough"'; echo $?)" "$(echo "$out" | head -1 | cut -c1-120)"
 out=$(timeout 20 ros2 topic echo --once /tetra/gradient/raw 2>&1)
 check "ros2 topic echo --once /tetra/gradient/raw: JointState gxx..gzz in frame tetra_array" \
   "$(echo "$out" | grep -q 'frame_id: tetra_array' && echo "$out" | grep -q -- '- gzz'; echo $?)"
@@ -422,9 +428,9 @@ check "ros2 topic hz /tetra/mag1 at rate:=10 (10 Hz sensors: ~100 Hz)" \
   "$(echo "$out" | awk '{exit !($3 > 60 && $3 < 130)}'; echo $?)" "$out"
 wait_diag_value holding 90
 check "the driver holds after the trim segment (/diagnostics playback state holding)" $?
-o1=$(trigger /tetra/calibrator/stop)
-o2=$(trigger /tetra/calibrator/calibrate 120)
-check "ros2 service call /tetra/calibrator/stop, then calibrate: success" \
+o1=$(readme_line 2 | grep -o 'Trigger_Response(.*')
+o2=$(readme_line 3 120 | grep -o 'Trigger_Response(.*')
+check "README trim block: ros2 service call /tetra/calibrator/stop, then calibrate: success" \
   "$(echo "$o2" | grep -q 'success=True'; echo $?)" "$(echo "$o1" | cut -c1-100) | $(echo "$o2" | cut -c1-260)"
 check "calibrate wrote the calibration file under \$ROS_HOME (calibration_file: calibration.yaml)" \
   "$([ -s "$ROS_HOME/calibration.yaml" ]; echo $?)" "$ROS_HOME/calibration.yaml"
@@ -471,6 +477,21 @@ out=$(timeout 20 ros2 topic echo --once --field header.frame_id /tetra/gradient/
 check "ros2 launch bag:=bags/survey (replay): nodes active, gradient/raw flows" \
   "$([ $st = 0 ] && [ "$out" = tetra_array ]; echo $?)" "$(states /tetra/tensor /tetra/compensator /tetra/driver) raw frame=$out"
 rc=$(stop_bg launch_replay 40)
+
+# 7. the README's launch file of a vehicle's own topic names (walk-through 2), as written but
+# for its params file (this install's) and the static transforms (tf2_ros is not here)
+say "ros2 launch: the README's remapping example"
+sed -n '/(a launch file for a ROS 2 install)/,/^```$/p' "$SRC/README.md" | sed '1,2d;$d' \
+  | sed -e "s|/home/auv/tetra_auv1.yaml|$SHARE/config/tetra_gradiometer.yaml|" \
+        -e "s|'params_file'|'static_transforms': 'false', 'params_file'|" > "$WORK/auv1.launch.py"
+start_bg launch_auv1 ros2 launch "$WORK/auv1.launch.py"
+wait_state active 60 /tetra/tensor /tetra/calibrator /tetra/compensator; st=$?
+out=$(timeout 30 ros2 node info /tetra/tensor 2>&1)
+check "README launch example: the nodes read the vehicle's topics (/auv1/mag_fwd/field ... /auv1/odom)" \
+  "$([ $st = 0 ] && echo "$out" | grep -q '/auv1/mag_fwd/field: sensor_msgs/msg/MagneticField' \
+     && echo "$out" | grep -q '/auv1/mag_top/field: sensor_msgs/msg/MagneticField'; echo $?)" \
+  "$(states /tetra/tensor /tetra/calibrator /tetra/compensator) $(echo "$out" | grep -c '/auv1/') /auv1 topics"
+rc=$(stop_bg launch_auv1 40)
 
 say "done"
 echo "realros: $PASSED/$TOTAL checks passed ($(( $(date +%s) - T_START )) s; logs: $LOGS)"
