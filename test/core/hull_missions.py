@@ -12,7 +12,7 @@ joined by 30 s U-turns (the first reversal after 330 s), about 30 minutes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import magpylib
 import numpy as np
@@ -47,7 +47,8 @@ class HullMission:
     """A flown mission: ``t_s`` (N,) s, ``fields`` (N, 4, 3) T measured, ``g_true`` (N, 3, 3)
     T/m (eq. 7 on the clean fields, geology included), ``orientation_xyzw`` (N, 4),
     ``survey`` (N,) bool, the frozen calibration (a ``TensorCalibration`` of the trim),
-    ``t_step_s`` and ``step_sensor`` (0-based; None: no step)."""
+    ``t_step_s`` and ``step_sensor`` (0-based; None: no step); ``data`` the simulator's
+    ``MissionData`` with these readings (to write a bag)."""
 
     t_s: np.ndarray
     fields: np.ndarray
@@ -59,6 +60,7 @@ class HullMission:
     t_survey_s: float
     t_step_s: float | None
     step_sensor: int | None
+    data: object = None
 
     @property
     def floor_t_per_m(self) -> float:
@@ -168,9 +170,10 @@ def build_mission(seed: int, *, drift: bool = True, step: bool = True,
     calibration = known_gradient_lstsq(difference_tensor(measured[trim], GEOMETRY),
                                        measured[trim, 0], GEOMETRY, symmetric_k=False,
                                        orientation_xyzw=data.orientation_xyzw[trim] if geology else None)
-    return HullMission(t, measured, difference_tensor(fields_true, GEOMETRY),
-                       data.orientation_xyzw, data.position_enu, survey, calibration, TRIM_S,
-                       t_step, sensor)
+    g_true = difference_tensor(fields_true, GEOMETRY)
+    flown = replace(data, fields_measured=measured, fields_true=fields_true, g_true=g_true)
+    return HullMission(t, measured, g_true, data.orientation_xyzw, data.position_enu, survey,
+                       calibration, TRIM_S, t_step, sensor, flown)
 
 
 def spans(mission: HullMission) -> dict[str, np.ndarray]:

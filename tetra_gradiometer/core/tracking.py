@@ -62,7 +62,14 @@ from .types import FloatArray
 from .uncertainty import noise_jacobian
 from .units import NT_PER_T
 
-__all__ = ['OffsetTracker', 'TrackedChunk', 'TrackerConfig', 'TrackerEvent', 'handed_over']
+__all__ = [
+    'OffsetTracker',
+    'TrackedChunk',
+    'TrackerConfig',
+    'TrackerEvent',
+    'handed_over',
+    'monitor_feed',
+]
 
 #: The 5 symmetric traceless basis tensors (xx - yy, xy, xz, yz, 2 zz - xx - yy), unit norm.
 _WORLD_BASIS = np.zeros((5, 3, 3))
@@ -74,6 +81,8 @@ _WORLD_BASIS /= np.linalg.norm(_WORLD_BASIS, axis=(1, 2))[:, None, None]
 del _k, _i, _j
 N_OFFSETS = 9
 N_WORLD = 5
+#: Two blocks are on one heading when their forward axes are within 10 degrees.
+STRAIGHT_COSINE = float(np.cos(np.radians(10.0)))
 
 
 @dataclass(frozen=True)
@@ -85,8 +94,11 @@ class TrackerConfig:
     ``offset_rate_t_per_sqrt_s``: random-walk rate of the pair offsets in the 4
     combinations the constraints observe, T; ``hidden_rate_t_per_sqrt_s``: in the other 5
     (a body-fixed gradient: kept small, it is what geology could be mistaken for);
-    ``world_rate_t_per_m_sqrt_s``: of each world-gradient coefficient, T/m (geology along
-    the track); ``step_sigma_t``: a handed-over step's prior per axis, T;
+    ``world_rate_t_per_m_sqrt_s``: of each world-gradient coefficient at the start, T/m
+    (then learnt from the data, blocks ``world_lag_s`` apart, over ``world_memory_s``, never below
+    ``world_rate_min_t_per_m_sqrt_s``: geology along the track; ``world_margin`` times the
+    learnt variance rate, for the geology that is not a walk: a turn is trusted less);
+    ``step_sigma_t``: a handed-over step's prior per axis, T;
     ``initial_sigma_t``: the offsets' change at the start, per axis, T;
     ``gate_p``: a block whose innovation is less likely than this is not used.
     """
@@ -94,10 +106,16 @@ class TrackerConfig:
     block_s: float = 0.5
     relative_rate_per_sqrt_s: float = 1e-4
     offset_rate_t_per_sqrt_s: float = 1e-12
-    hidden_rate_t_per_sqrt_s: float = 1e-12
+    hidden_rate_t_per_sqrt_s: float = 3e-12
     world_rate_t_per_m_sqrt_s: float = 0.1e-9
+    world_rate_min_t_per_m_sqrt_s: float = 0.01e-9
+    world_memory_s: float = 120.0
+    world_lag_s: float = 20.0
+    world_margin: float = 4.0
     world_sigma_t_per_m: float = 5e-9
     step_sigma_t: float = 5e-9
+    trial_s: float = 1.0
+    stuck_s: float = 3.0
     initial_sigma_t: float = 0.02e-9
     gate_p: float = 1e-6
 
@@ -202,6 +220,11 @@ class OffsetTracker:
             self._p[N_OFFSETS:, N_OFFSETS:] = self.config.world_sigma_t_per_m**2 * np.eye(N_WORLD)
         self._origin: float | None = None
         self._open: _Block | None = None
+        self._trial: _Trial | None = None
+        self._gated = 0
+        self._noise = sensor_noise_t**2 * jacobian @ jacobian.T  # (9, 9) of vec(G), (T/m)^2
+        self._world_rate2 = self.config.world_rate_t_per_m_sqrt_s**2
+        self._world_means: dict[int, tuple[FloatArray, float, FloatArray]] = {}
         self.events: list[TrackerEvent] = []
 
     # ------------------------------------------------------------------ public
@@ -259,7 +282,7 @@ class OffsetTracker:
                 break
             self._advance(int(index[start]))
             self._correct(g, start, stop, out)
-            self._accumulate(t_s, g, rotation, keep, start, stop, index[start])
+            self._accumulate(t_s, g, out.g, rotation, keep, (start, stop), index[start])
             if health is not None:
                 for t_step, sensors in health(start, stop, out.g[start:stop]):
                     self.step(sensors, t_step)
@@ -267,15 +290,13 @@ class OffsetTracker:
         return out
 
     def step(self, sensors: Sequence[int], t_s: float) -> None:
-        """A step on ``sensors`` (1-based) at ``t_s``: their offsets' covariance widened by
-        ``step_sigma_t`` per axis; the blocks after it re-estimate them."""
-        sensors = tuple(int(s) for s in sensors if 1 <= int(s) <= 4)
-        if not sensors:
-            return
-        for s in sensors:
-            v = self._steps[s - 1]  # (9, 3)
-            self._p[:N_OFFSETS, :N_OFFSETS] += self.config.step_sigma_t**2 * v @ v.T
-        self._record(t_s, 'step', sensors=sensors)
+        """A step detected at ``t_s`` (s), ``sensors`` (1-based) the likeliest first: the
+        next ``trial_s`` seconds of blocks are fitted once per sensor, each hypothesis with
+        that sensor's offset widened by ``step_sigma_t``, and the best fit is kept (the
+        monitor's first guess, on a fraction of a second, is not always right)."""
+        named = tuple(dict.fromkeys(int(s) for s in sensors if 1 <= int(s) <= 4))
+        if named and self._trial is None:
+            self._start_trial(t_s, named)
 
     def audit(self) -> list[dict[str, Any]]:
         """The audit trail (every block's update, gate and step), JSON-ready."""
@@ -304,15 +325,18 @@ class OffsetTracker:
         self,
         t_s: FloatArray,
         g: FloatArray,
+        corrected: FloatArray,
         rotation: FloatArray | None,
         keep: FloatArray,
-        start: int,
-        stop: int,
+        rows: tuple[int, int],
         index: int,
     ) -> None:
-        """Add samples ``start:stop`` (of block ``index``) to the open block's sums."""
-        y = (g[start:stop].reshape(-1, 9) @ self._whiten.T) * keep[start:stop, None]  # (k, m)
+        """Add samples ``rows`` (of block ``index``) to the open block's sums: the whitened
+        information of the frozen tensor ``g``, and the world-frame gradient of the
+        ``corrected`` one (for the world rate)."""
+        start, stop = rows
         w = keep[start:stop]
+        y = (g[start:stop].reshape(-1, 9) @ self._whiten.T) * w[:, None]  # (k, m)
         block = self._open if self._open is not None and self._open.index == index else None
         if block is None:
             block = self._open = _Block(index, self._x.size)
@@ -322,10 +346,39 @@ class OffsetTracker:
         h = self._h_white
         columns = [np.broadcast_to(h, (stop - start, *h.shape))]
         if rotation is not None:
-            columns.append(self._whiten @ _world_columns(rotation[start:stop]))
+            world = _world_columns(rotation[start:stop])  # (k, 9, 5)
+            columns.append(self._whiten @ world)
+            tensors = corrected[start:stop].reshape(-1, 9)
+            block.world += np.einsum('kqc,kq,k->c', world, tensors, w)
+            block.world_noise += float(np.einsum('kqc,qr,krc,k->', world, self._noise, world, w))
+            block.heading += np.einsum('kq,k->q', rotation[start:stop, :, 0], w)
         a = np.concatenate(columns, axis=2) * np.sqrt(w)[:, None, None]  # (k, m, size)
         block.info += np.einsum('kmi,kmj->ij', a, a)
         block.vector += np.einsum('kmi,km->i', a, y)
+
+    def _learn_world_rate(self, block: _Block) -> None:
+        """The world gradient's random-walk rate, from blocks ``world_lag_s`` apart on one
+        heading: their world-frame means differ by the world's change plus the noise of both
+        means (known), so the excess over the noise, per second of lag and averaged over
+        ``world_memory_s``, is the walk's variance per second at the scale of a turn. Over
+        geology it grows and a turn then teaches the offsets little; in a uniform field it
+        shrinks and a turn separates them. Pairs across a turn are left out: a body-fixed
+        error rotating with the body would read as a changing world."""
+        config = self.config
+        mean = block.world / block.n
+        noise = block.world_noise / block.n**2
+        heading = block.heading / np.linalg.norm(block.heading)
+        lag = max(1, int(round(config.world_lag_s / config.block_s)))
+        self._world_means[block.index] = (mean, noise, heading)
+        earlier = self._world_means.pop(block.index - lag, None)
+        for stale in [k for k in self._world_means if k <= block.index - lag]:
+            del self._world_means[stale]
+        if earlier is None or float(heading @ earlier[2]) < STRAIGHT_COSINE:
+            return
+        excess = float(np.sum((mean - earlier[0]) ** 2)) - noise - earlier[1]
+        weight = config.block_s / config.world_memory_s
+        per_second = excess / (N_WORLD * lag * config.block_s)
+        self._world_rate2 = (1 - weight) * self._world_rate2 + weight * per_second
 
     def _advance(self, index: int) -> None:
         """Close the open block when ``index`` is a later one: update, then the process noise
@@ -338,36 +391,78 @@ class OffsetTracker:
         self._open = None
 
     def _close(self, block: _Block) -> None:
-        """One information-form update from the block's sums (or none: gated, excluded)."""
+        """One information-form update from the block's sums (or none: gated, excluded); a
+        gate that holds for ``stuck_s`` is a step no monitor handed over: its sensor is
+        sought as for one that was."""
         if block.n == 0:
             self._record(block.t_end, 'excluded')
             return
-        x, p = self._x, self._p
-        innovation = block.vector - block.info @ x
-        spread = block.info @ p @ block.info + block.info
-        values, vectors = np.linalg.eigh(spread)
-        rank_ok = values > values.max() * 1e-10
-        projected = vectors[:, rank_ok].T @ innovation
-        statistic = float(np.sum(projected**2 / values[rank_ok]))
-        if statistic > chi2_isf(self.config.gate_p, _even(int(rank_ok.sum()))):
-            self._record(block.t_end, 'gated', statistic=statistic)
+        if self.with_world:
+            self._learn_world_rate(block)
+        if self._trial is not None:
+            self._try(block)
             return
-        gain = np.linalg.solve(np.eye(len(x)) + p @ block.info, p)  # (P^-1 + Lambda)^-1
-        gain = 0.5 * (gain + gain.T)
-        self._x = x + gain @ innovation
-        self._p = gain
+        statistic, limit, x, p = _information_update(self._x, self._p, block, self.config.gate_p)
+        if statistic > limit:
+            self._gated += 1
+            self._record(block.t_end, 'gated', statistic=statistic)
+            if self._gated * self.config.block_s >= self.config.stuck_s:
+                self._start_trial(block.t_end, ())
+            return
+        self._gated = 0
+        self._x, self._p = x, p
         self._record(block.t_end, 'update', statistic=statistic)
 
+    def _start_trial(self, t_s: float, named: tuple[int, ...]) -> None:
+        """One hypothesis per sensor (the named ones first): its offsets' covariance widened
+        by ``step_sigma_t``; the output follows the best so far."""
+        candidates = list(named) + [s for s in range(1, 5) if s not in named]
+        states = []
+        for sensor in candidates:
+            v = self._steps[sensor - 1]  # (9, 3)
+            p = self._p.copy()
+            p[:N_OFFSETS, :N_OFFSETS] += self.config.step_sigma_t**2 * v @ v.T
+            states.append((self._x.copy(), p))
+        self._trial = _Trial(t_s, tuple(candidates), states)
+        self._x, self._p = states[0]
+        self._gated = 0
+
+    def _try(self, block: _Block) -> None:
+        """Every hypothesis updated on the block and scored by its innovation; after
+        ``trial_s`` the best is kept."""
+        trial = self._trial
+        if trial is None:
+            return
+        for i, (x, p) in enumerate(trial.states):
+            statistic, _, x_new, p_new = _information_update(x, p, block, self.config.gate_p)
+            trial.scores[i] += statistic
+            trial.states[i] = (x_new, p_new)
+        trial.blocks += 1
+        best = int(np.argmin(trial.scores))
+        self._x, self._p = trial.states[best]
+        if trial.blocks * self.config.block_s >= self.config.trial_s:
+            self._trial = None
+            sensor = (trial.candidates[best],)
+            self._record(trial.t_s, 'step', sensors=sensor, statistic=float(trial.scores[best]))
+
     def _diffuse(self, seconds: float) -> None:
+        """The process noise of ``seconds`` added to the state's covariance (and to every
+        hypothesis of a step being sought)."""
         config = self.config
+        q = np.zeros_like(self._p)
         pattern = self._pattern
-        q = config.relative_rate_per_sqrt_s**2 * np.outer(pattern, pattern)
-        q += config.offset_rate_t_per_sqrt_s**2 * self._seen
-        q += config.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
-        self._p[:N_OFFSETS, :N_OFFSETS] += seconds * q
+        block = config.relative_rate_per_sqrt_s**2 * np.outer(pattern, pattern)
+        block += config.offset_rate_t_per_sqrt_s**2 * self._seen
+        block += config.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
+        q[:N_OFFSETS, :N_OFFSETS] = seconds * block
         if self.with_world:
-            world = config.world_rate_t_per_m_sqrt_s**2 * seconds
-            self._p[N_OFFSETS:, N_OFFSETS:] += world * np.eye(N_WORLD)
+            learnt = config.world_margin * self._world_rate2
+            rate2 = max(learnt, config.world_rate_min_t_per_m_sqrt_s**2)
+            world = rate2 * seconds
+            q[N_OFFSETS:, N_OFFSETS:] = world * np.eye(N_WORLD)
+        self._p = self._p + q
+        if self._trial is not None:
+            self._trial.states = [(x, p + q) for x, p in self._trial.states]
 
     def _record(
         self, t_s: float, kind: str, sensors: tuple[int, ...] = (), statistic: float = np.nan
@@ -377,15 +472,56 @@ class OffsetTracker:
         )
 
 
+def monitor_feed(monitor: Any, t_s: FloatArray, b_reference: FloatArray) -> HealthFeed:
+    """A :data:`HealthFeed` over a ``core.health.HealthMonitor`` for one chunk: ``t_s`` (n,)
+    s and ``B_1'`` (n, 3) T of the chunk :meth:`OffsetTracker.update` is given."""
+
+    def feed(start: int, stop: int, g_tracked: FloatArray) -> list[tuple[float, tuple[int, ...]]]:
+        trace = monitor.update(t_s[start:stop], g_tracked, b_reference[start:stop])
+        return handed_over(trace.alarms)
+
+    return feed
+
+
 def handed_over(alarms: Sequence[Any]) -> list[tuple[float, tuple[int, ...]]]:
     """The steps a health monitor's alarms (``core.health.Alarm``) hand to the tracker:
-    ``(t_s, (sensor,))`` for each offset change, its best-fitting sensor only (two sensors'
-    offsets, 6 unknowns, are more than the 4 constraints re-estimate at once)."""
+    ``(t_s, sensors)`` for each offset change, the sensors best first."""
     return [
-        (float(alarm.t_s), alarm.sensors[:1])
+        (float(alarm.t_s), tuple(alarm.sensors))
         for alarm in alarms
         if alarm.kind == 'offset_change' and alarm.sensors
     ]
+
+
+class _Trial:
+    """A step being sought: one (state, covariance) per candidate sensor and its summed
+    innovation chi-square."""
+
+    def __init__(
+        self, t_s: float, candidates: tuple[int, ...], states: list[tuple[FloatArray, FloatArray]]
+    ) -> None:
+        self.t_s = t_s
+        self.candidates = candidates
+        self.states = states
+        self.scores = np.zeros(len(candidates))
+        self.blocks = 0
+
+
+def _information_update(
+    x: FloatArray, p: FloatArray, block: _Block, gate_p: float
+) -> tuple[float, float, FloatArray, FloatArray]:
+    """The block's innovation chi-square, its gate (``gate_p``, over the observed rank), and
+    the updated state and covariance (information form: ``(P^-1 + Lambda)^-1``)."""
+    innovation = block.vector - block.info @ x
+    spread = block.info @ p @ block.info + block.info
+    values, vectors = np.linalg.eigh(spread)
+    observed = values > values.max() * 1e-10
+    projected = vectors[:, observed].T @ innovation
+    statistic = float(np.sum(projected**2 / values[observed]))
+    limit = chi2_isf(gate_p, _even(int(observed.sum())))
+    covariance = np.linalg.solve(np.eye(len(x)) + p @ block.info, p)
+    covariance = 0.5 * (covariance + covariance.T)
+    return statistic, limit, x + covariance @ innovation, covariance
 
 
 class _Block:
@@ -398,6 +534,9 @@ class _Block:
         self.vector = np.zeros(size)
         self.n = 0.0
         self.excluded = 0
+        self.world = np.zeros(N_WORLD)
+        self.world_noise = 0.0
+        self.heading = np.zeros(3)
         self.t_end = float('nan')
 
 
