@@ -108,7 +108,7 @@ def drifting(seed: int) -> dict:
     out['within_2_sigma'] = round(float(np.mean(np.abs(error) <= 2 * sigma)), 4)
     out['steps'] = [e.to_dict() for e in tracker.events if e.kind == 'step']
     for step in out['steps']:
-        step['t_s'] = round(step['t_s'] - (mission.t_step_s - mission.t_survey_s), 2)
+        step['after_step_s'] = round(step.pop('t_s') - mission.t_step_s, 2)
         step.pop('offsets_nT'), step.pop('sigma_nT')
     out['tracker_s'] = round(seconds, 2)
     out['survey_s'] = float(mission.t_s[mission.survey][-1] - mission.t_survey_s)

@@ -212,6 +212,13 @@ class OffsetTracker:
         seen = CONSTRAINT_ROWS @ self._h  # (4, 9): the combinations observed at every instant
         self._seen = np.linalg.pinv(seen) @ seen  # projector onto them
         self._steps = _step_directions(self._h, jacobian)
+        rates = self.config
+        # The offsets' process noise per second: along b, in the observed and hidden parts.
+        self._offset_rate = (
+            rates.relative_rate_per_sqrt_s**2 * np.outer(self._pattern, self._pattern)
+            + rates.offset_rate_t_per_sqrt_s**2 * self._seen
+            + rates.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
+        )
         size = N_OFFSETS + (N_WORLD if with_world else 0)
         self._x = np.zeros(size)
         self._p = np.zeros((size, size))
@@ -350,7 +357,8 @@ class OffsetTracker:
             columns.append(self._whiten @ world)
             tensors = corrected[start:stop].reshape(-1, 9)
             block.world += np.einsum('kqc,kq,k->c', world, tensors, w)
-            block.world_noise += float(np.einsum('kqc,qr,krc,k->', world, self._noise, world, w))
+            spread = np.sum(world * (self._noise @ world), axis=(1, 2))  # trace(T^T R T)
+            block.world_noise += float(spread @ w)
             block.heading += np.einsum('kq,k->q', rotation[start:stop, :, 0], w)
         a = np.concatenate(columns, axis=2) * np.sqrt(w)[:, None, None]  # (k, m, size)
         block.info += np.einsum('kmi,kmj->ij', a, a)
@@ -450,11 +458,7 @@ class OffsetTracker:
         hypothesis of a step being sought)."""
         config = self.config
         q = np.zeros_like(self._p)
-        pattern = self._pattern
-        block = config.relative_rate_per_sqrt_s**2 * np.outer(pattern, pattern)
-        block += config.offset_rate_t_per_sqrt_s**2 * self._seen
-        block += config.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
-        q[:N_OFFSETS, :N_OFFSETS] = seconds * block
+        q[:N_OFFSETS, :N_OFFSETS] = seconds * self._offset_rate
         if self.with_world:
             learnt = config.world_margin * self._world_rate2
             rate2 = max(learnt, config.world_rate_min_t_per_m_sqrt_s**2)
