@@ -163,3 +163,19 @@ def test_bad_settings_and_a_missing_attitude_are_refused():
     tracker = OffsetTracker(GEOMETRY, InterferenceParameters.zero(), 0.05e-9)
     with pytest.raises(InputError, match='orientation'):
         tracker.update(np.zeros(1), np.zeros((1, 3, 3)))
+
+
+def test_without_a_monitor_a_closed_gate_is_taken_for_a_step_and_its_sensor_found():
+    from tetra_gradiometer.core import InterferenceParameters
+
+    data = _uniform_mission(5)
+    fields = data.fields_measured.copy()
+    jump = np.array([-0.7, 0.3, 0.5]) * 1e-9
+    fields[data.t >= 20.0, 3] += jump
+    g = difference_tensor(fields, GEOMETRY)
+    tracker = OffsetTracker(GEOMETRY, InterferenceParameters.zero(), 0.05e-9, with_world=False)
+    tracker.update(data.t, g)
+    steps = [e for e in tracker.events if e.kind == 'step']
+    assert [s.sensors for s in steps] == [(4,)]
+    assert 20.0 < steps[0].t_s <= 20.0 + TrackerConfig().stuck_s + 1.0
+    np.testing.assert_allclose(tracker.offsets_t[2], jump, atol=4 * tracker.offsets_sigma_t[2].max())
