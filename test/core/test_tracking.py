@@ -178,4 +178,7 @@ def test_without_a_monitor_a_closed_gate_is_taken_for_a_step_and_its_sensor_foun
     steps = [e for e in tracker.events if e.kind == 'step']
     assert [s.sensors for s in steps] == [(4,)]
     assert 20.0 < steps[0].t_s <= 20.0 + TrackerConfig().stuck_s + 1.0
+    # What changed, how big and how sure: the jump of sensor 4's offset within its sigma.
+    np.testing.assert_allclose(steps[0].step_t, jump, atol=4 * steps[0].step_sigma_t.max())
+    assert steps[0].step_sigma_t.max() < 0.1e-9
     np.testing.assert_allclose(tracker.offsets_t[2], jump, atol=4 * tracker.offsets_sigma_t[2].max())

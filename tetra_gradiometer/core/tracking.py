@@ -135,7 +135,9 @@ class TrackerEvent:
     """One entry of the audit trail: ``t_s`` (the block's end, or the step's time), s;
     ``kind`` (``update``, ``gated``, ``excluded``, ``step``); ``offsets_t`` (3, 3) the pair
     offsets' change after it, T; ``sigma_t`` (3, 3) its 1-sigma, T; ``sensors`` (1-based, a
-    step's); ``statistic`` the block's innovation chi-square (NaN for a step)."""
+    step's); ``statistic`` the block's innovation chi-square (a step's: its hypothesis's,
+    summed over ``trial_s``); a step's ``step_t`` (3,) the sensor's offset jump and
+    ``step_sigma_t`` (3,) its 1-sigma, T (its axes)."""
 
     t_s: float
     kind: str
@@ -143,6 +145,8 @@ class TrackerEvent:
     sigma_t: FloatArray
     sensors: tuple[int, ...] = ()
     statistic: float = float('nan')
+    step_t: FloatArray | None = None
+    step_sigma_t: FloatArray | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, offsets in nT."""
@@ -153,7 +157,14 @@ class TrackerEvent:
             'sigma_nT': (self.sigma_t * NT_PER_T).round(6).tolist(),
             'sensors': list(self.sensors),
             'statistic': None if np.isnan(self.statistic) else float(self.statistic),
-        }
+        } | (
+            {}
+            if self.step_t is None or self.step_sigma_t is None
+            else {
+                'step_nT': (self.step_t * NT_PER_T).round(6).tolist(),
+                'step_sigma_nT': (self.step_sigma_t * NT_PER_T).round(6).tolist(),
+            }
+        )
 
 
 @dataclass
@@ -431,7 +442,7 @@ class OffsetTracker:
             p = self._p.copy()
             p[:N_OFFSETS, :N_OFFSETS] += self.config.step_sigma_t**2 * v @ v.T
             states.append((self._x.copy(), p))
-        self._trial = _Trial(t_s, tuple(candidates), states)
+        self._trial = _Trial(t_s, tuple(candidates), states, self._x[:N_OFFSETS].copy())
         self._x, self._p = states[0]
         self._gated = 0
 
@@ -450,8 +461,24 @@ class OffsetTracker:
         self._x, self._p = trial.states[best]
         if trial.blocks * self.config.block_s >= self.config.trial_s:
             self._trial = None
-            sensor = (trial.candidates[best],)
-            self._record(trial.t_s, 'step', sensors=sensor, statistic=float(trial.scores[best]))
+            sensor = trial.candidates[best]
+            # The jump: the offsets' change across the trial seen through the sensor's step
+            # directions (what the drift did in 1 s is far below it).
+            back = np.linalg.pinv(self._steps[sensor - 1])  # (3, 9)
+            jump = back @ (self._x[:N_OFFSETS] - trial.before)
+            spread = np.sqrt(np.diag(back @ self._p[:N_OFFSETS, :N_OFFSETS] @ back.T))
+            self.events.append(
+                TrackerEvent(
+                    trial.t_s,
+                    'step',
+                    self.offsets_t,
+                    self.offsets_sigma_t,
+                    (sensor,),
+                    float(trial.scores[best]),
+                    jump,
+                    spread,
+                )
+            )
 
     def _diffuse(self, seconds: float) -> None:
         """The process noise of ``seconds`` added to the state's covariance (and to every
@@ -502,9 +529,14 @@ class _Trial:
     innovation chi-square."""
 
     def __init__(
-        self, t_s: float, candidates: tuple[int, ...], states: list[tuple[FloatArray, FloatArray]]
+        self,
+        t_s: float,
+        candidates: tuple[int, ...],
+        states: list[tuple[FloatArray, FloatArray]],
+        before: FloatArray,
     ) -> None:
         self.t_s = t_s
+        self.before = before
         self.candidates = candidates
         self.states = states
         self.scores = np.zeros(len(candidates))
