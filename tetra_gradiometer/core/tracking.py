@@ -106,7 +106,7 @@ class TrackerConfig:
     block_s: float = 0.5
     relative_rate_per_sqrt_s: float = 3e-5
     offset_rate_t_per_sqrt_s: float = 1e-12
-    hidden_rate_t_per_sqrt_s: float = 3e-12
+    hidden_rate_t_per_sqrt_s: float = 2e-12
     world_rate_t_per_m_sqrt_s: float = 0.1e-9
     world_rate_min_t_per_m_sqrt_s: float = 0.01e-9
     world_memory_s: float = 120.0
