@@ -80,6 +80,7 @@ bench: setup
 	$(PY) bench/bench_targets.py --speed
 	$(PY) bench/bench_window.py
 	$(PY) bench/bench_signals.py --json bench/results/signals.json
+	$(PY) bench/bench_tracker.py --seeds 1,2,3,4,5,6,7,8 --json bench/results/tracker.json
 
 clean:
 	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants

@@ -53,8 +53,9 @@ def track(mission, chunk: int = 600):
     s = mission.survey
     t, fields = mission.t_s[s], mission.fields[s]
     calibration = mission.calibration
-    frozen = compensate(difference_tensor(fields, GEOMETRY), fields[:, 0],
-                        calibration.parameters, GEOMETRY)
+    frozen = compensate(
+        difference_tensor(fields, GEOMETRY), fields[:, 0], calibration.parameters, GEOMETRY
+    )
     noise = calibration.details['sensor_noise_nT'] * 1e-9
     tracker = OffsetTracker(GEOMETRY, calibration.parameters, noise)
     monitor = HealthMonitor(GEOMETRY, calibration.parameters, noise, calibration.covariance)
@@ -62,13 +63,20 @@ def track(mission, chunk: int = 600):
     parts, started = [], time.perf_counter()
     for i in range(0, len(t), chunk):
         rows = slice(i, i + chunk)
-        parts.append(tracker.update(t[rows], frozen[rows], q[rows],
-                                    health=monitor_feed(monitor, t[rows], fields[rows, 0])))
+        parts.append(
+            tracker.update(
+                t[rows],
+                frozen[rows],
+                q[rows],
+                health=monitor_feed(monitor, t[rows], fields[rows, 0]),
+            )
+        )
     seconds = time.perf_counter() - started
     tracked = np.concatenate([p.g for p in parts])
     variance = np.concatenate([p.variance for p in parts])
-    sigma = SigmaModel.build(GEOMETRY, noise, calibration.parameters,
-                             calibration.covariance)(fields[:, 0]).reshape(-1, 9)
+    sigma = SigmaModel.build(GEOMETRY, noise, calibration.parameters, calibration.covariance)(
+        fields[:, 0]
+    ).reshape(-1, 9)
     return frozen, tracked, np.sqrt(sigma**2 + variance), tracker, seconds
 
 
@@ -101,8 +109,10 @@ def drifting(seed: int) -> dict:
     out: dict = {'seed': seed, 'step_sensor': mission.step_sensor + 1}
     for name, mask in spans(mission).items():
         mask = mask[mission.survey]
-        out[name] = {'frozen': round(ratio(mission, frozen, mask), 3),
-                     'tracked': round(ratio(mission, tracked, mask), 3)}
+        out[name] = {
+            'frozen': round(ratio(mission, frozen, mask), 3),
+            'tracked': round(ratio(mission, tracked, mask), 3),
+        }
     out['recovery_s'] = recovery_s(mission, tracked)
     error = (tracked - mission.g_true[mission.survey]).reshape(-1, 9)
     out['within_2_sigma'] = round(float(np.mean(np.abs(error) <= 2 * sigma)), 4)
@@ -114,7 +124,8 @@ def drifting(seed: int) -> dict:
     out['survey_s'] = float(mission.t_s[mission.survey][-1] - mission.t_survey_s)
     out['passes'] = bool(
         all(out[k]['tracked'] <= v for k, v in LIMITS.items())
-        and out['recovery_s'] is not None and out['recovery_s'] <= 3.0
+        and out['recovery_s'] is not None
+        and out['recovery_s'] <= 3.0
         and 0.92 <= out['within_2_sigma'] <= 0.98
     )
     return out
@@ -127,7 +138,11 @@ def geology(seed: int) -> dict:
     for name, mask in spans(mission).items():
         mask = mask[mission.survey]
         f, g = ratio(mission, frozen, mask), ratio(mission, tracked, mask)
-        out[name] = {'frozen': round(f, 3), 'tracked': round(g, 3), 'tracked_over_frozen': round(g / f, 3)}
+        out[name] = {
+            'frozen': round(f, 3),
+            'tracked': round(g, 3),
+            'tracked_over_frozen': round(g / f, 3),
+        }
     out['passes'] = out['survey']['tracked_over_frozen'] <= 1.05
     out['tracker_s'] = round(seconds, 2)
     return out
@@ -137,9 +152,13 @@ def live_cost(rate_hz: float = 1000.0, seconds: float = 60.0, batch: int = 100) 
     """Per-set cost of the tracker fed batches of ``batch`` sets at ``rate_hz`` (the
     compensator's 0.1 s batches at 1000 sets/s), with the health monitor handing steps."""
     geometry = GEOMETRY
-    scenario = Scenario(geometry=geometry, earth_field_enu=np.array([0.0, 2.1e-5, -4.5e-5]),
-                        segments=(TrimManoeuvre(seconds),), sample_rate_hz=rate_hz,
-                        noise_t=0.05e-9)
+    scenario = Scenario(
+        geometry=geometry,
+        earth_field_enu=np.array([0.0, 2.1e-5, -4.5e-5]),
+        segments=(TrimManoeuvre(seconds),),
+        sample_rate_hz=rate_hz,
+        noise_t=0.05e-9,
+    )
     data = simulate(scenario, np.random.default_rng(0))
     g = difference_tensor(data.fields_measured, geometry)
     parameters = InterferenceParameters.zero()
@@ -150,23 +169,71 @@ def live_cost(rate_hz: float = 1000.0, seconds: float = 60.0, batch: int = 100) 
         times = []
         for i in range(0, len(g), batch):
             rows = slice(i, i + batch)
-            feed = monitor_feed(monitor, data.t[rows], data.fields_measured[rows, 0]) if with_health else None
+            feed = (
+                monitor_feed(monitor, data.t[rows], data.fields_measured[rows, 0])
+                if with_health
+                else None
+            )
             started = time.perf_counter()
             tracker.update(data.t[rows], g[rows], data.orientation_xyzw[rows], health=feed)
             times.append(time.perf_counter() - started)
         times_ms = np.asarray(times) * 1e3
         key = 'with_health_monitor' if with_health else 'tracker_alone'
-        result[key] = {'us_per_set': round(float(times_ms.sum() * 1e3 / len(g)), 2),
-                       'batch_p99_ms': round(float(np.percentile(times_ms, 99)), 3),
-                       'batch_sets': batch, 'rate_hz': rate_hz}
+        result[key] = {
+            'us_per_set': round(float(times_ms.sum() * 1e3 / len(g)), 2),
+            'batch_p99_ms': round(float(np.percentile(times_ms, 99)), 3),
+            'batch_sets': batch,
+            'rate_hz': rate_hz,
+        }
     return result
+
+
+def table(results: dict) -> str:
+    """The issue's table from a results file: each span's residual over the floor, frozen and
+    tracked (the range over the missions), the recovery, the 2-sigma share, geology."""
+    drift, geo = results['drifting'], results['geology']
+
+    def span(rows, key, which):
+        values = [row[key][which] for row in rows]
+        return f'{min(values):.2f}-{max(values):.2f}x'
+
+    lines = ['| span | frozen | tracked |', '|---|---|---|']
+    for key, name in (
+        ('first_5_min', 'first 5 min of the survey'),
+        ('before_step', '5 min before the step'),
+        ('after_step', 'after the step'),
+    ):
+        lines.append(f'| {name} | {span(drift, key, "frozen")} | {span(drift, key, "tracked")} |')
+    recovery = [row['recovery_s'] for row in drift]
+    inside = [row['within_2_sigma'] for row in drift]
+    over = [row['survey']['tracked_over_frozen'] for row in geo]
+    lines.append(
+        f'| back within 1.5x the floor after the step | - | '
+        f'{min(recovery):.1f}-{max(recovery):.1f} s |'
+    )
+    lines.append(
+        f'| within 2 sigma (drifting) | - | {100 * min(inside):.1f}-{100 * max(inside):.1f} % |'
+    )
+    lines.append(
+        f'| over geology, tracked / frozen residual | 1 | {min(over):.3f}-{max(over):.3f} |'
+    )
+    return '\n'.join(lines) + f'\n\n{len(drift)} missions of each kind.'
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seeds', default='1,2,3,4,5', help='missions (comma separated)')
     parser.add_argument('--json', default=None, help='write the results here')
+    parser.add_argument(
+        '--table',
+        default=None,
+        metavar='JSON',
+        help='print the markdown table of a results file and stop',
+    )
     args = parser.parse_args()
+    if args.table:
+        print(table(json.loads(Path(args.table).read_text())))
+        return 0
     seeds = [int(s) for s in args.seeds.split(',')]
     results: dict = {'drifting': [], 'geology': []}
     for seed in seeds:
@@ -176,8 +243,10 @@ def main() -> int:
         print(json.dumps(results['geology'][-1]), flush=True)
     survey_s = results['drifting'][0]['survey_s']
     offline = np.mean([d['tracker_s'] for d in results['drifting']])
-    results['offline_cost'] = {'s_per_hour_of_data_at_10_hz': round(float(offline * 3600 / survey_s), 2),
-                               'note': 'tracker and health monitor, chunks of 600 sets'}
+    results['offline_cost'] = {
+        's_per_hour_of_data_at_10_hz': round(float(offline * 3600 / survey_s), 2),
+        'note': 'tracker and health monitor, chunks of 600 sets',
+    }
     results['live_cost'] = live_cost()
     print(json.dumps({k: results[k] for k in ('offline_cost', 'live_cost')}), flush=True)
     if args.json:
