@@ -38,10 +38,10 @@ __all__ = [
     'tracked_stream',
 ]
 
-#: Whether ``compensate`` tracks the calibration unless told to freeze it. Off: on the
-#: magpylib missions of bench/bench_tracker.py (bench/results/tracker.json) the drift and step
-#: must-holds are met, but over geology a turn can still move the output by more than 5 % of
-#: the frozen residual on some missions, and geology is signal.
+#: Whether ``compensate`` tracks the calibration unless told to freeze it. Off while the
+#: compensator node compensates with the frozen calibration (live would differ from offline),
+#: while ``locate``'s targets are not measured with it, and because without ``/odom`` the
+#: drift is followed only in part (docs/offline.md, bench/results/tracker.json).
 TRACK_BY_DEFAULT = False
 
 #: The CSV's columns of the pair offsets' change (nT): ``db_<sensor>1<axis>``.
