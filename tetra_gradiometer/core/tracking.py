@@ -23,25 +23,28 @@ What the data observe:
   they change sign with the heading), the turn's quarter headings ``xx - yy`` and ``xy``.
   The vertical component (``zz``) changes only with roll and pitch: on level lines it stays
   at its prior. Before the first reversal a body-fixed offset and a world field varying
-  along the line look the same.
+  along the line look the same. How fast the world varies is learnt on straight legs
+  (blocks ``world_lag_s`` apart): over geology a turn then teaches the offsets little, in a
+  uniform field it separates them. Where it cannot: geology that changes across a U-turn
+  looks like a body-fixed gradient that flipped.
 * **the trim's permanent field** (a prior, not an observation): remanence relaxes by a
   fraction of itself, so the process noise has a part along the calibration's own ``b``
-  (``relative_rate_per_sqrt_s``), beside a part of its own in the observed combinations
+  (``relative_rate_per_sqrt_s``), beside a part in the observed combinations
   (``offset_rate_t_per_sqrt_s``) and a smaller one in the hidden ones
-  (``hidden_rate_t_per_sqrt_s``).
-  The constraints pin the fraction within seconds and, through this prior, predict the part
-  of the change the constraints do not see; what the bodies do unlike each other stays in
-  the isotropic part and its covariance.
+  (``hidden_rate_t_per_sqrt_s``). The constraints pin the fraction within seconds and,
+  through this prior, predict part of what they do not see; what the hull's bodies do unlike
+  each other stays in the hidden part and its covariance.
 
-Process model: random walks (a relaxation is a slow, smooth walk), the world gradient's per
-second. Blocks of ``block_s`` seconds are one update each (information form: sums over the
-block's samples, then one small solve), and each sample is corrected with the state from the
-blocks before its own: causal, O(1) per sample. A block whose innovation fails a chi-square
-gate (a step not yet handed over, a target passing close, a burst) does not update the
-state, and samples the caller flags (``exclude``: targets) never do. A step named by the
-health monitor (:meth:`OffsetTracker.step`) widens the changed sensor's offset covariance,
-and the blocks after it re-estimate that offset. The state's covariance adds
-``diag(H P_b H^T)`` (per component, (T/m)^2) to the published variance.
+Process model: random walks (a relaxation is a slow, smooth walk). Blocks of ``block_s``
+seconds are one update each (information form: sums over the block's samples, then one
+small solve, :mod:`._kalman`), and each sample is corrected with the state from the blocks
+before its own: causal, O(1) per sample. A block whose innovation fails a chi-square gate (a
+step not yet handed over, a target passing close) does not update the state, and samples
+the caller flags (``exclude``: targets) never do. A step named by the health monitor
+(:meth:`OffsetTracker.step`), or a gate closed for ``stuck_s``, starts a search: the next
+``trial_s`` seconds are fitted once per sensor, that sensor's offset freed, and the best fit
+is kept (its jump and 1-sigma in the audit trail). The state's covariance adds ``diag(H P_b
+H^T)`` (per component, (T/m)^2) to the published variance.
 """
 
 from __future__ import annotations
@@ -53,7 +56,15 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ._distributions import chi2_isf
+from ._kalman import (
+    N_OFFSETS,
+    N_WORLD,
+    Block,
+    Trial,
+    information_update,
+    step_directions,
+    world_columns,
+)
 from ._validate import as_array, as_tensors, same_length
 from .design import CONSTRAINT_ROWS, affine_interference_design
 from .geometry import TetraGeometry
@@ -71,16 +82,6 @@ __all__ = [
     'monitor_feed',
 ]
 
-#: The 5 symmetric traceless basis tensors (xx - yy, xy, xz, yz, 2 zz - xx - yy), unit norm.
-_WORLD_BASIS = np.zeros((5, 3, 3))
-_WORLD_BASIS[0, 0, 0], _WORLD_BASIS[0, 1, 1] = 1.0, -1.0
-for _k, (_i, _j) in enumerate(((0, 1), (0, 2), (1, 2)), start=1):
-    _WORLD_BASIS[_k, _i, _j] = _WORLD_BASIS[_k, _j, _i] = 1.0
-_WORLD_BASIS[4] = np.diag([-1.0, -1.0, 2.0])
-_WORLD_BASIS /= np.linalg.norm(_WORLD_BASIS, axis=(1, 2))[:, None, None]
-del _k, _i, _j
-N_OFFSETS = 9
-N_WORLD = 5
 #: Two blocks are on one heading when their forward axes are within 10 degrees.
 STRAIGHT_COSINE = float(np.cos(np.radians(10.0)))
 
@@ -222,7 +223,7 @@ class OffsetTracker:
         self._pattern = parameters.b_hard.reshape(9)
         seen = CONSTRAINT_ROWS @ self._h  # (4, 9): the combinations observed at every instant
         self._seen = np.linalg.pinv(seen) @ seen  # projector onto them
-        self._steps = _step_directions(self._h, jacobian)
+        self._steps = step_directions(self._h, jacobian)
         rates = self.config
         # The offsets' process noise per second: along b, in the observed and hidden parts.
         self._offset_rate = (
@@ -237,8 +238,8 @@ class OffsetTracker:
         if with_world:
             self._p[N_OFFSETS:, N_OFFSETS:] = self.config.world_sigma_t_per_m**2 * np.eye(N_WORLD)
         self._origin: float | None = None
-        self._open: _Block | None = None
-        self._trial: _Trial | None = None
+        self._open: Block | None = None
+        self._trial: Trial | None = None
         self._gated = 0
         self._noise = sensor_noise_t**2 * jacobian @ jacobian.T  # (9, 9) of vec(G), (T/m)^2
         self._world_rate2 = self.config.world_rate_t_per_m_sqrt_s**2
@@ -307,6 +308,28 @@ class OffsetTracker:
         out.events = self.events[events_before:]
         return out
 
+    def one(self, t_s: float, g_compensated: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """One sample, unchecked (a node's per-message path, a few microseconds): ``t_s`` s,
+        ``g_compensated`` (3, 3) T/m; returns the tracked tensor (3, 3) T/m and the state's
+        variance per component (9,) (T/m)^2. The same as :meth:`update` on that sample;
+        without the attitude only (``with_world`` False)."""
+        if self.with_world:
+            raise InputError('OffsetTracker.one tracks without the attitude: with_world=False')
+        if self._origin is None:
+            self._origin = float(t_s)
+        index = int(np.floor((t_s - self._origin) / self.config.block_s))
+        self._advance(index)
+        h, p_b = self._h, self._p[:N_OFFSETS, :N_OFFSETS]
+        tracked = g_compensated - (h @ self._x[:N_OFFSETS]).reshape(3, 3)
+        variance = np.sum((h @ p_b) * h, axis=1)
+        block = self._open
+        if block is None or block.index != index:
+            block = self._open = Block(index, self._x.size)
+        block.t_end, block.n = float(t_s), block.n + 1.0
+        block.info += self._h_white.T @ self._h_white
+        block.vector += self._h_white.T @ (self._whiten @ g_compensated.reshape(9))
+        return tracked, variance
+
     def step(self, sensors: Sequence[int], t_s: float) -> None:
         """A step detected at ``t_s`` (s), ``sensors`` (1-based) the likeliest first: the
         next ``trial_s`` seconds of blocks are fitted once per sensor, each hypothesis with
@@ -327,8 +350,11 @@ class OffsetTracker:
             return None
         if orientation_xyzw is None:
             raise InputError('the tracker estimates the world gradient: give orientation_xyzw')
+        # Imported here, as in identification/lstsq.py: a node without the attitude never pays it.
+        from scipy.spatial.transform import Rotation
+
         q = as_array(orientation_xyzw, 'orientation_xyzw', (n, 4))
-        return _quaternion_matrices(q)
+        return Rotation.from_quat(q).as_matrix().reshape(n, 3, 3)
 
     def _correct(self, g: FloatArray, start: int, stop: int, out: TrackedChunk) -> None:
         """Samples ``start:stop`` corrected with the state before their block."""
@@ -357,14 +383,14 @@ class OffsetTracker:
         y = (g[start:stop].reshape(-1, 9) @ self._whiten.T) * w[:, None]  # (k, m)
         block = self._open if self._open is not None and self._open.index == index else None
         if block is None:
-            block = self._open = _Block(index, self._x.size)
+            block = self._open = Block(index, self._x.size)
         block.t_end = float(t_s[stop - 1])
         block.n += float(w.sum())
         block.excluded += int(np.sum(w == 0))
         h = self._h_white
         columns = [np.broadcast_to(h, (stop - start, *h.shape))]
         if rotation is not None:
-            world = _world_columns(rotation[start:stop])  # (k, 9, 5)
+            world = world_columns(rotation[start:stop])  # (k, 9, 5)
             columns.append(self._whiten @ world)
             tensors = corrected[start:stop].reshape(-1, 9)
             block.world += np.einsum('kqc,kq,k->c', world, tensors, w)
@@ -375,7 +401,7 @@ class OffsetTracker:
         block.info += np.einsum('kmi,kmj->ij', a, a)
         block.vector += np.einsum('kmi,km->i', a, y)
 
-    def _learn_world_rate(self, block: _Block) -> None:
+    def _learn_world_rate(self, block: Block) -> None:
         """The world gradient's random-walk rate, from blocks ``world_lag_s`` apart on one
         heading: their world-frame means differ by the world's change plus the noise of both
         means (known), so the excess over the noise, per second of lag and averaged over
@@ -409,7 +435,7 @@ class OffsetTracker:
         self._diffuse((index - block.index) * self.config.block_s)
         self._open = None
 
-    def _close(self, block: _Block) -> None:
+    def _close(self, block: Block) -> None:
         """One information-form update from the block's sums (or none: gated, excluded); a
         gate that holds for ``stuck_s`` is a step no monitor handed over: its sensor is
         sought as for one that was."""
@@ -421,7 +447,7 @@ class OffsetTracker:
         if self._trial is not None:
             self._try(block)
             return
-        statistic, limit, x, p = _information_update(self._x, self._p, block, self.config.gate_p)
+        statistic, limit, x, p = information_update(self._x, self._p, block, self.config.gate_p)
         if statistic > limit:
             self._gated += 1
             self._record(block.t_end, 'gated', statistic=statistic)
@@ -442,18 +468,18 @@ class OffsetTracker:
             p = self._p.copy()
             p[:N_OFFSETS, :N_OFFSETS] += self.config.step_sigma_t**2 * v @ v.T
             states.append((self._x.copy(), p))
-        self._trial = _Trial(t_s, tuple(candidates), states, self._x[:N_OFFSETS].copy())
+        self._trial = Trial(t_s, tuple(candidates), states, self._x[:N_OFFSETS].copy())
         self._x, self._p = states[0]
         self._gated = 0
 
-    def _try(self, block: _Block) -> None:
+    def _try(self, block: Block) -> None:
         """Every hypothesis updated on the block and scored by its innovation; after
         ``trial_s`` the best is kept."""
         trial = self._trial
         if trial is None:
             return
         for i, (x, p) in enumerate(trial.states):
-            statistic, _, x_new, p_new = _information_update(x, p, block, self.config.gate_p)
+            statistic, _, x_new, p_new = information_update(x, p, block, self.config.gate_p)
             trial.scores[i] += statistic
             trial.states[i] = (x_new, p_new)
         trial.blocks += 1
@@ -522,87 +548,3 @@ def handed_over(alarms: Sequence[Any]) -> list[tuple[float, tuple[int, ...]]]:
         for alarm in alarms
         if alarm.kind == 'offset_change' and alarm.sensors
     ]
-
-
-class _Trial:
-    """A step being sought: one (state, covariance) per candidate sensor and its summed
-    innovation chi-square."""
-
-    def __init__(
-        self,
-        t_s: float,
-        candidates: tuple[int, ...],
-        states: list[tuple[FloatArray, FloatArray]],
-        before: FloatArray,
-    ) -> None:
-        self.t_s = t_s
-        self.before = before
-        self.candidates = candidates
-        self.states = states
-        self.scores = np.zeros(len(candidates))
-        self.blocks = 0
-
-
-def _information_update(
-    x: FloatArray, p: FloatArray, block: _Block, gate_p: float
-) -> tuple[float, float, FloatArray, FloatArray]:
-    """The block's innovation chi-square, its gate (``gate_p``, over the observed rank), and
-    the updated state and covariance (information form: ``(P^-1 + Lambda)^-1``)."""
-    innovation = block.vector - block.info @ x
-    spread = block.info @ p @ block.info + block.info
-    values, vectors = np.linalg.eigh(spread)
-    observed = values > values.max() * 1e-10
-    projected = vectors[:, observed].T @ innovation
-    statistic = float(np.sum(projected**2 / values[observed]))
-    limit = chi2_isf(gate_p, _even(int(observed.sum())))
-    covariance = np.linalg.solve(np.eye(len(x)) + p @ block.info, p)
-    covariance = 0.5 * (covariance + covariance.T)
-    return statistic, limit, x + covariance @ innovation, covariance
-
-
-class _Block:
-    """The sums of one block: information ``A^T A`` and ``A^T y`` (whitened), the samples
-    learnt from, those excluded, and its last stamp."""
-
-    def __init__(self, index: int, size: int) -> None:
-        self.index = index
-        self.info = np.zeros((size, size))
-        self.vector = np.zeros(size)
-        self.n = 0.0
-        self.excluded = 0
-        self.world = np.zeros(N_WORLD)
-        self.world_noise = 0.0
-        self.heading = np.zeros(3)
-        self.t_end = float('nan')
-
-
-def _even(dof: int) -> int:
-    """The even degree of freedom at or above ``dof`` (the closed chi-square tails)."""
-    return max(2, dof + dof % 2)
-
-
-def _world_columns(rotation: FloatArray) -> FloatArray:
-    """(k, 9, 5): ``vec(R^T E_c R)`` of each world basis tensor ``E_c`` in the body frame."""
-    body = np.einsum('kji,cjl,klm->kcim', rotation, _WORLD_BASIS, rotation)
-    return np.swapaxes(body.reshape(len(rotation), N_WORLD, 9), 1, 2)
-
-
-def _quaternion_matrices(q: FloatArray) -> FloatArray:
-    """(n, 3, 3) rotation matrices of unit quaternions (x, y, z, w) (n, 4)."""
-    q = q / np.linalg.norm(q, axis=1)[:, None]
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-
-
-def _step_directions(h: FloatArray, jacobian: FloatArray) -> list[FloatArray]:
-    """Per sensor (9, 3): how a step of its offset moves the pair offsets (``H^-1 J_s``: for
-    sensors 2-4 their own pair, for sensor 1 all three pairs and the soft iron's share)."""
-    inverse = np.linalg.inv(h)
-    return [inverse @ jacobian[:, 3 * s : 3 * s + 3] for s in range(4)]
