@@ -90,18 +90,23 @@ STRAIGHT_COSINE = float(np.cos(np.radians(10.0)))
 class TrackerConfig:
     """Settings of :class:`OffsetTracker` (units in the names).
 
-    ``relative_rate_per_sqrt_s``: random-walk rate of the calibration's own offset pattern
-    ``b``, as a fraction of it (a remanence relaxing by 0.5 % in 600 s walks at ~2e-4);
-    ``offset_rate_t_per_sqrt_s``: random-walk rate of the pair offsets in the 4
-    combinations the constraints observe, T; ``hidden_rate_t_per_sqrt_s``: in the other 5
-    (a body-fixed gradient: kept small, it is what geology could be mistaken for);
-    ``world_rate_t_per_m_sqrt_s``: of each world-gradient coefficient at the start, T/m
-    (then learnt from the data, blocks ``world_lag_s`` apart, over ``world_memory_s``, never below
-    ``world_rate_min_t_per_m_sqrt_s``: geology along the track; ``world_margin`` times the
-    learnt variance rate, for the geology that is not a walk: a turn is trusted less);
-    ``step_sigma_t``: a handed-over step's prior per axis, T;
-    ``initial_sigma_t``: the offsets' change at the start, per axis, T;
-    ``gate_p``: a block whose innovation is less likely than this is not used.
+    * ``block_s``: the samples of one update, s.
+    * ``relative_rate_per_sqrt_s``: random-walk rate of the calibration's own offset pattern
+      ``b``, as a fraction of it per sqrt(s) (a remanence relaxing by 0.5 % in 600 s walks
+      at ~2e-4; slower here, because over geology a fast one lets turns move the offsets).
+    * ``offset_rate_t_per_sqrt_s``, ``hidden_rate_t_per_sqrt_s``: of the pair offsets in the
+      4 combinations the constraints observe, and in the other 5 (a body-fixed gradient:
+      kept small, it is what geology could be taken for), T per sqrt(s).
+    * ``world_rate_t_per_m_sqrt_s``: of each world-gradient coefficient at the start, T/m per
+      sqrt(s); then learnt from blocks ``world_lag_s`` apart on one heading, averaged over
+      ``world_memory_s``, times ``world_margin`` (geology is smoother than a walk: a turn is
+      trusted less), never below ``world_rate_min_t_per_m_sqrt_s``;
+      ``world_sigma_t_per_m``: its prior at the start.
+    * ``step_sigma_t``: a step's prior per axis, T; ``trial_s``: how long each sensor's
+      hypothesis is fitted before the best is kept, s; ``stuck_s``: a gate closed this long
+      is taken for a step no monitor handed over, s.
+    * ``initial_sigma_t``: the offsets' change at the start, per axis, T.
+    * ``gate_p``: a block whose innovation is less likely than this is not learnt from.
     """
 
     block_s: float = 0.5
@@ -258,12 +263,6 @@ class OffsetTracker:
         """Its 1-sigma, (3, 3) T."""
         return np.sqrt(np.diag(self._p)[:N_OFFSETS]).reshape(3, 3)
 
-    def corrected(self, parameters: InterferenceParameters) -> InterferenceParameters:
-        """``parameters`` with the tracked change added to ``b`` (the calibration in use)."""
-        return InterferenceParameters(
-            parameters.k_soft, parameters.b_hard + self.offsets_t, parameters.terms
-        )
-
     def update(
         self,
         t_s: FloatArray,
@@ -338,10 +337,6 @@ class OffsetTracker:
         named = tuple(dict.fromkeys(int(s) for s in sensors if 1 <= int(s) <= 4))
         if named and self._trial is None:
             self._start_trial(t_s, named)
-
-    def audit(self) -> list[dict[str, Any]]:
-        """The audit trail (every block's update, gate and step), JSON-ready."""
-        return [event.to_dict() for event in self.events]
 
     # ------------------------------------------------------------------ internals
 

@@ -1,5 +1,7 @@
-"""The calibration tracker (core/tracking.py) over a stream of compensated sets: the one code
-path of ``compensate`` (a bag, chunk by chunk) and of the compensator node (message batches).
+"""The calibration tracker (core/tracking.py) over a stream of compensated sets, chunk by
+chunk: ``compensate --track-calibration``. (The compensator node compensates with the frozen
+calibration; :meth:`~tetra_gradiometer.core.tracking.OffsetTracker.one` is its per-message
+path, equal to this one's without the attitude.)
 
 :class:`TrackedStream` takes each chunk's stamps, readings and tensors compensated with the
 frozen calibration, and returns the tracked tensors and the state's share of their variance.
@@ -50,7 +52,8 @@ TRACKING_COLUMNS = tuple(f'db_{s}1{axis}' for s in (2, 3, 4) for axis in 'xyz')
 
 @dataclass(frozen=True)
 class OrientationSource:
-    """``/odom``'s checked orientations, slerped onto set stamps (ns)."""
+    """``/odom``'s orientations (checked for norms and a frozen pose, core/odometry.py; not
+    against the magnetometers), slerped onto set stamps (ns)."""
 
     stamps_ns: np.ndarray
     quaternions: FloatArray
