@@ -202,3 +202,11 @@ def test_one_sample_at_a_time_equals_a_chunk():
     np.testing.assert_allclose(np.array([p[1] for p in pairs]), expected.variance, rtol=1e-6,
                                atol=1e-12 * floor**2)
     assert [e.sensors for e in live.events if e.kind == 'step'] == [(2,)]
+
+
+def test_a_vehicle_that_does_not_change_stays_where_it_was():
+    mission = build_mission(13, drift=False, step=False)
+    _, _, _, frozen, tracked, _ = _track(mission)
+    survey = np.ones(len(frozen), dtype=bool)
+    assert _ratio(mission, tracked, survey) <= 1.05 * _ratio(mission, frozen, survey)
+    assert _ratio(mission, frozen, survey) < 1.05  # the calibration holds: nothing to follow
