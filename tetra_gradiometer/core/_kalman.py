@@ -19,8 +19,8 @@ WORLD_BASIS = np.linalg.qr(REGIONAL_BASIS.reshape(5, 9).T)[0].T.reshape(5, 3, 3)
 
 
 class Trial:
-    """A step being sought: one (state, covariance) per candidate sensor and its summed
-    innovation chi-square."""
+    """A step being sought: one (state, covariance) per candidate (a sensor, or 0: no step)
+    and its summed innovation chi-square."""
 
     def __init__(
         self,
@@ -34,7 +34,15 @@ class Trial:
         self.candidates = candidates
         self.states = states
         self.scores = np.zeros(len(candidates))
+        self.limit = 0.0  # the sum of the blocks' gates
         self.blocks = 0
+        self.duration_s = 1.0  # how long the hypotheses are fitted
+        self.follow = True  # the output follows the best hypothesis while they are
+
+    def blocks_done(self, block_s: float) -> float:
+        """Count one more block; the seconds fitted so far."""
+        self.blocks += 1
+        return self.blocks * block_s
 
 
 def information_update(

@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ._distributions import chi2_isf
 from ._kalman import (
     N_OFFSETS,
     N_WORLD,
@@ -104,7 +105,8 @@ class TrackerConfig:
       ``world_sigma_t_per_m``: its prior at the start.
     * ``step_sigma_t``: a step's prior per axis, T; ``trial_s``: how long each sensor's
       hypothesis is fitted before the best is kept, s; ``stuck_s``: a gate closed this long
-      is taken for a step no monitor handed over, s.
+      is taken for a step no monitor handed over, and fitted ``confirm_s`` (a source passing
+      close fits one sensor's step for a second, not for five), s.
     * ``initial_sigma_t``: the offsets' change at the start, per axis, T.
     * ``gate_p``: a block whose innovation is less likely than this is not learnt from.
     """
@@ -122,6 +124,7 @@ class TrackerConfig:
     step_sigma_t: float = 5e-9
     trial_s: float = 1.0
     stuck_s: float = 3.0
+    confirm_s: float = 5.0
     initial_sigma_t: float = 0.02e-9
     gate_p: float = 1e-6
 
@@ -139,7 +142,8 @@ class TrackerConfig:
 @dataclass(frozen=True)
 class TrackerEvent:
     """One entry of the audit trail: ``t_s`` (the block's end, or the step's time), s;
-    ``kind`` (``update``, ``gated``, ``excluded``, ``step``); ``offsets_t`` (3, 3) the pair
+    ``kind`` (``update``, ``gated``, ``excluded``, ``step``, ``transient``: a closed gate
+    no sensor's step explains); ``offsets_t`` (3, 3) the pair
     offsets' change after it, T; ``sigma_t`` (3, 3) its 1-sigma, T; ``sensors`` (1-based, a
     step's); ``statistic`` the block's innovation chi-square (a step's: its hypothesis's,
     summed over ``trial_s``); a step's ``step_t`` (3,) the sensor's offset jump and
@@ -336,7 +340,7 @@ class OffsetTracker:
         monitor's first guess, on a fraction of a second, is not always right)."""
         named = tuple(dict.fromkeys(int(s) for s in sensors if 1 <= int(s) <= 4))
         if named and self._trial is None:
-            self._start_trial(t_s, named)
+            self._start_trial(t_s, named, self.config.trial_s)
 
     # ------------------------------------------------------------------ internals
 
@@ -447,59 +451,77 @@ class OffsetTracker:
             self._gated += 1
             self._record(block.t_end, 'gated', statistic=statistic)
             if self._gated * self.config.block_s >= self.config.stuck_s:
-                self._start_trial(block.t_end, ())
+                self._start_trial(block.t_end, (), self.config.confirm_s)
             return
         self._gated = 0
         self._x, self._p = x, p
         self._record(block.t_end, 'update', statistic=statistic)
 
-    def _start_trial(self, t_s: float, named: tuple[int, ...]) -> None:
-        """One hypothesis per sensor (the named ones first): its offsets' covariance widened
-        by ``step_sigma_t``; the output follows the best so far."""
-        candidates = list(named) + [s for s in range(1, 5) if s not in named]
+    def _start_trial(self, t_s: float, named: tuple[int, ...], duration_s: float) -> None:
+        """One hypothesis per sensor (the named ones first), its offsets' covariance widened
+        by ``step_sigma_t``, beside the hypothesis of no step (candidate 0: a source passing
+        close, a burst); the output follows the named sensor's (none named: no step's)."""
+        candidates = [0, *named] + [s for s in range(1, 5) if s not in named]
         states = []
         for sensor in candidates:
-            v = self._steps[sensor - 1]  # (9, 3)
             p = self._p.copy()
-            p[:N_OFFSETS, :N_OFFSETS] += self.config.step_sigma_t**2 * v @ v.T
+            if sensor:
+                v = self._steps[sensor - 1]  # (9, 3)
+                p[:N_OFFSETS, :N_OFFSETS] += self.config.step_sigma_t**2 * v @ v.T
             states.append((self._x.copy(), p))
         self._trial = Trial(t_s, tuple(candidates), states, self._x[:N_OFFSETS].copy())
-        self._x, self._p = states[0]
+        self._trial.duration_s = duration_s
+        # A handed-over step is followed at once; one the gate suspects only once confirmed.
+        self._trial.follow = bool(named)
+        self._x, self._p = states[1 if named else 0]
         self._gated = 0
 
     def _try(self, block: Block) -> None:
-        """Every hypothesis updated on the block and scored by its innovation; after
-        ``trial_s`` the best is kept."""
+        """Every hypothesis updated on the block (no step: only through the gate) and scored
+        by its innovation; the output follows the best sensor while its fit is within the
+        gates' sum, else no step; after ``trial_s`` that choice is kept."""
         trial = self._trial
         if trial is None:
             return
         for i, (x, p) in enumerate(trial.states):
-            statistic, _, x_new, p_new = information_update(x, p, block, self.config.gate_p)
+            statistic, limit, x_new, p_new = information_update(x, p, block, self.config.gate_p)
             trial.scores[i] += statistic
-            trial.states[i] = (x_new, p_new)
-        trial.blocks += 1
-        best = int(np.argmin(trial.scores))
+            if trial.candidates[i] or statistic <= limit:
+                trial.states[i] = (x_new, p_new)
+        trial.limit += limit
+        best = 1 + int(np.argmin(trial.scores[1:]))
+        best = best if trial.scores[best] <= trial.limit else 0
+        self._x, self._p = trial.states[best if trial.follow else 0]
+        if trial.blocks_done(self.config.block_s) < trial.duration_s:
+            return
+        self._trial = None
+        sensor = trial.candidates[best]
         self._x, self._p = trial.states[best]
-        if trial.blocks * self.config.block_s >= self.config.trial_s:
-            self._trial = None
-            sensor = trial.candidates[best]
+        jump = spread = np.zeros(3)
+        if sensor:
             # The jump: the offsets' change across the trial seen through the sensor's step
             # directions (what the drift did in 1 s is far below it).
             back = np.linalg.pinv(self._steps[sensor - 1])  # (3, 9)
             jump = back @ (self._x[:N_OFFSETS] - trial.before)
             spread = np.sqrt(np.diag(back @ self._p[:N_OFFSETS, :N_OFFSETS] @ back.T))
-            self.events.append(
-                TrackerEvent(
-                    trial.t_s,
-                    'step',
-                    self.offsets_t,
-                    self.offsets_sigma_t,
-                    (sensor,),
-                    float(trial.scores[best]),
-                    jump,
-                    spread,
-                )
+        if not sensor or np.sum((jump / spread) ** 2) < chi2_isf(self.config.gate_p, 4):
+            # No sensor's step explains the closed gate, or none moved: a source passing
+            # close, a burst. The vehicle is taken as it was.
+            self._x, self._p = trial.states[0]
+            self._record(block.t_end, 'transient', statistic=float(trial.scores[1:].min()))
+            return
+        self.events.append(
+            TrackerEvent(
+                trial.t_s,
+                'step',
+                self.offsets_t,
+                self.offsets_sigma_t,
+                (sensor,),
+                float(trial.scores[best]),
+                jump,
+                spread,
             )
+        )
 
     def _diffuse(self, seconds: float) -> None:
         """The process noise of ``seconds`` added to the state's covariance (and to every

@@ -176,7 +176,8 @@ class TrackedStream:
         events = self.tracker.events
         blocks = [e for e in events if e.kind != 'step']
         steps = [e.to_dict() for e in events if e.kind == 'step']
-        counts = {kind: sum(e.kind == kind for e in blocks) for kind in ('update', 'gated')}
+        kinds = ('update', 'gated', 'excluded', 'transient')
+        counts = {kind: sum(e.kind == kind for e in blocks) for kind in kinds}
         return {
             'time_origin_ns': self._origin_ns,
             'attitude': self.orientation is not None,
@@ -185,7 +186,7 @@ class TrackedStream:
             },
             'columns': list(TRACKING_COLUMNS),
             'steps': steps,
-            'counts': counts | {'excluded': len(blocks) - sum(counts.values())},
+            'counts': counts,
             'final_offsets_nT': (self.tracker.offsets_t * NT_PER_T).reshape(9).tolist(),
             'final_sigma_nT': (self.tracker.offsets_sigma_t * NT_PER_T).reshape(9).tolist(),
             'blocks': {
