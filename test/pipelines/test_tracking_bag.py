@@ -77,3 +77,5 @@ def test_the_audit_trail_names_the_step_and_its_sensor(compensated):
     assert abs(steps[0]['t_s'] - mission.t_step_s) < 1.0  # times from the first set
     assert document['counts']['update'] > 0.9 * len(document['blocks']['t_s'])
     assert 'calibration tracked (with the attitude)' in text
+    assert f'sensor {mission.step_sensor + 1} at ' in text and 'nT (1-sigma' in text
+    assert abs(np.linalg.norm(steps[0]['step_nT']) - 1.0) < 5 * max(steps[0]['step_sigma_nT'])

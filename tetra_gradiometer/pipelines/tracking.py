@@ -206,7 +206,10 @@ class TrackedStream:
         """One line for the command's summary."""
         doc = self.document()
         steps = ', '.join(
-            f'sensor {s["sensors"][0]} at {s["t_s"]:.1f} s' for s in doc['steps'] if s['sensors']
+            f'sensor {s["sensors"][0]} at {s["t_s"]:.1f} s by {np.linalg.norm(s["step_nT"]):.3g} '
+            f'nT (1-sigma {max(s["step_sigma_nT"]):.2g} nT per axis)'
+            for s in doc['steps']
+            if s['sensors'] and 'step_nT' in s
         )
         final = np.abs(np.asarray(doc['final_offsets_nT'])).max()
         return (
