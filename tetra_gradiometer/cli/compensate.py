@@ -279,6 +279,8 @@ def _health_verdict(
         extra = None if tracking is None else {'tracking.json': tracking.document()}
         write_health_report(health, args.report, force=args.force, inputs=inputs, extra=extra)
         where = f'; report: {args.report}'
+    if tracking is not None and document['alarms']:
+        where += ' (watching the tracked tensor: the offset changes were handed to the tracker)'
     say_health(document, where)
 
 
