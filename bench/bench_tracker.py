@@ -8,12 +8,13 @@ thirds into the survey; the same survey over geology (deep dipoles, 1 nT/m RMS) 
 vehicle that does not change. Calibration: ``known_gradient_lstsq_general`` on the trim.
 The tracker runs with the attitude and the health monitor handing it steps.
 
-    .venv/bin/python bench/bench_tracker.py [--seeds 1,2,3,4,5] [--json bench/results/tracker.json]
+    .venv/bin/python bench/bench_tracker.py [--seeds 1,2,3,4,5,6,7,8] [--json FILE]
 
 Figures per mission: the residual (compensated minus the clean fields' tensor) over the
-noise floor in the issue's spans, frozen and tracked; the recovery (the first second after
-the step from which every 2 s window stays within 1.5x the floor); the share of components
-within 2 sigma; over geology the tracked residual over the frozen one.
+noise floor in three spans (the first 5 min of the survey, the 5 min before the step, after
+it), frozen and tracked; the recovery (the first second after the step from which every 2 s
+window stays within 1.5x the floor); the share of components within 2 sigma; over geology
+the tracked residual over the frozen one. ``--table FILE`` prints them as markdown.
 """
 
 from __future__ import annotations
@@ -189,7 +190,7 @@ def live_cost(rate_hz: float = 1000.0, seconds: float = 60.0, batch: int = 100) 
 
 
 def table(results: dict) -> str:
-    """The issue's table from a results file: each span's residual over the floor, frozen and
+    """The table of a results file: each span's residual over the floor, frozen and
     tracked (the range over the missions), the recovery, the 2-sigma share, geology."""
     drift, geo = results['drifting'], results['geology']
 

@@ -177,7 +177,7 @@ def build_mission(seed: int, *, drift: bool = True, step: bool = True,
 
 
 def spans(mission: HullMission) -> dict[str, np.ndarray]:
-    """The issue's spans as masks (N,): the first 5 min of the survey, the 5 min before the
+    """The spans compared, as masks (N,): the first 5 min of the survey, the 5 min before the
     step, and after it (to the end)."""
     t = mission.t_s
     start = mission.t_survey_s
