@@ -19,7 +19,8 @@ Without a sensor-noise figure (the raw tensor without ``--sensor-noise-nt``) the
 a channel the calibration's terms read is absent from the bag), the CSV starts with one
 comment line, ``# compensated WITHOUT <channel> (<topic>): ...`` (:meth:`.terms.HeldTerms.
 text`), before the header: the terms reading it are held at their calibration-window mean
-and the sigma columns include their spread over that window.
+and the sigma columns include their spread over that window. With the calibration tracked
+(:mod:`.tracking`) the tensors and sigma are the tracked ones and nine ``db_*`` columns follow.
 
 The output bag holds ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` for the raw
 tensor): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp = the
