@@ -79,3 +79,48 @@ def test_the_audit_trail_names_the_step_and_its_sensor(compensated):
     assert 'calibration tracked (with the attitude)' in text
     assert f'sensor {mission.step_sensor + 1} at ' in text and 'nT (1-sigma' in text
     assert abs(np.linalg.norm(steps[0]['step_nT']) - 1.0) < 5 * max(steps[0]['step_sigma_nT'])
+
+
+def test_without_odom_the_constrained_combinations_are_tracked(tmp_path):
+    """A bag without ``/odom``: the tracker says so, follows the constrained combinations
+    only, and still re-estimates a sensor's step from them."""
+    from dataclasses import replace
+
+    from tetra_gradiometer.core import (
+        Scenario,
+        SensorInterference,
+        TrimManoeuvre,
+        difference_tensor,
+        known_gradient_lstsq,
+        simulate,
+    )
+
+    rng = np.random.default_rng(8)
+    k = rng.uniform(-5e-3, 5e-3, (4, 3, 3))
+    k = 0.5 * (k + np.swapaxes(k, 1, 2))
+    k[0] = 0.0
+    scenario = Scenario(geometry=GEOMETRY, earth_field_enu=EARTH_ENU,
+                        segments=(TrimManoeuvre(240.0),), sample_rate_hz=10.0, noise_t=0.05e-9,
+                        interference=SensorInterference(k, rng.uniform(-1e-7, 1e-7, (4, 3))))
+    data = simulate(scenario, rng)
+    first = data.t < 120.0
+    fit = known_gradient_lstsq(difference_tensor(data.fields_measured[first], GEOMETRY),
+                               data.fields_measured[first, 0], GEOMETRY, symmetric_k=False)
+    measured = data.fields_measured.copy()
+    measured[data.t >= 180.0, 2] += np.array([0.8, -0.4, 0.3]) * 1e-9
+    bag = write_mission_bag(tmp_path / 'bag', replace(data, fields_measured=measured), odom=False,
+                            temperature=False, battery=False)
+    params = tmp_path / 'params.yaml'
+    params.write_text(params_document({'sensor_positions': GEOMETRY.to_flat(),
+                                       'earth_field_enu': EARTH_ENU.tolist()}))
+    calibration = save_calibration(tmp_path / 'cal.yaml', CalibrationFile.from_calibration(fit, GEOMETRY))
+    _cli(bag, '--params', params, '--calibration', calibration, '--csv', tmp_path / 'out.csv',
+         '--track-calibration', '--report', tmp_path / 'report')
+    document = json.loads((tmp_path / 'report' / 'tracking.json').read_text())
+    assert document['attitude'] is False
+    assert [s['sensors'] for s in document['steps']] == [[3]]
+    _, rows = _read(tmp_path / 'out.csv')
+    after = data.t >= 185.0
+    floor = 0.1414  # nT/m: 0.05 nT through the regular 0.5 m tetrahedron
+    residual = rows[after, 1:10] - data.g_true[after].reshape(-1, 9) * 1e9
+    assert np.sqrt(np.mean(residual**2)) <= 1.2 * floor
