@@ -86,6 +86,7 @@ bench: setup
 	$(PY) bench/bench_targets.py --speed
 	$(PY) bench/bench_window.py --json bench/results/window.json
 	$(PY) bench/bench_signals.py --json bench/results/signals.json
+	$(PY) bench/bench_tracker.py --seeds 1,2,3,4,5,6,7,8 --json bench/results/tracker.json
 	$(PY) bench/tables.py --measured-here $(addsuffix .json,$(BENCH_JSON))
 
 clean:

@@ -41,6 +41,13 @@ still drops those sets (counted), with or without the option.
 writes ``DIR/report.json`` (``alarms``: ``t_s`` seconds since the bag's first message,
 ``kind``, ``sensors`` 1-based, ``statistic``, ``threshold``; reports/health.py) and
 ``DIR/health.png``; ``--false-alarms-per-hour`` sets its threshold.
+
+``--track-calibration`` follows the calibration's change along the survey
+(pipelines/tracking.py, core/tracking.py): the tensors and their sigma are the tracked ones,
+the CSV gains nine ``db_<s>1<axis>`` columns (the pair offsets' change removed, nT), the
+health monitor watches the tracked tensor and hands it the steps it finds, and ``--report
+DIR`` holds ``tracking.json`` (every update, gate and step). ``--freeze-calibration`` (the
+default) compensates with the calibration as fitted: re-run with it to compare.
 """
 
 from __future__ import annotations
@@ -68,6 +75,7 @@ from ..pipelines.compensation import (
     load_compensation,
 )
 from ..pipelines.health import HealthRecorder
+from ..pipelines.tracking import TRACK_BY_DEFAULT, TrackedStream, tracked_stream
 from ..reports.health import write_health_report
 from ._args import (
     MAX_FALSE_ALARMS_PER_HOUR,
@@ -142,6 +150,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         'temperature) is absent from the bag: its terms held at their calibration-window mean, '
         'the sigma widened by their spread there, the CSV and summary saying so',
     )
+    track = parser.add_mutually_exclusive_group()
+    track.add_argument(
+        '--track-calibration',
+        dest='track',
+        action='store_true',
+        default=TRACK_BY_DEFAULT,
+        help="follow the calibration's change along the survey (core/tracking.py: drift and "
+        "steps of the offsets, from the tensor's symmetry and trace and, with /odom, the "
+        "body's turns); the CSV gains the db_* columns, --report DIR a tracking.json"
+        + (' (the default)' if TRACK_BY_DEFAULT else ''),
+    )
+    track.add_argument(
+        '--freeze-calibration',
+        dest='track',
+        action='store_false',
+        help='compensate with the calibration as fitted on the trim'
+        + ('' if TRACK_BY_DEFAULT else ' (the default)'),
+    )
     add_progress_arguments(parser)
 
 
@@ -170,12 +196,14 @@ def run(args: argparse.Namespace) -> int:
     )
     health = _health_recorder(args, geometry, compensation)
     say_forced(args.calibration, compensation.forced)
+    tracking = _tracking(args, geometry, compensation, health)
     counts = compensate_bag(
         args.bag,
         geometry,
         compensation.parameters,
         sigma=compensation.sigma,
         health=health,
+        tracking=tracking,
         csv=args.csv,
         out_bag=args.out_bag,
         out_storage=args.out_storage,
@@ -211,21 +239,48 @@ def run(args: argparse.Namespace) -> int:
         print(f'csv: {args.csv} (stamp_s absolute, nT/m; {_sigma_text(compensation)})')
     if args.out_bag is not None:
         print(f'bag: {args.out_bag} ({counts.topic}, T/m)')
+    if tracking is not None:
+        print(f'  {tracking.text()}')
     if health is not None:
-        _health_verdict(health, args, inputs)
+        _health_verdict(health, args, inputs, tracking)
     return 0
 
 
+def _tracking(
+    args: argparse.Namespace,
+    geometry: TetraGeometry,
+    compensation: Compensation,
+    health: HealthRecorder | None,
+) -> TrackedStream | None:
+    """The calibration tracker when asked for (never on the raw tensor)."""
+    if not args.track or args.raw:
+        return None
+    if compensation.parameters is None or compensation.sensor_noise_t is None:
+        raise InputError('--track-calibration needs a calibration and a sensor noise')
+    tracking, note = tracked_stream(
+        args.bag, geometry, compensation.parameters, compensation.sensor_noise_t, health
+    )
+    if note:
+        print(f'note: {note}', file=sys.stderr)
+    return tracking
+
+
 def _health_verdict(
-    health: HealthRecorder, args: argparse.Namespace, inputs: tuple[str, ...]
+    health: HealthRecorder,
+    args: argparse.Namespace,
+    inputs: tuple[str, ...],
+    tracking: TrackedStream | None = None,
 ) -> None:
     """The health monitor's verdict, always (a warning on stderr when it alarms); its
-    folder with ``--report``."""
+    folder with ``--report`` (and the tracker's audit trail, ``tracking.json``)."""
     document = health.document()
     where = ''
     if args.report is not None:
-        write_health_report(health, args.report, force=args.force, inputs=inputs)
+        extra = None if tracking is None else {'tracking.json': tracking.document()}
+        write_health_report(health, args.report, force=args.force, inputs=inputs, extra=extra)
         where = f'; report: {args.report}'
+    if tracking is not None and document['alarms']:
+        where += ' (watching the tracked tensor: the offset changes were handed to the tracker)'
     say_health(document, where)
 
 

@@ -19,7 +19,8 @@ Without a sensor-noise figure (the raw tensor without ``--sensor-noise-nt``) the
 a channel the calibration's terms read is absent from the bag), the CSV starts with one
 comment line, ``# compensated WITHOUT <channel> (<topic>): ...`` (:meth:`.terms.HeldTerms.
 text`), before the header: the terms reading it are held at their calibration-window mean
-and the sigma columns include their spread over that window.
+and the sigma columns include their spread over that window. With the calibration tracked
+(:mod:`.tracking`) the tensors and sigma are the tracked ones and nine ``db_*`` columns follow.
 
 The output bag holds ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` for the raw
 tensor): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp = the
@@ -53,7 +54,8 @@ from ..io.bag import BagWriter, MagneticBag, SetCounters
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, atomic_output, check_output
 from .health import HealthRecorder
-from .terms import HeldTerms, StreamRegressors
+from .terms import StreamRegressors
+from .tracking import TrackedStream
 
 __all__ = [
     'COMPENSATED_TOPIC',
@@ -168,10 +170,13 @@ class TensorStatistics:
 
 
 def format_rows(
-    stamps_ns: IntArray, tensors_t_per_m: FloatArray, sigmas_t_per_m: FloatArray | None = None
+    stamps_ns: IntArray,
+    tensors_t_per_m: FloatArray,
+    sigmas_t_per_m: FloatArray | None = None,
+    extra_si: FloatArray | None = None,
 ) -> str:
     """CSV rows (with trailing newline) for stamps (n,) ns, tensors (n, 3, 3) T/m and,
-    when given, their 1-sigma (n, 3, 3) T/m."""
+    when given, their 1-sigma (n, 3, 3) T/m and more columns (n, m) (T or T/m: nT, nT/m)."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     n = len(stamps)
     # Sign and magnitude apart: divmod floors, so -1.5 s would print as -2.500000000.
@@ -180,6 +185,8 @@ def format_rows(
     columns = [tensors_t_per_m.reshape(n, 9)]
     if sigmas_t_per_m is not None:
         columns.append(sigmas_t_per_m.reshape(n, 9))
+    if extra_si is not None:
+        columns.append(extra_si.reshape(n, -1))
     values = np.concatenate(columns, axis=1) * NT_PER_T
     prefixes = [
         f'{sign}{s}.{ns:09d},'
@@ -321,6 +328,7 @@ def compensate_bag(
     *,
     sigma: SigmaModel | None = None,
     health: HealthRecorder | None = None,
+    tracking: TrackedStream | None = None,
     statistics: TensorStatistics | None = None,
     csv: PathLike | None = None,
     out_bag: PathLike | None = None,
@@ -344,6 +352,7 @@ def compensate_bag(
         one is unknown dropped and counted); None writes the raw tensor (eq. 7).
     sigma : SigmaModel, optional; the tensor's 1-sigma: the CSV's nine ``sigma_`` columns
     health, statistics : optional; fed every chunk of compensated (and raw) tensors
+    tracking : optional; the tracked calibration's tensors, sigma, ``db_*`` CSV columns
     csv, out_bag, out_storage : outputs (one at least, each written atomically); the bag's
         storage (default: the input's)
     timebase : how the streams become sets (default: resampled to sensor 1's stamps);
@@ -362,16 +371,14 @@ def compensate_bag(
     OutputError : an output is not ours to replace
     """
     inputs, topic = tuple(inputs), RAW_TOPIC if parameters is None else COMPENSATED_TOPIC
-    n_sets, dropped, sample = 0, DroppedSets(), TensorSample()
-    first = last = 0
+    n_sets, first, last, dropped, sample = 0, 0, 0, DroppedSets(), TensorSample()
+    monitor = health if tracking is None or tracking.health is None else None  # else it feeds
     with ExitStack() as stack:
         bag = stack.enter_context(MagneticBag(bag_path))
         bag.check_contract()
         terms = _stream_regressors(parameters, bag, bag_path, geometry, allow_missing_channels)
-        held = None if terms is None else terms.held
-        comment = '' if held is None else f'# {held.text()}\n'
         handle, writer = _open_outputs(
-            stack, bag_path, csv, out_bag, out_storage, sigma is not None, force, inputs, comment
+            stack, bag_path, csv, out_bag, out_storage, (sigma, tracking, terms), force, inputs
         )
         sets = bag.iter_sets(
             timebase=timebase, progress=progress, fast=fast, earth_field_t=earth_field_t
@@ -382,9 +389,10 @@ def compensate_bag(
             if not len(stamps):
                 continue
             raw, tensors = _tensors(fields, geometry, parameters, x)
-            sigmas = None if handle is None else _sigmas(sigma, fields, x, held)
-            _write(handle, writer, topic, stamps, tensors, sigmas)
-            _feed(health, statistics, stamps, fields, raw, tensors, bag.reader.start_time)
+            sigmas = None if handle is None else _sigmas(sigma, fields, x, terms)
+            tensors, sigmas, offsets = _tracked(tracking, stamps, fields, tensors, sigmas, bag)
+            _write(handle, writer, topic, stamps, tensors, sigmas, offsets)
+            _feed(monitor, statistics, stamps, fields, raw, tensors, bag.reader.start_time)
             sample.add(tensors)
             first, last = int(stamps[0]) if n_sets == 0 else first, int(stamps[-1])
             n_sets += len(stamps)
@@ -428,10 +436,11 @@ def _sigmas(
     sigma: SigmaModel | None,
     fields: FloatArray,
     regressors: FloatArray | None,
-    held: HeldTerms | None,
+    terms: StreamRegressors | None,
 ) -> FloatArray | None:
     """The chunk's 1-sigma (n, 3, 3) T/m, widened in quadrature by the held terms' spread
     (None without a sigma model)."""
+    held = None if terms is None else terms.held
     if sigma is None:
         return None
     sigmas = sigma(fields[:, 0, :], regressors)
@@ -500,24 +509,44 @@ def _with_regressors(
     return stamps[known], fields[known], x[known]
 
 
+def _tracked(
+    tracking: TrackedStream | None,
+    stamps: IntArray,
+    fields: FloatArray,
+    tensors: FloatArray,
+    sigmas: FloatArray | None,
+    bag: MagneticBag,
+) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
+    """The chunk's tensors and 1-sigma with the calibration tracked, and the change removed
+    (n, 9) T; unchanged (and None) without tracking."""
+    if tracking is None:
+        return tensors, sigmas, None
+    return tracking.apply(stamps, fields, tensors, sigmas, bag.reader.start_time)
+
+
 def _open_outputs(
     stack: ExitStack,
     bag_path: PathLike,
     csv: PathLike | None,
     out_bag: PathLike | None,
     out_storage: str | None,
-    with_sigma: bool,
+    content: tuple[SigmaModel | None, TrackedStream | None, StreamRegressors | None],
     force: bool,
     inputs: tuple[PathLike, ...],
-    comment: str = '',
 ) -> tuple[TextIO | None, BagWriter | None]:
-    """The CSV (``comment`` and the header written) and the bag writer, each None when not
-    asked for; both closed (and moved into place) by ``stack``."""
+    """The CSV (a held channel's comment and the header written: the sigma columns with a
+    sigma model, the tracker's with a tracker) and the bag writer, each None when not asked
+    for; both closed (and moved into place) by ``stack``."""
+    sigma, tracking, terms = content
+    held = None if terms is None else terms.held
+    comment = '' if held is None else f'# {held.text()}\n'
+    columns = '' if tracking is None else tracking.csv_columns
+    with_sigma = sigma is not None
     handle = writer = None
     if csv is not None:
         tmp = stack.enter_context(atomic_output(csv, CSV, force=force, inputs=inputs))
         handle = stack.enter_context(open(tmp, 'w', encoding='ascii', newline='\n'))
-        handle.write(comment + (CSV_SIGMA_HEADER if with_sigma else CSV_HEADER) + '\n')
+        handle.write(comment + (CSV_SIGMA_HEADER if with_sigma else CSV_HEADER) + columns + '\n')
     if out_bag is not None:
         storage = out_storage or input_storage(bag_path)
         writer = stack.enter_context(
@@ -558,8 +587,9 @@ def _write(
     stamps: IntArray,
     tensors: FloatArray,
     sigmas: FloatArray | None,
+    offsets: FloatArray | None = None,
 ) -> None:
     if handle is not None:
-        handle.write(format_rows(stamps, tensors, sigmas))
+        handle.write(format_rows(stamps, tensors, sigmas, offsets))
     if writer is not None:
         writer.write_tensors(topic, stamps, tensors)

@@ -62,6 +62,11 @@ class HealthRecorder:
         self._first_s: float | None = None
         self.bins: dict[int, tuple[float, float]] = {}
 
+    @property
+    def origin_ns(self) -> int | None:
+        """The stamp the monitor's times count from, ns (None before the first set)."""
+        return self._origin_ns
+
     def add_recording(
         self, stamps_ns: np.ndarray, fields: np.ndarray, tensors: np.ndarray
     ) -> None:

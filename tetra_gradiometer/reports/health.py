@@ -38,8 +38,10 @@ def write_health_report(
     *,
     force: bool = False,
     inputs: Iterable[str | os.PathLike] = (),
+    extra: dict[str, dict] | None = None,
 ) -> Path:
-    """``report.json`` and ``health.png`` into the folder ``out_dir``, atomically."""
+    """``report.json`` and ``health.png`` into the folder ``out_dir``, atomically, with the
+    JSON documents of ``extra`` (file name -> content: the tracker's ``tracking.json``)."""
     document = recorder.document()
     with atomic_output(
         out_dir, HEALTH_REPORT, force=force, inputs=inputs, command='compensate'
@@ -48,6 +50,8 @@ def write_health_report(
         (out / 'report.json').write_text(
             json.dumps(document, indent=2, allow_nan=False) + '\n', encoding='utf-8'
         )
+        for name, content in (extra or {}).items():
+            (out / name).write_text(json.dumps(content, allow_nan=False) + '\n', encoding='utf-8')
         _plot(recorder, out / 'health.png')
     return Path(out_dir)
 

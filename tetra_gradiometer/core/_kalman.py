@@ -1,0 +1,96 @@
+"""The blocked information-form Kalman update of :mod:`.tracking` and its pieces: a block's
+sums, the update with its innovation gate, the hypotheses of a step being sought, the world
+gradient's body-frame columns and each sensor's step directions."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._distributions import chi2_isf
+from .identification.lstsq import REGIONAL_BASIS
+from .types import FloatArray
+
+#: The pair offsets (3 pairs x 3 axes) and the world gradient's coefficients.
+N_OFFSETS = 9
+N_WORLD = 5
+#: The world gradient's coefficients: the regional fit's basis (the calibration's joint
+#: solve) made orthonormal, so that a random walk on them is the same in every direction.
+WORLD_BASIS = np.linalg.qr(REGIONAL_BASIS.reshape(5, 9).T)[0].T.reshape(5, 3, 3)
+
+
+class Trial:
+    """A step being sought: one (state, covariance) per candidate (a sensor, or 0: no step)
+    and its summed innovation chi-square."""
+
+    def __init__(
+        self,
+        t_s: float,
+        candidates: tuple[int, ...],
+        states: list[tuple[FloatArray, FloatArray]],
+        before: FloatArray,
+    ) -> None:
+        self.t_s = t_s
+        self.before = before
+        self.candidates = candidates
+        self.states = states
+        self.scores = np.zeros(len(candidates))
+        self.limit = 0.0  # the sum of the blocks' gates
+        self.blocks = 0
+        self.duration_s = 1.0  # how long the hypotheses are fitted
+        self.follow = True  # the output follows the best hypothesis while they are
+
+    def blocks_done(self, block_s: float) -> float:
+        """Count one more block; the seconds fitted so far."""
+        self.blocks += 1
+        return self.blocks * block_s
+
+
+def information_update(
+    x: FloatArray, p: FloatArray, block: Block, gate_p: float
+) -> tuple[float, float, FloatArray, FloatArray]:
+    """The block's innovation chi-square, its gate (``gate_p``, over the observed rank), and
+    the updated state and covariance (information form: ``(P^-1 + Lambda)^-1``)."""
+    innovation = block.vector - block.info @ x
+    spread = block.info @ p @ block.info + block.info
+    values, vectors = np.linalg.eigh(spread)
+    observed = values > values.max() * 1e-10
+    projected = vectors[:, observed].T @ innovation
+    statistic = float(np.sum(projected**2 / values[observed]))
+    limit = chi2_isf(gate_p, even(int(observed.sum())))
+    covariance = np.linalg.solve(np.eye(len(x)) + p @ block.info, p)
+    covariance = 0.5 * (covariance + covariance.T)
+    return statistic, limit, x + covariance @ innovation, covariance
+
+
+class Block:
+    """The sums of one block: information ``A^T A`` and ``A^T y`` (whitened), the samples
+    learnt from, those excluded, and its last stamp."""
+
+    def __init__(self, index: int, size: int) -> None:
+        self.index = index
+        self.info = np.zeros((size, size))
+        self.vector = np.zeros(size)
+        self.n = 0.0
+        self.excluded = 0
+        self.world = np.zeros(N_WORLD)
+        self.world_noise = 0.0
+        self.heading = np.zeros(3)
+        self.t_end = float('nan')
+
+
+def even(dof: int) -> int:
+    """The even degree of freedom at or above ``dof`` (the closed chi-square tails)."""
+    return max(2, dof + dof % 2)
+
+
+def world_columns(rotation: FloatArray) -> FloatArray:
+    """(k, 9, 5): ``vec(R^T E_c R)`` of each world basis tensor ``E_c`` in the body frame."""
+    body = np.einsum('kji,cjl,klm->kcim', rotation, WORLD_BASIS, rotation)
+    return np.swapaxes(body.reshape(len(rotation), N_WORLD, 9), 1, 2)
+
+
+def step_directions(h: FloatArray, jacobian: FloatArray) -> list[FloatArray]:
+    """Per sensor (9, 3): how a step of its offset moves the pair offsets (``H^-1 J_s``: for
+    sensors 2-4 their own pair, for sensor 1 all three pairs and the soft iron's share)."""
+    inverse = np.linalg.inv(h)
+    return [inverse @ jacobian[:, 3 * s : 3 * s + 3] for s in range(4)]
