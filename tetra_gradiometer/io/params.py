@@ -36,7 +36,8 @@ KNOWN_PARAMETERS = frozenset(
     rate
     reference_rate_hz
     replay_remap sample_rate_hz scenario seed sensor_frame_ids sensor_noise_t sensor_positions
-    sensor_queue_depth stale_timeout_s stamp_tolerance_s start_paused sync update_period_s
+    sensor_queue_depth stale_timeout_s stamp_tolerance_s start_paused sync track_calibration
+    update_period_s
     vehicle_signals warn_throttle_s use_sim_time""".split()
 )
 #: The package's nodes: a section named after one (``/tetra/calibrator``, ``calibrator``) is

@@ -1,37 +1,25 @@
 """``compensator`` node: ``G = G_m - D`` (eq. 19) on every measured tensor.
 
-Loads ``calibration_file`` on configure (a corrupt file, or one of another array, refuses
-the configuration: nodes/managed.py) and follows the latched ``calibration`` topic
-(std_msgs/String holding a calibration file's YAML text). A missing file, or a corrupt or
-mismatched calibration on the topic (other ``sensor_positions``), leaves it running
-uncompensated (``gradient/compensated`` = ``gradient/raw``) or on the calibration it has,
-said so on ``/diagnostics`` (WARN).
+Loads ``calibration_file`` on configure (corrupt, or of another array: configuration refused,
+nodes/managed.py) and follows the latched ``calibration`` topic (a calibration file's YAML in
+std_msgs/String); without one, or with a refused one, it runs uncompensated
+(``gradient/compensated`` = ``gradient/raw``) or on the one it has, WARN on ``/diagnostics``.
 
-Pairs ``gradient/raw`` (T/m) with ``reference_field`` (``B_1'``, T) by identical stamp and
-publishes ``gradient/compensated`` (JointState, T/m) and ``gradient/norm`` (Float64,
-Frobenius norm of the compensated tensor, nT/m), and ``gradient/sigma`` (JointState named
-``gxx..gzz`` like the tensor, same stamp, positions = the 1-sigma of each compensated
-component in T/m: core/uncertainty.py, the sensor noise propagated through the geometry
-and the compensation plus the calibration's parameter covariance when it has one). The
-noise is the ``sensor_noise_t`` parameter, or with 0 the calibration's own estimate; when
-neither is known (0 and no calibration, or a calibration without an estimate) no sigma is
-published, and ``/diagnostics`` says so. Everything but the sample's ``B_1'`` is computed
-once per calibration (:class:`~tetra_gradiometer.core.uncertainty.SigmaModel`). When
-``gradient/truth`` arrives for the
-same stamp it publishes the running ``epsilon`` (eq. 24, over the samples compensated
-with the current calibration) and ``compensated_percent`` = 100 (1 - epsilon)
-(std_msgs/Float64). A new calibration, or ``~/reset_metrics``, restarts the running metric.
+Pairs ``gradient/raw`` (T/m) with ``reference_field`` (``B_1'``, T) by stamp and publishes
+``gradient/compensated`` (JointState, T/m), ``gradient/norm`` (Float64, nT/m) and
+``gradient/sigma`` (JointState ``gxx..gzz``, the 1-sigma of each component, T/m:
+core/uncertainty.py, from ``sensor_noise_t`` or else the calibration's noise estimate, and
+the calibration's covariance; none while the noise is unknown). With ``gradient/truth`` at
+the same stamp it publishes the running ``epsilon`` (eq. 24) and ``compensated_percent``; a
+new calibration or ``~/reset_metrics`` restarts them. With ``track_calibration`` the
+calibration's drift and steps are followed online (core/tracking.py, the health monitor's
+steps handed to it), as ``compensate --track-calibration`` on a bag without ``/odom``.
 
-Vehicle effects: a calibration with terms (``vehicle_current``, ``eddy_current``,
-``thermal_drift``: ``D = (k B_1' + b + sum W x) a^-1``) makes the node subscribe to the
-channels they read (``/tetra/temperature``, sensor_msgs/Temperature; the BatteryState topic
-of each ``current:<topic>``; :mod:`.channels`), evaluate the terms' regressors on each set
-(the channels interpolated onto its stamp; the eddy rate from the sets before it) and
-compensate and compute the sigma with them, as ``compensate`` does offline (a set that
-arrives before a channel's message at or after its stamp waits for it, bounded:
-:meth:`.channels.LiveEffects.submit`). A channel that
-is missing or stale at a set is never taken as zero: the set is dropped (nothing published
-for it), counted per channel, and ``/diagnostics`` goes WARN naming the channel.
+Vehicle effects: a calibration with terms (``D = (k B_1' + b + sum W x) a^-1``) makes the
+node read the channels they read (:mod:`.channels`: temperature, currents, declared
+signals), interpolated onto each set's stamp (a set arriving before a channel's message at
+or after its stamp waits for it, bounded), as ``compensate`` does. A channel missing or
+stale at a set is never taken as zero: the set is dropped, counted, WARN naming it.
 """
 
 from __future__ import annotations
@@ -51,6 +39,7 @@ from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.health import MIN_SOURCE_RANGE_EDGES, HealthConfig, HealthMonitor
 from ..core.metrics import epsilon_terms
 from ..core.plausibility import plausible_readings
+from ..core.tracking import OffsetTracker, handed_over
 from ..core.uncertainty import SigmaModel
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import InputError, MessageError
@@ -135,6 +124,14 @@ PARAMETERS = [
         '(their differencing asymmetry is not bounded); 14 to 1000.',
         float_range=(MIN_SOURCE_RANGE_EDGES, 1000.0),
     ),
+    ParamSpec(
+        'track_calibration',
+        False,
+        "Follow the calibration's drift and steps online (core/tracking.py, without the "
+        'attitude: the four combinations the constraints observe) and add its variance to '
+        'gradient/sigma; false: the calibration as loaded. Read-only.',
+        read_only=True,
+    ),
     ARRAY_FRAME_SPEC,
     WARN_THROTTLE_SPEC,
     AHEAD_SPEC,
@@ -184,6 +181,8 @@ class CompensatorNode(ManagedNode):
             min_source_range_edges=p['health_min_source_range_edges'],
         )
         self._health: HealthMonitor | None = None
+        self._track = bool(p['track_calibration'])
+        self._tracker: OffsetTracker | None = None
         self._health_text = 'off: no calibration'
         self._health_first_s = 0.0  # the monitor's first sample, s
         self._health_buffer: list[tuple[float, np.ndarray, np.ndarray]] = []
@@ -341,7 +340,7 @@ class CompensatorNode(ManagedNode):
 
     def _start_health(self, calibration: CalibrationFile | None, noise: float) -> None:
         """A fresh monitor for ``calibration`` (a new calibration clears every alarm)."""
-        self._health_buffer, self._health_sent = [], {}
+        self._health_buffer, self._health_sent, self._tracker = [], {}, None
         if calibration is None:
             self._health, self._health_text = None, 'off: no calibration'
             return
@@ -354,6 +353,8 @@ class CompensatorNode(ManagedNode):
             self._geometry, parameters, noise, covariance, self._health_config
         )
         self._health_text = 'watching'
+        if self._track:
+            self._tracker = OffsetTracker(self._geometry, parameters, noise, with_world=False)
 
     def _feed_health(self) -> None:
         """Feed the buffered samples to the monitor; publish new (and newly settled) alarms."""
@@ -365,7 +366,9 @@ class CompensatorNode(ManagedNode):
         if not monitor.samples:
             self._health_first_s = float(t_s[0])
         try:
-            monitor.update(t_s, g, b)
+            for t, sensors in handed_over(monitor.update(t_s, g, b).alarms):
+                if self._tracker is not None:
+                    self._tracker.step(sensors, t)
         except InputError as error:  # stamps that do not advance: the monitor stops
             self._health, self._health_text = None, f'off: {error}'
             self.get_logger().warning(f'health monitor stopped: {error}')
@@ -448,6 +451,9 @@ class CompensatorNode(ManagedNode):
             g = compensate(
                 g_raw[None], b_reference[None], self._interference, self._geometry, regressors
             )[0]
+        variance = np.zeros(9)
+        if self._tracker is not None:
+            g, variance = self._tracker.one(stamp_ns * S_PER_NS, g)
         norm_nt = float(np.linalg.norm(g) * NT_PER_T)
         if not (np.all(np.isfinite(g)) and np.isfinite(norm_nt)):  # never publish inf or NaN
             self._drop(stamp_ns, 'a non-finite compensated tensor')
@@ -457,7 +463,7 @@ class CompensatorNode(ManagedNode):
         if self._health is not None:
             self._health_buffer.append((stamp_ns * S_PER_NS, g, b_reference))
         if self._sigma is not None:
-            sigma = self._sigma.one(b_reference, x)
+            sigma = np.sqrt(self._sigma.one(b_reference, x) ** 2 + variance.reshape(3, 3))
             if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
                 self._sigma_pub.publish(self._cdr.write(sigma, stamp_ns))
         self.published += 1

@@ -1,7 +1,7 @@
 """The calibration tracker (core/tracking.py) over a stream of compensated sets, chunk by
-chunk: ``compensate --track-calibration``. (The compensator node compensates with the frozen
-calibration; :meth:`~tetra_gradiometer.core.tracking.OffsetTracker.one` is its per-message
-path, equal to this one's without the attitude.)
+chunk: ``compensate --track-calibration``. (The compensator node's ``track_calibration``
+calls :meth:`~tetra_gradiometer.core.tracking.OffsetTracker.one` per message, equal to this
+path without the attitude.)
 
 :class:`TrackedStream` takes each chunk's stamps, readings and tensors compensated with the
 frozen calibration, and returns the tracked tensors and the state's share of their variance.
@@ -40,10 +40,10 @@ __all__ = [
     'tracked_stream',
 ]
 
-#: Whether ``compensate`` tracks the calibration unless told to freeze it. Off while the
-#: compensator node compensates with the frozen calibration (live would differ from offline),
-#: while ``locate``'s targets are not measured with it, and because without ``/odom`` the
-#: drift is followed only in part (docs/offline.md, bench/results/tracker.json).
+#: Whether ``compensate`` tracks the calibration unless told to freeze it. Off while
+#: ``locate``'s targets are not measured with it, and because without ``/odom`` (the
+#: compensator node's case) the drift is followed only in part (docs/offline.md,
+#: bench/results/tracker.json).
 TRACK_BY_DEFAULT = False
 
 #: The CSV's columns of the pair offsets' change (nT): ``db_<sensor>1<axis>``.
