@@ -4,12 +4,13 @@ from a bag onto the sample sets' stamps.
 Channels and their topics: ``temperature`` is ``/tetra/temperature``
 (``sensor_msgs/Temperature``, degC); ``current:<topic>`` is the ``current`` (A) of the
 ``sensor_msgs/BatteryState`` on ``<topic>``: ``/battery_state`` by default, and any further
-BatteryState topics the user names (one per thruster ESC, say). A channel is interpolated
-linearly between its messages (by header stamp) onto each set's stamp; a set further than
-:data:`MAX_GAP_S` from every message of the channel (a gap, or beyond the channel's ends)
-gets NaN there: **stale, never taken as zero**. The pipelines drop and count such sets, and
-say which channel and when. ``signal:TOPIC#FIELD`` is a declared signal's field
-(:mod:`.signals`).
+BatteryState topics the user names (one per thruster ESC, say); :data:`CHANNEL_KINDS`
+declares each kind's message type, field, staleness limit and unit. A channel is
+interpolated linearly between its messages (by header stamp) onto each set's stamp; a set
+further than its kind's ``max_gap_s`` from every message of the channel (a gap, or beyond
+the channel's ends) gets NaN there: **stale, never taken as zero**. The pipelines drop and
+count such sets, and say which channel and when. ``signal:TOPIC#FIELD`` is a declared
+signal's field (:mod:`.signals`).
 """
 
 from __future__ import annotations
@@ -30,14 +31,44 @@ from .signals import read_signal
 if TYPE_CHECKING:  # only an annotation: the nodes import this module without rosbags
     from .bag import MagneticBag
 
-#: The furthest a set may lie from a channel's nearest message, s: a temperature changes
-#: slowly (sensors report at ~1 Hz or less), a current steps with the thrusters.
-MAX_GAP_S = {TEMPERATURE: 10.0, CURRENT_PREFIX: 2.0}
+@dataclass(frozen=True)
+class ChannelKind:
+    """What a channel's messages are, declared as data: ``msgtype`` (``package/msg/Name``;
+    '' for a signal: whatever the bag or the graph carries), ``field`` (the number in it, a
+    :func:`~.signals.field_value` path), ``max_gap_s`` (the furthest a set may lie from the
+    channel's nearest message, s) and its ``unit``."""
+
+    msgtype: str
+    field: str
+    max_gap_s: float
+    unit: str
+
+
+#: The channels' kinds: a temperature changes slowly (sensors report at ~1 Hz or less), a
+#: current steps with the thrusters, a signal is held to a current's limit.
+CHANNEL_KINDS = {
+    TEMPERATURE: ChannelKind(cv.TEMPERATURE, 'temperature', 10.0, 'degC'),
+    CURRENT_PREFIX: ChannelKind(cv.BATTERY_STATE, 'current', 2.0, 'A'),
+    SIGNAL_PREFIX: ChannelKind('', '', 2.0, 'as recorded'),
+}
+
+
+def channel_kind(name: str) -> ChannelKind:
+    """The kind of channel ``name`` (a signal's with its own field)."""
+    if name == TEMPERATURE:
+        return CHANNEL_KINDS[TEMPERATURE]
+    for prefix in (CURRENT_PREFIX, SIGNAL_PREFIX):
+        if name.startswith(prefix):
+            kind = CHANNEL_KINDS[prefix]
+            if prefix == SIGNAL_PREFIX:
+                return ChannelKind(kind.msgtype, parse_channel(name)[1], kind.max_gap_s, kind.unit)
+            return kind
+    raise BagError(f'{name!r} is not a recorded channel')
 
 
 def max_gap_s(name: str) -> float:
-    """:data:`MAX_GAP_S` of channel ``name`` (a declared signal's: a current's)."""
-    return MAX_GAP_S[TEMPERATURE if name == TEMPERATURE else CURRENT_PREFIX]
+    """The staleness limit of channel ``name``, s (:data:`CHANNEL_KINDS`)."""
+    return channel_kind(name).max_gap_s
 
 
 def channel_topic(name: str) -> str:

@@ -11,9 +11,9 @@ effort (they match a reliable publisher and a sensor-data one alike), depth
 A set's value of a channel is the offline one (:meth:`io.channels.ChannelSeries.on`) on the
 messages received so far: linear between the messages on both sides of the set's stamp when
 both have arrived, else the nearest message; **unknown (NaN) when that message is further
-than** :data:`~tetra_gradiometer.io.channels.MAX_GAP_S` **from the set** (temperature
-10 s, currents 2 s), or when there is none: never zero. A message whose stamp is earlier than
-the channel's last (a restarted replay) forgets the channel's earlier messages.
+than its kind's** ``max_gap_s`` **from the set** (:data:`~..io.channels.CHANNEL_KINDS`:
+temperature 10 s, currents 2 s), or when there is none: never zero. A message whose stamp
+is earlier than the channel's last (a restarted replay) forgets the channel's earlier messages.
 
 * :class:`ChannelHistory` (calibrator): every channel's messages (thread-safe, bounded), as
   :class:`~tetra_gradiometer.io.channels.ChannelSeries` at ``~/calibrate``, where
@@ -42,13 +42,12 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core import TetraGeometry
-from ..core.effects import REFERENCE_RATE, SIGNAL_PREFIX, LiveTerms, Term
-from ..core.effects.recorded_signal import parse_channel
+from ..core.effects import REFERENCE_RATE, LiveTerms, Term
 from ..core.identification import DEFAULT_METHOD
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
 from ..io import conversions as cv
-from ..io.channels import TEMPERATURE, ChannelSeries, channel_topic, max_gap_s
+from ..io.channels import ChannelSeries, channel_kind, channel_topic, max_gap_s
 from ..io.signals import field_value
 from ..pipelines.effects_choice import EffectsChoice
 from ..pipelines.terms import WindowTerms, channels_on, terms_on
@@ -165,14 +164,13 @@ class ChannelBuffer:
 
 
 def channel_message(name: str, msg: Any) -> float:
-    """The channel's value in a ``sensor_msgs/Temperature`` (degC) or ``BatteryState`` (A),
-    or a declared signal's field (NaN when this message lacks it: a joint not reported)."""
-    if name.startswith(SIGNAL_PREFIX):
-        try:
-            return field_value(msg, parse_channel(name)[1])
-        except (ValueError, TypeError):
-            return float('nan')
-    return float(msg.temperature if name == TEMPERATURE else msg.current)
+    """The channel's value in ``msg``: its kind's field (:data:`~..io.channels.CHANNEL_KINDS`:
+    a Temperature's degC, a BatteryState's A, a signal's declared field); NaN when this
+    message lacks it (a joint not reported) or it is not finite."""
+    try:
+        return field_value(msg, channel_kind(name).field)
+    except (ValueError, TypeError):
+        return float('nan')
 
 
 def channel_stamp(msg: Any, now_ns: int) -> int:
@@ -208,21 +206,19 @@ def subscribe_channels(
     calling ``on_message(name, msg)``; ``kwargs`` go to ``create_subscription``. A declared
     signal's message type is the graph's when the node configures: one not published then
     is logged and not read (its channel has no message: named on ``/diagnostics``)."""
-    from sensor_msgs.msg import BatteryState, Temperature
-
     from .common import sensor_qos
 
     out = {}
     for name in names:
-        kind = Temperature if name == TEMPERATURE else BatteryState
-        if name.startswith(SIGNAL_PREFIX):
-            kind = message_class(node, channel_topic(name))
-            if kind is None:
-                node.get_logger().warning(
-                    f'{channel_topic(name)} is not published (or its message package is not '
-                    f'installed): {name} is not read; configure the node again once it is'
-                )
-                continue
+        msgtype = channel_kind(name).msgtype  # '' for a signal: the graph's type
+        topic = channel_topic(name)
+        kind = message_class_named(msgtype) if msgtype else message_class(node, topic)
+        if kind is None:
+            node.get_logger().warning(
+                f'{channel_topic(name)} is not published (or its message package is not '
+                f'installed): {name} is not read; configure the node again once it is'
+            )
+            continue
         out[name] = node.create_subscription(
             kind,
             channel_topic(name),
