@@ -200,13 +200,13 @@ def window_terms(
     """
     if choice.names == ():
         return WindowTerms(notes=(NONE_NOTE,))
+    discover = choice.automatic and choice.discover
     channels, series, unread = window_channels(
-        bag_path, stamps_ns, fields, choice.current_topics, choice.signal_channels,
-        discover=choice.automatic and choice.discover,
+        bag_path, stamps_ns, fields, choice.current_topics, choice.signal_channels, discover
     )
     declared = {parse_declaration(name).channel for name in choice.signals}
     found = []
-    for name in channels.series:
+    for name in channels.series if discover else ():
         if name.startswith(SIGNAL_PREFIX) and name not in declared:
             basis = basis_for(name, channels.series[name])
             if basis is not None:
