@@ -88,8 +88,9 @@ def test_replay_publishes_clock_and_diagnostics_follow_the_bag_time(bag, rate):
     during = len([s for s in playing if s['received'] < RATE_HZ * SECONDS])
     assert expected - 3 <= during <= 2 * expected + 3
     middle = playing[1:-1]  # the first window starts before the data, the last may be partial
-    rates = [s['rate_hz'] for s in middle]
-    # 20 %: a loaded machine gave 44 Hz (the node's /clock and data callbacks run late);
-    # the wall clock would give 500 Hz at 10x (376 Hz before sim time was used).
-    assert np.median(rates) == pytest.approx(RATE_HZ, rel=0.2), rates
+    # The rate is on the readings' own stamps: exactly the bag's in every window with new
+    # readings, however late the executor runs (the node clock gave 29-142 Hz under load; the
+    # wall clock would give 500 Hz at 10x).
+    fresh = [b['rate_hz'] for a, b in zip(middle, middle[1:]) if b['received'] > a['received']]
+    assert fresh and np.allclose(fresh, RATE_HZ, rtol=1e-6), fresh
     assert max(s['staleness_s'] for s in middle) < 0.2

@@ -197,8 +197,9 @@ class TensorNode(ManagedNode):
         self._invalid = [0] * 4
         self._last_arrival = [started] * 4
         self._ever = [False] * 4
+        self._stamped = [0] * 4  # readings whose stamps set the rate
         self._rate = [0.0] * 4
-        self._rate_mark = (started, [0] * 4)
+        self._rate_mark: list[tuple[int | None, int]] = [(None, 0)] * 4
         self.sets_published = 0
         self.sets_invalid = 0
         self.sets_stale = 0
@@ -259,6 +260,7 @@ class TensorNode(ManagedNode):
         if last is not None and stamp < last - self._jump_back_ns:
             self._reset_matcher(sensor, last - stamp)
         self._last_stamp[sensor] = stamp
+        self._stamped[sensor] += 1
         if sensor == 0:
             self._mag1_frame = frame_id
         sets: Iterable[tuple[int, np.ndarray]]
@@ -360,13 +362,17 @@ class TensorNode(ManagedNode):
         now = self._now_s()
         return [s for s in range(4) if now - self._last_arrival[s] > self._stale_timeout]
 
-    def _update_rates(self, now: float) -> None:
-        """Each sensor's message rate (Hz, node clock) since the previous diagnostics."""
-        mark_time, mark_counts = self._rate_mark
-        if now - mark_time > 0:
-            pairs = zip(self._received, mark_counts, strict=True)
-            self._rate = [(c - m) / (now - mark_time) for c, m in pairs]
-        self._rate_mark = (now, list(self._received))
+    def _update_rates(self) -> None:
+        """Each sensor's rate since the previous diagnostics, Hz, on its readings' own stamps:
+        the readings accepted over the span of their stamps. (On arrival times a loaded
+        executor, or ``/clock`` landing between the data, gives half or twice the rate.)"""
+        for s, (mark_stamp, mark_count) in enumerate(self._rate_mark):
+            last, count = self._last_stamp[s], self._stamped[s]
+            if last is not None and mark_stamp is not None and last > mark_stamp:
+                self._rate[s] = (count - mark_count) * NS_PER_S / (last - mark_stamp)
+            elif count == mark_count:
+                self._rate[s] = 0.0
+            self._rate_mark[s] = (last, count)
 
     def _sensor_status(
         self, s: int, now: float, stale: bool, clocks: dict[str, float], recent_missing: int
@@ -405,7 +411,7 @@ class TensorNode(ManagedNode):
     def _publish_diagnostics(self) -> None:
         """Per-sensor rate, staleness and drops; the matching counters."""
         now = self._now_s()
-        self._update_rates(now)
+        self._update_rates()
         stale = self._stale_sensors()
         clocks: list[dict[str, float]] = [{} for _ in range(4)]
         if isinstance(self._matcher, Resampler):
