@@ -129,10 +129,17 @@ def _geology(rng: np.random.Generator, points_enu: np.ndarray, n_sources: int = 
     return np.asarray(magpylib.getB(sources, points_enu, sumup=True))
 
 
+#: Seabed targets (magpylib dipoles, ENU m and A m^2) 22-30 m below three of the lines.
+TARGETS = (((200.0, 0.0, -75.0), (800.0, -500.0, 1200.0)),
+           ((450.0, 76.4, -80.0), (-600.0, 900.0, -1500.0)),
+           ((330.0, 152.8, -72.0), (400.0, 300.0, 900.0)))
+
+
 def build_mission(seed: int, *, drift: bool = True, step: bool = True,
-                  geology: bool = False) -> HullMission:
+                  geology: bool = False, targets: bool = False) -> HullMission:
     """Fly the mission of the module docstring (``seed`` draws the hull, soft iron, step
-    direction and sensor, geology and noise); calibrate on its trim."""
+    direction and sensor, geology and noise), over :data:`TARGETS` with ``targets``;
+    calibrate on its trim."""
     rng = np.random.default_rng(seed)
     k = rng.uniform(-5e-3, 5e-3, (4, 3, 3))
     k = 0.5 * (k + np.swapaxes(k, 1, 2))
@@ -146,9 +153,9 @@ def build_mission(seed: int, *, drift: bool = True, step: bool = True,
     fields_true = data.fields_true.copy()
     measured = data.fields_measured.copy()
     survey = data.segment > 0
+    points = data.position_enu[:, None, :] + np.einsum('nij,sj->nsi', rotation,
+                                                       GEOMETRY.positions)
     if geology:
-        points = data.position_enu[:, None, :] + np.einsum('nij,sj->nsi', rotation,
-                                                           GEOMETRY.positions)
         world = _geology(rng, points.reshape(-1, 3)).reshape(len(t), 4, 3)
         body = np.einsum('nji,nsj->nsi', rotation, world)
         scale = GEOLOGY_RMS_T_PER_M / np.sqrt(np.mean(difference_tensor(body[survey],
@@ -156,6 +163,12 @@ def build_mission(seed: int, *, drift: bool = True, step: bool = True,
         body *= scale
         fields_true += body
         measured += soft.apply(body, body[:, 0])  # the geology magnetises the hull too
+    if targets:
+        sources = [magpylib.misc.Dipole(moment=m, position=p) for p, m in TARGETS]
+        world = np.asarray(magpylib.getB(sources, points.reshape(-1, 3), sumup=True))
+        body = np.einsum('nji,nsj->nsi', rotation, world.reshape(len(t), 4, 3))
+        fields_true += body
+        measured += soft.apply(body, body[:, 0])
     hull, fractions = _hull_fields(rng)
     relaxed = np.clip(t - TRIM_S, 0.0, None)
     scale = 1.0 - np.outer(1.0 - np.exp(-relaxed / RELAXATION_S), fractions if drift else 0 * fractions)

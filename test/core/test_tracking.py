@@ -184,24 +184,36 @@ def test_without_a_monitor_a_closed_gate_is_taken_for_a_step_and_its_sensor_foun
     np.testing.assert_allclose(tracker.offsets_t[2], jump, atol=4 * tracker.offsets_sigma_t[2].max())
 
 
-def test_one_sample_at_a_time_equals_a_chunk():
+@pytest.mark.parametrize('with_world', [False, True])
+def test_one_sample_at_a_time_equals_a_chunk(with_world):
     """The node's per-message path (``one``) gives what ``update`` gives on the same samples,
-    steps found by the gate included."""
+    steps found by the gate included; with the attitude asked for when each block closes."""
     from tetra_gradiometer.core import InterferenceParameters
+    from tetra_gradiometer.core.geometry import interp_orientation
 
     data = _uniform_mission(6)
     fields = data.fields_measured.copy()
     fields[data.t >= 30.0, 1] += np.array([0.5, 0.5, -0.4]) * 1e-9
     g = difference_tensor(fields, GEOMETRY)
-    chunked = OffsetTracker(GEOMETRY, InterferenceParameters.zero(), 0.05e-9, with_world=False)
-    expected = chunked.update(data.t, g)
-    live = OffsetTracker(GEOMETRY, InterferenceParameters.zero(), 0.05e-9, with_world=False)
-    pairs = [live.one(t, tensor) for t, tensor in zip(data.t, g)]
+    q = data.orientation_xyzw if with_world else None
+    chunked = OffsetTracker(GEOMETRY, InterferenceParameters.zero(), 0.05e-9, with_world=with_world)
+    expected = chunked.update(data.t, g, q)
+    live = OffsetTracker(GEOMETRY, InterferenceParameters.zero(), 0.05e-9, with_world=with_world)
+    stamps = np.round(data.t * 1e9).astype(np.int64)
+    asked: list[int] = []
+
+    def attitude(t_s):
+        asked.append(len(t_s))
+        return interp_orientation(stamps, data.orientation_xyzw, np.round(t_s * 1e9).astype(np.int64))
+
+    pairs = [live.one(t, tensor, attitude) for t, tensor in zip(data.t, g)]
     floor = 0.14e-9
     np.testing.assert_allclose(np.array([p[0] for p in pairs]), expected.g, rtol=0, atol=1e-6 * floor)
     np.testing.assert_allclose(np.array([p[1] for p in pairs]), expected.variance, rtol=1e-6,
                                atol=1e-12 * floor**2)
     assert [e.sensors for e in live.events if e.kind == 'step'] == [(2,)]
+    # Asked once per closed block (0.5 s of 10 Hz), never per sample.
+    assert asked == ([5] * (len(data.t) // 5 - 1) if with_world else [])
 
 
 def test_a_vehicle_that_does_not_change_stays_where_it_was():

@@ -133,9 +133,22 @@ def test_without_odom_the_constrained_combinations_are_tracked(tmp_path, monkeyp
     assert worst <= 0.01
 
 
-def _compensator_live(monkeypatch, bag, calibration):
-    """The bag's sets handed to the compensator node (``track_calibration``) in this process,
-    its clock and health monitor advanced with them: the tensors (n, 3, 3) T/m it publishes."""
+def test_live_with_odom_equals_offline(compensated, monkeypatch):
+    """The compensator node, given the bag's ``/odom`` beside its sets (in stamp order, as a
+    replay plays them), tracks with the attitude and publishes the offline tracked tensors."""
+    mission, folder, _ = compensated
+    _, rows = _read(folder / 'tracked.csv')
+    live = _compensator_live(monkeypatch, folder / 'bag', folder / 'cal.yaml', odom=True)
+    floor = mission.floor_t_per_m * 1e9
+    worst = np.max(np.abs(live.reshape(-1, 9) * 1e9 - rows[:, 1:10])) / floor
+    print(f'\ncompensator node tracking with odom: max |live - offline| {worst:.2e} x the floor')
+    assert len(live) == len(rows) and worst <= 0.01
+
+
+def _compensator_live(monkeypatch, bag, calibration, odom=False):
+    """The bag's sets (and with ``odom`` its /odom messages, in stamp order) handed to the
+    compensator node (``track_calibration``) in this process, its clock and health monitor
+    advanced with them: the tensors (n, 3, 3) T/m it publishes."""
     import sys
     from pathlib import Path
 
@@ -149,12 +162,24 @@ def _compensator_live(monkeypatch, bag, calibration):
     from tetra_gradiometer.io.bag import MagneticBag
     from tetra_gradiometer.nodes.compensator import CompensatorNode
 
+    from nav_msgs.msg import Odometry
+
     with MagneticBag(bag) as recorded:
         stamps, fields = recorded.read_sets()
+        series = recorded.read_series(cv.ODOM_TOPIC) if odom else None
+    messages = []
+    for stamp, pose in zip(*(([], []) if series is None else (series.stamps_ns.tolist(), series.values))):
+        msg = Odometry()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+        q = msg.pose.pose.orientation
+        q.x, q.y, q.z, q.w = (float(v) for v in pose[cv.POSE_ORIENTATION])
+        messages.append((stamp, msg))
     tensor_cdr = cv.TensorCdr('tetra_array')
     with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration), use_sim_time=True,
                          sensor_positions=GEOMETRY.to_flat(), track_calibration=True) as (node, published):
         for stamp, field, g in zip(stamps.tolist(), fields, difference_tensor(fields, GEOMETRY)):
+            while messages and messages[0][0] <= stamp:
+                node._tracking._on_odom(messages.pop(0)[1])
             node.get_clock().set_ros_time_override(Time(nanoseconds=stamp))
             node._on_reference(cv.magnetic_field_cdr(field[0], stamp, cv.MAG_FRAMES[0]))
             node._on_raw(tensor_cdr.write(g, stamp))

@@ -42,12 +42,13 @@ writes ``DIR/report.json`` (``alarms``: ``t_s`` seconds since the bag's first me
 ``kind``, ``sensors`` 1-based, ``statistic``, ``threshold``; reports/health.py) and
 ``DIR/health.png``; ``--false-alarms-per-hour`` sets its threshold.
 
-``--track-calibration`` follows the calibration's change along the survey
-(pipelines/tracking.py, core/tracking.py): the tensors and their sigma are the tracked ones,
-the CSV gains nine ``db_<s>1<axis>`` columns (the pair offsets' change removed, nT), the
-health monitor watches the tracked tensor and hands it the steps it finds, and ``--report
-DIR`` holds ``tracking.json`` (every update, gate and step). ``--freeze-calibration`` (the
-default) compensates with the calibration as fitted: re-run with it to compare.
+The calibration's change along the survey is followed (``--track-calibration``, the
+default; pipelines/tracking.py, core/tracking.py): the tensors and their sigma are the
+tracked ones, the CSV gains nine ``db_<s>1<axis>`` columns (the pair offsets' change
+removed, nT), the health monitor watches the tracked tensor and hands it the steps it
+finds, and ``--report DIR`` holds ``tracking.json`` (every update, gate and step).
+``--freeze-calibration`` compensates with the calibration as fitted: re-run with it to
+compare.
 """
 
 from __future__ import annotations
@@ -155,7 +156,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         '--track-calibration',
         dest='track',
         action='store_true',
-        default=TRACK_BY_DEFAULT,
+        default=None,
         help="follow the calibration's change along the survey (core/tracking.py: drift and "
         "steps of the offsets, from the tensor's symmetry and trace and, with /odom, the "
         "body's turns); the CSV gains the db_* columns, --report DIR a tracking.json"
@@ -252,15 +253,18 @@ def _tracking(
     compensation: Compensation,
     health: HealthRecorder | None,
 ) -> TrackedStream | None:
-    """The calibration tracker when asked for (never on the raw tensor)."""
-    if not args.track or args.raw:
+    """The calibration tracker, unless frozen (never on the raw tensor)."""
+    if args.raw:
         return None
-    if compensation.parameters is None or compensation.sensor_noise_t is None:
-        raise InputError('--track-calibration needs a calibration and a sensor noise')
     tracking, note = tracked_stream(
-        args.bag, geometry, compensation.parameters, compensation.sensor_noise_t, health
+        args.bag,
+        geometry,
+        compensation.parameters,
+        compensation.sensor_noise_t,
+        health,
+        asked=args.track,
     )
-    if note:
+    if tracking is None and note:  # else its summary line says how it tracked
         print(f'note: {note}', file=sys.stderr)
     return tracking
 

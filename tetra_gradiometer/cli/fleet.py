@@ -65,6 +65,7 @@ from ..pipelines.compensation import (
     load_compensation,
 )
 from ..pipelines.discrepancy import analyze_bag
+from ..pipelines.tracking import tracked_stream
 from ..pipelines.trim import calibrate_assessed
 from ..pipelines.window_search import find_window
 from ..reports.discrepancy import write_report
@@ -425,12 +426,16 @@ def _compensate(
     compensation = load_compensation(calibration, geometry, target=str(job.bag.params))
     statistics = TensorStatistics()
     health = health_recorder(geometry, compensation)
+    tracking, _ = tracked_stream(
+        job.bag.bag, geometry, compensation.parameters, compensation.sensor_noise_t, health
+    )
     counts = compensate_bag(
         job.bag.bag,
         geometry,
         compensation.parameters,
         sigma=compensation.sigma,
         health=health,
+        tracking=tracking,
         statistics=statistics,
         csv=tmp / CSV_FILE,
         progress=False,

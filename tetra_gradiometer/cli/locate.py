@@ -144,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         allow_missing_channels=args.allow_missing_channels,
         earth_field_enu=earth_field_from_params(params, str(args.params)),
         health=health,
+        sensor_noise_t=None if args.calibration is None else calibration.sensor_noise_t,
     )
     out = write_locate_report(
         result, args.out, plots=not args.no_plots, force=args.force, inputs=inputs

@@ -192,6 +192,8 @@ class TrackedChunk:
 
 #: ``health(start, stop, g_tracked)`` -> the steps it detected there, each ``(t_s, sensors)``.
 HealthFeed = Callable[[int, int, FloatArray], Sequence[tuple[float, tuple[int, ...]]]]
+#: ``attitude(t_s)`` -> the quaternions (k, 4) xyzw body -> ENU at the times ``t_s`` (k,) s.
+Attitude = Callable[[FloatArray], FloatArray]
 
 
 class OffsetTracker:
@@ -248,6 +250,8 @@ class OffsetTracker:
             self._p[N_OFFSETS:, N_OFFSETS:] = self.config.world_sigma_t_per_m**2 * np.eye(N_WORLD)
         self._origin: float | None = None
         self._open: Block | None = None
+        self._pending: list[tuple[float, FloatArray, FloatArray]] = []  # one()'s open block
+        self._pending_index = 0
         self._trial: Trial | None = None
         self._gated = 0
         self._noise = sensor_noise_t**2 * jacobian @ jacobian.T  # (9, 9) of vec(G), (T/m)^2
@@ -311,27 +315,43 @@ class OffsetTracker:
         out.events = self.events[events_before:]
         return out
 
-    def one(self, t_s: float, g_compensated: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def one(
+        self, t_s: float, g_compensated: FloatArray, attitude: Attitude | None = None
+    ) -> tuple[FloatArray, FloatArray]:
         """One sample, unchecked (a node's per-message path, a few microseconds): ``t_s`` s,
         ``g_compensated`` (3, 3) T/m; returns the tracked tensor (3, 3) T/m and the state's
-        variance per component (9,) (T/m)^2. The same as :meth:`update` on that sample;
-        without the attitude only (``with_world`` False)."""
-        if self.with_world:
-            raise InputError('OffsetTracker.one tracks without the attitude: with_world=False')
+        variance per component (9,) (T/m)^2. The same as :meth:`update` on that sample: the
+        correction needs only the blocks before, so the block's samples are learnt from
+        together when it closes, and ``attitude`` (``with_world``) is asked then for their
+        quaternions (k, 4) at their times (k,) s (NaN rows: unknown, not learnt from); by
+        then the navigation has caught up with them."""
         if self._origin is None:
             self._origin = float(t_s)
         index = int(np.floor((t_s - self._origin) / self.config.block_s))
+        if self._pending and index != self._pending_index:
+            self._learn_pending(attitude)
         self._advance(index)
         h, p_b = self._h, self._p[:N_OFFSETS, :N_OFFSETS]
         tracked = g_compensated - (h @ self._x[:N_OFFSETS]).reshape(3, 3)
-        variance = np.sum((h @ p_b) * h, axis=1)
-        block = self._open
-        if block is None or block.index != index:
-            block = self._open = Block(index, self._x.size)
-        block.t_end, block.n = float(t_s), block.n + 1.0
-        block.info += self._h_white.T @ self._h_white
-        block.vector += self._h_white.T @ (self._whiten @ g_compensated.reshape(9))
-        return tracked, variance
+        self._pending.append((float(t_s), g_compensated, tracked))
+        self._pending_index = index
+        return tracked, np.sum((h @ p_b) * h, axis=1)
+
+    def _learn_pending(self, attitude: Attitude | None) -> None:
+        """The samples :meth:`one` corrected in the open block, into its sums."""
+        t_s, g, tracked = (np.array(column) for column in zip(*self._pending, strict=True))
+        self._pending = []
+        keep = np.ones(len(t_s))
+        rotation = None
+        if self.with_world:
+            if attitude is None:
+                raise InputError('the tracker estimates the world gradient: give the attitude')
+            q = np.array(attitude(t_s), dtype=float).reshape(len(t_s), 4)
+            known = np.all(np.isfinite(q), axis=1)
+            keep[~known] = 0.0
+            q[~known] = (0.0, 0.0, 0.0, 1.0)
+            rotation = self._rotations(q, len(t_s))
+        self._accumulate(t_s, g, tracked, rotation, keep, (0, len(t_s)), self._pending_index)
 
     def step(self, sensors: Sequence[int], t_s: float) -> None:
         """A step detected at ``t_s`` (s), ``sensors`` (1-based) the likeliest first: the

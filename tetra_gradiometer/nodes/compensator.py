@@ -11,9 +11,8 @@ Pairs ``gradient/raw`` (T/m) with ``reference_field`` (``B_1'``, T) by stamp and
 core/uncertainty.py, from ``sensor_noise_t`` or else the calibration's noise estimate, and
 the calibration's covariance; none while the noise is unknown). With ``gradient/truth`` at
 the same stamp it publishes the running ``epsilon`` (eq. 24) and ``compensated_percent``; a
-new calibration or ``~/reset_metrics`` restarts them. With ``track_calibration`` the
-calibration's drift and steps are followed online (core/tracking.py, the health monitor's
-steps handed to it), as ``compensate --track-calibration`` on a bag without ``/odom``.
+new calibration or ``~/reset_metrics`` restarts them. ``track_calibration`` follows the
+calibration's drift and steps online as ``compensate --track-calibration`` (.calibration_tracking).
 
 Vehicle effects: a calibration with terms (``D = (k B_1' + b + sum W x) a^-1``) makes the
 node read the channels they read (:mod:`.channels`: temperature, currents, declared
@@ -39,7 +38,7 @@ from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.health import MIN_SOURCE_RANGE_EDGES, HealthConfig, HealthMonitor
 from ..core.metrics import epsilon_terms
 from ..core.plausibility import plausible_readings
-from ..core.tracking import OffsetTracker, handed_over
+from ..core.tracking import handed_over
 from ..core.uncertainty import SigmaModel
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import InputError, MessageError
@@ -54,6 +53,7 @@ from ..io.channels import channel_topic
 from ..io.matching import StampPairer
 from ..pipelines.health import alarm_cause
 from .authentication import CalibrationGate, Refused, key_file_spec, node_key
+from .calibration_tracking import LiveTracking
 from .channels import LiveEffects, channel_message, channel_stamp, subscribe_channels
 from .common import (
     ARRAY_FRAME_SPEC,
@@ -127,9 +127,9 @@ PARAMETERS = [
     ParamSpec(
         'track_calibration',
         False,
-        "Follow the calibration's drift and steps online (core/tracking.py, without the "
-        'attitude: the four combinations the constraints observe) and add its variance to '
-        'gradient/sigma; false: the calibration as loaded. Read-only.',
+        "Follow the calibration's drift and steps online (core/tracking.py, with odom's "
+        'attitude when heard by the first set) and add its variance to gradient/sigma; '
+        'false: the calibration as loaded. Read-only.',
         read_only=True,
     ),
     ARRAY_FRAME_SPEC,
@@ -181,8 +181,7 @@ class CompensatorNode(ManagedNode):
             min_source_range_edges=p['health_min_source_range_edges'],
         )
         self._health: HealthMonitor | None = None
-        self._track = bool(p['track_calibration'])
-        self._tracker: OffsetTracker | None = None
+        self._tracking: LiveTracking | None = None
         self._health_text = 'off: no calibration'
         self._health_first_s = 0.0  # the monitor's first sample, s
         self._health_buffer: list[tuple[float, np.ndarray, np.ndarray]] = []
@@ -208,6 +207,8 @@ class CompensatorNode(ManagedNode):
         self._diag_pub = self.diagnostics_publisher(self._watch)
         self._horizon = self._watch.watch_stamps(p['max_stamp_ahead_s'], p['warn_throttle_s'])
         self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
+        if p['track_calibration']:
+            self._tracking = LiveTracking(self, self.when_active, self._horizon)
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
         self.create_subscription(String, 'calibration', gated(self._on_calibration), latched_qos())
@@ -339,22 +340,21 @@ class CompensatorNode(ManagedNode):
         self._start_health(calibration, noise)
 
     def _start_health(self, calibration: CalibrationFile | None, noise: float) -> None:
-        """A fresh monitor for ``calibration`` (a new calibration clears every alarm)."""
-        self._health_buffer, self._health_sent, self._tracker = [], {}, None
-        if calibration is None:
-            self._health, self._health_text = None, 'off: no calibration'
-            return
-        parameters, covariance = calibration.parameters, calibration.covariance
-        if parameters.terms:  # the monitor's model is k, b: their block of the covariance
-            size = 36  # the general k, b lead InterferenceParameters.full_vector
-            parameters = parameters.without_terms()
-            covariance = None if covariance is None else covariance[:size, :size]
-        self._health = HealthMonitor(
-            self._geometry, parameters, noise, covariance, self._health_config
-        )
-        self._health_text = 'watching'
-        if self._track:
-            self._tracker = OffsetTracker(self._geometry, parameters, noise, with_world=False)
+        """A fresh monitor and tracker for ``calibration`` (a new one clears every alarm)."""
+        self._health_buffer, self._health_sent = [], {}
+        self._health, self._health_text, parameters = None, 'off: no calibration', None
+        if calibration is not None:
+            parameters, covariance = calibration.parameters, calibration.covariance
+            if parameters.terms:  # the monitor's model is k, b: their block of the covariance
+                size = 36  # the general k, b lead InterferenceParameters.full_vector
+                parameters = parameters.without_terms()
+                covariance = None if covariance is None else covariance[:size, :size]
+            self._health = HealthMonitor(
+                self._geometry, parameters, noise, covariance, self._health_config
+            )
+            self._health_text = 'watching'
+        if self._tracking is not None:
+            self._tracking.start(self._geometry, parameters, noise)
 
     def _feed_health(self) -> None:
         """Feed the buffered samples to the monitor; publish new (and newly settled) alarms."""
@@ -367,8 +367,8 @@ class CompensatorNode(ManagedNode):
             self._health_first_s = float(t_s[0])
         try:
             for t, sensors in handed_over(monitor.update(t_s, g, b).alarms):
-                if self._tracker is not None:
-                    self._tracker.step(sensors, t)
+                if self._tracking is not None:
+                    self._tracking.step(sensors, t)
         except InputError as error:  # stamps that do not advance: the monitor stops
             self._health, self._health_text = None, f'off: {error}'
             self.get_logger().warning(f'health monitor stopped: {error}')
@@ -452,8 +452,8 @@ class CompensatorNode(ManagedNode):
                 g_raw[None], b_reference[None], self._interference, self._geometry, regressors
             )[0]
         variance = np.zeros(9)
-        if self._tracker is not None:
-            g, variance = self._tracker.one(stamp_ns * S_PER_NS, g)
+        if self._tracking is not None:
+            g, variance = self._tracking.one(stamp_ns, g)
         norm_nt = float(np.linalg.norm(g) * NT_PER_T)
         if not (np.all(np.isfinite(g)) and np.isfinite(norm_nt)):  # never publish inf or NaN
             self._drop(stamp_ns, 'a non-finite compensated tensor')
@@ -578,6 +578,7 @@ class CompensatorNode(ManagedNode):
             'alarms': len(monitor.alarms),
             'noise_scale': monitor.noise_scale,
             'samples': monitor.samples,
+            **({} if self._tracking is None else self._tracking.values()),
         }
         if monitor.alarms:
             alarm = monitor.alarms[-1]

@@ -44,6 +44,7 @@ from .compensation import Compensation
 from .health import HealthRecorder
 from .survey_grid import GridSettings, SurveyGrids, grid_track
 from .terms import StreamRegressors
+from .tracking import track_tensors
 
 __all__ = [
     'LegResidual',
@@ -165,7 +166,7 @@ def survey_bag(
     georeference = georeference_of(bag, recording, origin, navsat_topic)
     crs = crs or georeference.default_crs()
     rotations = Rotation.from_quat(recording.orientation_xyzw).as_matrix()
-    body, sigma_noise, sigma_cal = _compensated(bag, recording, geometry, compensation)
+    body, sigma_noise, sigma_cal = _compensated(bag, recording, geometry, compensation, rotations)
     track = _track(recording, rotations, georeference, crs, (body, sigma_noise, sigma_cal))
     track = replace(
         track, legs=legs(track.t_s, track.odom_m, rotations, detector or DetectorSettings())
@@ -287,9 +288,12 @@ def _compensated(
     recording: Recording,
     geometry: TetraGeometry,
     compensation: Compensation,
+    rotations: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Body-frame compensated tensors (N, 3, 3) T/m (NaN where a term's channel is
-    unknown), the noise and the calibration parts of their 1-sigma (N, 3, 3) T/m."""
+    unknown; the calibration tracked, pipelines/tracking.py, off the anomalies found along
+    the track: ``rotations`` (N, 3, 3) body -> odom), the noise and the calibration parts of
+    their 1-sigma (N, 3, 3) T/m."""
     parameters, sigma = compensation.parameters, compensation.sigma
     if parameters is None or sigma is None or compensation.sensor_noise_t is None:
         raise BagError('the survey needs a calibration with a sensor noise figure')
@@ -306,9 +310,15 @@ def _compensated(
     noise = np.full_like(raw, np.nan)
     xk = None if x is None else x[known]
     body[known] = compensate(raw[known], fields[known, 0, :], parameters, geometry, xk)
+    # Tracked as compensate tracks by default; the tracker's state is calibration sigma.
+    assert recording.position_m is not None  # survey_bag refuses a bag without /odom
+    track = (recording.t_s, recording.position_m, rotations)
+    body, variance, _ = track_tensors(
+        bag, geometry, parameters, compensation.sensor_noise_t, recording, body, track
+    )
     total[known] = sigma(fields[known, 0, :], xk)
     noise[known] = noise_model(fields[known, 0, :], xk)
-    calibration = np.sqrt(np.maximum(total**2 - noise**2, 0.0))
+    calibration = np.sqrt(np.maximum(total**2 - noise**2, 0.0) + variance)
     return body, noise, calibration
 
 

@@ -24,6 +24,7 @@ from ..io.bag import MagneticBag
 from ..io.recording import Recording, read_recording
 from .health import HealthRecorder
 from .terms import StreamRegressors
+from .tracking import track_tensors
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,7 @@ def locate_bag(
     allow_missing_channels: bool = False,
     earth_field_enu: np.ndarray | None = None,
     health: HealthRecorder | None = None,
+    sensor_noise_t: float | None = None,
 ) -> BagTargets:
     """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
     7, when None) and, with ``comparison``, the raw one too. ``allow_missing_channels``: a
@@ -101,6 +103,8 @@ def locate_bag(
     mean instead of refusing (``compensate --allow-missing-channels``). ``earth_field_enu``
     (3,) T, the params file's: the odometry's world frame is tested against it. ``health``
     (pipelines/health) is fed the compensated sets: the output checks itself.
+    ``sensor_noise_t`` (T, the calibration's): the calibration is tracked as ``compensate``
+    tracks it by default (pipelines/tracking.py); None: not tracked.
 
     Raises
     ------
@@ -122,7 +126,17 @@ def locate_bag(
             bag, parameters, recording, geometry if allow_missing_channels else None
         )
         b1 = recording.fields[:, 0, :]
-        kinds.append(('compensated', compensate(raw, b1, parameters, geometry, x)))
+        g = compensate(raw, b1, parameters, geometry, x)
+        g, _, _ = track_tensors(
+            bag,
+            geometry,
+            parameters,
+            sensor_noise_t,
+            recording,
+            g,
+            (track.t_s, track.positions, track.rotations),
+        )
+        kinds.append(('compensated', g))
         if health is not None:
             health.add_recording(recording.stamps_ns, recording.fields, kinds[-1][1])
     if parameters is None or comparison:

@@ -138,6 +138,9 @@ class AttitudeHistory:
             self._quats.append(quaternion)
             return True
 
+    def __len__(self) -> int:
+        return len(self._stamps)
+
     def clear(self) -> None:
         self._stamps.clear()
         self._quats.clear()
