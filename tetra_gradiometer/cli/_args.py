@@ -161,6 +161,32 @@ def window_arg(text: str) -> tuple[float, float]:
     return parsed
 
 
+def add_tracking_arguments(parser: argparse.ArgumentParser, outputs: str = '') -> None:
+    """``--track-calibration`` / ``--freeze-calibration`` (``args.track``: None when neither
+    is given, then pipelines.tracking.TRACK_BY_DEFAULT decides)."""
+    from ..pipelines.tracking import TRACK_BY_DEFAULT
+
+    track = parser.add_mutually_exclusive_group()
+    track.add_argument(
+        '--track-calibration',
+        dest='track',
+        action='store_true',
+        default=None,
+        help="follow the calibration's change along the survey (core/tracking.py: drift and "
+        "steps of the offsets, from the tensor's symmetry and trace and, with /odom, the "
+        "body's turns; never learning from a detected anomaly's pass where /odom places it)"
+        + outputs
+        + (' (the default)' if TRACK_BY_DEFAULT else ''),
+    )
+    track.add_argument(
+        '--freeze-calibration',
+        dest='track',
+        action='store_false',
+        help='compensate with the calibration as fitted on the trim'
+        + ('' if TRACK_BY_DEFAULT else ' (the default)'),
+    )
+
+
 def add_progress_arguments(parser: argparse.ArgumentParser) -> None:
     """``--progress`` / ``--no-progress`` into ``args.progress`` (None: only on a terminal)."""
     progress = parser.add_mutually_exclusive_group()

@@ -76,13 +76,14 @@ from ..pipelines.compensation import (
     load_compensation,
 )
 from ..pipelines.health import HealthRecorder
-from ..pipelines.tracking import TRACK_BY_DEFAULT, TrackedStream, tracked_stream
+from ..pipelines.tracking import TrackedStream, tracked_stream
 from ..reports.health import write_health_report
 from ._args import (
     MAX_FALSE_ALARMS_PER_HOUR,
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
+    add_tracking_arguments,
     bag_from_args,
     positive_float,
     say_forced,
@@ -151,23 +152,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         'temperature) is absent from the bag: its terms held at their calibration-window mean, '
         'the sigma widened by their spread there, the CSV and summary saying so',
     )
-    track = parser.add_mutually_exclusive_group()
-    track.add_argument(
-        '--track-calibration',
-        dest='track',
-        action='store_true',
-        default=None,
-        help="follow the calibration's change along the survey (core/tracking.py: drift and "
-        "steps of the offsets, from the tensor's symmetry and trace and, with /odom, the "
-        "body's turns); the CSV gains the db_* columns, --report DIR a tracking.json"
-        + (' (the default)' if TRACK_BY_DEFAULT else ''),
-    )
-    track.add_argument(
-        '--freeze-calibration',
-        dest='track',
-        action='store_false',
-        help='compensate with the calibration as fitted on the trim'
-        + ('' if TRACK_BY_DEFAULT else ' (the default)'),
+    add_tracking_arguments(
+        parser, '; the CSV gains the db_* columns, --report DIR a tracking.json'
     )
     add_progress_arguments(parser)
 

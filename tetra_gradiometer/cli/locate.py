@@ -41,6 +41,7 @@ from ._args import (
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
+    add_tracking_arguments,
     bag_from_args,
     positive_float,
     say_forced,
@@ -85,6 +86,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         'its terms at their calibration-window mean (report.md and the output say so)',
     )
     add_force_argument(parser, 'a previous targets folder at --out')
+    add_tracking_arguments(parser)
     add_progress_arguments(parser)
 
 
@@ -144,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
         allow_missing_channels=args.allow_missing_channels,
         earth_field_enu=earth_field_from_params(params, str(args.params)),
         health=health,
-        sensor_noise_t=None if args.calibration is None else calibration.sensor_noise_t,
+        tracking=(None if args.calibration is None else calibration.sensor_noise_t, args.track),
     )
     out = write_locate_report(
         result, args.out, plots=not args.no_plots, force=args.force, inputs=inputs

@@ -42,6 +42,7 @@ from ._args import (
     add_bag_arguments,
     add_force_argument,
     add_progress_arguments,
+    add_tracking_arguments,
     bag_from_args,
     positive_float,
     say_forced,
@@ -108,6 +109,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         '--vehicle', default='', help="the vehicle's name for report.html (default: not named)"
     )
     add_force_argument(parser, 'a previous survey folder at --out')
+    add_tracking_arguments(parser)
     add_progress_arguments(parser)
 
 
@@ -160,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
         on_stage=lambda text: print(f'{text} ...', file=sys.stderr, flush=True),
         earth_field_enu=earth,
+        tracked=args.track,
     )
     print('writing the products ...', file=sys.stderr, flush=True)
     metadata = {

@@ -141,17 +141,16 @@ def survey_bag(
     progress: bool | None = None,
     on_stage: Callable[[str], None] | None = None,
     earth_field_enu: np.ndarray | None = None,
+    tracked: bool | None = None,
 ) -> SurveyResult:
-    """The survey products of ``bag`` (module docstring), placed by ``origin`` (lat, lon,
-    h) or fitted to the fixes of ``navsat_topic`` (exactly one of them); the odometry's world
-    frame tested against ``earth_field_enu`` (3,) T (the params file's, or IGRF at origin).
+    """The survey products of ``bag`` (module docstring), placed by ``origin`` (lat, lon, h)
+    or fitted to the fixes of ``navsat_topic`` (one of them); the odometry's world frame
+    tested against ``earth_field_enu`` (3,) T (the params file's, or IGRF at origin); the
+    calibration ``tracked`` (None: as ``compensate`` by default).
 
-    Raises
-    ------
-    BagError : no usable ``/odom`` (the cause named), the NavSatFix topic is absent or empty,
-        the data contract
-    InputError : both or neither placement, too few fixes, nothing to grid
-    """
+    Raises ``BagError`` (no usable ``/odom``, the cause named; the NavSatFix topic absent or
+    empty; the data contract), ``InputError`` (both or neither placement, too few fixes,
+    nothing to grid)."""
     timings: dict[str, float] = {}
     clock = time.perf_counter()
     _stage(on_stage, 'reading the bag')
@@ -166,8 +165,9 @@ def survey_bag(
     georeference = georeference_of(bag, recording, origin, navsat_topic)
     crs = crs or georeference.default_crs()
     rotations = Rotation.from_quat(recording.orientation_xyzw).as_matrix()
-    body, sigma_noise, sigma_cal = _compensated(bag, recording, geometry, compensation, rotations)
-    track = _track(recording, rotations, georeference, crs, (body, sigma_noise, sigma_cal))
+    compensated = _compensated(bag, recording, geometry, compensation, (rotations, tracked))
+    body = compensated[0]
+    track = _track(recording, rotations, georeference, crs, compensated)
     track = replace(
         track, legs=legs(track.t_s, track.odom_m, rotations, detector or DetectorSettings())
     )
@@ -288,11 +288,12 @@ def _compensated(
     recording: Recording,
     geometry: TetraGeometry,
     compensation: Compensation,
-    rotations: FloatArray,
+    tracking: tuple[FloatArray, bool | None],
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Body-frame compensated tensors (N, 3, 3) T/m (NaN where a term's channel is
     unknown; the calibration tracked, pipelines/tracking.py, off the anomalies found along
-    the track: ``rotations`` (N, 3, 3) body -> odom), the noise and the calibration parts of
+    the track: ``tracking`` the rotations (N, 3, 3) body -> odom and whether to track, None:
+    as ``compensate`` by default), the noise and the calibration parts of
     their 1-sigma (N, 3, 3) T/m."""
     parameters, sigma = compensation.parameters, compensation.sigma
     if parameters is None or sigma is None or compensation.sensor_noise_t is None:
@@ -312,9 +313,9 @@ def _compensated(
     body[known] = compensate(raw[known], fields[known, 0, :], parameters, geometry, xk)
     # Tracked as compensate tracks by default; the tracker's state is calibration sigma.
     assert recording.position_m is not None  # survey_bag refuses a bag without /odom
-    track = (recording.t_s, recording.position_m, rotations)
+    track = (recording.t_s, recording.position_m, tracking[0])
     body, variance, _ = track_tensors(
-        bag, geometry, parameters, compensation.sensor_noise_t, recording, body, track
+        bag, geometry, parameters, compensation.sensor_noise_t, recording, body, track, tracking[1]
     )
     total[known] = sigma(fields[known, 0, :], xk)
     noise[known] = noise_model(fields[known, 0, :], xk)

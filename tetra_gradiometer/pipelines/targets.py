@@ -95,7 +95,7 @@ def locate_bag(
     allow_missing_channels: bool = False,
     earth_field_enu: np.ndarray | None = None,
     health: HealthRecorder | None = None,
-    sensor_noise_t: float | None = None,
+    tracking: tuple[float | None, bool | None] = (None, False),
 ) -> BagTargets:
     """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
     7, when None) and, with ``comparison``, the raw one too. ``allow_missing_channels``: a
@@ -103,8 +103,8 @@ def locate_bag(
     mean instead of refusing (``compensate --allow-missing-channels``). ``earth_field_enu``
     (3,) T, the params file's: the odometry's world frame is tested against it. ``health``
     (pipelines/health) is fed the compensated sets: the output checks itself.
-    ``sensor_noise_t`` (T, the calibration's): the calibration is tracked as ``compensate``
-    tracks it by default (pipelines/tracking.py); None: not tracked.
+    ``tracking``: the calibration's sensor noise (T) and whether to track it
+    (pipelines/tracking.py; None: as ``compensate`` by default).
 
     Raises
     ------
@@ -131,10 +131,11 @@ def locate_bag(
             bag,
             geometry,
             parameters,
-            sensor_noise_t,
+            tracking[0],
             recording,
             g,
             (track.t_s, track.positions, track.rotations),
+            asked=tracking[1],
         )
         kinds.append(('compensated', g))
         if health is not None:

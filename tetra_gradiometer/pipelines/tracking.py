@@ -149,14 +149,15 @@ def track_tensors(
     recording: Any,
     tensors: FloatArray,
     track: tuple[FloatArray, FloatArray, FloatArray],
+    asked: bool | None = None,
 ) -> tuple[FloatArray, FloatArray, str]:
     """A whole recording's compensated ``tensors`` (N, 3, 3) T/m tracked as ``compensate``
-    tracks them by default (``survey``, ``locate``), never learning from the anomalies
+    tracks them (``survey``, ``locate``), never learning from the anomalies
     detected along ``track`` (``t_s``, ``positions``, ``rotations``: :func:`target_spans`):
     the tracked tensors (NaN rows stay NaN), the state's variance (N, 3, 3) (T/m)^2 and the
     tracker's summary line (or why there is none). ``recording``: its ``stamps_ns`` (N,)
-    and ``fields`` (N, 4, 3) T."""
-    tracking, note = tracked_stream(bag_path, geometry, parameters, sensor_noise_t, None)
+    and ``fields`` (N, 4, 3) T; ``asked``: as :func:`tracked_stream`'s."""
+    tracking, note = tracked_stream(bag_path, geometry, parameters, sensor_noise_t, None, asked)
     variance = np.zeros_like(tensors)
     if tracking is None:
         return tensors, variance, note
