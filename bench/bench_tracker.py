@@ -60,7 +60,9 @@ def track(mission, chunk: int = 600, attitude: bool = True, exclude=None):
         difference_tensor(fields, GEOMETRY), fields[:, 0], calibration.parameters, GEOMETRY
     )
     noise = calibration.details['sensor_noise_nT'] * 1e-9
-    tracker = OffsetTracker(GEOMETRY, calibration.parameters, noise, with_world=attitude)
+    tracker = OffsetTracker(
+        GEOMETRY, calibration.parameters, noise, with_world=attitude, monitored=True
+    )
     monitor = HealthMonitor(GEOMETRY, calibration.parameters, noise, calibration.covariance)
     q = mission.orientation_xyzw[s]
     parts, started = [], time.perf_counter()

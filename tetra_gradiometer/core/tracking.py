@@ -210,6 +210,10 @@ class OffsetTracker:
     with_world : bool
         Estimate the world gradient too (then :meth:`update` needs the attitude): the five
         symmetric traceless combinations become observable when the body turns.
+    monitored : bool
+        A health monitor hands the steps over (:meth:`step`): a gate closed for ``stuck_s``
+        is then not searched for a step (a large target's pass closes it for seconds, and a
+        sensor's step fitted to it was taken for one on the shipped survey, 1.3x the floor).
     """
 
     def __init__(
@@ -220,11 +224,13 @@ class OffsetTracker:
         config: TrackerConfig | None = None,
         *,
         with_world: bool = True,
+        monitored: bool = False,
     ) -> None:
         if not (np.isfinite(sensor_noise_t) and sensor_noise_t > 0):
             raise InputError(f'sensor_noise_t must be positive, got {sensor_noise_t}')
         self.config = config or TrackerConfig()
         self.with_world = with_world
+        self.monitored = monitored
         self._h = affine_interference_design(geometry, symmetric=False)[3][:, 27:]  # (9, 9)
         jacobian = noise_jacobian(geometry, parameters)
         rows = np.eye(9) if with_world else CONSTRAINT_ROWS
@@ -456,8 +462,8 @@ class OffsetTracker:
 
     def _close(self, block: Block) -> None:
         """One information-form update from the block's sums (or none: gated, excluded); a
-        gate that holds for ``stuck_s`` is a step no monitor handed over: its sensor is
-        sought as for one that was."""
+        gate that holds for ``stuck_s`` with no monitor is a step nobody handed over: its
+        sensor is sought as for one that was."""
         if block.n == 0:
             self._record(block.t_end, 'excluded')
             return
@@ -470,7 +476,7 @@ class OffsetTracker:
         if statistic > limit:
             self._gated += 1
             self._record(block.t_end, 'gated', statistic=statistic)
-            if self._gated * self.config.block_s >= self.config.stuck_s:
+            if not self.monitored and self._gated * self.config.block_s >= self.config.stuck_s:
                 self._start_trial(block.t_end, (), self.config.confirm_s)
             return
         self._gated = 0

@@ -56,7 +56,10 @@ class LiveTracking:
         if self.tracker is None:
             geometry, parameters, noise = self._model
             world = len(self._odom) > 0
-            self.tracker = OffsetTracker(geometry, parameters, noise, with_world=world)
+            # The node's health monitor hands the steps over (nodes/compensator.py).
+            self.tracker = OffsetTracker(
+                geometry, parameters, noise, with_world=world, monitored=True
+            )
             self._node.get_logger().info(
                 'tracking the calibration '
                 + ('with the attitude of odom' if world else 'without the attitude (no odom yet)')
