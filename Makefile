@@ -1,5 +1,6 @@
 # Two entry points for a fresh machine: `make demo` and `make test`.
-# Both run `setup` first; setup is idempotent (re-runs only when the pins change).
+# Both run `setup` first; setup is idempotent (re-runs only when the pins change, and builds
+# the interface package tetra_gradiometer_msgs/ only when its files change).
 # `make test` runs the gates (`make check`: ruff, mypy, module/function sizes) and then the tests.
 PYTHON ?= python3
 VENV   := .venv
@@ -7,9 +8,20 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
+# The interface package tetra_gradiometer_msgs/ (ament_cmake, rosidl) built from the ros-jazzy-*
+# wheels with plain cmake and installed into the venv's prefix, where the venv's Python finds
+# it with no variables (docs/ros.md, *Our interfaces*). Rebuilt when its files or the pins
+# change; the build dir (git-ignored) is kept for incremental rebuilds.
+MSGS       := tetra_gradiometer_msgs
+MSGS_STAMP := $(VENV)/.msgs-installed
+MSGS_FILES := $(MSGS)/CMakeLists.txt $(MSGS)/package.xml $(wildcard $(MSGS)/msg/*.msg $(MSGS)/srv/*.srv)
+# per venv (target-specific below): MSGS_VENV, and its build dir MSGS_BUILD; the wheels'
+# ament index (rosidl_typesupport_c's lookup) and cmake packages are the venv's
+MSGS_ENV    = PATH="$(abspath $(MSGS_VENV))/bin:$$PATH" AMENT_PREFIX_PATH="$(abspath $(MSGS_VENV))"
+
 .PHONY: setup browser check demo test tests test-noble paper bench bags clean
 
-setup: $(STAMP) browser
+setup: $(STAMP) $(MSGS_STAMP) browser
 
 # The survey report's browser test (test/reports/test_survey_report.py) loads report.html in
 # headless Chromium from Debian's packages: installed here when missing and we are root with
@@ -26,6 +38,20 @@ $(STAMP): requirements.txt requirements-dev.txt constraints.txt setup.py setup.c
 	# colcon builds the real package from setup.py).
 	$(PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
 	touch $(STAMP)
+
+define BUILD_MSGS
+$(MSGS_ENV) cmake -S $(MSGS) -B $(MSGS_BUILD) -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
+  -DCMAKE_PREFIX_PATH="$(abspath $(MSGS_VENV))" -DPython3_EXECUTABLE="$(abspath $(MSGS_VENV))/bin/python" > /dev/null
+$(MSGS_ENV) cmake --build $(MSGS_BUILD) -j $(shell nproc) > $(MSGS_BUILD)/make.log \
+  || { tail -n 30 $(MSGS_BUILD)/make.log; exit 1; }
+cmake --install $(MSGS_BUILD) --prefix "$(abspath $(MSGS_VENV))" > /dev/null
+touch $@
+endef
+
+$(MSGS_STAMP): MSGS_VENV := $(VENV)
+$(MSGS_STAMP): MSGS_BUILD := build/$(MSGS)
+$(MSGS_STAMP): $(STAMP) $(MSGS_FILES)
+	$(BUILD_MSGS)
 
 demo: setup
 	$(PY) -m tetra_gradiometer demo --out $(OUT)/demo --force
@@ -52,6 +78,7 @@ tests: setup
 NOBLE_VENV  := .venv-noble
 NOBLE_PY    := $(NOBLE_VENV)/bin/python
 NOBLE_STAMP := $(NOBLE_VENV)/.installed
+NOBLE_MSGS_STAMP := $(NOBLE_VENV)/.msgs-installed
 
 $(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraints-noble.txt scripts/noble_pins.py setup.py setup.cfg package.xml
 	test -x $(NOBLE_PY) || $(PYTHON) -m venv $(NOBLE_VENV)
@@ -60,7 +87,13 @@ $(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraint
 	$(NOBLE_PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
 	touch $(NOBLE_STAMP)
 
-test-noble: $(NOBLE_STAMP)
+# the interface package, built against this venv's numpy in a build dir of its own
+$(NOBLE_MSGS_STAMP): MSGS_VENV := $(NOBLE_VENV)
+$(NOBLE_MSGS_STAMP): MSGS_BUILD := build/$(MSGS)-noble
+$(NOBLE_MSGS_STAMP): $(NOBLE_STAMP) $(MSGS_FILES)
+	$(BUILD_MSGS)
+
+test-noble: $(NOBLE_STAMP) $(NOBLE_MSGS_STAMP)
 	$(NOBLE_PY) -c 'import numpy, scipy; print("numpy", numpy.__version__, "scipy", scipy.__version__)'
 	$(NOBLE_PY) -m pytest -n $(TEST_WORKERS)
 
@@ -90,7 +123,7 @@ bench: setup
 	$(PY) bench/tables.py --measured-here $(addsuffix .json,$(BENCH_JSON))
 
 clean:
-	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) .pytest_cache *.egg-info mutants
+	rm -rf $(VENV) $(NOBLE_VENV) $(OUT) build/$(MSGS) build/$(MSGS)-noble .pytest_cache *.egg-info mutants
 
 # Mutation smoke check (not in CI): mutmut (requirements-dev.txt) mutates core/metrics.py,
 # geometry.py, fields.py, core/effects/, core/identification/terms.py, core/streams.py,

@@ -123,9 +123,16 @@ else
   cp -r "$SRC" "$WS/src/tetra_gradiometer"; rm -rf "$WS/src/tetra_gradiometer/.venv"
 fi
 say "colcon build"
+# The interface package tetra_gradiometer_msgs/ lies inside the checkout's own package, where
+# colcon's crawl does not look (it stops at a package): named as a base path of its own.
 (cd "$WS" && PATH=$VENV/bin:$PATH AMENT_PREFIX_PATH=$UNDERLAY/install:$VENV \
-  colcon build --event-handlers console_direct- > "$LOGS/colcon_build.log" 2>&1)
-check "colcon build tetra_gradiometer" $? "$(grep -m1 -E '^Summary' "$LOGS/colcon_build.log")"
+  colcon build --event-handlers console_direct- \
+    --base-paths src src/tetra_gradiometer/tetra_gradiometer_msgs \
+    --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$PY" > "$LOGS/colcon_build.log" 2>&1)
+rc=$?
+check "colcon build tetra_gradiometer and tetra_gradiometer_msgs" \
+  "$([ $rc = 0 ] && grep -q '^Summary: 2 packages finished' "$LOGS/colcon_build.log"; echo $?)" \
+  "$(grep -m1 -E '^Summary' "$LOGS/colcon_build.log")"
 
 export PATH=$VENV/bin:$PATH AMENT_PREFIX_PATH=$VENV
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-150} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -138,6 +145,19 @@ source "$WS/install/local_setup.bash"
 set -u
 PREFIX=$WS/install/tetra_gradiometer SHARE=$WS/install/tetra_gradiometer/share/tetra_gradiometer
 cd "$WORK/run" || exit 2   # no config/ or launch/ here: everything must come from the install
+
+out=$(timeout 60 ros2 interface show tetra_gradiometer_msgs/msg/GradientTensor 2>&1)
+check "ros2 interface show tetra_gradiometer_msgs/msg/GradientTensor prints its fields" \
+  "$(for f in 'uint8 COMPENSATED=1' 'float64[9] g_sigma' 'geometry_msgs/Vector3 reference_field' 'string calibration_id'; do
+       echo "$out" | grep -qF "$f" || exit 1; done; echo 0)" "$(echo "$out" | grep -cE '^[a-z]') field lines"
+# rclpy imports the built interfaces; the offline tools (io/interfaces.py) read their .msg text
+# from the install's share/ (no checkout beside the installed Python package)
+out=$(timeout 60 python3.11 -c 'from tetra_gradiometer_msgs.srv import Calibrate
+from tetra_gradiometer.io import interfaces, bag
+assert "tetra_gradiometer_msgs/msg/Calibration" in bag.typestore().types
+print(interfaces.package_dir())' 2>&1 | tail -1)
+check "installed tetra_gradiometer_msgs: rclpy imports it, the offline typestore reads its share/" \
+  "$([ "$out" = "$WS/install/tetra_gradiometer_msgs/share/tetra_gradiometer_msgs" ]; echo $?)" "$out"
 
 missing=""
 for f in package.xml config/tetra_gradiometer.yaml launch/tetra_gradiometer.launch.py \

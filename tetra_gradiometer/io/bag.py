@@ -51,6 +51,7 @@ from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, ResampleCounters, T
 from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
+from . import interfaces
 from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEncoding: re-exported)
     SCALAR_LAYOUTS,
     _UnsupportedEncoding,
@@ -82,8 +83,8 @@ RATE_MESSAGES = 64
 
 
 def typestore() -> Any:
-    """The ROS 2 Jazzy typestore (message definitions for reading and writing)."""
-    return get_typestore(Stores.ROS2_JAZZY)
+    """The ROS 2 Jazzy typestore, with our interfaces when found (:mod:`.interfaces`)."""
+    return interfaces.register(get_typestore(Stores.ROS2_JAZZY), missing_ok=True)
 
 
 @dataclass(frozen=True)
