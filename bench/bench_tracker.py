@@ -4,9 +4,12 @@ recovery after a step, the tracker's cost per set and per hour of data.
 Missions (test/core/hull_missions.py): a 5 min trim, then ~30 min of lines with U-turns at
 10 Hz, noise 0.05 nT; a hull of magnetised cuboids whose remanence relaxes by 0.3-0.7 %
 (600 s) after the trim (1.2 nT/m RMS at full relaxation) and a 1 nT step on one sensor two
-thirds into the survey; the same survey over geology (deep dipoles, 1 nT/m RMS) with a
-vehicle that does not change. Calibration: ``known_gradient_lstsq_general`` on the trim.
-The tracker runs with the attitude and the health monitor handing it steps.
+thirds into the survey; the same survey over geology (deep dipoles, 1 nT/m RMS), and over
+three seabed targets (hull_missions.TARGETS, 22-30 m below three lines), with a vehicle
+that does not change. Calibration: ``known_gradient_lstsq_general`` on the trim. The
+tracker runs with the health monitor handing it steps, with the attitude and without it
+(a bag without ``/odom``); over targets it never learns from the anomalies detected on the
+frozen tensor (pipelines.tracking.target_spans, as ``locate`` and ``survey`` do).
 
     .venv/bin/python bench/bench_tracker.py [--seeds 1,2,3,4,5,6,7,8] [--json FILE]
 
@@ -14,7 +17,8 @@ Figures per mission: the residual (compensated minus the clean fields' tensor) o
 noise floor in three spans (the first 5 min of the survey, the 5 min before the step, after
 it), frozen and tracked; the recovery (the first second after the step from which every 2 s
 window stays within 1.5x the floor); the share of components within 2 sigma; over geology
-the tracked residual over the frozen one. ``--table FILE`` prints them as markdown.
+the tracked residual over the frozen one; over targets how far ``locate``'s positions and
+moments moved, over their 1-sigma. ``--table FILE`` prints them as markdown.
 """
 
 from __future__ import annotations
