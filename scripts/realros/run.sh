@@ -336,13 +336,13 @@ check "ros2 launch nodes:=tensor,bogus: refused with one message" \
 # the default: static transforms by tf2_ros static_transform_publisher (not installed here:
 # the launch brings the nodes up without them and says so)
 start_bg launch_default "${LAUNCH[@]}" mode:=sim
-sleep 1; wait_state active 60 "${NODES4[@]}"; st=$?
+sleep 1; wait_state active 60 "${NODES4[@]}"; st=$? sts=$(states "${NODES4[@]}")
 out=$(timeout 30 ros2 node list 2>&1)
 tf=$(for s in mag1 mag2 mag3 mag4 array; do echo "$out" | grep -qx "/tetra/tetra_tf_$s" || exit 1; done; echo 0)
 rc=$(stop_bg launch_default 30)
 note=$(grep -m1 -o "no tf2_ros: static transforms not published" "$LOGS/launch_default.log")
 check "ros2 launch mode:=sim (default static_transforms:=true): the four nodes active" "$st" \
-  "rc=$rc $(states "${NODES4[@]}") ${note:+($note)}"
+  "rc=$rc $sts${note:+($note)}"
 check "ros2 launch static_transforms:=true: /tetra/tetra_tf_mag1..4, tetra_tf_array up (tf2_ros)" "$tf" \
   "${note:+$note: tf2_ros is C++ and needs rclcpp, not available from PyPI here}"
 
