@@ -347,13 +347,15 @@ check "ros2 launch static_transforms:=true: /tetra/tetra_tf_mag1..4, tetra_tf_ar
   "${note:+$note: tf2_ros is C++ and needs rclcpp, not available from PyPI here}"
 
 # autostart:=false: nodes wait unconfigured for a lifecycle manager (here: ros2 lifecycle set)
-start_bg launch_manual "${LAUNCH[@]}" mode:=sim static_transforms:=false autostart:=false nodes:=tensor,compensator
+start_bg launch_manual "${LAUNCH[@]}" mode:=sim static_transforms:=false autostart:=false nodes:=tensor,compensator enclaves:=true
 wait_state unconfigured 40 /tetra/tensor /tetra/compensator; st=$?
 check "ros2 launch autostart:=false: nodes stay unconfigured" $st "$(states /tetra/tensor /tetra/compensator)"
 args=$(ps -o args= -g "$(cat "$LOGS/launch_manual.pid")" | grep -m1 'lib/tetra_gradiometer/tensor')
 check "launched nodes get the installed params file (share/config) by default, cwd without config/" \
   "$(echo "$args" | grep -q -- "--params-file $SHARE/config/tetra_gradiometer.yaml" ; echo $?)" \
   "$(echo "$args" | grep -o -- '--params-file [^ ]*' | head -1)"
+check "ros2 launch enclaves:=true: the tensor node runs with --enclave /tetra_gradiometer/tensor" \
+  "$(echo "$args" | grep -q -- '--enclave /tetra_gradiometer/tensor'; echo $?)" "$(echo "$args" | grep -o -- '--enclave [^ ]*')"
 o1=$(timeout 30 ros2 lifecycle set /tetra/tensor configure 2>&1); o2=$(timeout 30 ros2 lifecycle set /tetra/tensor activate 2>&1)
 check "ros2 lifecycle set /tetra/tensor configure, activate -> active" \
   "$([ "$(state_of /tetra/tensor)" = active ]; echo $?)" "$(echo "$o1 / $o2" | tr '\n' ' ')"
