@@ -133,7 +133,7 @@ def test_a_bad_value_set_at_run_time_is_refused():
         reconfigure(probe, graph, 'tensor', stale_timeout_s=2.0)  # asserts each step
         output = graph.processes['tensor'].output()  # each change logged at WARN
         assert re.search(r'WARN.*parameter stale_timeout_s set to 2\.0 \(unconfigured\)', output), output
-        assert re.search(r'WARN.*change_state: cleanup requested in inactive: done, now unconfigured', output)
+        assert re.search(r'WARN.*cleanup: inactive -> unconfigured', output)
 
 
 def test_a_remap_to_a_topic_nobody_publishes_is_named_with_its_resolved_name():

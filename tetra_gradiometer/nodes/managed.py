@@ -17,11 +17,11 @@ States and what each node does in them (docs/ros.md, *Lifecycle*):
 * ``on_cleanup`` / ``on_shutdown`` / ``on_error``: everything ``configure`` created is
   destroyed and the node's long work is stopped (:meth:`ManagedNode.released` hook).
 
-Lifecycle requests (``~/change_state``) cannot end the process: a request that is not a
-valid transition from the current state (``activate`` while active, any request once
-finalized, an unknown id or label) is answered ``success=false`` and logged at WARN with
-the reason and the valid transitions; a valid one is logged at WARN with what it changed
-(rclpy's own handler raised from the service callback, which ended the process).
+Lifecycle requests (``~/change_state``) are rclpy's: a valid one runs the transition (each
+logged at WARN: ``configure: unconfigured -> inactive``); one that is not a valid
+transition from the current state is refused by ``rcl_lifecycle`` (its WARN ``No transition
+matching ...``; rclpy sends no reply) and cannot end the process: ``process.spin`` logs it
+and spins on.
 
 While configured, the node's ``/diagnostics`` timer runs on the steady clock (``use_sim_time``
 without ``/clock`` cannot freeze it) also while inactive: every status is then WARN, its
@@ -68,18 +68,6 @@ _ENTITIES = {
     'guards': 'destroy_guard_condition',
 }
 
-#: The transitions a client may request (lifecycle_msgs/Transition ids): configure, cleanup,
-#: activate, deactivate and the three shutdowns; the others (create, destroy, the
-#: callbacks' results) belong to the state machine itself.
-_REQUESTABLE = {
-    1: 'configure',
-    2: 'cleanup',
-    3: 'activate',
-    4: 'deactivate',
-    5: 'shutdown',
-    6: 'shutdown',
-    7: 'shutdown',
-}
 #: Set while unconfigured only (as :attr:`ManagedNode.LOCKED`): rclpy declares it itself.
 LOCKED_BUILTINS = ('use_sim_time',)
 
@@ -113,10 +101,10 @@ class ManagedNode(LifecycleNode):
         self._configured = False
         self._refusal: BaseException | None = None
         self._base = self._entities()  # the node's own: parameter and lifecycle services
-        self._raising = False  # bring_up raises the refusal: the log line would repeat it
+        self._raising = False  # in bring_up: it raises the refusal, it logs at INFO
         self._always: set[Any] = set()  # timers that run while inactive too (diagnostics)
         self.diagnostics_state = 'inactive'  # how a status reads while the node is not active
-        self._service_change_state.callback = self._on_change_state
+        self.state_label = 'unconfigured'  # the lifecycle state, as the transitions leave it
         self.add_post_set_parameters_callback(self._log_parameters)
         if p['autostart']:
             try:
@@ -137,12 +125,13 @@ class ManagedNode(LifecycleNode):
         self._raising = True
         try:
             outcome = self.trigger_configure()
+            if outcome == TransitionCallbackReturn.SUCCESS:
+                self.trigger_activate()
         finally:
             self._raising = False
         if outcome != TransitionCallbackReturn.SUCCESS:
             error, self._refusal = self._refusal, None
             raise error if error is not None else TetraError(f'{self.get_name()}: not configured')
-        self.trigger_activate()
 
     # ------------------------------------------------------------------ subclass hooks
 
@@ -211,54 +200,7 @@ class ManagedNode(LifecycleNode):
         if self._configured and publish is not None:
             publish()
 
-    # ------------------------------------------------------------------ control surface
-
-    def _on_change_state(self, request: Any, response: Any) -> Any:
-        """``~/change_state``: any request is answered, none ends the process."""
-        before = self.state_label
-        try:
-            transition_id, reason = self._requested(request.transition)
-            if transition_id is None:
-                self.get_logger().warning(f'change_state refused: {reason}')
-                response.success = False
-                return response
-            outcome = self._run_transition(transition_id)
-        except Exception:  # a bug: keep the node, say what happened
-            self.get_logger().error(f'change_state failed:\n{traceback.format_exc()}')
-            response.success = False
-            return response
-        response.success = outcome == TransitionCallbackReturn.SUCCESS
-        self.get_logger().warning(
-            f'change_state: {_REQUESTABLE[transition_id]} requested in {before}: '
-            f'{"done" if response.success else "failed"}, now {self.state_label}'
-        )
-        return response
-
-    def _requested(self, transition: Any) -> tuple[int | None, str]:
-        """The id of the requested transition when it is valid from the current state, else
-        (None, why)."""
-        state = self.state_label
-        available = {t[0]: t[1] for t in self._state_machine.available_transitions}
-        valid = ', '.join(f'{label} ({tid})' for tid, label in available.items()) or 'none'
-        asked = f'{transition.label!r}' if transition.label else f'id {transition.id}'
-        if transition.label:
-            matches = [tid for tid, label in available.items() if label == transition.label]
-        else:
-            matches = [transition.id] if transition.id in available else []
-        matches = [tid for tid in matches if tid in _REQUESTABLE]
-        if not matches:
-            return None, f'transition {asked} is not valid from state {state} (valid: {valid})'
-        return matches[0], ''
-
-    def _run_transition(self, transition_id: int) -> TransitionCallbackReturn:
-        trigger = {
-            'configure': self.trigger_configure,
-            'cleanup': self.trigger_cleanup,
-            'activate': self.trigger_activate,
-            'deactivate': self.trigger_deactivate,
-            'shutdown': self.trigger_shutdown,
-        }[_REQUESTABLE[transition_id]]
-        return trigger()
+    # ------------------------------------------------------------------ parameters
 
     def _refuse_while_configured(self, parameters: list) -> Any:
         from rcl_interfaces.msg import SetParametersResult
@@ -311,6 +253,7 @@ class ManagedNode(LifecycleNode):
                 self.get_logger().error(f'configure refused: {error}')
             self._refusal = error
             self._release()
+            self._entered('configure refused', 'unconfigured')
             return TransitionCallbackReturn.FAILURE
         except Exception as error:  # a bug: keep its traceback in the log
             self.get_logger().error(f'configure failed:\n{traceback.format_exc()}')
@@ -320,6 +263,7 @@ class ManagedNode(LifecycleNode):
         for timer in self._new_entities()['timers'] - self._always:
             timer.cancel()
         self._configured = True
+        self._entered('configure', 'inactive')
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -327,6 +271,7 @@ class ManagedNode(LifecycleNode):
         self.active = True
         for timer in self._new_entities()['timers'] - self._always:
             timer.reset()
+        self._entered('activate', 'active')
         self.publish_diagnostics_now()
         return super().on_activate(state)
 
@@ -335,22 +280,26 @@ class ManagedNode(LifecycleNode):
         for timer in self._new_entities()['timers'] - self._always:
             timer.cancel()
         self.deactivated()
+        self._entered('deactivate', 'inactive')
         self.publish_diagnostics_now()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._last_statuses('unconfigured (cleaned up)')
         self._release()
+        self._entered('cleanup', 'unconfigured')
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._last_statuses('finalized (shut down)')
         self._release()
+        self._entered('shutdown', 'finalized')
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._last_statuses('unconfigured (after an error)')
         self._release()
+        self._entered('error', 'unconfigured')
         return TransitionCallbackReturn.SUCCESS  # back to unconfigured
 
     def _last_statuses(self, state: str) -> None:
@@ -377,10 +326,15 @@ class ManagedNode(LifecycleNode):
         self.stop_work()
         super().destroy_node()
 
-    @property
-    def state_label(self) -> str:
-        """The lifecycle state: ``unconfigured``, ``inactive``, ``active``, ``finalized``."""
-        return str(self._state_machine.current_state[1])
+    def _entered(self, transition: str, state: str) -> None:
+        """Record the state a transition leaves the node in; every one is logged at WARN
+        (``autostart``'s own at INFO)."""
+        before, self.state_label = self.state_label, state
+        text = f'{transition}: {before} -> {state}'
+        if self._raising:  # (rclpy fixes one severity per call site)
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warning(text)
 
 
 class DiagnosticsPublisher:

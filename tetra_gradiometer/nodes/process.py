@@ -205,10 +205,17 @@ def spin(
         done.start()
     try:
         while context.ok() and not (stop and stop.is_set()):
-            if isinstance(executor, Executor):
-                executor.spin_once(timeout_sec=STOP_POLL_S)
-            else:
-                executor.spin_until_future_complete(never, timeout_sec=STOP_POLL_S)
+            try:
+                if isinstance(executor, Executor):
+                    executor.spin_once(timeout_sec=STOP_POLL_S)
+                else:
+                    executor.spin_until_future_complete(never, timeout_sec=STOP_POLL_S)
+            except RuntimeError as error:  # rclpy's RCLError
+                if 'lifecycle' not in str(error):
+                    raise
+                # A lifecycle request that is no transition from the node's state: refused by
+                # rcl_lifecycle (its WARN names both), raised out of rclpy's service callback.
+                rclpy.logging.get_logger('lifecycle').warning(f'request refused: {error}')
     except ExternalShutdownException:  # the context shut down while waiting: done
         pass
 
