@@ -161,6 +161,13 @@ def test_every_node_configures_activates_and_cleans_up_in_process(name, tmp_path
             node.bring_up()
             assert node.state_label == 'active' and node.active
             assert len(list(node.publishers)) > own[0] and len(list(node.timers)) >= 1
+            # The data's publishers are rclpy's lifecycle publishers (only /diagnostics and
+            # rclpy's own are not: the statuses go on while inactive).
+            from rclpy.lifecycle import LifecyclePublisher
+
+            plain = {p.topic_name for p in node.publishers if not isinstance(p, LifecyclePublisher)}
+            assert plain <= {'/diagnostics', '/parameter_events', '/rosout',
+                             f'{node.get_fully_qualified_name()}/transition_event'}, plain
             assert all(not timer.is_canceled() for timer in node.timers)
             node.trigger_deactivate()
             assert node.state_label == 'inactive' and not node.active

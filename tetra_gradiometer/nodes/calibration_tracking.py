@@ -40,7 +40,9 @@ class LiveTracking:
         self._model: tuple[Any, InterferenceParameters, float] | None = None
         self.tracker: OffsetTracker | None = None
         self._sent = 0
-        self._pub = node.create_publisher(String, 'calibration/tracking', latched_qos(depth=100))
+        self._pub = node.create_lifecycle_publisher(
+            String, 'calibration/tracking', latched_qos(depth=100)
+        )
         node.create_subscription(Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos())
 
     def start(self, geometry: Any, parameters: Any, noise: float) -> None:

@@ -201,7 +201,7 @@ class CalibratorNode(ManagedNode):
         self._n_received = 0
         self._assessment: TrimAssessment | None = None
 
-        self._cal_pub = self.create_publisher(String, 'calibration', latched_qos())
+        self._cal_pub = self.create_lifecycle_publisher(String, 'calibration', latched_qos())
         self._diag_pub = self.diagnostics_publisher()
         self._horizon = self._diag_pub.inputs.watch_stamps(p['max_stamp_ahead_s'])
         gated = self.when_active
@@ -220,7 +220,7 @@ class CalibratorNode(ManagedNode):
         )
         self.create_service(Trigger, '~/cancel', gated(self._on_cancel), callback_group=control)
         self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
-        self._guidance_pub = self.create_publisher(String, '~/guidance', latched_qos())
+        self._guidance_pub = self.create_lifecycle_publisher(String, '~/guidance', latched_qos())
         # Each beside the samples: the guidance's work, and odom never behind a burst.
         guidance, odom = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         self.create_timer(GUIDANCE_PERIOD_S, self._publish_guidance, callback_group=guidance)

@@ -197,16 +197,15 @@ class CompensatorNode(ManagedNode):
         # The per-sample path reads and writes serialized messages (io/conversions).
         check_serialization()
         self._cdr = cv.TensorCdr(self._array_frame)
-        self._comp_pub = self.create_publisher(
-            JointState, cv.COMPENSATED_NODE_TOPIC, derived_qos()
-        )
-        self._norm_pub = self.create_publisher(Float64, 'gradient/norm', derived_qos())
-        self._sigma_pub = self.create_publisher(JointState, 'gradient/sigma', derived_qos())
-        self._eps_pub = self.create_publisher(Float64, 'epsilon', derived_qos())
-        self._pct_pub = self.create_publisher(Float64, 'compensated_percent', derived_qos())
+        publish, data = self.create_lifecycle_publisher, derived_qos()
+        self._comp_pub = publish(JointState, cv.COMPENSATED_NODE_TOPIC, data)
+        self._norm_pub = publish(Float64, 'gradient/norm', data)
+        self._sigma_pub = publish(JointState, 'gradient/sigma', data)
+        self._eps_pub = publish(Float64, 'epsilon', data)
+        self._pct_pub = publish(Float64, 'compensated_percent', data)
+        self._alarm_pub = publish(String, 'health/alarm', latched_qos(depth=100))
         self._diag_pub = self.diagnostics_publisher(self._watch)
         self._horizon = self._watch.watch_stamps(p['max_stamp_ahead_s'], p['warn_throttle_s'])
-        self._alarm_pub = self.create_publisher(String, 'health/alarm', latched_qos(depth=100))
         if p['track_calibration']:
             self._tracking = LiveTracking(self, self.when_active, self._horizon)
         self._load_file(resolve_node_path(p['calibration_file']))

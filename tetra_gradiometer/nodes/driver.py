@@ -275,28 +275,34 @@ class DriverNode(ManagedNode):
         # subscriber (a recorder, a plain depth-10 subscription) gets the data too.
         mag_qos = derived_qos(p['publisher_depth'])
         self._pubs = {
-            (MAG, s): self.create_publisher(MagneticField, topic, mag_qos)
+            (MAG, s): self.create_lifecycle_publisher(MagneticField, topic, mag_qos)
             for s, topic in enumerate(cv.MAG_TOPICS)
         }
-        self._pubs[(TRUTH, 0)] = self.create_publisher(JointState, 'gradient/truth', derived_qos())
-        self._pubs[(ODOM, 0)] = self.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos())
+        self._pubs[(TRUTH, 0)] = self.create_lifecycle_publisher(
+            JointState, 'gradient/truth', derived_qos()
+        )
+        self._pubs[(ODOM, 0)] = self.create_lifecycle_publisher(
+            Odometry, cv.ODOM_NODE_TOPIC, derived_qos()
+        )
         # A replayed bag's channels (nodes/replay.channel_topics), on the absolute topics the
         # calibrator and compensator subscribe to (best effort: a reliable publisher matches).
         channels = [t for t in str(self.info.get('channels', '')).split(', ') if t]
         for i, topic in enumerate(channels):
             kind = Temperature if topic == cv.TEMPERATURE_TOPIC else BatteryState
-            self._pubs[(CHANNEL, i)] = self.create_publisher(kind, topic, derived_qos())
+            self._pubs[(CHANNEL, i)] = self.create_lifecycle_publisher(kind, topic, derived_qos())
         # Its signal topics, as recorded (serialized): each with its recorded type.
         for i, (topic, msgtype) in enumerate(self.info.get('signals', ())):
             kind = message_class_named(msgtype)
             if kind is None:
-                self.get_logger().warning(f'replay: {topic} ({msgtype}) is not played: its '
-                                          'message package is not installed')
+                self.get_logger().warning(
+                    f'replay: {topic} ({msgtype}) is not played: its '
+                    'message package is not installed'
+                )
                 continue
-            self._pubs[(SIGNAL, i)] = self.create_publisher(kind, topic, derived_qos())
+            self._pubs[(SIGNAL, i)] = self.create_lifecycle_publisher(kind, topic, derived_qos())
         self._diag_pub = self.diagnostics_publisher()
         self._clock_pub = (
-            self.create_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
+            self.create_lifecycle_publisher(Clock, '/clock', 10) if p['publish_clock'] else None
         )
         self._clock_ns = -CLOCK_STEP_NS
         gated = self.when_active

@@ -6,7 +6,9 @@ States and what each node does in them (docs/ros.md, *Lifecycle*):
   the process, see ``process.spin_node``); nothing else exists, nothing is published;
 * ``on_configure``: :meth:`ManagedNode.configure` reads the parameters, checks what spans
   several of them and the files they name (calibration file, bag, scenario), and creates
-  publishers, subscriptions, services and timers. A refusal (any ``TetraError``) fails the
+  publishers (the data's with ``create_lifecycle_publisher``: rclpy enables them on
+  activation and drops what they are given while inactive), subscriptions, services and
+  timers. A refusal (any ``TetraError``) fails the
   transition with one ``configure refused:`` log line naming the value and why; everything
   created is released and the node stays ``unconfigured`` (fix the value, configure again);
 * ``inactive``: the timers are stopped, subscription callbacks ignore their messages and the
@@ -44,7 +46,12 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from rclpy.clock import Clock, ClockType
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import (
+    LifecycleNode,
+    LifecyclePublisher,
+    LifecycleState,
+    TransitionCallbackReturn,
+)
 
 from ..errors import TetraError
 from .common import NAMESPACE, WARN, ParamSpec, declare_parameters
@@ -239,7 +246,10 @@ class ManagedNode(LifecycleNode):
             for kind, entities in self._new_entities().items():
                 destroy = getattr(self, _ENTITIES[kind])
                 for entity in entities:
-                    destroy(entity)
+                    if isinstance(entity, LifecyclePublisher):  # rclpy's managed entities too
+                        self.destroy_lifecycle_publisher(entity)
+                    else:
+                        destroy(entity)
             self._always.clear()
 
     # ------------------------------------------------------------------ transitions

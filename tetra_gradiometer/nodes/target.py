@@ -220,10 +220,16 @@ class TargetNode(ManagedNode):
         check_serialization()  # the tensor is read from its serialized message
         self._cdr = cv.TensorCdr(cv.ARRAY_FRAME)
         self._types = cv.rclpy_types()
-        self._targets_pub = self.create_publisher(PoseArray, TARGETS_TOPIC, latched_qos())
-        self._markers_pub = self.create_publisher(MarkerArray, MARKERS_TOPIC, latched_qos())
-        self._json_pub = self.create_publisher(String, JSON_TOPIC, latched_qos())
-        self._detections_pub = self.create_publisher(PoseArray, DETECTIONS_TOPIC, latched_qos())
+        self._targets_pub = self.create_lifecycle_publisher(
+            PoseArray, TARGETS_TOPIC, latched_qos()
+        )
+        self._markers_pub = self.create_lifecycle_publisher(
+            MarkerArray, MARKERS_TOPIC, latched_qos()
+        )
+        self._json_pub = self.create_lifecycle_publisher(String, JSON_TOPIC, latched_qos())
+        self._detections_pub = self.create_lifecycle_publisher(
+            PoseArray, DETECTIONS_TOPIC, latched_qos()
+        )
         self._diag_pub = self.diagnostics_publisher()
         self._horizon = self._diag_pub.inputs.watch_stamps(
             p['max_stamp_ahead_s'], p['warn_throttle_s']

@@ -206,8 +206,10 @@ class TensorNode(ManagedNode):
 
         check_serialization()
         self._raw_cdr = cv.TensorCdr(self._array_frame)
-        self._raw_pub = self.create_publisher(JointState, 'gradient/raw', derived_qos())
-        self._ref_pub = self.create_publisher(MagneticField, 'reference_field', derived_qos())
+        self._raw_pub = self.create_lifecycle_publisher(JointState, 'gradient/raw', derived_qos())
+        self._ref_pub = self.create_lifecycle_publisher(
+            MagneticField, 'reference_field', derived_qos()
+        )
         self._diag_pub = self.diagnostics_publisher()
         self._horizon = self._diag_pub.inputs.watch_stamps(
             p['max_stamp_ahead_s'], p['warn_throttle_s']
