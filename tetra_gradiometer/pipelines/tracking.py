@@ -47,9 +47,9 @@ __all__ = [
 #: ``track_calibration``) track the calibration unless told otherwise. Off: on drifting hulls
 #: tracking brings 7-9x the floor back to 1.0-1.1x with ``/odom`` (bench/results/tracker.json),
 #: and on the shipped survey (a vehicle that does not change, a dipole under the line) it
-#: costs 1.4 % of the residual; but its state's variance, honest on drifting hulls (93-97 %
-#: within 2 sigma), widens the shipped survey's sigma 2-3x where nothing drifts, and the node
-#: tracks with the attitude only when ``odom`` is heard by the first set.
+#: costs 1.4 % of the residual; but its state's variance, honest on drifting hulls (96 %
+#: within 2 sigma), is a calibration error that survey grids do not average down: where
+#: nothing drifts their sigma goes from 0.046 to 0.11 nT/m (docs/offline.md).
 TRACK_BY_DEFAULT = False
 
 #: Seconds each side of a detected anomaly the tracker does not learn from.
