@@ -49,7 +49,7 @@ __all__ = [
 #: and on the shipped survey (a vehicle that does not change, a dipole under the line) it
 #: costs 1.4 % of the residual; but its state's variance, honest on drifting hulls (96 %
 #: within 2 sigma), is a calibration error that survey grids do not average down: where
-#: nothing drifts their sigma goes from 0.046 to 0.11 nT/m (docs/offline.md).
+#: nothing drifts their median sigma goes 2.2-3.3x up (docs/offline.md).
 TRACK_BY_DEFAULT = False
 
 #: Seconds each side of a detected anomaly the tracker does not learn from.
