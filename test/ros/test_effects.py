@@ -94,8 +94,10 @@ class Offline:
         _cli('simulate', '--scenario', str(scenario), '--out', str(self.bag))
         self.calibrate_text = _cli('calibrate', str(self.bag), '--params', str(self.params),
                                    '--window', f'0:{TRIM_S}', '--out', str(self.calibration))
+        # The calibration as fitted, both sides (the chain's subject here; the tracker's live
+        # equals offline in test/pipelines/test_tracking_bag.py).
         _cli('compensate', str(self.bag), '--params', str(self.params), '--calibration',
-             str(self.calibration), '--csv', str(self.csv))
+             str(self.calibration), '--csv', str(self.csv), '--freeze-calibration')
         table = np.loadtxt(self.csv, delimiter=',', skiprows=1, dtype=str)
         seconds = [row.split('.') for row in table[:, 0]]
         self.stamps = np.array([int(s) * 10**9 + int(ns) for s, ns in seconds], dtype=np.int64)
@@ -218,7 +220,7 @@ def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(of
                                              pose[cv.POSE_ORIENTATION], int(odom.stamps_ns[i])))
 
         graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
-        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2, track_calibration=False)
         wait_matched(feeder.raw, 3)  # calibrator, compensator, probe
         wait_matched(odom_pub, 1)
         wait_for(lambda: channels.battery.get_subscription_count() >= 1
@@ -338,7 +340,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
         graph.start('tensor', sensor_positions=GEOMETRY.positions.reshape(-1).tolist(),
                     diagnostics_period_s=0.2, sensor_queue_depth=2000)
         graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
-        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2, track_calibration=False)
         # The trim at 8x real time (160 sets/s): the driver paces itself by the tensor node only,
         # and the calibrator (its channels in their own callback group) takes that on a
         # loaded machine.
@@ -437,7 +439,7 @@ def test_a_missing_or_stale_channel_drops_the_sets_and_warns_naming_it(offline, 
     # test thread slowed by a loaded machine polled past the first (seen once in a full run).
     channel_messages: list[str] = []
     with ros_graph() as (graph, probe, feeder):
-        graph.start('compensator', calibration_file=str(offline.calibration), diagnostics_period_s=0.2)
+        graph.start('compensator', calibration_file=str(offline.calibration), diagnostics_period_s=0.2, track_calibration=False)
         probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)
         probe.create_subscription(DiagnosticArray, '/diagnostics', lambda msg: channel_messages.extend(
             s.message for s in msg.status if s.name == CHANNELS), 100)

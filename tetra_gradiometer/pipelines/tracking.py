@@ -46,10 +46,9 @@ __all__ = [
 #: Whether ``compensate``, ``survey``, ``locate``, ``batch`` (and the compensator node's
 #: ``track_calibration``) track the calibration unless told otherwise. Off: on drifting hulls
 #: tracking brings 7-9x the floor back to 1.0-1.1x with ``/odom`` (bench/results/tracker.json),
-#: and on the shipped survey (a vehicle that does not change, a dipole under the line) it
-#: costs 1.4 % of the residual; but its state's variance, honest on drifting hulls (96 %
-#: within 2 sigma), is a calibration error that survey grids do not average down: where
-#: nothing drifts their median sigma goes 2.2-3.3x up (docs/offline.md).
+#: but on vehicles that do not change it costs 1-3 % (bench_window's missions), 2.06x the
+#: floor where the bag opens with a trim over the target (1.01x frozen), and survey cells'
+#: sigma 2.2-3.3x (docs/offline.md).
 TRACK_BY_DEFAULT = False
 
 #: Seconds each side of a detected anomaly the tracker does not learn from.
