@@ -39,7 +39,7 @@ class LiveTracking:
         self._odom = AttitudeHistory(length=MAX_ODOM_MESSAGES)
         self._model: tuple[Any, InterferenceParameters, float] | None = None
         self.tracker: OffsetTracker | None = None
-        self._sent = 0
+        self._sent, self._last_ns = 0, 0
         self._pub = node.create_lifecycle_publisher(
             String, 'calibration/tracking', latched_qos(depth=100)
         )
@@ -52,9 +52,13 @@ class LiveTracking:
 
     def one(self, stamp_ns: int, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``g`` (3, 3) T/m compensated with the calibration -> tracked, and the state's
-        variance (9,) (T/m)^2 (zeros while nothing is tracked)."""
+        variance (9,) (T/m)^2 (zeros while nothing is tracked). A stamp before the last (a
+        replay started again) starts the tracker afresh."""
         if self._model is None:
             return g, np.zeros(9)
+        if self.tracker is not None and stamp_ns < self._last_ns:  # a replay started again
+            self.tracker, self._sent = None, 0
+        self._last_ns = stamp_ns
         if self.tracker is None:
             geometry, parameters, noise = self._model
             world = len(self._odom) > 0
