@@ -311,7 +311,7 @@ def _compensated(
     noise = np.full_like(raw, np.nan)
     xk = None if x is None else x[known]
     body[known] = compensate(raw[known], fields[known, 0, :], parameters, geometry, xk)
-    # Tracked as compensate tracks by default; the tracker's state is calibration sigma.
+    # Tracked when asked (or by default): the tracker's state is part of the calibration sigma.
     assert recording.position_m is not None  # survey_bag refuses a bag without /odom
     track = (recording.t_s, recording.position_m, tracking[0])
     body, variance, _ = track_tensors(
