@@ -106,7 +106,7 @@ class Probe(Node):
             )
         self.create_subscription(Float64, 'compensated_percent', self._on_percent, derived_qos())
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
-        self._clients: dict[str, Any] = {}
+        self._service_clients: dict[str, Any] = {}
 
     def _on_tensor(self, topic: str, msg: JointState) -> None:
         with self.lock:
@@ -150,9 +150,9 @@ class Probe(Node):
         """
         name = service.rsplit('/', 1)[-1]
         kind = Calibrate if name == 'calibrate' else Trigger
-        client = self._clients.get(service)
+        client = self._service_clients.get(service)
         if client is None:
-            client = self._clients[service] = self.create_client(kind, service)
+            client = self._service_clients[service] = self.create_client(kind, service)
         if not client.wait_for_service(timeout_sec=timeout_s):
             raise TimeoutError(f'service {service} is not available')
         request = kind.Request() if request is None else request
