@@ -87,9 +87,11 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
                                method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat())
         nan_positions = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                         sensor_positions=[float('nan')] + GEOMETRY.to_flat()[1:])
-        for document, reason in ((huge, 'k_soft[0, 0, 0] = 1e+308 is implausible'),
-                                 (nan_positions, 'sensor_positions[0] = nan is not finite')):
-            message = calibration_msg(exact_document.to_yaml())  # no publisher of ours summarizes these
+        # The implausible k has no summary (no publisher of ours writes one): the exact one's.
+        for document, summarized, reason in (
+                (huge, exact_document, 'k_soft[0, 0, 0] = 1e+308 is implausible'),
+                (nan_positions, nan_positions, 'sensor_positions[0] = nan is not finite')):
+            message = calibration_msg(summarized.to_yaml())
             message.document = document.to_yaml()
             feeder.calibration.publish(message)
             wait_for(lambda reason=reason: reason in _diag(probe, 'tetra/compensator: compensation')['message'],
