@@ -9,8 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import IdentifiabilityError
+from .candidate import Candidate, Context, Estimate
 from .cv import ALL_SENSORS, flat, lstsq_view, solve_fast
-from .effects import Candidate, Context, Estimate
 from .prepare import Prepared, refresh_background, refresh_pair_background, smoothed
 
 Array = NDArray[np.float64]

@@ -16,9 +16,9 @@ from numpy.typing import NDArray
 
 from ..effects import SIGNAL_PREFIX
 from ..identification._selection import held_out_f_test
+from .candidate import Candidate
 from .cv import ALL_SENSORS, Fit, Gram, block_length, flat, noise_floor
 from .discovery import open_world_move
-from .effects import Candidate
 from .fit import (
     CurrentFit,
     Family,

@@ -15,8 +15,9 @@ from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial.transform import Rotation
 
+from .candidate import Context
 from .cv import ALL_SENSORS, flat, lstsq_view, noise_floor, solve_fast
-from .effects import CANDIDATES, Context
+from .effects import CANDIDATES
 from .prepare import Prepared, refresh_background
 from .result import Settings
 
