@@ -56,38 +56,31 @@ __all__ = [
     'LIBRARY',
     'OPEN_WORLD',
     'effect_candidate',
-    'recorded_currents',
-    'run_channels',
+    'recorded_series',
     'signal_candidates',
     'testable',
 ]
 
 
-def recorded_currents(
-    current_a: Array | None, extra: tuple[tuple[str, Array], ...]
-) -> list[tuple[str, Array]]:
-    """Every current channel of the run, (BatteryState topic, (N,) A): the battery's first."""
-    battery = [] if current_a is None else [('/battery_state', current_a)]
-    return battery + list(extra)
-
-
-def run_channels(ctx: Context) -> Channels:
-    """The run's recorded channels as the registry names them (``temperature``,
-    ``current:TOPIC``, ``signal:TOPIC#FIELD``), ``B^b`` in T as the reference reading."""
+def recorded_series(run: Context | Prepared) -> dict[str, Array]:
+    """The channels a run records (its :class:`Context` or :class:`Prepared`), as the
+    registry names them: ``temperature`` degC, ``current:TOPIC`` A (the battery's first),
+    ``signal:TOPIC#FIELD``."""
     series: dict[str, Array] = {}
-    if ctx.temperature_c is not None:
-        series[TEMPERATURE] = ctx.temperature_c
-    for topic, values in recorded_currents(ctx.current_a, ctx.extra_currents):
-        series[current_channel(topic)] = values
-    series.update(ctx.signals)
-    return Channels(ctx.t, ctx.b_background * T_PER_NT, series)
+    if run.temperature_c is not None:
+        series[TEMPERATURE] = run.temperature_c
+    if run.current_a is not None:
+        series[current_channel('/battery_state')] = run.current_a
+    series.update((current_channel(topic), values) for topic, values in run.extra_currents)
+    series.update(dict(run.signals))
+    return series
 
 
 def _build(effect: Effect, ctx: Context, estimate: Estimate | None) -> Built:
     """The effect's regressors per sensor of the view and axis (coefficients in its file
     unit), with an offset per axis at sensor 1 in the absolute view when the regressor's
     zero is arbitrary (sensor 1 has no hard iron there to take the constant)."""
-    channels = run_channels(ctx)
+    channels = Channels(ctx.t, ctx.b_background * T_PER_NT, recorded_series(ctx))
     inputs = effect.inputs((*channels.series, REFERENCE_RATE))
     if not inputs:
         required(None, effect.missing(tuple(channels.series)))
@@ -170,7 +163,10 @@ def signal_candidates(values: Mapping[str, Array]) -> tuple[Candidate, ...]:
     return tuple(out)
 
 
-#: Why a candidate that needs a recorded input cannot be tested without it.
+#: A recorded channel that varies by less than this (its unit) is constant on the run.
+CONSTANT_CHANNEL = 1e-3
+
+#: Why a candidate that needs the attitude cannot be tested without it.
 _NO_ODOM = (
     'no usable /odom: without an absolute attitude reference only the pair differences '
     "B_i' - B_1' are observable; sensor 1's own soft and hard iron is absorbed into "
@@ -179,36 +175,25 @@ _NO_ODOM = (
 
 
 def _untestable_reason(candidate: Candidate, prep: Prepared) -> str | None:
-    """Why the run cannot test ``candidate`` (None: it can)."""
+    """Why the run cannot test ``candidate`` (None: it can): no attitude for one that needs
+    it, a channel the effect reads not recorded, or none of them varying (its field is then
+    a constant offset, hard iron)."""
     if 'odom' in candidate.requires and not prep.absolute:
         return candidate.no_odom_reason or _NO_ODOM
-    if 'temperature' in candidate.requires:
-        if prep.temperature_c is None:
-            return 'no /tetra/temperature read: the drift has no regressor'
-        if np.ptp(prep.temperature_c) < 1e-3:
-            return (
-                'the recorded temperature does not vary (< 0.001 degC): a drift is a '
-                'constant offset'
-            )
-    elif 'current' in candidate.requires:
-        currents = recorded_currents(prep.current_a, prep.extra_currents)
-        if not currents:
-            return 'no /battery_state read: the field has no regressor'
-        if all(np.ptp(values) < 1e-3 for _, values in currents):
-            return 'the recorded current does not vary (< 1 mA): its field is a constant offset'
     effect = candidate.effect
-    if effect is not None and not effect.inputs(_channel_names(prep)):
-        return f'{effect.missing(_channel_names(prep))} not recorded: the effect has no regressor'
+    if effect is None:
+        return None
+    recorded = recorded_series(prep)
+    inputs = effect.inputs((*recorded, REFERENCE_RATE))
+    if not inputs:
+        return f'{effect.missing(tuple(recorded))} not recorded: the effect has no regressor'
+    values = [recorded[name] for name in inputs if name in recorded]
+    if values and all(np.ptp(v) < CONSTANT_CHANNEL for v in values):
+        return (
+            f'{", ".join(inputs)} does not vary (< {CONSTANT_CHANNEL:g} of its unit: 0.001 '
+            'degC, 1 mA): its field is a constant offset'
+        )
     return None
-
-
-def _channel_names(prep: Prepared) -> tuple[str, ...]:
-    """The channels the run records, as the registry names them, and the reference's rate."""
-    names = [TEMPERATURE] if prep.temperature_c is not None else []
-    names += [
-        current_channel(t) for t, _ in recorded_currents(prep.current_a, prep.extra_currents)
-    ]
-    return (*names, *(name for name, _ in prep.signals), REFERENCE_RATE)
 
 
 def testable(
