@@ -14,7 +14,7 @@ from tetra_gradiometer.core import (
 )
 from tetra_gradiometer.core.discrepancy import LIBRARY, analyze
 from tetra_gradiometer.core.discrepancy.candidate import Context
-from tetra_gradiometer.core.discrepancy.effects import testable
+from tetra_gradiometer.core.discrepancy import effects as candidates
 from tetra_gradiometer.core.discrepancy.prepare import RecordedRun, prepare
 from tetra_gradiometer.core.discrepancy.synthetic import (
     random_earth_field,
@@ -96,10 +96,10 @@ def test_thruster_channels_alone_make_vehicle_current_testable():
     without_battery = RecordedRun(run.t_s, run.fields, run.orientation_xyzw, run.temperature_c, None,
                                   {'/battery_state': 'not recorded'}, run.extra_currents)
     prep = prepare(without_battery, None, max_samples=10_000)
-    names = [c.name for c in testable(prep, (LIBRARY['vehicle_current'],))[0]]
+    names = [c.name for c in candidates.testable(prep, (LIBRARY['vehicle_current'],))[0]]
     assert names == ['vehicle_current']
     nothing = prepare(RecordedRun(run.t_s, run.fields, run.orientation_xyzw), None, max_samples=10_000)
-    _, untestable = testable(nothing, (LIBRARY['vehicle_current'],))
+    _, untestable = candidates.testable(nothing, (LIBRARY['vehicle_current'],))
     assert '/battery_state' in untestable['vehicle_current']
     # An unknown current (NaN) leaves those samples out, as for the battery's.
     gappy = dict(run.extra_currents)
