@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import array
 import functools
+import importlib
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -107,6 +108,8 @@ POSE_ARRAY = 'geometry_msgs/msg/PoseArray'
 MARKER = 'visualization_msgs/msg/Marker'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 COLOR_RGBA = 'std_msgs/msg/ColorRGBA'
+#: Ours (tetra_gradiometer_msgs; io/gradient_tensor.py reads and writes it).
+GRADIENT_TENSOR = 'tetra_gradiometer_msgs/msg/GradientTensor'
 
 
 @dataclass(frozen=True)
@@ -161,6 +164,9 @@ def rclpy_types() -> MessageTypes:
         COLOR_RGBA: ColorRGBA,
         MARKER: Marker,
         MARKER_ARRAY: MarkerArray,
+        # By name: to mypy, the checkout's interface sources (tetra_gradiometer_msgs/, no
+        # Python) hide the installed package.
+        GRADIENT_TENSOR: importlib.import_module('tetra_gradiometer_msgs.msg').GradientTensor,
     }
     return MessageTypes(
         classes, lambda values: array.array('d', np.asarray(values, float).tolist())
