@@ -156,7 +156,6 @@ def _start_solves(probe: Any, feeder: Any, solving: list[Case]) -> None:
     from std_srvs.srv import Trigger
 
     wait_matched(feeder.raw, len(solving))
-    wait_matched(feeder.reference, len(solving))
     keys = [f'{c.ns[1:]}/calibrator: calibration' for c in solving]
     for case in solving:
         assert probe.call(f'{case.ns}/calibrator/start').success
