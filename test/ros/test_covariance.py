@@ -98,7 +98,7 @@ def test_driver_replay_fills_a_missing_covariance_from_sensor_noise_t(tmp_path):
         raw = _collect_raw(probe)
         graph.start('tensor')
         # Discovery first: the driver waits for the tensor node, not for this probe.
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 1, 20, 'tensor node', graph)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 2, 20, 'tensor node', graph)  # and the feeder
         time.sleep(1.0)
         graph.start('driver', mode='replay', bag=str(tmp_path / 'bag'), rate=0.0, min_subscribers=1,
                     sensor_noise_t=noise, start_paused=True)

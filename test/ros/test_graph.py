@@ -39,8 +39,7 @@ def _wait_discovered(probe, graph) -> None:
     """The derived topics have all their subscribers (calibrator, compensator, probe), so
     nothing published from now on is lost to discovery."""
     wait_for(lambda: probe.count_subscribers('/tetra/gradient/raw') >= 3
-             and probe.count_subscribers('/tetra/reference_field') >= 2
-             and probe.count_publishers('/tetra/gradient/raw') >= 1, 30, 'discovery', graph)
+             and probe.count_publishers('/tetra/gradient/raw') >= 2, 30, 'discovery', graph)  # and the feeder's
     wait_tensor_delivers(probe, graph, raw=3, readers=('calibrator', 'compensator'))
 
 
