@@ -195,6 +195,17 @@ def pack(tensor: TensorSet) -> np.ndarray:
     )
 
 
+def pack_sets(
+    g: np.ndarray, g_sigma: np.ndarray | None, reference_field: np.ndarray
+) -> np.ndarray:
+    """The values (N, 30) of N sets for :meth:`GradientTensorCdr.write`: tensors (N, 3, 3) T/m,
+    their 1-sigma (N, 3, 3) T/m (None: unknown, NaN), ``B_1'`` (N, 3) T (its covariance
+    unknown, 0)."""
+    n = len(g)
+    sigma = np.full((n, 9), np.nan) if g_sigma is None else np.reshape(g_sigma, (n, 9))
+    return np.hstack([np.reshape(g, (n, 9)), sigma, reference_field, np.zeros((n, 9))])
+
+
 def unpack(stamp_ns: int, values: np.ndarray, state: int, calibration_id: str) -> TensorSet:
     """The :class:`TensorSet` of :meth:`GradientTensorCdr.read`'s tuple."""
     return TensorSet(
