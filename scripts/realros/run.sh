@@ -396,12 +396,12 @@ check "ros2 node list shows /tetra/{tensor,calibrator,compensator,driver}" \
   "$(for n in "${NODES4[@]}"; do echo "$out" | grep -qx "$n" || exit 1; done; echo 0)" "$(echo "$out" | tr '\n' ' ')"
 out=$(timeout 30 ros2 node info /tetra/calibrator 2>&1)
 check "ros2 node info /tetra/calibrator (subscriptions, services)" \
-  "$(echo "$out" | grep -q '/tetra/gradient/raw: tetra_gradiometer_msgs/msg/GradientTensor' && echo "$out" | grep -q '/tetra/calibrator/calibrate: std_srvs/srv/Trigger'; echo $?)"
+  "$(echo "$out" | grep -q '/tetra/gradient/raw: tetra_gradiometer_msgs/msg/GradientTensor' && echo "$out" | grep -q '/tetra/calibrator/calibrate: tetra_gradiometer_msgs/srv/Calibrate'; echo $?)"
 out=$(timeout 30 ros2 topic list -t 2>&1); bad=""
 for tt in "/tetra/mag1 sensor_msgs/msg/MagneticField" "/tetra/mag4 sensor_msgs/msg/MagneticField" \
   "/tetra/gradient/raw tetra_gradiometer_msgs/msg/GradientTensor" \
   "/tetra/gradient/truth tetra_gradiometer_msgs/msg/GradientTensor" "/tetra/odom nav_msgs/msg/Odometry" \
-  "/tetra/calibration std_msgs/msg/String" "/tetra/calibrator/guidance std_msgs/msg/String" \
+  "/tetra/calibration tetra_gradiometer_msgs/msg/Calibration" "/tetra/calibrator/guidance std_msgs/msg/String" \
   "/tetra/gradient/compensated tetra_gradiometer_msgs/msg/GradientTensor" \
   "/tetra/gradient/norm std_msgs/msg/Float64" "/tetra/epsilon std_msgs/msg/Float64" \
   "/tetra/compensated_percent std_msgs/msg/Float64" "/tetra/health/alarm std_msgs/msg/String" \
@@ -457,14 +457,15 @@ check "ros2 topic hz /tetra/mag1 at rate:=10 (10 Hz sensors: ~100 Hz)" \
 wait_diag_value holding 90
 check "the driver holds after the trim segment (/diagnostics playback state holding)" $?
 o1=$(readme_line 2 | grep -o 'Trigger_Response(.*')
-o2=$(readme_line 3 120 | grep -o 'Trigger_Response(.*')
-check "README trim block: ros2 service call /tetra/calibrator/stop, then calibrate: success" \
-  "$(echo "$o2" | grep -q 'success=True'; echo $?)" "$(echo "$o1" | cut -c1-100) | $(echo "$o2" | cut -c1-260)"
+o2=$(readme_line 3 120 | grep -o 'Calibrate_Response(.*')
+check "README trim block: ros2 service call /tetra/calibrator/stop, then calibrate (Calibrate, every sample): success" \
+  "$(echo "$o2" | grep -q 'success=True' && echo "$o2" | grep -q 'samples=[1-9]'; echo $?)" "$(echo "$o1" | cut -c1-100) | $(echo "$o2" | cut -c1-260)"
 check "calibrate wrote the calibration file under \$ROS_HOME (calibration_file: calibration.yaml)" \
   "$([ -s "$ROS_HOME/calibration.yaml" ]; echo $?)" "$ROS_HOME/calibration.yaml"
-out=$(timeout 20 ros2 topic echo --once /tetra/calibration 2>&1 | head -3)
-check "ros2 topic echo --once /tetra/calibration (late subscriber gets the latched text)" \
-  "$(echo "$out" | grep -q '^data:'; echo $?)"
+out=$(timeout 20 ros2 topic echo --once /tetra/calibration 2>&1)
+check "ros2 topic echo --once /tetra/calibration (late subscriber gets the latched Calibration)" \
+  "$(echo "$out" | grep -q '^method: known_gradient_lstsq_general' && echo "$out" | grep -q '^document: '; echo $?)" \
+  "$(echo "$out" | grep -m1 '^method:')"
 o1=$(timeout 30 ros2 lifecycle set /tetra/compensator deactivate 2>&1)
 o2=$(trigger /tetra/compensator/reset_metrics)
 o3=$(timeout 30 ros2 lifecycle set /tetra/compensator activate 2>&1)

@@ -185,7 +185,7 @@ def _free_domain(attempts: int = 10, listen_s: float = 0.7) -> tuple[int, Any]:
 def _feeder_class() -> type:
     from rclpy.node import Node
     from sensor_msgs.msg import MagneticField
-    from std_msgs.msg import String
+    from tetra_gradiometer_msgs.msg import Calibration
 
     from tetra_gradiometer.io import conversions as cv
     from tetra_gradiometer.io import gradient_tensor as gt
@@ -207,7 +207,7 @@ def _feeder_class() -> type:
             refuses calibrations while a node other than its calibration_publisher publishes
             there."""
             if self._calibration is None:
-                self._calibration = self.create_publisher(String, 'calibration', latched_qos())
+                self._calibration = self.create_publisher(Calibration, 'calibration', latched_qos())
             return self._calibration
 
         def publish_set(self, stamp_ns: int, fields: np.ndarray, skip: tuple[int, ...] = ()) -> None:
@@ -229,6 +229,16 @@ def _feeder_class() -> type:
 
 def Feeder(**kwargs: Any) -> Any:  # noqa: N802 - a factory standing in for the class
     return _feeder_class()(**kwargs)
+
+
+def calibration_msg(text: str) -> Any:
+    """The tetra_gradiometer_msgs/Calibration of a calibration file's ``text``, as the
+    calibrator publishes it (io/calibration_message.py)."""
+    from tetra_gradiometer_msgs.msg import Calibration
+
+    from tetra_gradiometer.io.calibration_message import calibration_fields
+
+    return Calibration(**calibration_fields(text))
 
 
 def wait_for(condition, timeout_s: float, what: str, graph: Graph | None = None) -> None:

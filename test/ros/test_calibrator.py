@@ -110,7 +110,7 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
     (nothing written), and max_solve_s ends it with the best individual so far. max_solve_s
     is 1.5 s, not less: its clock starts with the ~/calibrate call, and on a loaded machine
     the work before the first generation took all of a 0.5 s budget (0 generations run)."""
-    from std_srvs.srv import Trigger
+    from tetra_gradiometer_msgs.srv import Calibrate
     calibration_file = tmp_path / 'calibration.yaml'
     rng = np.random.default_rng(5)
     with ros_graph() as (graph, probe, feeder):
@@ -122,9 +122,9 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
         _feed_and_stop(probe, feeder, graph, g, b)
         assert not probe.call('calibrator/cancel').success  # nothing to cancel yet
 
-        client = probe.create_client(Trigger, 'calibrator/calibrate')
+        client = probe.create_client(Calibrate, 'calibrator/calibrate')
         assert client.wait_for_service(timeout_sec=30)
-        future = client.call_async(Trigger.Request())
+        future = client.call_async(Calibrate.Request())
         elapsed: set[str] = set()
 
         def solving() -> bool:

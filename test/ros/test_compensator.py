@@ -5,7 +5,7 @@ tensor, each GradientTensor saying its state and calibration; a corrupt file ref
 from __future__ import annotations
 
 import numpy as np
-from ros_helpers import interference_set, ros_graph, wait_connected, wait_for, wait_matched
+from ros_helpers import calibration_msg, interference_set, ros_graph, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io import gradient_tensor as gt
@@ -41,7 +41,7 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
                  30, 'compensator diagnostics', graph)
         status = _diag(probe, 'tetra/compensator: compensation')
         assert status['level'] == 1 and 'UNCOMPENSATED' in status['message'] and 'no calibration file' in status['message']
-        from std_msgs.msg import Float64, String
+        from std_msgs.msg import Float64
         norms: list[float] = []
         probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)
         wait_matched(feeder.raw, 2)  # compensator and probe
@@ -59,9 +59,9 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
         np.testing.assert_allclose(norms, [np.sqrt(np.sum(g[i] ** 2)) / NT for i in range(10)], rtol=1e-12)
 
         # A calibration with the exact parameters, on the latched topic: the true tensor (zero) comes out.
-        document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
-                                   sensor_positions=GEOMETRY.to_flat(), created_utc='2026-11-28T09:30:00Z')
-        feeder.calibration.publish(String(data=document.to_yaml()))
+        exact_document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
+                                         sensor_positions=GEOMETRY.to_flat(), created_utc='2026-11-28T09:30:00Z')
+        feeder.calibration.publish(calibration_msg(exact_document.to_yaml()))
         wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'True',
                  10, 'the latched calibration', graph)
         for i in range(10, 20):
@@ -76,9 +76,16 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
         # A calibration for another array is refused; the current one is kept.
         other = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                 sensor_positions=core.TetraGeometry.regular(0.3).to_flat())
-        feeder.calibration.publish(String(data=other.to_yaml()))
+        feeder.calibration.publish(calibration_msg(other.to_yaml()))
         wait_for(lambda: 'other sensor positions' in _diag(probe, 'tetra/compensator: compensation')['message'],
                  10, 'the refusal', graph)
+        assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
+        # A message whose summary disagrees with the document it carries is refused too.
+        altered = calibration_msg(exact_document.to_yaml())
+        altered.parameters[0] += 1e-3
+        feeder.calibration.publish(altered)
+        wait_for(lambda: 'the field parameters disagrees with the document'
+                 in _diag(probe, 'tetra/compensator: compensation')['message'], 10, 'the refusal', graph)
         assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
         # Implausible calibrations (k = 1e308 would put inf on gradient/norm; a NaN position
         # compares false and used to pass the array check) are refused; the current one is kept.
@@ -86,9 +93,13 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
                                method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat())
         nan_positions = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                         sensor_positions=[float('nan')] + GEOMETRY.to_flat()[1:])
-        for document, reason in ((huge, 'k_soft[0, 0, 0] = 1e+308 is implausible'),
-                                 (nan_positions, 'sensor_positions[0] = nan is not finite')):
-            feeder.calibration.publish(String(data=document.to_yaml()))
+        # The implausible k has no summary (no publisher of ours writes one): the exact one's.
+        for document, summarized, reason in (
+                (huge, exact_document, 'k_soft[0, 0, 0] = 1e+308 is implausible'),
+                (nan_positions, nan_positions, 'sensor_positions[0] = nan is not finite')):
+            message = calibration_msg(summarized.to_yaml())
+            message.document = document.to_yaml()
+            feeder.calibration.publish(message)
             wait_for(lambda reason=reason: reason in _diag(probe, 'tetra/compensator: compensation')['message'],
                      10, 'the refusal', graph)
             assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
@@ -125,8 +136,6 @@ def _covariance(rng, n_parameters=36):
 
 
 def test_g_sigma_follows_the_calibration_and_is_nan_while_the_noise_is_unknown(tmp_path):
-    from std_msgs.msg import String
-
     from tetra_gradiometer.core.uncertainty import compensated_sigma
 
     rng = np.random.default_rng(8)
@@ -149,7 +158,7 @@ def test_g_sigma_follows_the_calibration_and_is_nan_while_the_noise_is_unknown(t
 
         document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                    sensor_positions=GEOMETRY.to_flat(), sensor_noise_t=noise, covariance=covariance)
-        feeder.calibration.publish(String(data=document.to_yaml()))
+        feeder.calibration.publish(calibration_msg(document.to_yaml()))
         wait_for(lambda: 'parameter covariance' in _diag(probe, status).get('sigma', ''), 10, 'the calibration', graph)
         for i in range(5, 15):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
@@ -161,7 +170,7 @@ def test_g_sigma_follows_the_calibration_and_is_nan_while_the_noise_is_unknown(t
         assert np.max(expected / without_term) > 1.05  # the covariance term is really there
 
         # A calibration without a noise estimate (and sensor_noise_t 0): sigma unknown, NaN.
-        feeder.calibration.publish(String(data=CalibrationFile(
+        feeder.calibration.publish(calibration_msg(CalibrationFile(
             parameters=exact, method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat()).to_yaml()))
         wait_for(lambda: 'no estimate in the calibration' in _diag(probe, status).get('sigma', ''), 10,
                  'the second calibration', graph)
@@ -173,8 +182,6 @@ def test_g_sigma_follows_the_calibration_and_is_nan_while_the_noise_is_unknown(t
 
 
 def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibration_estimate(tmp_path):
-    from std_msgs.msg import String
-
     from tetra_gradiometer.core.uncertainty import compensated_sigma
 
     rng = np.random.default_rng(9)
@@ -198,7 +205,7 @@ def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibra
             np.testing.assert_allclose(tensor.g_sigma, spread, rtol=0.03)  # 20 000 draws: 0.5 % per std
 
         # The parameter beats the calibration's own estimate (0.3 nT here).
-        feeder.calibration.publish(String(data=CalibrationFile(
+        feeder.calibration.publish(calibration_msg(CalibrationFile(
             parameters=exact, method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat(),
             sensor_noise_t=0.3 * NT).to_yaml()))
         wait_for(lambda: 'from sensor_noise_t' in _diag(probe, status).get('sigma', '')

@@ -1,8 +1,8 @@
 """``compensator`` node: ``G = G_m - D`` (eq. 19) on every measured tensor.
 
 Loads ``calibration_file`` on configure (corrupt, or of another array: configuration refused,
-nodes/managed.py) and follows the latched ``calibration`` topic (a calibration file's YAML in
-std_msgs/String); without one, or with a refused one, it runs uncompensated
+nodes/managed.py) and follows the latched ``calibration`` topic (tetra_gradiometer_msgs/
+Calibration, io/calibration_message.py); without one, or with a refused one, it runs uncompensated
 (``gradient/compensated`` = ``gradient/raw``) or on the one it has, WARN on ``/diagnostics``.
 
 Reads ``gradient/raw`` (tetra_gradiometer_msgs/GradientTensor: ``G_m``, T/m, with ``B_1'``,
@@ -35,6 +35,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
+from tetra_gradiometer_msgs.msg import Calibration
+
 from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.health import MIN_SOURCE_RANGE_EDGES, HealthConfig, HealthMonitor
 from ..core.metrics import epsilon_terms
@@ -51,6 +53,7 @@ from ..io.calibration import (
     check_positions,
     load_calibration,
 )
+from ..io.calibration_message import calibration_from_message
 from ..io.channels import channel_topic
 from ..io.matching import StampPairer
 from ..pipelines.health import alarm_cause
@@ -174,7 +177,7 @@ class CompensatorNode(ManagedNode):
         self._gate = CalibrationGate(
             self._watch, topic, publisher, node_key(p['calibration_key_file'])
         )
-        self._waiting: tuple[float, str] | None = None  # (arrival, text): publisher unnamed yet
+        self._waiting: tuple[float, Calibration] | None = None  # publisher not named yet
         self._noise = float(p['sensor_noise_t'])
         self._sigma: SigmaModel | None = None
         self._sigma_text = ''
@@ -211,7 +214,8 @@ class CompensatorNode(ManagedNode):
             self._tracking = LiveTracking(self, self.when_active, self._horizon)
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
-        self.create_subscription(String, 'calibration', gated(self._on_calibration), latched_qos())
+        on_calibration = gated(self._on_calibration)
+        self.create_subscription(Calibration, 'calibration', on_calibration, latched_qos())
         tensor = gt.rclpy_class()
         raw = self.create_subscription(
             tensor, 'gradient/raw', gated(self._on_raw), derived_qos(), raw=True
@@ -247,22 +251,22 @@ class CompensatorNode(ManagedNode):
         self._gate.check_file(path.read_text(encoding='utf-8'), str(path))  # with a key
         self._apply(calibration, f'file {path}')
 
-    def _on_calibration(self, msg: String) -> None:
-        self._judge(msg.data, time.monotonic())
+    def _on_calibration(self, msg: Calibration) -> None:
+        self._judge(msg, time.monotonic())
 
     def _judge_waiting(self) -> None:
         if self._waiting is not None:
             self._judge(self._waiting[1], self._waiting[0])
 
-    def _judge(self, text: str, arrived: float) -> None:
+    def _judge(self, msg: Calibration, arrived: float) -> None:
         """Adopt a calibration from the topic when the gate admits it (its publisher, its
         signature) and it is not older than the one in use under a key (a replay)."""
         self._waiting = None
         try:
-            if not self._gate.admit(text, time.monotonic() - arrived):
-                self._waiting = (arrived, text)  # the graph has not named the publisher yet
+            if not self._gate.admit(msg.document, time.monotonic() - arrived):
+                self._waiting = (arrived, msg)  # the graph has not named the publisher yet
                 return
-            calibration = CalibrationFile.from_yaml(text, source='the calibration topic')
+            calibration = calibration_from_message(msg, 'the calibration topic')
             if self._gate.key is not None and calibration.created_utc < self._created:
                 raise Refused(
                     f'a signed calibration from {self._gate.publisher} created '
@@ -343,10 +347,9 @@ class CompensatorNode(ManagedNode):
         self._health, self._health_text, parameters = None, 'off: no calibration', None
         if calibration is not None:
             parameters, covariance = calibration.parameters, calibration.covariance
-            if parameters.terms:  # the monitor's model is k, b: their block of the covariance
-                size = 36  # the general k, b lead InterferenceParameters.full_vector
-                parameters = parameters.without_terms()
-                covariance = None if covariance is None else covariance[:size, :size]
+            if parameters.terms:  # the monitor's model is k, b: their block of the covariance,
+                parameters = parameters.without_terms()  # the general 36 lead full_vector
+                covariance = None if covariance is None else covariance[:36, :36]
             self._health = HealthMonitor(
                 self._geometry, parameters, noise, covariance, self._health_config
             )
@@ -540,10 +543,8 @@ class CompensatorNode(ManagedNode):
                 },
             )
         )
-        array.status.append(
-            status(self, 'channels', channel_level, channel_text, '', channel_values)
-        )
-        array.status.append(self._health_status())
+        channels = status(self, 'channels', channel_level, channel_text, '', channel_values)
+        array.status.extend((channels, self._health_status()))
         self._diag_pub.publish(array)
 
     def _channels_status(self) -> tuple[int, str, dict[str, Any]]:
