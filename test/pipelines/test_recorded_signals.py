@@ -25,6 +25,7 @@ from stream_faults import EARTH_ENU, GEOMETRY, START_NS, short_mission  # noqa: 
 
 from tetra_gradiometer.core.metrics import noise_floor  # noqa: E402
 from tetra_gradiometer.io import conversions as cv  # noqa: E402
+from tetra_gradiometer.io import gradient_tensor as gt  # noqa: E402
 from tetra_gradiometer.io.bag import BagWriter  # noqa: E402
 from tetra_gradiometer.io.channels import channel_topic  # noqa: E402
 from tetra_gradiometer.io.params import params_document  # noqa: E402
@@ -217,13 +218,11 @@ def _silent_signals_are_named_live(monkeypatch, bag_path, calibration):
     with MagneticBag(bag_path) as bag:
         stamps, fields = bag.read_sets()
     stamps, fields = stamps[:20], fields[:20]
-    tensor_cdr = cv.TensorCdr('tetra_array')
     with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration), use_sim_time=True,
                          sensor_positions=GEOMETRY.to_flat()) as (node, published):
         for stamp, field, g in zip(stamps, fields, difference_tensor(fields, GEOMETRY)):
             node.get_clock().set_ros_time_override(Time(nanoseconds=int(stamp)))
-            node._on_reference(cv.magnetic_field_cdr(field[0], int(stamp), cv.MAG_FRAMES[0]))
-            node._on_raw(tensor_cdr.write(g, int(stamp)))
+            node._on_raw(_raw_cdr(int(stamp), g, field[0]))
         node._publish_diagnostics()
     assert not [m for topic, m in published if topic == '/tetra/gradient/compensated']
     status = [s for topic, m in published if topic == '/diagnostics' for s in m.status
@@ -302,7 +301,6 @@ def _compensator_live(monkeypatch, bag_path, calibration):
     with AnyReader([Path(bag_path)]) as reader:
         connections = [c for c in reader.connections if c.topic in ('/joint_states', '/power/sonar', '/power/thrusters')]
         messages = [(log, c.topic, reader.deserialize(raw, c.msgtype)) for c, log, raw in reader.messages(connections)]
-    tensor_cdr = cv.TensorCdr('tetra_array')
     with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration), use_sim_time=True,
                          sensor_positions=GEOMETRY.to_flat()) as (node, published):
         channels = node._effects.channels  # the names its terms read, each a topic and field
@@ -316,10 +314,16 @@ def _compensator_live(monkeypatch, bag_path, calibration):
                     if channel_topic(name) == messages[k][1]:
                         node._on_channel(name, messages[k][2])
             else:
-                node._on_reference(cv.magnetic_field_cdr(fields[k, 0], log, cv.MAG_FRAMES[0]))
-                node._on_raw(tensor_cdr.write(g_raw[k], log))
-    out = [tensor_cdr.read(msg) for topic, msg in published if topic == '/tetra/gradient/compensated']
-    return np.array([s for s, _ in out]), np.array([g for _, g in out])
+                node._on_raw(_raw_cdr(log, g_raw[k], fields[k, 0]))
+    out = [gt.GradientTensorCdr(cv.ARRAY_FRAME).read(msg) for topic, msg in published
+           if topic == '/tetra/gradient/compensated']
+    return np.array([s for s, *_ in out]), np.array([values[:9].reshape(3, 3) for _, values, *_ in out])
+
+
+def _raw_cdr(stamp_ns: int, g: np.ndarray, b_reference: np.ndarray) -> bytes:
+    """A serialized ``gradient/raw``: ``G_m`` (3, 3) T/m with ``B_1'`` (3,) T."""
+    tensor = gt.TensorSet(stamp_ns, g, reference_field=b_reference)
+    return gt.GradientTensorCdr(cv.ARRAY_FRAME).write(stamp_ns, gt.pack(tensor))
 
 
 def test_a_field_only_some_messages_have_is_left_out_with_why_not_a_refused_run(tmp_path):

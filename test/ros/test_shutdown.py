@@ -93,7 +93,7 @@ def _start(case: Case, domain: int, home: Path) -> None:
     remaps = {'__ns': case.ns}
     if case.state == 'solving':  # the test's feeder publishes in /tetra
         params.update(SOLVE_PARAMS, calibration_file=str(home / f'{case.ns[1:]}.yaml'))
-        remaps.update({'gradient/raw': '/tetra/gradient/raw', 'reference_field': '/tetra/reference_field'})
+        remaps.update({'gradient/raw': '/tetra/gradient/raw'})
     script = f'import sys; from tetra_gradiometer.nodes.process import main_{case.node}; sys.exit(main_{case.node}())'
     command = [sys.executable, '-c', script, '--ros-args', '--params-file', str(PARAMS)]
     if case.state == 'starting ignored':  # exec keeps an ignored signal ignored
@@ -156,7 +156,6 @@ def _start_solves(probe: Any, feeder: Any, solving: list[Case]) -> None:
     from tetra_gradiometer_msgs.srv import Calibrate
 
     wait_matched(feeder.raw, len(solving))
-    wait_matched(feeder.reference, len(solving))
     keys = [f'{c.ns[1:]}/calibrator: calibration' for c in solving]
     for case in solving:
         assert probe.call(f'{case.ns}/calibrator/start').success

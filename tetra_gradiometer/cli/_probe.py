@@ -16,13 +16,12 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from tetra_gradiometer_msgs.srv import Calibrate
 
-from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..nodes.common import DERIVED_DEPTH, NAMESPACE, derived_qos
 
 TENSOR_TOPICS = ('gradient/raw', 'gradient/compensated', 'gradient/truth')
@@ -102,17 +101,18 @@ class Probe(Node):
         self.percent = float('nan')
         for topic in TENSOR_TOPICS:
             self.create_subscription(
-                JointState, topic, partial(self._on_tensor, topic), derived_qos(depth)
+                gt.rclpy_class(), topic, partial(self._on_tensor, topic), derived_qos(depth)
             )
         self.create_subscription(Float64, 'compensated_percent', self._on_percent, derived_qos())
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
         self._service_clients: dict[str, Any] = {}
 
-    def _on_tensor(self, topic: str, msg: JointState) -> None:
+    def _on_tensor(self, topic: str, msg: Any) -> None:
         with self.lock:
             self.counts[topic] += 1
             if self.collecting:
-                self.tensors[topic][cv.stamp_to_ns(msg.header.stamp)] = cv.tensor_from_msg(msg)
+                tensor = gt.tensor_set_from_msg(msg)
+                self.tensors[topic][tensor.stamp_ns] = tensor.g
 
     def _on_percent(self, msg: Float64) -> None:
         self.percent = msg.data

@@ -1,7 +1,8 @@
 """``calibrator`` node: identifies the interference parameters ``k``, ``b`` (eqs. 15-18).
 
-Pairs ``gradient/raw`` (``G_m``, T/m) with ``reference_field`` (``B_1'``, T) by identical
-stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger but ``~/calibrate``):
+Reads ``gradient/raw`` (tetra_gradiometer_msgs/GradientTensor: ``G_m``, T/m, with the
+reference reading ``B_1'`` of the same set, T) and accumulates the sets while enabled.
+Services (std_srvs/Trigger but ``~/calibrate``):
 
 * ``~/start``: forget earlier samples and collect (fly the trim manoeuvre now);
 * ``~/stop``: stop collecting (samples are kept);
@@ -84,7 +85,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -99,10 +99,10 @@ from ..core.plausibility import plausible_readings
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..io.calibration import CalibrationFile, CalibrationFileError
 from ..io.calibration_message import calibration_fields
 from ..io.channels import TEMPERATURE, channel_topic, current_channels
-from ..io.matching import StampPairer
 from ..io.outputs import CALIBRATION, atomic_write_text
 from ..pipelines.effects_choice import EffectsChoice
 from ..pipelines.terms import WindowTerms
@@ -130,7 +130,6 @@ from .common import (
     latched_qos,
     resolve_node_path,
     status,
-    tensor_or_nan,
 )
 from .managed import ManagedNode
 from .process import spin_node
@@ -177,7 +176,6 @@ class CalibratorNode(ManagedNode):
         self._b: deque[np.ndarray] = deque()
         self._q: deque[np.ndarray] = deque()  # attitude per sample (NaN: unknown)
         self._t: deque[int] = deque()  # stamp per sample, ns
-        self._pairer = StampPairer(2)
         self._dropped_implausible = 0
         self._state = 'idle'
         self._last_result = 'no calibration yet'
@@ -212,12 +210,9 @@ class CalibratorNode(ManagedNode):
         self._horizon = self._diag_pub.inputs.watch_stamps(p['max_stamp_ahead_s'])
         gated = self.when_active
         raw = self.create_subscription(
-            JointState, 'gradient/raw', gated(self._on_raw), derived_qos()
+            gt.rclpy_class(), 'gradient/raw', gated(self._on_raw), derived_qos()
         )
         self._diag_pub.inputs.require(raw)
-        self.create_subscription(
-            MagneticField, 'reference_field', gated(self._on_reference), derived_qos()
-        )
         self.create_service(Trigger, '~/start', gated(self._on_start))
         self.create_service(Trigger, '~/stop', gated(self._on_stop))
         control = ReentrantCallbackGroup()  # served while a ~/calibrate waits for its solve
@@ -238,25 +233,18 @@ class CalibratorNode(ManagedNode):
 
     # ----------------------------------------------------------------- samples
 
-    def _on_raw(self, msg: JointState) -> None:
-        self._add(0, cv.stamp_to_ns(msg.header.stamp), tensor_or_nan(msg))
-
-    def _on_reference(self, msg: MagneticField) -> None:
-        self._add(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
-
-    def _add(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
-        if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
-            return
-        if not self._collecting:
+    def _on_raw(self, msg: Any) -> None:
+        """One GradientTensor: its ``G_m`` (3, 3) T/m and ``B_1'`` (3,) T, while collecting."""
+        tensor = gt.tensor_set_from_msg(msg)
+        stamp_ns = tensor.stamp_ns
+        if self._horizon.refuse('gradient/raw', stamp_ns) or not self._collecting:
             return
         with self._lock:
-            pair = self._pairer.add(stream, stamp_ns, value)
-            if pair is None:
-                return
-            if not (np.all(np.isfinite(pair[0])) and plausible_readings(pair[1])):
+            g, b = tensor.g, tensor.reference_field
+            if not (np.all(np.isfinite(g)) and plausible_readings(b)):
                 self._dropped_implausible += 1  # the offline tools' rule; never fitted
                 return
-            sample = (pair[0], pair[1], self._odom.at(stamp_ns))
+            sample = (g, b, self._odom.at(stamp_ns))
             self._g.append(sample[0])
             self._b.append(sample[1])
             self._q.append(sample[2])
@@ -355,7 +343,6 @@ class CalibratorNode(ManagedNode):
         with self._lock:
             discarded = len(self._g)
             self._g, self._b, self._q, self._t = deque(), deque(), deque(), deque()
-            self._pairer.clear()
             self._reset_guidance()
             self._epoch += 1
             self._collecting = True
@@ -574,7 +561,6 @@ class CalibratorNode(ManagedNode):
                     'solve_elapsed_s': float(elapsed),
                     'samples': self.n_samples,
                     'calibrations': self._calibrations,
-                    'unpaired_evicted': self._pairer.evicted,
                     'dropped_implausible': self._dropped_implausible,
                     **self._odom.check.values(),
                     'method': self.get_parameter('method').value,
