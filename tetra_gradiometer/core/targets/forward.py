@@ -54,16 +54,10 @@ def sensor_points(
     return positions[:, None, :] + np.einsum('nij,sj->nsi', rotations, geometry.positions)
 
 
-def unit_moment_tensors(
-    points: FloatArray, rotations: FloatArray, geometry: TetraGeometry, source: FloatArray
-) -> FloatArray:
-    """Eq. 7 tensors, body frame, of a dipole at ``source`` (3,) m with unit moments along
-    the odom axes x, y, z: (3, N, 3, 3) T/m per A m^2. The tensor is linear in the moment,
-    so ``np.tensordot(moment, out, 1)`` is the tensor of ``moment``.
-
-    ``points`` (N, 4, 3) are the sensors in the odom frame (:func:`sensor_points`).
-    Raises nothing; a sensor on the source gives inf (the caller keeps sources away).
-    """
+def _unit_moment_differences(points: FloatArray, source: FloatArray) -> FloatArray:
+    """``B_i - B_1`` (3, N, 3, 3) T per A m^2, odom frame, of a dipole at ``source`` (3,) m
+    with unit moments along the odom axes x, y, z at the sensors ``points`` (N, 4, 3) m:
+    ``out[k, n, :, i-2]`` for the moment ``e_k``."""
     r = points - source  # (N, 4, 3)
     distance2 = np.einsum('nsi,nsi->ns', r, r)
     inv3 = distance2**-1.5
@@ -72,9 +66,31 @@ def unit_moment_tensors(
     fields = 3.0 * r[None, :, :, :] * (np.moveaxis(r, 2, 0) * inv5[None])[..., None]
     fields -= np.eye(3)[:, None, None, :] * inv3[None, :, :, None]
     fields *= MU0_OVER_4PI
-    body = np.einsum('nji,knsj->knsi', rotations, fields)  # R^T B
-    differences = np.swapaxes(body[:, :, 1:, :] - body[:, :, :1, :], 2, 3)
-    return differences @ geometry.a_inv
+    return np.swapaxes(fields[:, :, 1:, :] - fields[:, :, :1, :], 2, 3)
+
+
+def unit_moment_tensors(
+    points: FloatArray, rotations: FloatArray, geometry: TetraGeometry, source: FloatArray
+) -> FloatArray:
+    """Eq. 7 tensors, body frame, of a dipole at ``source`` (3,) m with unit moments along
+    the odom axes x, y, z: (3, N, 3, 3) T/m per A m^2. The tensor is linear in the moment,
+    so ``np.tensordot(moment, out, 1)`` is the tensor of ``moment``.
+
+    ``points`` (N, 4, 3) are the sensors in the odom frame (:func:`sensor_points`), and
+    ``rotations`` (N, 3, 3) the attitudes (body -> odom).
+    Raises nothing; a sensor on the source gives inf (the caller keeps sources away).
+    """
+    # The body-frame differences are R^T (B_i - B_1).
+    return np.swapaxes(rotations, 1, 2) @ _unit_moment_differences(points, source) @ geometry.a_inv
+
+
+def unit_moment_tensors_odom(
+    points: FloatArray, rotations: FloatArray, geometry: TetraGeometry, source: FloatArray
+) -> FloatArray:
+    """:func:`unit_moment_tensors` in the odom frame, ``R G R^T``: (3, N, 3, 3) T/m per
+    A m^2. With the body tensor ``R^T dB a^-1`` that is ``dB a^-1 R^T``: one rotation, not
+    three (the localizer's inner loop)."""
+    return _unit_moment_differences(points, source) @ geometry.a_inv @ np.swapaxes(rotations, 1, 2)
 
 
 def array_tensor(
