@@ -471,6 +471,40 @@ def magnetic_field_cdr(
     return _CDR_LE + bytes(payload) + values.tobytes()
 
 
+def odometry_cdr(position_enu: np.ndarray, orientation_xyzw: np.ndarray, stamp_ns: int) -> bytes:
+    """Serialized :func:`odometry_msg` (frames odom and base_link, zero twist and
+    covariances): position (3,) m ENU, orientation (4,) x, y, z, w."""
+    payload = bytearray(_cdr_stamp(stamp_ns))
+    _cdr_string(payload, ODOM_FRAME)
+    _cdr_string(payload, BASE_FRAME)
+    _cdr_pad(payload, 8)
+    values = np.zeros(7 + 36 + 6 + 36, '<f8')  # pose, its covariance, twist, its covariance
+    values[:3], values[3:7] = position_enu, orientation_xyzw
+    return _CDR_LE + bytes(payload) + values.tobytes()
+
+
+def temperature_cdr(celsius: float, stamp_ns: int) -> bytes:
+    """Serialized :func:`temperature_msg` (frame tetra_array, variance 0) in degC."""
+    payload = bytearray(_cdr_stamp(stamp_ns))
+    _cdr_string(payload, ARRAY_FRAME)
+    _cdr_pad(payload, 8)
+    return _CDR_LE + bytes(payload) + struct.pack('<2d', float(celsius), 0.0)
+
+
+def battery_cdr(current_a: float, stamp_ns: int) -> bytes:
+    """Serialized :func:`battery_msg`: ``current`` (A), the other figures NaN."""
+    nan = float('nan')
+    payload = bytearray(_cdr_stamp(stamp_ns))
+    _cdr_string(payload, 'base_link')
+    _cdr_pad(payload, 4)
+    # voltage, temperature, current, charge, capacity, design capacity, percentage; status,
+    # health, technology, present; then the two empty cell arrays.
+    payload += struct.pack('<7f4B2I', nan, nan, current_a, nan, nan, nan, nan, 0, 0, 0, 1, 0, 0)
+    _cdr_string(payload, '')  # location
+    _cdr_string(payload, '')  # serial_number
+    return _CDR_LE + bytes(payload)
+
+
 def magnetic_field_from_cdr(data: bytes) -> tuple[int, str, np.ndarray]:
     """``(stamp_ns, frame_id, reading (12,))`` of a serialized ``sensor_msgs/MagneticField``:
     the reading as :func:`magnetic_field_reading`, field (3,) T then covariance (9,) T^2."""
