@@ -89,3 +89,26 @@ def test_cdr_readers_refuse_garbage_with_a_message_error(data):
         cv.magnetic_field_from_cdr(data)
     with pytest.raises(cv.MessageError):
         gt.GradientTensorCdr('tetra_array').read(data)
+
+
+@pytest.mark.parametrize('stamp', [0, 1_767_225_600_000_000_001, 2**31 * 10**9 - 1])
+def test_the_bag_writers_extra_topics_are_the_bytes_of_rosbags_and_rclpy(stamp):
+    """odometry_cdr, temperature_cdr and battery_cdr (what write_mission_bag records) against
+    the message objects through rosbags' CDR codec and rclpy's serialization."""
+    from rclpy.serialization import serialize_message
+
+    store, types = _typestore(), cv.rclpy_types()
+    rosbags = cv.rosbags_types(store)
+    position, orientation = np.array([-1234.5, 6.25e3, -48.125]), np.array([0.1, -0.7, 0.5, 0.49])
+    for celsius_or_amps in (-15.3, 0.0, 21.7):
+        cases = [
+            (cv.odometry_cdr(position, orientation, stamp), cv.ODOMETRY,
+             lambda t: cv.odometry_msg(t, position, orientation, stamp)),
+            (cv.temperature_cdr(celsius_or_amps, stamp), cv.TEMPERATURE,
+             lambda t: cv.temperature_msg(t, celsius_or_amps, stamp)),
+            (cv.battery_cdr(celsius_or_amps, stamp), cv.BATTERY_STATE,
+             lambda t: cv.battery_msg(t, celsius_or_amps, stamp)),
+        ]
+        for data, type_name, message in cases:
+            assert data == bytes(store.serialize_cdr(message(rosbags), type_name)), type_name
+            assert data == bytes(serialize_message(message(types))), type_name

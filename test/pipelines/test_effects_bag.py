@@ -1,6 +1,8 @@
 """The vehicle effects on bags: ``calibrate`` selects and fits the terms the trim
 calls for, ``compensate`` and ``locate`` apply them, a missing channel is named, never zero.
 Truth: the simulator's ``g_true`` (the sidecar ``.truth.npz``) and its effects."""
+import contextlib
+import io
 import json
 
 import numpy as np
@@ -8,6 +10,7 @@ import pytest
 import yaml
 from cli_helpers import assert_refused, run_cli
 
+from tetra_gradiometer.__main__ import main
 from tetra_gradiometer.io.calibration import load_calibration
 from tetra_gradiometer.pipelines.effects_choice import EffectsChoice
 
@@ -59,6 +62,20 @@ def bags(tmp_path_factory):
     }
 
 
+@pytest.fixture(scope='module')
+def all_calibration(bags, tmp_path_factory):
+    """The 'all' vehicle calibrated on the trim with the defaults, with its report, once for
+    the tests that use it: (calibration file, report folder, what calibrate printed)."""
+    bag, params, _ = bags['all']
+    tmp = tmp_path_factory.mktemp('all_calibration')
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(['calibrate', str(bag), '--params', str(params), '--window', TRIM,
+                     '--out', str(tmp / 'all.yaml'), '--report', str(tmp / 'report')])
+    assert code == 0, err.getvalue()
+    return tmp / 'all.yaml', tmp / 'report', out.getvalue()
+
+
 class _NoCapture:
     """run_cli's capsys for a module fixture (output is not checked there)."""
 
@@ -81,12 +98,10 @@ def _survey_residual(csv, truth):
     return np.sqrt(np.mean(residual**2)), np.sqrt(np.mean(sigma**2))
 
 
-def test_calibrate_selects_the_effects_and_compensate_reaches_the_noise(bags, tmp_path, capsys):
+def test_calibrate_selects_the_effects_and_compensate_reaches_the_noise(bags, all_calibration, tmp_path,
+                                                                        capsys):
     bag, params, truth = bags['all']
-    calibration = tmp_path / 'all.yaml'
-    code, out, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
-                             '--out', calibration)
-    assert code == 0, err
+    calibration, _, out = all_calibration
     terms = load_calibration(calibration).parameters.terms
     assert sorted(term.effect for term in terms) == sorted(EFFECTS)
     assert 'term vehicle_current' in out
@@ -145,18 +160,17 @@ def test_a_missing_channel_is_named_never_zero(bags, tmp_path, capsys):
     )
 
 
-def test_compensating_without_a_channel_holds_its_terms_and_widens_the_sigma(bags, tmp_path, capsys):
+def test_compensating_without_a_channel_holds_its_terms_and_widens_the_sigma(bags, all_calibration, tmp_path,
+                                                                             capsys):
     """``--allow-missing-channels``: the bag lacks the current and the temperature its
     calibration's terms read. Refused by name without the option; with it, compensated with
     those terms held at their calibration-window mean, the CSV's first line and the summary
     saying so, and the widened sigma covers the error left (against the simulator's truth):
     per component the survey's RMS error within 0.85-1.25 of its RMS sigma, >= 97 % within
     2 sigma. A calibration without window statistics cannot do it: refused, by name."""
-    full, params, _ = bags['all']
+    _, params, _ = bags['all']
     bag, _, truth = bags['allmag']
-    calibration = tmp_path / 'all.yaml'
-    code, _, err = run_cli(capsys, 'calibrate', full, '--params', params, '--window', TRIM, '--out', calibration)
-    assert code == 0, err
+    calibration = all_calibration[0]
     csv = tmp_path / 'held.csv'
     assert_refused(
         run_cli(capsys, 'compensate', bag, '--params', params, '--calibration', calibration, '--csv', csv),
@@ -192,7 +206,7 @@ def test_compensating_without_a_channel_holds_its_terms_and_widens_the_sigma(bag
     )
 
 
-def test_locate_without_a_channel_says_so(bags, tmp_path, capsys):
+def test_locate_without_a_channel_says_so(bags, all_calibration, tmp_path, capsys):
     """``locate --allow-missing-channels`` on the 'all' mission recorded with ``/odom`` and the
     current but without the temperature (the refusal without the option is compensate's, the
     same code): the output and report.md say what was held, and the dipole is found within
@@ -207,9 +221,7 @@ def test_locate_without_a_channel_says_so(bags, tmp_path, capsys):
     scenario, seed = load_scenario(full.parent / 'all.yaml')
     bag = write_mission_bag(tmp_path / 'no_temperature', simulate(scenario, np.random.default_rng(seed)),
                             temperature=False, progress=False)
-    calibration = tmp_path / 'all.yaml'
-    code, _, err = run_cli(capsys, 'calibrate', full, '--params', params, '--window', TRIM, '--out', calibration)
-    assert code == 0, err
+    calibration = all_calibration[0]
     code, out, err = run_cli(capsys, 'locate', bag, '--params', params, '--calibration', calibration,
                              '--out', tmp_path / 'targets', '--no-plots', '--allow-missing-channels')
     assert code == 0, err
@@ -230,13 +242,8 @@ def test_effects_from_a_discrepancy_report(tmp_path):
         EffectsChoice.from_report(tmp_path / 'bad.json')
 
 
-def test_the_calibration_file_round_trips_its_terms(bags, tmp_path, capsys):
-    bag, params, _ = bags['all']
-    first = tmp_path / 'first.yaml'
-    code, _, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
-                           '--out', first)
-    assert code == 0, err
-    loaded = load_calibration(first)
+def test_the_calibration_file_round_trips_its_terms(all_calibration):
+    loaded = load_calibration(all_calibration[0])
     again = type(loaded).from_yaml(loaded.to_yaml())
     for a, b in zip(loaded.parameters.terms, again.parameters.terms, strict=True):
         assert (a.effect, a.inputs, a.reference, a.channel_noise, a.window_mean, a.window_covariance) == (
@@ -247,15 +254,12 @@ def test_the_calibration_file_round_trips_its_terms(bags, tmp_path, capsys):
     assert again.covariance.shape == (36 + 9 * 5, 36 + 9 * 5)
 
 
-def test_calibrate_report_shows_the_selection(bags, tmp_path, capsys):
-    bag, params, _ = bags['all']
-    code, _, err = run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
-                           '--out', tmp_path / 'c.yaml', '--report', tmp_path / 'report')
-    assert code == 0, err
-    document = json.loads((tmp_path / 'report' / 'report.json').read_text())
+def test_calibrate_report_shows_the_selection(all_calibration):
+    report = all_calibration[1]
+    document = json.loads((report / 'report.json').read_text())
     assert sorted(document['effects']['selected']) == sorted(EFFECTS)
     assert all(test['kept'] for test in document['effects']['tests'].values())
     assert [t['effect'] for t in document['terms']] == document['effects']['selected']
     # The window's residual is the one left with the terms in: at the noise.
     assert document['residual']['rms_nT_per_m'] < 0.2
-    assert '**Vehicle effects fitted:**' in (tmp_path / 'report' / 'report.md').read_text()
+    assert '**Vehicle effects fitted:**' in (report / 'report.md').read_text()

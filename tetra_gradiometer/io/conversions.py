@@ -417,17 +417,52 @@ def _cdr_stamp(stamp_ns: int) -> bytes:
     return _STAMP.pack(*divmod(int(stamp_ns), NS_PER_S))
 
 
+@functools.lru_cache(maxsize=64)
+def _after_stamp(frames: tuple[str, ...], align: int) -> bytes:
+    """The strings ``frames`` that follow a header's stamp (8 bytes), padded to ``align``:
+    the same bytes for every message of a stream, built once."""
+    payload = bytearray(8)
+    for frame in frames:
+        _cdr_string(payload, frame)
+    _cdr_pad(payload, align)
+    return bytes(payload[8:])
+
+
 def magnetic_field_cdr(
     field_t: np.ndarray, stamp_ns: int, frame_id: str, covariance_t2: np.ndarray | None = None
 ) -> bytes:
     """Serialized :func:`magnetic_field_msg`: field (3,) T, covariance (9,) T^2 (None:
     REP 145 unknown)."""
     covariance = UNKNOWN_COVARIANCE if covariance_t2 is None else covariance_t2
-    payload = bytearray(_cdr_stamp(stamp_ns))
-    _cdr_string(payload, frame_id)
-    _cdr_pad(payload, 8)
     values = np.concatenate((np.ravel(field_t), np.ravel(covariance))).astype('<f8')
-    return _CDR_LE + bytes(payload) + values.tobytes()
+    return _CDR_LE + _cdr_stamp(stamp_ns) + _after_stamp((frame_id,), 8) + values.tobytes()
+
+
+def odometry_cdr(position_enu: np.ndarray, orientation_xyzw: np.ndarray, stamp_ns: int) -> bytes:
+    """Serialized :func:`odometry_msg` (frames odom and base_link, zero twist and
+    covariances): position (3,) m ENU, orientation (4,) x, y, z, w."""
+    values = np.zeros(7 + 36 + 6 + 36, '<f8')  # pose, its covariance, twist, its covariance
+    values[:3], values[3:7] = position_enu, orientation_xyzw
+    frames = _after_stamp((ODOM_FRAME, BASE_FRAME), 8)
+    return _CDR_LE + _cdr_stamp(stamp_ns) + frames + values.tobytes()
+
+
+def temperature_cdr(celsius: float, stamp_ns: int) -> bytes:
+    """Serialized :func:`temperature_msg` (frame tetra_array, variance 0) in degC."""
+    frame = _after_stamp((ARRAY_FRAME,), 8)
+    return _CDR_LE + _cdr_stamp(stamp_ns) + frame + struct.pack('<2d', float(celsius), 0.0)
+
+
+def battery_cdr(current_a: float, stamp_ns: int) -> bytes:
+    """Serialized :func:`battery_msg`: ``current`` (A), the other figures NaN."""
+    nan = float('nan')
+    payload = bytearray(_cdr_stamp(stamp_ns) + _after_stamp(('base_link',), 4))
+    # voltage, temperature, current, charge, capacity, design capacity, percentage; status,
+    # health, technology, present; then the two empty cell arrays.
+    payload += struct.pack('<7f4B2I', nan, nan, current_a, nan, nan, nan, nan, 0, 0, 0, 1, 0, 0)
+    _cdr_string(payload, '')  # location
+    _cdr_string(payload, '')  # serial_number
+    return _CDR_LE + bytes(payload)
 
 
 def magnetic_field_from_cdr(data: bytes) -> tuple[int, str, np.ndarray]:

@@ -115,27 +115,30 @@ class _Extras:
 
     def write(self, writer: BagWriter, i: int, stamp: int) -> None:
         """Write the chosen optional topics of sample ``i`` at header and log stamp ``stamp``."""
-        mission, types = self.mission, writer.types
+        mission = self.mission
         if self.odom:
-            writer.write(
+            writer.write_raw(
                 cv.ODOM_TOPIC,
-                cv.odometry_msg(
-                    types, mission.position_enu[i], mission.orientation_xyzw[i], stamp
-                ),
+                cv.ODOMETRY,
+                cv.odometry_cdr(mission.position_enu[i], mission.orientation_xyzw[i], stamp),
                 stamp,
             )
         if self.temperature:
-            writer.write(
+            writer.write_raw(
                 cv.TEMPERATURE_TOPIC,
-                cv.temperature_msg(types, mission.temperature_c[i], stamp),
+                cv.TEMPERATURE,
+                cv.temperature_cdr(mission.temperature_c[i], stamp),
                 stamp,
             )
         if self.battery:
-            writer.write(
-                cv.BATTERY_TOPIC, cv.battery_msg(types, mission.current_a[i], stamp), stamp
-            )
-            for j, topic in enumerate(mission.current_topics[1:], start=1):
-                writer.write(topic, cv.battery_msg(types, mission.currents_a[i, j], stamp), stamp)
+            currents = [(cv.BATTERY_TOPIC, mission.current_a[i])] + [
+                (topic, mission.currents_a[i, j])
+                for j, topic in enumerate(mission.current_topics[1:], start=1)
+            ]
+            for topic, current in currents:
+                writer.write_raw(
+                    topic, cv.BATTERY_STATE, cv.battery_cdr(float(current), stamp), stamp
+                )
 
 
 def _write_streams(

@@ -54,6 +54,25 @@ def sensor_points(
     return positions[:, None, :] + np.einsum('nij,sj->nsi', rotations, geometry.positions)
 
 
+def _unit_moment_tensors(points: FloatArray, source: FloatArray, maps: FloatArray) -> FloatArray:
+    """``(B_21 B_31 B_41) maps`` (3, N, 3, 3) for a dipole at ``source`` (3,) m with unit
+    moments along the odom axes x, y, z (``out[k]`` for ``e_k``), the fields in the odom frame
+    at the sensors ``points`` (N, 4, 3) m; ``maps`` (N or 1, 3, 3): ``a^-1``, or
+    ``a^-1 R^T`` for the tensor in the odom frame."""
+    r = points - source  # (N, 4, 3)
+    distance2 = np.einsum('nsi,nsi->ns', r, r)
+    inv3 = distance2**-1.5
+    # B_i(r) for m = e_k: mu0/4pi (3 r_k r_i / r^5 - delta_ki / r^3), one (k, i) per sensor:
+    # symmetric in k and i.
+    fields = (r * (3.0 * inv3 / distance2)[..., None])[..., :, None] * r[..., None, :]
+    diagonal = np.arange(3)
+    fields[..., diagonal, diagonal] -= inv3[..., None]
+    differences = (fields[:, 1:] - fields[:, :1]) * MU0_OVER_4PI  # (N, sensor 2-4, k, i)
+    # (N, 9 (k, i), 3 sensors) @ (N, 3 sensors, 3): one small matmul per sample
+    out = np.swapaxes(differences.reshape(len(r), 3, 9), 1, 2) @ maps
+    return out.reshape(len(r), 3, 3, 3).transpose(1, 0, 2, 3)
+
+
 def unit_moment_tensors(
     points: FloatArray, rotations: FloatArray, geometry: TetraGeometry, source: FloatArray
 ) -> FloatArray:
@@ -61,20 +80,21 @@ def unit_moment_tensors(
     the odom axes x, y, z: (3, N, 3, 3) T/m per A m^2. The tensor is linear in the moment,
     so ``np.tensordot(moment, out, 1)`` is the tensor of ``moment``.
 
-    ``points`` (N, 4, 3) are the sensors in the odom frame (:func:`sensor_points`).
+    ``points`` (N, 4, 3) are the sensors in the odom frame (:func:`sensor_points`), and
+    ``rotations`` (N, 3, 3) the attitudes (body -> odom).
     Raises nothing; a sensor on the source gives inf (the caller keeps sources away).
     """
-    r = points - source  # (N, 4, 3)
-    distance2 = np.einsum('nsi,nsi->ns', r, r)
-    inv3 = distance2**-1.5
-    inv5 = inv3 / distance2
-    # B_k(r) for m = e_k: mu0/4pi (3 r r_k / r^5 - e_k / r^3), in the odom frame.
-    fields = 3.0 * r[None, :, :, :] * (np.moveaxis(r, 2, 0) * inv5[None])[..., None]
-    fields -= np.eye(3)[:, None, None, :] * inv3[None, :, :, None]
-    fields *= MU0_OVER_4PI
-    body = np.einsum('nji,knsj->knsi', rotations, fields)  # R^T B
-    differences = np.swapaxes(body[:, :, 1:, :] - body[:, :, :1, :], 2, 3)
-    return differences @ geometry.a_inv
+    # The body-frame differences are R^T (B_i - B_1).
+    return np.swapaxes(rotations, 1, 2) @ _unit_moment_tensors(points, source, geometry.a_inv)
+
+
+def unit_moment_tensors_odom(
+    points: FloatArray, rotations: FloatArray, geometry: TetraGeometry, source: FloatArray
+) -> FloatArray:
+    """:func:`unit_moment_tensors` in the odom frame, ``R G R^T``: (3, N, 3, 3) T/m per
+    A m^2. With the body tensor ``R^T dB a^-1`` that is ``dB a^-1 R^T``: one rotation, not
+    three (the localizer's inner loop)."""
+    return _unit_moment_tensors(points, source, geometry.a_inv @ np.swapaxes(rotations, 1, 2))
 
 
 def array_tensor(

@@ -29,7 +29,7 @@ from ...errors import InputError
 from ..geometry import TetraGeometry, to_world
 from ..identification.lstsq import REGIONAL_BASIS
 from ..types import FloatArray
-from .forward import sensor_points, symmetric_components, unit_moment_tensors
+from .forward import sensor_points, symmetric_components, unit_moment_tensors_odom
 
 #: Trial distances (m) of the initial grid, geometric.
 GRID_DISTANCES_M = np.geomspace(1.5, 150.0, 12)
@@ -124,8 +124,8 @@ class _Problem:
     def moment_columns(self, source: FloatArray) -> FloatArray:
         columns = []
         for p, points in zip(self.passes, self.points, strict=True):
-            unit = unit_moment_tensors(points, p.rotations, self.geometry, source)  # (3, n, 3, 3)
-            world = np.stack([symmetric_components(to_world(u, p.rotations)) for u in unit])
+            unit = unit_moment_tensors_odom(points, p.rotations, self.geometry, source)
+            world = symmetric_components(unit.reshape(-1, 3, 3)).reshape(3, len(points), 5)
             columns.append((world * self.weights).reshape(3, -1).T)
         return np.concatenate(columns)
 
