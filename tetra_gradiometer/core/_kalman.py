@@ -75,6 +75,7 @@ class Block:
         self.world = np.zeros(N_WORLD)
         self.world_noise = 0.0
         self.heading = np.zeros(3)
+        self.seen = np.zeros(4)  # the whitened constrained combinations' sum
         self.t_end = float('nan')
 
 
@@ -94,3 +95,35 @@ def step_directions(h: FloatArray, jacobian: FloatArray) -> list[FloatArray]:
     sensors 2-4 their own pair, for sensor 1 all three pairs and the soft iron's share)."""
     inverse = np.linalg.inv(h)
     return [inverse @ jacobian[:, 3 * s : 3 * s + 3] for s in range(4)]
+
+
+class ChangeRate:
+    """How fast the vehicle changes, learnt from what the constraints always observe: the
+    mean of the whitened constrained combinations (unit noise per sample) of blocks ``lag``
+    blocks apart differs by the offsets' change between them plus the noise of both means
+    (known); the excess, over what the offsets' process noise at full rate gives in that lag
+    (``expected``, per block of lag), averaged with ``weight`` per pair, is the
+    :attr:`scale` of that process noise, within ``minimum`` and 1. It starts at ``minimum``:
+    a vehicle is taken as unchanged until the constraints show it changing."""
+
+    def __init__(self, lag: int, weight: float, minimum: float, expected: float) -> None:
+        self.lag, self.weight, self.minimum, self.expected = lag, weight, minimum, expected
+        self.scale = self._average = minimum
+        self._means: dict[int, tuple[FloatArray, float]] = {}
+
+    def add(self, index: int, mean: FloatArray, noise: float) -> None:
+        """Block ``index``'s mean (whitened) and its noise (the sum of its variances)."""
+        self._means[index] = (mean, noise)
+        earlier = self._means.pop(index - self.lag, None)
+        for stale in [k for k in self._means if k <= index - self.lag]:
+            del self._means[stale]
+        if earlier is None:
+            return
+        excess = float(np.sum((mean - earlier[0]) ** 2)) - noise - earlier[1]
+        estimate = excess / (self.lag * self.expected)
+        self._average = (1 - self.weight) * self._average + self.weight * estimate
+        self.scale = float(np.clip(self._average, self.minimum, 1.0))
+
+    def restart(self) -> None:
+        """Forget the blocks before a step (pairs across it are not a rate)."""
+        self._means.clear()

@@ -61,6 +61,7 @@ from ._kalman import (
     N_OFFSETS,
     N_WORLD,
     Block,
+    ChangeRate,
     Trial,
     information_update,
     step_directions,
@@ -108,6 +109,11 @@ class TrackerConfig:
       is taken for a step no monitor handed over, and fitted ``confirm_s`` (a source passing
       close fits one sensor's step for a second, not for five), s.
     * ``initial_sigma_t``: the offsets' change at the start, per axis, T.
+    * ``change_lag_s``, ``change_memory_s``, ``change_scale_min``: the offsets' process
+      noise (the rates above) is scaled by how fast the constrained combinations change
+      (blocks ``change_lag_s`` apart, averaged over ``change_memory_s``), within
+      ``change_scale_min`` (where it starts) and 1: a vehicle that does not change keeps
+      its state's 1-sigma near zero.
     * ``gate_p``: a block whose innovation is less likely than this is not learnt from.
     """
 
@@ -125,7 +131,10 @@ class TrackerConfig:
     trial_s: float = 1.0
     stuck_s: float = 3.0
     confirm_s: float = 5.0
-    initial_sigma_t: float = 0.02e-9
+    initial_sigma_t: float = 0.005e-9
+    change_lag_s: float = 60.0
+    change_memory_s: float = 120.0
+    change_scale_min: float = 0.01
     gate_p: float = 1e-6
 
     def __post_init__(self) -> None:
@@ -251,7 +260,19 @@ class OffsetTracker:
         size = N_OFFSETS + (N_WORLD if with_world else 0)
         self._x = np.zeros(size)
         self._p = np.zeros((size, size))
-        self._p[:N_OFFSETS, :N_OFFSETS] = self.config.initial_sigma_t**2 * np.eye(N_OFFSETS)
+        self._p[:N_OFFSETS, :N_OFFSETS] = rates.initial_sigma_t**2 * np.eye(N_OFFSETS)
+        constraints = CONSTRAINT_ROWS @ jacobian
+        self._seen_white = np.linalg.inv(
+            np.linalg.cholesky(sensor_noise_t**2 * constraints @ constraints.T)
+        ) @ CONSTRAINT_ROWS  # (4, 9): unit noise per sample
+        lag = max(1, int(round(rates.change_lag_s / rates.block_s)))
+        seen_rate = self._seen_white @ self._h @ self._offset_rate @ self._h.T @ self._seen_white.T
+        self._change = ChangeRate(
+            lag,
+            rates.block_s / rates.change_memory_s,
+            rates.change_scale_min,
+            float(np.trace(seen_rate)) * rates.block_s,
+        )
         if with_world:
             self._p[N_OFFSETS:, N_OFFSETS:] = self.config.world_sigma_t_per_m**2 * np.eye(N_WORLD)
         self._origin: float | None = None
@@ -406,12 +427,14 @@ class OffsetTracker:
         start, stop = rows
         w = keep[start:stop]
         y = (g[start:stop].reshape(-1, 9) @ self._whiten.T) * w[:, None]  # (k, m)
+        seen = g[start:stop].reshape(-1, 9) @ self._seen_white.T  # (k, 4)
         block = self._open if self._open is not None and self._open.index == index else None
         if block is None:
             block = self._open = Block(index, self._x.size)
         block.t_end = float(t_s[stop - 1])
         block.n += float(w.sum())
         block.excluded += int(np.sum(w == 0))
+        block.seen += w @ seen
         h = self._h_white
         columns = [np.broadcast_to(h, (stop - start, *h.shape))]
         if rotation is not None:
@@ -481,6 +504,7 @@ class OffsetTracker:
             return
         self._gated = 0
         self._x, self._p = x, p
+        self._change.add(block.index, block.seen / block.n, 4.0 / block.n)
         self._record(block.t_end, 'update', statistic=statistic)
 
     def _start_trial(self, t_s: float, named: tuple[int, ...], duration_s: float) -> None:
@@ -501,6 +525,7 @@ class OffsetTracker:
         self._trial.follow = bool(named)
         self._x, self._p = states[1 if named else 0]
         self._gated = 0
+        self._change.restart()
 
     def _try(self, block: Block) -> None:
         """Every hypothesis updated on the block (no step: only through the gate) and scored
@@ -554,7 +579,7 @@ class OffsetTracker:
         hypothesis of a step being sought)."""
         config = self.config
         q = np.zeros_like(self._p)
-        q[:N_OFFSETS, :N_OFFSETS] = seconds * self._offset_rate
+        q[:N_OFFSETS, :N_OFFSETS] = seconds * self._change.scale * self._offset_rate
         if self.with_world:
             learnt = config.world_margin * self._world_rate2
             rate2 = max(learnt, config.world_rate_min_t_per_m_sqrt_s**2)

@@ -55,7 +55,7 @@ from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, atomic_output, check_output
 from .health import HealthRecorder
 from .terms import StreamRegressors
-from .tracking import TrackedStream
+from .tracking import TrackedStream, fitted_window
 
 __all__ = [
     'COMPENSATED_TOPIC',
@@ -240,6 +240,7 @@ class Compensation:
         That covariance (for the health monitor's calibration-error bound): of ``k``, ``b``
         only when the calibration has terms.
     forced : the checks the calibration was kept over (``--force``), each use says them
+    fitted : its bag and window end, s (:func:`~.tracking.fitted_window`), or None
     """
 
     parameters: InterferenceParameters | None
@@ -249,6 +250,7 @@ class Compensation:
     with_covariance: bool = False
     covariance: np.ndarray | None = None
     forced: tuple[str, ...] = ()
+    fitted: tuple[str, float] | None = None
 
 
 def health_recorder(
@@ -318,6 +320,7 @@ def load_compensation(
         calibration.covariance is not None,
         covariance,
         calibration.forced_warnings(),
+        fitted_window(calibration.diagnostics),
     )
 
 
