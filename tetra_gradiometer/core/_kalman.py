@@ -13,6 +13,8 @@ from .types import FloatArray
 #: The pair offsets (3 pairs x 3 axes) and the world gradient's coefficients.
 N_OFFSETS = 9
 N_WORLD = 5
+#: Two blocks are on one heading when their forward axes are within 10 degrees.
+STRAIGHT = float(np.cos(np.radians(10.0)))
 #: The world gradient's coefficients: the regional fit's basis (the calibration's joint
 #: solve) made orthonormal, so that a random walk on them is the same in every direction.
 WORLD_BASIS = np.linalg.qr(REGIONAL_BASIS.reshape(5, 9).T)[0].T.reshape(5, 3, 3)
@@ -97,33 +99,33 @@ def step_directions(h: FloatArray, jacobian: FloatArray) -> list[FloatArray]:
     return [inverse @ jacobian[:, 3 * s : 3 * s + 3] for s in range(4)]
 
 
-class ChangeRate:
-    """How fast the vehicle changes, learnt from what the constraints always observe: the
-    mean of the whitened constrained combinations (unit noise per sample) of blocks ``lag``
-    blocks apart differs by the offsets' change between them plus the noise of both means
-    (known); the excess, over what the offsets' process noise at full rate gives in that lag
-    (``expected``, per block of lag), averaged with ``weight`` per pair, is the
-    :attr:`scale` of that process noise, within ``minimum`` and 1. It starts at ``minimum``:
-    a vehicle is taken as unchanged until the constraints show it changing."""
+class LaggedRate:
+    """A random walk's variance per second, learnt from block means ``lag`` blocks apart:
+    they differ by the walk over the lag plus the noise of both means (known), so the
+    excess over the noise, over ``lag * unit`` (``unit``: the walk's variance per block at
+    rate 1, summed over the mean's components) and averaged with ``weight`` per pair, is
+    the walk's :attr:`rate` (it starts at ``start``). With headings, only pairs on one
+    heading count (within 10 degrees)."""
 
-    def __init__(self, lag: int, weight: float, minimum: float, expected: float) -> None:
-        self.lag, self.weight, self.minimum, self.expected = lag, weight, minimum, expected
-        self.scale = self._average = minimum
-        self._means: dict[int, tuple[FloatArray, float]] = {}
+    def __init__(self, lag: int, weight: float, unit: float, start: float) -> None:
+        self.lag, self.weight, self.unit, self.rate = lag, weight, unit, start
+        self._means: dict[int, tuple[FloatArray, float, FloatArray | None]] = {}
 
-    def add(self, index: int, mean: FloatArray, noise: float) -> None:
-        """Block ``index``'s mean (whitened) and its noise (the sum of its variances)."""
-        self._means[index] = (mean, noise)
+    def add(
+        self, index: int, mean: FloatArray, noise: float, heading: FloatArray | None = None
+    ) -> None:
+        """Block ``index``'s mean, its noise (the sum of its variances), its heading (unit)."""
+        self._means[index] = (mean, noise, heading)
         earlier = self._means.pop(index - self.lag, None)
         for stale in [k for k in self._means if k <= index - self.lag]:
             del self._means[stale]
         if earlier is None:
             return
+        if heading is not None and earlier[2] is not None and heading @ earlier[2] < STRAIGHT:
+            return
         excess = float(np.sum((mean - earlier[0]) ** 2)) - noise - earlier[1]
-        estimate = excess / (self.lag * self.expected)
-        self._average = (1 - self.weight) * self._average + self.weight * estimate
-        self.scale = float(np.clip(self._average, self.minimum, 1.0))
+        self.rate += self.weight * (excess / (self.lag * self.unit) - self.rate)
 
     def restart(self) -> None:
-        """Forget the blocks before a step (pairs across it are not a rate)."""
+        """Forget the blocks before a step (pairs across it are not a walk)."""
         self._means.clear()

@@ -33,7 +33,9 @@ What the data observe:
   (``offset_rate_t_per_sqrt_s``) and a smaller one in the hidden ones
   (``hidden_rate_t_per_sqrt_s``). The constraints pin the fraction within seconds and,
   through this prior, predict part of what they do not see; what the hull's bodies do unlike
-  each other stays in the hidden part and its covariance.
+  each other stays in the hidden part and its covariance. How fast the vehicle changes is
+  learnt from the constrained combinations (blocks ``change_lag_s`` apart) and scales these
+  rates: a vehicle that does not change keeps its state's covariance near zero.
 
 Process model: random walks (a relaxation is a slow, smooth walk). Blocks of ``block_s``
 seconds are one update each (information form: sums over the block's samples, then one
@@ -61,7 +63,7 @@ from ._kalman import (
     N_OFFSETS,
     N_WORLD,
     Block,
-    ChangeRate,
+    LaggedRate,
     Trial,
     information_update,
     step_directions,
@@ -83,9 +85,6 @@ __all__ = [
     'handed_over',
     'monitor_feed',
 ]
-
-#: Two blocks are on one heading when their forward axes are within 10 degrees.
-STRAIGHT_COSINE = float(np.cos(np.radians(10.0)))
 
 
 @dataclass(frozen=True)
@@ -242,9 +241,13 @@ class OffsetTracker:
         self.monitored = monitored
         self._h = affine_interference_design(geometry, symmetric=False)[3][:, 27:]  # (9, 9)
         jacobian = noise_jacobian(geometry, parameters)
-        rows = np.eye(9) if with_world else CONSTRAINT_ROWS
-        noise = sensor_noise_t**2 * rows @ jacobian @ jacobian.T @ rows.T
-        self._whiten = np.linalg.inv(np.linalg.cholesky(noise)) @ rows  # (m, 9)
+
+        def whitening(rows: FloatArray) -> FloatArray:  # (m, 9): unit noise per sample
+            noise = sensor_noise_t**2 * rows @ jacobian @ jacobian.T @ rows.T
+            return np.linalg.inv(np.linalg.cholesky(noise)) @ rows
+
+        self._whiten = whitening(np.eye(9) if with_world else CONSTRAINT_ROWS)
+        self._seen_white = whitening(CONSTRAINT_ROWS)
         self._h_white = self._whiten @ self._h
         self._pattern = parameters.b_hard.reshape(9)
         seen = CONSTRAINT_ROWS @ self._h  # (4, 9): the combinations observed at every instant
@@ -261,17 +264,19 @@ class OffsetTracker:
         self._x = np.zeros(size)
         self._p = np.zeros((size, size))
         self._p[:N_OFFSETS, :N_OFFSETS] = rates.initial_sigma_t**2 * np.eye(N_OFFSETS)
-        constraints = CONSTRAINT_ROWS @ jacobian
-        self._seen_white = np.linalg.inv(
-            np.linalg.cholesky(sensor_noise_t**2 * constraints @ constraints.T)
-        ) @ CONSTRAINT_ROWS  # (4, 9): unit noise per sample
-        lag = max(1, int(round(rates.change_lag_s / rates.block_s)))
+        # The world's pairs on one heading: a body-fixed error turning would read as world.
         seen_rate = self._seen_white @ self._h @ self._offset_rate @ self._h.T @ self._seen_white.T
-        self._change = ChangeRate(
-            lag,
+        self._change = LaggedRate(
+            max(1, round(rates.change_lag_s / rates.block_s)),
             rates.block_s / rates.change_memory_s,
-            rates.change_scale_min,
             float(np.trace(seen_rate)) * rates.block_s,
+            rates.change_scale_min,
+        )
+        self._world = LaggedRate(
+            max(1, round(rates.world_lag_s / rates.block_s)),
+            rates.block_s / rates.world_memory_s,
+            N_WORLD * rates.block_s,
+            rates.world_rate_t_per_m_sqrt_s**2,
         )
         if with_world:
             self._p[N_OFFSETS:, N_OFFSETS:] = self.config.world_sigma_t_per_m**2 * np.eye(N_WORLD)
@@ -282,8 +287,6 @@ class OffsetTracker:
         self._trial: Trial | None = None
         self._gated = 0
         self._noise = sensor_noise_t**2 * jacobian @ jacobian.T  # (9, 9) of vec(G), (T/m)^2
-        self._world_rate2 = self.config.world_rate_t_per_m_sqrt_s**2
-        self._world_means: dict[int, tuple[FloatArray, float, FloatArray]] = {}
         self.events: list[TrackerEvent] = []
 
     # ------------------------------------------------------------------ public
@@ -449,30 +452,6 @@ class OffsetTracker:
         block.info += np.einsum('kmi,kmj->ij', a, a)
         block.vector += np.einsum('kmi,km->i', a, y)
 
-    def _learn_world_rate(self, block: Block) -> None:
-        """The world gradient's random-walk rate, from blocks ``world_lag_s`` apart on one
-        heading: their world-frame means differ by the world's change plus the noise of both
-        means (known), so the excess over the noise, per second of lag and averaged over
-        ``world_memory_s``, is the walk's variance per second at the scale of a turn. Over
-        geology it grows and a turn then teaches the offsets little; in a uniform field it
-        shrinks and a turn separates them. Pairs across a turn are left out: a body-fixed
-        error rotating with the body would read as a changing world."""
-        config = self.config
-        mean = block.world / block.n
-        noise = block.world_noise / block.n**2
-        heading = block.heading / np.linalg.norm(block.heading)
-        lag = max(1, int(round(config.world_lag_s / config.block_s)))
-        self._world_means[block.index] = (mean, noise, heading)
-        earlier = self._world_means.pop(block.index - lag, None)
-        for stale in [k for k in self._world_means if k <= block.index - lag]:
-            del self._world_means[stale]
-        if earlier is None or float(heading @ earlier[2]) < STRAIGHT_COSINE:
-            return
-        excess = float(np.sum((mean - earlier[0]) ** 2)) - noise - earlier[1]
-        weight = config.block_s / config.world_memory_s
-        per_second = excess / (N_WORLD * lag * config.block_s)
-        self._world_rate2 = (1 - weight) * self._world_rate2 + weight * per_second
-
     def _advance(self, index: int) -> None:
         """Close the open block when ``index`` is a later one: update, then the process noise
         of the time between."""
@@ -491,7 +470,10 @@ class OffsetTracker:
             self._record(block.t_end, 'excluded')
             return
         if self.with_world:
-            self._learn_world_rate(block)
+            heading = block.heading / np.linalg.norm(block.heading)
+            self._world.add(
+                block.index, block.world / block.n, block.world_noise / block.n**2, heading
+            )
         if self._trial is not None:
             self._try(block)
             return
@@ -579,12 +561,12 @@ class OffsetTracker:
         hypothesis of a step being sought)."""
         config = self.config
         q = np.zeros_like(self._p)
-        q[:N_OFFSETS, :N_OFFSETS] = seconds * self._change.scale * self._offset_rate
+        scale = min(max(self._change.rate, config.change_scale_min), 1.0)
+        q[:N_OFFSETS, :N_OFFSETS] = seconds * scale * self._offset_rate
         if self.with_world:
-            learnt = config.world_margin * self._world_rate2
+            learnt = config.world_margin * self._world.rate
             rate2 = max(learnt, config.world_rate_min_t_per_m_sqrt_s**2)
-            world = rate2 * seconds
-            q[N_OFFSETS:, N_OFFSETS:] = world * np.eye(N_WORLD)
+            q[N_OFFSETS:, N_OFFSETS:] = rate2 * seconds * np.eye(N_WORLD)
         self._p = self._p + q
         if self._trial is not None:
             self._trial.states = [(x, p + q) for x, p in self._trial.states]
