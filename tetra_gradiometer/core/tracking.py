@@ -64,6 +64,7 @@ from ._kalman import (
     N_WORLD,
     Block,
     LaggedRate,
+    TrackerEvent,
     Trial,
     information_update,
     step_directions,
@@ -75,7 +76,6 @@ from .geometry import TetraGeometry
 from .model import InterferenceParameters
 from .types import FloatArray
 from .uncertainty import noise_jacobian
-from .units import NT_PER_T
 
 __all__ = [
     'OffsetTracker',
@@ -107,10 +107,12 @@ class TrackerConfig:
       hypothesis is fitted before the best is kept, s; ``stuck_s``: a gate closed this long
       is taken for a step no monitor handed over, and fitted ``confirm_s`` (a source passing
       close fits one sensor's step for a second, not for five), s.
-    * ``initial_sigma_t``: the offsets' change at the start, per axis, T.
-    * ``change_lag_s``, ``change_memory_s``, ``change_scale_min``: the offsets' process
-      noise (the rates above) is scaled by how fast the constrained combinations change
-      (blocks ``change_lag_s`` apart, averaged over ``change_memory_s``), within
+    * ``initial_sigma_t``: the offsets' change at the start, per axis, T (0: the start is
+      the calibration; a prior there slows what the constraints teach the hidden part).
+    * ``change_span_s``, ``change_lag_s``, ``change_memory_s``, ``change_scale_min``: the
+      offsets' process noise (the rates above) is scaled by how fast the constrained
+      combinations change (their means over ``change_span_s``, ``change_lag_s`` apart,
+      averaged over ``change_memory_s``), within
       ``change_scale_min`` (where it starts) and 1: a vehicle that does not change keeps
       its state's 1-sigma near zero.
     * ``gate_p``: a block whose innovation is less likely than this is not learnt from.
@@ -130,7 +132,8 @@ class TrackerConfig:
     trial_s: float = 1.0
     stuck_s: float = 3.0
     confirm_s: float = 5.0
-    initial_sigma_t: float = 0.005e-9
+    initial_sigma_t: float = 0.0
+    change_span_s: float = 10.0
     change_lag_s: float = 60.0
     change_memory_s: float = 120.0
     change_scale_min: float = 0.01
@@ -145,44 +148,6 @@ class TrackerConfig:
                 raise InputError(f'TrackerConfig.{name} must be positive, got {value}')
         if self.gate_p >= 1:
             raise InputError(f'TrackerConfig.gate_p must be below 1, got {self.gate_p}')
-
-
-@dataclass(frozen=True)
-class TrackerEvent:
-    """One entry of the audit trail: ``t_s`` (the block's end, or the step's time), s;
-    ``kind`` (``update``, ``gated``, ``excluded``, ``step``, ``transient``: a closed gate
-    no sensor's step explains); ``offsets_t`` (3, 3) the pair
-    offsets' change after it, T; ``sigma_t`` (3, 3) its 1-sigma, T; ``sensors`` (1-based, a
-    step's); ``statistic`` the block's innovation chi-square (a step's: its hypothesis's,
-    summed over ``trial_s``); a step's ``step_t`` (3,) the sensor's offset jump and
-    ``step_sigma_t`` (3,) its 1-sigma, T (its axes)."""
-
-    t_s: float
-    kind: str
-    offsets_t: FloatArray
-    sigma_t: FloatArray
-    sensors: tuple[int, ...] = ()
-    statistic: float = float('nan')
-    step_t: FloatArray | None = None
-    step_sigma_t: FloatArray | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, offsets in nT."""
-        return {
-            't_s': float(self.t_s),
-            'kind': self.kind,
-            'offsets_nT': (self.offsets_t * NT_PER_T).round(6).tolist(),
-            'sigma_nT': (self.sigma_t * NT_PER_T).round(6).tolist(),
-            'sensors': list(self.sensors),
-            'statistic': None if np.isnan(self.statistic) else float(self.statistic),
-        } | (
-            {}
-            if self.step_t is None or self.step_sigma_t is None
-            else {
-                'step_nT': (self.step_t * NT_PER_T).round(6).tolist(),
-                'step_sigma_nT': (self.step_sigma_t * NT_PER_T).round(6).tolist(),
-            }
-        )
 
 
 @dataclass
@@ -254,24 +219,29 @@ class OffsetTracker:
         self._seen = np.linalg.pinv(seen) @ seen  # projector onto them
         self._steps = step_directions(self._h, jacobian)
         rates = self.config
-        # The offsets' process noise per second: along b, in the observed and hidden parts.
+        # The offsets' process noise per second: along b and in the observed part (scaled by
+        # the learnt change), in the hidden part (without the attitude nothing observes it,
+        # so nothing scales it down).
         self._offset_rate = (
             rates.relative_rate_per_sqrt_s**2 * np.outer(self._pattern, self._pattern)
             + rates.offset_rate_t_per_sqrt_s**2 * self._seen
-            + rates.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
         )
+        self._hidden_rate = rates.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
         size = N_OFFSETS + (N_WORLD if with_world else 0)
         self._x = np.zeros(size)
         self._p = np.zeros((size, size))
         self._p[:N_OFFSETS, :N_OFFSETS] = rates.initial_sigma_t**2 * np.eye(N_OFFSETS)
-        # The world's pairs on one heading: a body-fixed error turning would read as world.
-        seen_rate = self._seen_white @ self._h @ self._offset_rate @ self._h.T @ self._seen_white.T
+        rate = self._offset_rate + self._hidden_rate
+        seen_rate = self._seen_white @ self._h @ rate @ self._h.T @ self._seen_white.T
+        group = max(1, round(rates.change_span_s / rates.block_s))
         self._change = LaggedRate(
-            max(1, round(rates.change_lag_s / rates.block_s)),
-            rates.block_s / rates.change_memory_s,
-            float(np.trace(seen_rate)) * rates.block_s,
+            max(1, round(rates.change_lag_s / rates.change_span_s)),
+            rates.change_span_s / rates.change_memory_s,
+            float(np.trace(seen_rate)) * rates.block_s * group,
             rates.change_scale_min,
+            group,
         )
+        # The world's pairs on one heading: a body-fixed error turning would read as world.
         self._world = LaggedRate(
             max(1, round(rates.world_lag_s / rates.block_s)),
             rates.block_s / rates.world_memory_s,
@@ -471,9 +441,7 @@ class OffsetTracker:
             return
         if self.with_world:
             heading = block.heading / np.linalg.norm(block.heading)
-            self._world.add(
-                block.index, block.world / block.n, block.world_noise / block.n**2, heading
-            )
+            self._world.add(block.index, block.world, block.n, block.world_noise, heading)
         if self._trial is not None:
             self._try(block)
             return
@@ -486,7 +454,7 @@ class OffsetTracker:
             return
         self._gated = 0
         self._x, self._p = x, p
-        self._change.add(block.index, block.seen / block.n, 4.0 / block.n)
+        self._change.add(block.index, block.seen, block.n, 4.0 * block.n)
         self._record(block.t_end, 'update', statistic=statistic)
 
     def _start_trial(self, t_s: float, named: tuple[int, ...], duration_s: float) -> None:
@@ -562,7 +530,10 @@ class OffsetTracker:
         config = self.config
         q = np.zeros_like(self._p)
         scale = min(max(self._change.rate, config.change_scale_min), 1.0)
-        q[:N_OFFSETS, :N_OFFSETS] = seconds * scale * self._offset_rate
+        hidden = scale if self.with_world else 1.0
+        q[:N_OFFSETS, :N_OFFSETS] = seconds * (
+            scale * self._offset_rate + hidden * self._hidden_rate
+        )
         if self.with_world:
             learnt = config.world_margin * self._world.rate
             rate2 = max(learnt, config.world_rate_min_t_per_m_sqrt_s**2)
