@@ -136,7 +136,7 @@ class TrackerConfig:
     change_span_s: float = 10.0
     change_lag_s: float = 60.0
     change_memory_s: float = 120.0
-    change_scale_min: float = 0.01
+    change_scale_min: float = 0.001
     gate_p: float = 1e-6
 
     def __post_init__(self) -> None:
