@@ -87,8 +87,9 @@ def test_two_sigma_covers_92_to_98_percent_of_the_survey_against_simulator_truth
                              '--sensor-noise-nt', 2 * NOISE_NT)
     assert code == 0 and 'noise 0.1 nT from --sensor-noise-nt' in out, (out, err)
     _, g_again, sigma_wide = _read(root / 'comp.csv')
-    # The tracker weighs the data by the noise figure too: the tensors move, far below the floor.
-    np.testing.assert_allclose(g_again, g, rtol=0, atol=1e-3)
+    # The tracker weighs the data by the noise figure too: the tensors move, far below the
+    # floor (0.14 nT/m).
+    assert np.abs(g_again - g).max() < 0.014 and np.sqrt(np.mean((g_again - g) ** 2)) < 0.0014
     assert _within_two_sigma(g, sigma_wide, mission.g_true, survey_rows) > 0.999
 
 
