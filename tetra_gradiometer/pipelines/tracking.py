@@ -48,11 +48,10 @@ __all__ = [
 ]
 
 #: Whether ``compensate``, ``survey``, ``locate``, ``batch`` (and the compensator node's
-#: ``track_calibration``) track the calibration unless told otherwise. Off: on drifting hulls
-#: tracking brings 7-9x the floor back to 1.0-1.1x with ``/odom`` (bench/results/tracker.json),
-#: but on vehicles that do not change it costs 1-3 % (bench_window's missions), 2.06x the
-#: floor where the bag opens with a trim over the target (1.01x frozen), and survey cells'
-#: sigma 2.2-3.3x (docs/offline.md).
+#: ``track_calibration``) track the calibration unless told otherwise (``--freeze-calibration``
+#: switches it off). On: drifting hulls go from 7-12x the floor frozen to 1.01-1.03x with
+#: ``/odom`` (bench/results/tracker.json); vehicles that do not change stay within 0.5 % of
+#: frozen (bench/results/window.json) and survey cells keep their sigma (docs/offline.md).
 TRACK_BY_DEFAULT = True
 
 #: Seconds each side of a detected anomaly the tracker does not learn from.
