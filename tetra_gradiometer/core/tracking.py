@@ -34,8 +34,9 @@ What the data observe:
   (``hidden_rate_t_per_sqrt_s``). The constraints pin the fraction within seconds and,
   through this prior, predict part of what they do not see; what the hull's bodies do unlike
   each other stays in the hidden part and its covariance. How fast the vehicle changes is
-  learnt from the constrained combinations (blocks ``change_lag_s`` apart) and scales these
-  rates: a vehicle that does not change keeps its state's covariance near zero.
+  learnt from the constrained combinations (their means over ``change_span_s``,
+  ``change_lag_s`` apart) and scales these rates: a vehicle that does not change keeps its
+  state's covariance near zero.
 
 Process model: random walks (a relaxation is a slow, smooth walk). Blocks of ``block_s``
 seconds are one update each (information form: sums over the block's samples, then one
@@ -112,9 +113,8 @@ class TrackerConfig:
     * ``change_span_s``, ``change_lag_s``, ``change_memory_s``, ``change_scale_min``: the
       offsets' process noise (the rates above) is scaled by how fast the constrained
       combinations change (their means over ``change_span_s``, ``change_lag_s`` apart,
-      averaged over ``change_memory_s``), within
-      ``change_scale_min`` (where it starts) and 1: a vehicle that does not change keeps
-      its state's 1-sigma near zero.
+      averaged over ``change_memory_s``), within ``change_scale_min`` (where it starts) and
+      1: a vehicle that does not change keeps its state's 1-sigma near zero.
     * ``gate_p``: a block whose innovation is less likely than this is not learnt from.
     """
 
