@@ -19,7 +19,6 @@ from .effects import Array, Built, Candidate, Context, Estimate, registry_column
 
 __all__ = ['signal_candidates']
 
-
 def _builder(effect: RecordedSignal):
     channel = effect.declaration.channel
 

@@ -150,10 +150,8 @@ class LiveRate:
 
     def window(self) -> tuple[np.ndarray, np.ndarray]:
         """The kept samples: times (n,) s and values (n, k)."""
-        return (
-            np.array([item[0] for item in self.history]),
-            np.array([item[1] for item in self.history]),
-        )
+        return (np.array([item[0] for item in self.history]),
+                np.array([item[1] for item in self.history]))
 
     def reset(self) -> None:
         self.history.clear()
