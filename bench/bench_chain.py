@@ -73,7 +73,7 @@ def write_calibration(folder: Path) -> tuple[Path, np.ndarray]:
     rng = np.random.default_rng(1)
     vehicle = core.random_interference(rng, reference_clean=False)
     calibration = folder / 'calibration.yaml'
-    # With a noise figure and a covariance, so the compensator also computes gradient/sigma and
+    # With a noise figure and a covariance, so the compensator also computes g_sigma and
     # runs its health monitor (issue 12): the throughput target holds with both.
     covariance = np.diag(np.r_[np.full(27, 1e-12), np.full(9, 1e-22)])
     save_calibration(calibration, CalibrationFile(
@@ -104,9 +104,10 @@ class Driver:
 
     def __init__(self, fields: np.ndarray) -> None:
         from rclpy.node import Node
-        from sensor_msgs.msg import JointState, MagneticField
+        from sensor_msgs.msg import MagneticField
 
         from tetra_gradiometer.io import conversions as cv
+        from tetra_gradiometer.io import gradient_tensor as gt
         from tetra_gradiometer.nodes.common import derived_qos
 
         self.cv, self.fields = cv, fields
@@ -114,7 +115,7 @@ class Driver:
         self.mags = [self.node.create_publisher(MagneticField, t, 200) for t in cv.MAG_TOPICS]
         self.received: dict[int, int] = {}
         self.lock = threading.Lock()
-        self.node.create_subscription(JointState, 'gradient/compensated', self._on_compensated,
+        self.node.create_subscription(gt.rclpy_class(), 'gradient/compensated', self._on_compensated,
                                       derived_qos(), raw=True)
         from diagnostic_msgs.msg import DiagnosticArray
 

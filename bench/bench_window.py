@@ -105,13 +105,16 @@ def survey_rms_simulated(csv: Path, truth: Path) -> float:
 def survey_rms_bag(csv: Path, bag: Path) -> float:
     from rosbags.highlevel import AnyReader
 
-    with AnyReader([bag]) as reader:
+    from tetra_gradiometer.io import gradient_tensor as gt
+    from tetra_gradiometer.io.bag import typestore
+
+    with AnyReader([bag], default_typestore=typestore()) as reader:
         connections = [c for c in reader.connections if c.topic == '/tetra/gradient/truth']
         truth = {}
         for connection, _, raw in reader.messages(connections=connections):
-            message = reader.deserialize(raw, connection.msgtype)
-            stamp = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
-            truth[stamp] = np.asarray(message.position) * 1e9
+            # A GradientTensor, or the JointState of bags recorded before it.
+            tensor = gt.tensor_set_from_msg(reader.deserialize(raw, connection.msgtype), connection.msgtype)
+            truth[tensor.stamp_ns] = tensor.g.reshape(9) * 1e9
     stamps = np.loadtxt(csv, delimiter=',', skiprows=1, usecols=0, dtype=str)
     table = np.loadtxt(csv, delimiter=',', skiprows=1, usecols=range(1, 10))
     keys = [int(s.replace('.', '')) for s in stamps]

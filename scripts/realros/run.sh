@@ -396,13 +396,13 @@ check "ros2 node list shows /tetra/{tensor,calibrator,compensator,driver}" \
   "$(for n in "${NODES4[@]}"; do echo "$out" | grep -qx "$n" || exit 1; done; echo 0)" "$(echo "$out" | tr '\n' ' ')"
 out=$(timeout 30 ros2 node info /tetra/calibrator 2>&1)
 check "ros2 node info /tetra/calibrator (subscriptions, services)" \
-  "$(echo "$out" | grep -q '/tetra/gradient/raw: sensor_msgs/msg/JointState' && echo "$out" | grep -q '/tetra/calibrator/calibrate: std_srvs/srv/Trigger'; echo $?)"
+  "$(echo "$out" | grep -q '/tetra/gradient/raw: tetra_gradiometer_msgs/msg/GradientTensor' && echo "$out" | grep -q '/tetra/calibrator/calibrate: tetra_gradiometer_msgs/srv/Calibrate'; echo $?)"
 out=$(timeout 30 ros2 topic list -t 2>&1); bad=""
 for tt in "/tetra/mag1 sensor_msgs/msg/MagneticField" "/tetra/mag4 sensor_msgs/msg/MagneticField" \
-  "/tetra/gradient/raw sensor_msgs/msg/JointState" "/tetra/reference_field sensor_msgs/msg/MagneticField" \
-  "/tetra/gradient/truth sensor_msgs/msg/JointState" "/tetra/odom nav_msgs/msg/Odometry" \
-  "/tetra/calibration std_msgs/msg/String" "/tetra/calibrator/guidance std_msgs/msg/String" \
-  "/tetra/gradient/compensated sensor_msgs/msg/JointState" "/tetra/gradient/sigma sensor_msgs/msg/JointState" \
+  "/tetra/gradient/raw tetra_gradiometer_msgs/msg/GradientTensor" \
+  "/tetra/gradient/truth tetra_gradiometer_msgs/msg/GradientTensor" "/tetra/odom nav_msgs/msg/Odometry" \
+  "/tetra/calibration tetra_gradiometer_msgs/msg/Calibration" "/tetra/calibrator/guidance std_msgs/msg/String" \
+  "/tetra/gradient/compensated tetra_gradiometer_msgs/msg/GradientTensor" \
   "/tetra/gradient/norm std_msgs/msg/Float64" "/tetra/epsilon std_msgs/msg/Float64" \
   "/tetra/compensated_percent std_msgs/msg/Float64" "/tetra/health/alarm std_msgs/msg/String" \
   "/diagnostics diagnostic_msgs/msg/DiagnosticArray" "/clock rosgraph_msgs/msg/Clock"; do
@@ -448,22 +448,24 @@ out=$(readme_line 1 20)
 check "README trim block: '${TRIM_LINES[1]%%#*}' gives the guidance JSON" \
   "$(echo "$out" | grep -q '"enough"'; echo $?)" "$(echo "$out" | head -1 | cut -c1-120)"
 out=$(timeout 20 ros2 topic echo --once /tetra/gradient/raw 2>&1)
-check "ros2 topic echo --once /tetra/gradient/raw: JointState gxx..gzz in frame tetra_array" \
-  "$(echo "$out" | grep -q 'frame_id: tetra_array' && echo "$out" | grep -q -- '- gzz'; echo $?)"
+check "ros2 topic echo --once /tetra/gradient/raw: a GradientTensor (g, g_sigma, reference_field, state RAW) in frame tetra_array" \
+  "$(for f in 'frame_id: tetra_array' '^g:' '^g_sigma:' '^reference_field:' '^reference_field_covariance:' '^state: 0' '^calibration_id:'; do
+       echo "$out" | grep -q -- "$f" || exit 1; done; echo 0)" "$(echo "$out" | grep -cE '^[a-z_]+:') fields"
 out=$(timeout 12 ros2 topic hz /tetra/mag1 -w 50 2>&1 | grep -m2 'average rate' | tail -1)
 check "ros2 topic hz /tetra/mag1 at rate:=10 (10 Hz sensors: ~100 Hz)" \
   "$(echo "$out" | awk '{exit !($3 > 60 && $3 < 130)}'; echo $?)" "$out"
 wait_diag_value holding 90
 check "the driver holds after the trim segment (/diagnostics playback state holding)" $?
 o1=$(readme_line 2 | grep -o 'Trigger_Response(.*')
-o2=$(readme_line 3 120 | grep -o 'Trigger_Response(.*')
-check "README trim block: ros2 service call /tetra/calibrator/stop, then calibrate: success" \
-  "$(echo "$o2" | grep -q 'success=True'; echo $?)" "$(echo "$o1" | cut -c1-100) | $(echo "$o2" | cut -c1-260)"
+o2=$(readme_line 3 120 | grep -o 'Calibrate_Response(.*')
+check "README trim block: ros2 service call /tetra/calibrator/stop, then calibrate (Calibrate, every sample): success" \
+  "$(echo "$o2" | grep -q 'success=True' && echo "$o2" | grep -q 'samples=[1-9]'; echo $?)" "$(echo "$o1" | cut -c1-100) | $(echo "$o2" | cut -c1-260)"
 check "calibrate wrote the calibration file under \$ROS_HOME (calibration_file: calibration.yaml)" \
   "$([ -s "$ROS_HOME/calibration.yaml" ]; echo $?)" "$ROS_HOME/calibration.yaml"
-out=$(timeout 20 ros2 topic echo --once /tetra/calibration 2>&1 | head -3)
-check "ros2 topic echo --once /tetra/calibration (late subscriber gets the latched text)" \
-  "$(echo "$out" | grep -q '^data:'; echo $?)"
+out=$(timeout 20 ros2 topic echo --once /tetra/calibration 2>&1)
+check "ros2 topic echo --once /tetra/calibration (late subscriber gets the latched Calibration)" \
+  "$(echo "$out" | grep -q '^method: known_gradient_lstsq_general' && echo "$out" | grep -q '^document: '; echo $?)" \
+  "$(echo "$out" | grep -m1 '^method:')"
 o1=$(timeout 30 ros2 lifecycle set /tetra/compensator deactivate 2>&1)
 o2=$(trigger /tetra/compensator/reset_metrics)
 o3=$(timeout 30 ros2 lifecycle set /tetra/compensator activate 2>&1)
@@ -504,9 +506,9 @@ out=$(timeout 20 ros2 topic echo --once --field header.frame_id /tetra/gradient/
 check "ros2 launch bag:=bags/survey (replay): the four nodes active, gradient/raw flows" \
   "$([ $st = 0 ] && [ "$out" = tetra_array ]; echo $?)" "$(states "${NODES4[@]}") raw frame=$out"
 out=$(timeout 20 ros2 topic echo --once /tetra/gradient/compensated 2>&1)
-check "ros2 launch replay: the launched chain publishes /tetra/gradient/compensated (gxx..gzz, tetra_array)" \
-  "$(echo "$out" | grep -q 'frame_id: tetra_array' && echo "$out" | grep -q -- '- gzz'; echo $?)" \
-  "$(echo "$out" | grep -m1 -A1 '^position:' | tr '\n' ' ' | cut -c1-80)"
+check "ros2 launch replay: the launched chain publishes /tetra/gradient/compensated (a GradientTensor, tetra_array)" \
+  "$(echo "$out" | grep -q 'frame_id: tetra_array' && echo "$out" | grep -q '^g_sigma:' && echo "$out" | grep -qE '^state: [12]$'; echo $?)" \
+  "$(echo "$out" | grep -m1 -A1 '^g:' | tr '\n' ' ' | cut -c1-80) $(echo "$out" | grep -m1 '^state:')"
 rc=$(stop_bg launch_replay 40)
 
 # 6b. the namespace and remapping arguments: the five nodes under /auv1/tetra, on a

@@ -127,14 +127,22 @@ def test_round_trip_reaches_the_noise_floor(tmp_path, storage, reference_clean):
     # The pass is over a target: the truth is far from zero there, so this is no trivial match.
     assert np.abs(g_true_nt[survey]).max() > 50
 
-    # The tensor bag: JointState per the contract, same values in T/m.
+    # The tensor bag: GradientTensor as the nodes publish it, the CSV's values in T/m.
+    from tetra_gradiometer.io import gradient_tensor as gt
     from tetra_gradiometer.io.bag import MagneticBag
     with MagneticBag(tmp_path / 'comp_bag') as out_bag:
-        messages = [(c.topic, out_bag.reader.deserialize(r, c.msgtype)) for c, _, r in out_bag.reader.messages()]
-    assert {topic for topic, _ in messages} == {'/tetra/gradient/compensated'}
-    tensors = np.array([cv.tensor_from_msg(m) for _, m in messages])
-    assert np.array([cv.stamp_to_ns(m.header.stamp) for _, m in messages]).tolist() == stamps.tolist()
-    assert np.allclose(tensors * 1e9, compensated, atol=2e-6)
+        messages = [(c.topic, c.msgtype, out_bag.reader.deserialize(r, c.msgtype))
+                    for c, _, r in out_bag.reader.messages()]
+    assert {(topic, msgtype) for topic, msgtype, _ in messages} == {('/tetra/gradient/compensated', gt.GRADIENT_TENSOR)}
+    sets = [gt.tensor_set_from_msg(m) for _, _, m in messages]
+    assert [t.stamp_ns for t in sets] == stamps.tolist()
+    assert np.allclose(np.array([t.g for t in sets]) * 1e9, compensated, atol=2e-6)
+    sigma_csv = np.loadtxt(tmp_path / 'comp.csv', delimiter=',', skiprows=1, usecols=range(10, 19))
+    assert np.allclose(np.array([t.g_sigma.reshape(9) for t in sets]) * 1e9, sigma_csv, atol=2e-6)
+    assert {(t.state, t.calibration_id) for t in sets} == {(gt.COMPENSATED, calibration['created_utc'])}
+    assert calibration['created_utc']
+    references = np.array([t.reference_field for t in sets])
+    assert np.allclose(np.linalg.norm(references, axis=1), 50_000e-9, rtol=0.05)  # B_1', the Earth's field
 
 
 def test_csv_columns_and_units_against_analytic_fields(tmp_path):

@@ -131,8 +131,8 @@ def test_the_readme_is_a_guide_and_the_docs_carry_no_history():
 def test_the_vehicle_walk_through_names_what_the_nodes_offer():
     """The README's `ros2 service call`s and `ros2 topic echo`s (not run here: they need a ROS
     install) name services and topics the suite's security policy grants, which
-    test/ros/test_security_policy.py holds to the live graph; each service is a Trigger in
-    its node's source."""
+    test/ros/test_security_policy.py holds to the live graph; each service is of the type its
+    node's source serves it with (a Calibrate for the calibrator's calibrate, else a Trigger)."""
     readme = (REPO / 'README.md').read_text(encoding='utf-8')
     policy = (REPO / 'security' / 'policy.xml').read_text(encoding='utf-8')
     calls = re.findall(r'ros2 service call (\S+) (\S+)', readme)
@@ -141,8 +141,10 @@ def test_the_vehicle_walk_through_names_what_the_nodes_offer():
         assert f'<service>{name}</service>' in policy, name
         namespace, node, service = name.strip('/').split('/')
         source = (REPO / 'tetra_gradiometer' / 'nodes' / f'{node}.py').read_text(encoding='utf-8')
-        assert namespace == 'tetra' and kind == 'std_srvs/srv/Trigger'
-        assert re.search(rf"create_service\(\s*Trigger, '~/{service}'", source), name
+        served = 'Calibrate' if service == 'calibrate' else 'Trigger'
+        package = 'tetra_gradiometer_msgs' if served == 'Calibrate' else 'std_srvs'
+        assert namespace == 'tetra' and kind == f'{package}/srv/{served}', name
+        assert re.search(rf"create_service\(\s*{served}, '~/{service}'", source), name
     topics = re.findall(r'ros2 topic echo [^\n]*?(/\S+)', readme)
     assert topics
     for topic in topics:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from tetra_gradiometer.core import InterferenceParameters, TetraGeometry, compensate_fields, difference_tensor
-from tetra_gradiometer.core.uncertainty import compensated_sigma, noise_sigma
+from tetra_gradiometer.core.uncertainty import compensated_sigma, noise_jacobian, noise_sigma, readings_sigma
 from tetra_gradiometer.errors import InputError
 
 GEOMETRY = TetraGeometry([[0.0, 0.0, 0.0], [0.6, 0.1, 0.0], [0.1, 0.45, 0.05], [0.2, 0.1, 0.5]])  # irregular
@@ -30,6 +30,21 @@ def test_sensor_noise_spread_matches_monte_carlo(compensated):
     # The standard deviation of a sample std from 40 000 draws is ~0.35 %: 2 % is > 5 sigma.
     np.testing.assert_allclose(g.std(axis=0), predicted, rtol=0.02)
     assert np.ptp(predicted) > 0.1 * predicted.max()  # an irregular array: components differ
+
+
+def test_readings_sigma_of_four_different_correlated_covariances_matches_monte_carlo():
+    """Each sensor its own covariance, with correlated axes: the raw tensor's spread."""
+    rng = np.random.default_rng(3)
+    roots = rng.normal(0, 0.1e-9, (4, 3, 3)) * np.array([1.0, 2.0, 0.5, 3.0])[:, None, None]
+    covariances = roots @ np.swapaxes(roots, 1, 2)  # (4, 3, 3), positive definite
+    noise = np.einsum('smn,dsn->dsm', roots, rng.normal(size=(DRAWS, 4, 3)))
+    g = difference_tensor(rng.normal(0, 3e-5, (4, 3))[None] + noise, GEOMETRY)
+    predicted = readings_sigma(noise_jacobian(GEOMETRY), covariances.reshape(4, 9))
+    np.testing.assert_allclose(g.std(axis=0).reshape(9), predicted, rtol=0.02)
+    # Isotropic and equal on every sensor: the white-noise figure.
+    isotropic = np.tile(np.eye(3).reshape(9) * 0.2e-9**2, (4, 1))
+    np.testing.assert_allclose(readings_sigma(noise_jacobian(GEOMETRY), isotropic).reshape(3, 3),
+                               noise_sigma(GEOMETRY, 0.2e-9), rtol=1e-12)
 
 
 def test_parameter_covariance_spread_matches_monte_carlo():

@@ -10,13 +10,13 @@ import yaml
 from rosbags.typesys import Stores, get_typestore
 
 from tetra_gradiometer.io import conversions as cv
+from tetra_gradiometer.io.bag import BagWriter, typestore
 from tetra_gradiometer.nodes import replay
-from tetra_gradiometer.io.bag import BagWriter
 
 T0 = 1_767_225_600 * 10**9
 FIELD = np.array([1e-6, 2e-5, -4.5e-5])
 UNKNOWN = [-1.0, 0, 0, 0, 0, 0, 0, 0, 0]  # REP 145
-TYPES = cv.rosbags_types(get_typestore(Stores.ROS2_JAZZY))
+TYPES = cv.rosbags_types(typestore())  # with our interfaces: the simulated truth is a GradientTensor
 
 
 def _bag(path, covariance_of_sensor):

@@ -174,17 +174,19 @@ def _compensator_live(monkeypatch, bag, calibration, odom=False):
         q = msg.pose.pose.orientation
         q.x, q.y, q.z, q.w = (float(v) for v in pose[cv.POSE_ORIENTATION])
         messages.append((stamp, msg))
-    tensor_cdr = cv.TensorCdr('tetra_array')
+    from tetra_gradiometer.io import gradient_tensor as gt
+
+    tensor_cdr = gt.GradientTensorCdr('tetra_array')
     with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration), use_sim_time=True,
                          sensor_positions=GEOMETRY.to_flat(), track_calibration=True) as (node, published):
         for stamp, field, g in zip(stamps.tolist(), fields, difference_tensor(fields, GEOMETRY)):
             while messages and messages[0][0] <= stamp:
                 node._tracking._on_odom(messages.pop(0)[1])
             node.get_clock().set_ros_time_override(Time(nanoseconds=stamp))
-            node._on_reference(cv.magnetic_field_cdr(field[0], stamp, cv.MAG_FRAMES[0]))
-            node._on_raw(tensor_cdr.write(g, stamp))
+            node._on_raw(tensor_cdr.write(stamp, gt.pack(gt.TensorSet(stamp, g, reference_field=field[0]))))
             node._feed_health()  # its timer's work, set by set
-    return np.array([tensor_cdr.read(m)[1] for topic, m in published if topic == '/tetra/gradient/compensated'])
+    return np.array([tensor_cdr.read(m)[1][:9].reshape(3, 3) for topic, m in published
+                     if topic == '/tetra/gradient/compensated'])
 
 
 def test_the_live_tracker_starts_afresh_when_a_replay_starts_again():

@@ -184,21 +184,21 @@ def _free_domain(attempts: int = 10, listen_s: float = 0.7) -> tuple[int, Any]:
 
 def _feeder_class() -> type:
     from rclpy.node import Node
-    from sensor_msgs.msg import JointState, MagneticField
-    from std_msgs.msg import String
+    from sensor_msgs.msg import MagneticField
+    from tetra_gradiometer_msgs.msg import Calibration
 
     from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.io import gradient_tensor as gt
     from tetra_gradiometer.nodes.common import derived_qos, latched_qos
 
     class _Feeder(Node):
-        """Publishes magnetometer sets, raw tensors/reference fields and calibrations."""
+        """Publishes magnetometer sets, raw tensors (GradientTensor) and calibrations."""
 
         def __init__(self, **kwargs: Any) -> None:
             super().__init__('test_feeder', namespace='/tetra', **kwargs)
             self.types = cv.rclpy_types()
             self.mags = [self.create_publisher(MagneticField, t, 100) for t in cv.MAG_TOPICS]
-            self.raw = self.create_publisher(JointState, 'gradient/raw', derived_qos())
-            self.reference = self.create_publisher(MagneticField, 'reference_field', derived_qos())
+            self.raw = self.create_publisher(gt.rclpy_class(), 'gradient/raw', derived_qos())
             self._calibration: Any = None
 
         @property
@@ -207,7 +207,7 @@ def _feeder_class() -> type:
             refuses calibrations while a node other than its calibration_publisher publishes
             there."""
             if self._calibration is None:
-                self._calibration = self.create_publisher(String, 'calibration', latched_qos())
+                self._calibration = self.create_publisher(Calibration, 'calibration', latched_qos())
             return self._calibration
 
         def publish_set(self, stamp_ns: int, fields: np.ndarray, skip: tuple[int, ...] = ()) -> None:
@@ -216,15 +216,29 @@ def _feeder_class() -> type:
                 if s not in skip:
                     self.mags[s].publish(cv.magnetic_field_msg(self.types, fields[s], stamp_ns, cv.MAG_FRAMES[s]))
 
-        def publish_raw(self, stamp_ns: int, g: np.ndarray, b_reference: np.ndarray) -> None:
-            self.raw.publish(cv.tensor_msg(self.types, g, stamp_ns))
-            self.reference.publish(cv.magnetic_field_msg(self.types, b_reference, stamp_ns, cv.MAG_FRAMES[0]))
+        def publish_raw(self, stamp_ns: int, g: np.ndarray, b_reference: np.ndarray,
+                        g_sigma: np.ndarray | None = None) -> None:
+            """One raw set: ``G_m`` (3, 3) T/m, ``B_1'`` (3,) T, the tensor's 1-sigma (3, 3) T/m
+            (None: unknown, NaN)."""
+            sigma = gt.UNKNOWN_SIGMA if g_sigma is None else g_sigma
+            tensor = gt.TensorSet(stamp_ns, g, sigma, b_reference)
+            self.raw.publish(gt.gradient_tensor_msg(self.types, tensor))
 
     return _Feeder
 
 
 def Feeder(**kwargs: Any) -> Any:  # noqa: N802 - a factory standing in for the class
     return _feeder_class()(**kwargs)
+
+
+def calibration_msg(text: str) -> Any:
+    """The tetra_gradiometer_msgs/Calibration of a calibration file's ``text``, as the
+    calibrator publishes it (io/calibration_message.py)."""
+    from tetra_gradiometer_msgs.msg import Calibration
+
+    from tetra_gradiometer.io.calibration_message import calibration_fields
+
+    return Calibration(**calibration_fields(text))
 
 
 def wait_for(condition, timeout_s: float, what: str, graph: Graph | None = None) -> None:
@@ -273,11 +287,11 @@ def wait_connected(probe: Any, graph: Graph, node: str, topic: str, publishers: 
         probe.destroy_client(client)
 
 
-def wait_tensor_delivers(probe: Any, graph: Graph, raw: int, reference: int,
-                         readers: tuple[str, ...] = (), timeout_s: float = 30.0) -> None:
-    """Until the tensor node's outputs have matched their readers: at least ``raw`` on
-    gradient/raw and ``reference`` on reference_field, and every reader the probe sees in the
-    graph; and each node of ``readers`` sees the tensor's writers on both topics. The graph
+def wait_tensor_delivers(probe: Any, graph: Graph, raw: int, readers: tuple[str, ...] = (),
+                         timeout_s: float = 30.0) -> None:
+    """Until the tensor node's output has matched its readers: at least ``raw`` on
+    gradient/raw, and every reader the probe sees in the graph; and each node of ``readers``
+    sees the tensor's writer. The graph
     showing a subscription does not mean the tensor's writer has matched it (its side of the
     discovery comes later on a loaded machine: the calibrator then missed the first 179-643
     of 1200 replayed sets), and a volatile reader misses what is published before; the
@@ -286,18 +300,12 @@ def wait_tensor_delivers(probe: Any, graph: Graph, raw: int, reference: int,
     def matched() -> bool:
         status = probe.status('tetra/tensor: matching')
         have_raw = int(status.get('gradient/raw subscribers', -1))
-        have_reference = int(status.get('reference_field subscribers', -1))
-        if not (have_raw >= max(raw, probe.count_subscribers('/tetra/gradient/raw'))
-                and have_reference >= max(reference, probe.count_subscribers('/tetra/reference_field'))):
+        if have_raw < max(raw, probe.count_subscribers('/tetra/gradient/raw')):
             return False
-        for node in readers:
-            inputs = probe.status(f'tetra/{node}: inputs')
-            if min(int(inputs.get(f'/tetra/{t} publishers', 0)) for t in ('gradient/raw', 'reference_field')) < 1:
-                return False
-        return True
+        return all(int(probe.status(f'tetra/{node}: inputs').get('/tetra/gradient/raw publishers', 0)) >= 1
+                   for node in readers)
 
-    wait_for(matched, timeout_s, f'the tensor node to match {raw} gradient/raw and {reference} '
-             'reference_field readers', graph)
+    wait_for(matched, timeout_s, f'the tensor node to match {raw} gradient/raw readers', graph)
 
 
 def uniform_gradient_fields(positions: np.ndarray, b0: np.ndarray, g: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import json
 
 import numpy as np
 import yaml
-from ros_helpers import interference_set, ros_graph, wait_for, wait_matched
+from ros_helpers import calibration_msg, interference_set, ros_graph, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile
@@ -47,7 +47,7 @@ def _calibration(parameters, created: str = '2026-11-26T09:00:00Z', noise: float
 
 def test_forged_calibrations_on_the_topic_are_refused_naming_the_publisher(tmp_path):
     import rclpy
-    from std_msgs.msg import String
+    from tetra_gradiometer_msgs.msg import Calibration
 
     from tetra_gradiometer.nodes.common import latched_qos
 
@@ -61,7 +61,7 @@ def test_forged_calibrations_on_the_topic_are_refused_naming_the_publisher(tmp_p
         assert probe.status(COMPENSATION)['authentication'].startswith('HMAC-SHA256, key id ')
 
         # Row 1: another node publishes its own calibration (even a correctly signed one).
-        feeder.calibration.publish(String(data=_signed(_calibration(forged))))
+        feeder.calibration.publish(calibration_msg(_signed(_calibration(forged))))
         wait_for(lambda: '/tetra/test_feeder' in probe.status(COMPENSATION).get('message', ''), 10,
                  'the refusal', graph)
         assert probe.status(COMPENSATION)['compensating'] == 'False'
@@ -74,26 +74,33 @@ def test_forged_calibrations_on_the_topic_are_refused_naming_the_publisher(tmp_p
         # refused; signed with the key, adopted; an older signed one (a replay) refused.
         spoof = rclpy.create_node('calibrator', namespace='/tetra', context=probe.context)
         try:
-            publisher = spoof.create_publisher(String, 'calibration', latched_qos())
+            publisher = spoof.create_publisher(Calibration, 'calibration', latched_qos())
             wait_for(lambda: probe.status(INPUTS).get('level') == 0, 10, 'one publisher left', graph)
             cases = ((_calibration(forged, noise=1e-6), 'is not signed'),
                      (_signed(_calibration(forged), b'y' * 32), 'signed with another key'))
             for text, reason in cases:
-                publisher.publish(String(data=text))
+                publisher.publish(calibration_msg(text))
                 wait_for(lambda r=reason: r in probe.status(COMPENSATION).get('message', ''), 10, reason, graph)
                 assert probe.status(COMPENSATION)['compensating'] == 'False'
-            publisher.publish(String(data=_signed(_calibration(exact))))
+            # Signed, but a summary field disagrees with the signed document: refused.
+            altered = calibration_msg(_signed(_calibration(exact)))
+            altered.method = 'forged'
+            publisher.publish(altered)
+            wait_for(lambda: 'the field method disagrees' in probe.status(COMPENSATION).get('message', ''), 10,
+                     'the altered summary refused', graph)
+            assert probe.status(COMPENSATION)['compensating'] == 'False'
+            publisher.publish(calibration_msg(_signed(_calibration(exact))))
             wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True', 10, 'adopted', graph)
             assert 'topic calibration from /tetra/calibrator' in probe.status(COMPENSATION)['message']
             assert probe.status(COMPENSATION)['level'] == 0
             # A calibration written with force:=true: adopted (signed), but the status stays WARN.
             forced_note = 'WARNING (force:=true): the samples do not fit the model'
-            publisher.publish(String(data=_signed(_calibration(exact, created='2026-11-26T09:30:00Z',
+            publisher.publish(calibration_msg(_signed(_calibration(exact, created='2026-11-26T09:30:00Z',
                                                                notes=(forced_note,)))))
             wait_for(lambda: 'the calibration was forced' in probe.status(COMPENSATION).get('message', ''), 10,
                      'forced', graph)
             assert probe.status(COMPENSATION)['level'] == 1 and forced_note in probe.status(COMPENSATION)['message']
-            publisher.publish(String(data=_signed(_calibration(forged, created='2026-11-25T09:00:00Z'))))
+            publisher.publish(calibration_msg(_signed(_calibration(forged, created='2026-11-25T09:00:00Z'))))
             wait_for(lambda: 'a replay' in probe.status(COMPENSATION).get('message', ''), 10, 'replay', graph)
             assert probe.status(COMPENSATION)['level'] == 1
             assert '2026-11-26T09:30:00Z' in probe.status(COMPENSATION)['message']  # kept the one in use
@@ -143,7 +150,6 @@ def test_the_calibrator_signs_what_it_writes_and_publishes_and_the_compensator_a
         graph.start('compensator', calibration_file=str(tmp_path / 'compensator.yaml'),
                     calibration_key_file=str(key_file), diagnostics_period_s=0.2)
         wait_matched(feeder.raw, 2)
-        wait_matched(feeder.reference, 2)
         wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'False', 30, 'diagnostics', graph)
         assert probe.call('calibrator/start').success
         wait_for(lambda: probe.status('tetra/calibrator: calibration').get('samples') == '0', 10, 'started', graph)
@@ -170,7 +176,7 @@ def test_the_calibrator_signs_what_it_writes_and_publishes_and_the_compensator_a
 def test_without_a_key_a_second_node_under_the_calibrators_name_is_refused(tmp_path):
     """Row 2 without a key: the forger names itself /tetra/calibrator beside the real one."""
     import rclpy
-    from std_msgs.msg import String
+    from tetra_gradiometer_msgs.msg import Calibration
 
     from tetra_gradiometer.nodes.common import latched_qos
 
@@ -183,11 +189,11 @@ def test_without_a_key_a_second_node_under_the_calibrators_name_is_refused(tmp_p
         real = rclpy.create_node('calibrator', namespace='/tetra', context=probe.context)
         forger = rclpy.create_node('calibrator', namespace='/tetra', context=probe.context)
         try:
-            real.create_publisher(String, 'calibration', latched_qos())
-            publisher = forger.create_publisher(String, 'calibration', latched_qos())
+            real.create_publisher(Calibration, 'calibration', latched_qos())
+            publisher = forger.create_publisher(Calibration, 'calibration', latched_qos())
             wait_for(lambda: 'a second node of that name' in probe.status(INPUTS).get('message', ''), 10,
                      'the inputs WARN', graph)
-            publisher.publish(String(data=_calibration(forged, noise=1e-6)))
+            publisher.publish(calibration_msg(_calibration(forged, noise=1e-6)))
             wait_for(lambda: '2 nodes named /tetra/calibrator' in probe.status(COMPENSATION).get('message', ''), 10,
                      'the refusal', graph)
             assert probe.status(COMPENSATION)['compensating'] == 'False'

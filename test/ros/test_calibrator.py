@@ -44,7 +44,6 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         assert not reply.success and 'too few' in reply.message
 
         wait_matched(feeder.raw, 1)
-        wait_matched(feeder.reference, 1)
         assert probe.call('calibrator/start').success
         g, b, _ = interference_set(300, rng, 'one')
         _feed_and_stop(probe, feeder, graph, g, b)
@@ -75,7 +74,6 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
         reconfigure(probe, graph, 'calibrator', method='constraint_lstsq')
         time.sleep(1.0)  # the new subscriptions matched by the feeder
         wait_matched(feeder.raw, 1)
-        wait_matched(feeder.reference, 1)
         assert probe.call('calibrator/start').success
         _feed_and_stop(probe, feeder, graph, g, b_faulty, first=2000, kept=299)
         reply = probe.call('calibrator/calibrate')
@@ -97,7 +95,6 @@ def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_pa
         assert not result.successful and 'read-only' in result.reason.lower(), result.reason
 
         wait_matched(feeder.raw, 1)
-        wait_matched(feeder.reference, 1)
         assert probe.call('calibrator/start').success
         g, b, _ = interference_set(200, rng, 'rich')
         _feed_and_stop(probe, feeder, graph, g, b)
@@ -113,22 +110,21 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
     (nothing written), and max_solve_s ends it with the best individual so far. max_solve_s
     is 1.5 s, not less: its clock starts with the ~/calibrate call, and on a loaded machine
     the work before the first generation took all of a 0.5 s budget (0 generations run)."""
-    from std_srvs.srv import Trigger
+    from tetra_gradiometer_msgs.srv import Calibrate
     calibration_file = tmp_path / 'calibration.yaml'
     rng = np.random.default_rng(5)
     with ros_graph() as (graph, probe, feeder):
         graph.start('calibrator', calibration_file=str(calibration_file), method='paper_ga',
                     ga_generations=20000, diagnostics_period_s=0.1)
         wait_matched(feeder.raw, 1)
-        wait_matched(feeder.reference, 1)
         assert probe.call('calibrator/start').success
         g, b, _ = interference_set(300, rng, 'rich')
         _feed_and_stop(probe, feeder, graph, g, b)
         assert not probe.call('calibrator/cancel').success  # nothing to cancel yet
 
-        client = probe.create_client(Trigger, 'calibrator/calibrate')
+        client = probe.create_client(Calibrate, 'calibrator/calibrate')
         assert client.wait_for_service(timeout_sec=30)
-        future = client.call_async(Trigger.Request())
+        future = client.call_async(Calibrate.Request())
         elapsed: set[str] = set()
 
         def solving() -> bool:
@@ -183,7 +179,7 @@ def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_f
         probe.create_subscription(String, 'calibrator/guidance', lambda m: received.append(json.loads(m.data)),
                                   latched_qos())
         odom = probe.create_publisher(Odometry, '/tetra/odom', derived_qos())  # the driver's
-        for publisher in (feeder.raw, feeder.reference, odom):
+        for publisher in (feeder.raw, odom):
             wait_matched(publisher, 1)
         assert probe.call('calibrator/start').success
         north = Rotation.from_euler('ZYX', [90.0, 0.0, 0.0], degrees=True).as_quat()  # yaw 90° from east
@@ -287,7 +283,7 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
         # On a vehicle: the navigation's /odom, by remapping the calibrator's relative odom.
         graph.start('calibrator', remaps={'odom': '/odom'}, calibration_file=str(calibration_file))
         odom = probe.create_publisher(Odometry, '/odom', derived_qos())
-        for publisher in (feeder.raw, feeder.reference, odom):
+        for publisher in (feeder.raw, odom):
             wait_matched(publisher, 1)
         stamps, g, b, q, g_world = _trim(8)
         _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
@@ -313,7 +309,7 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
         assert not refused.successful and 'read-only while calibrator is configured' in refused.reason
         reconfigure(probe, graph, 'calibrator', force=True)
         time.sleep(1.0)  # the new subscriptions matched by the feeder and odom
-        for publisher in (feeder.raw, feeder.reference, odom):
+        for publisher in (feeder.raw, odom):
             wait_matched(publisher, 1)
         _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
         reply = probe.call('calibrator/calibrate')
@@ -347,7 +343,7 @@ def test_unfilled_and_unnormalized_odom_orientations_are_dropped_counted_and_nam
         graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
         probe.create_subscription(DiagnosticArray, '/diagnostics', keep_warnings, 50)
         odom = probe.create_publisher(Odometry, '/tetra/odom', derived_qos())
-        for publisher in (feeder.raw, feeder.reference, odom):
+        for publisher in (feeder.raw, odom):
             wait_matched(publisher, 1)
         stamps, g, b, q, g_world = _trim(8)
         fed = q.copy()

@@ -1,14 +1,14 @@
 """nodes/compensator.py as a process over real DDS: uncompensated pass-through without a
 calibration file, then the exact parameters from the latched topic give the true (zero)
-tensor; a corrupt file refuses the start (the lifecycle refusal: test_lifecycle.py)."""
+tensor, each GradientTensor saying its state and calibration; a corrupt file refuses the start
+(the lifecycle refusal: test_lifecycle.py)."""
 from __future__ import annotations
 
-import time
-
 import numpy as np
-from ros_helpers import interference_set, ros_graph, wait_connected, wait_for, wait_matched
+from ros_helpers import calibration_msg, interference_set, ros_graph, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
+from tetra_gradiometer.io import gradient_tensor as gt
 from tetra_gradiometer.io.calibration import CalibrationFile
 
 NT = 1e-9
@@ -36,11 +36,12 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
     g, b, exact = interference_set(20, rng, 'rich')
     with ros_graph() as (graph, probe, feeder):
         compensator = graph.start('compensator', calibration_publisher='test_feeder', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
+        sets = _compensated_subscription(probe)
         wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'False',
                  30, 'compensator diagnostics', graph)
         status = _diag(probe, 'tetra/compensator: compensation')
         assert status['level'] == 1 and 'UNCOMPENSATED' in status['message'] and 'no calibration file' in status['message']
-        from std_msgs.msg import Float64, String
+        from std_msgs.msg import Float64
         norms: list[float] = []
         probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)
         wait_matched(feeder.raw, 2)  # compensator and probe
@@ -49,30 +50,42 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
             probe.collecting = True
         for i in range(10):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 10 and len(norms) == 10, 10,
-                 'pass-through tensors', graph)
+        wait_for(lambda: len(sets) == 10 and len(norms) == 10, 10, 'pass-through tensors', graph)
         for i in range(10):
-            np.testing.assert_array_equal(probe.tensors['gradient/compensated'][T0 + i * 10**8], g[i])
+            passed = sets[T0 + i * 10**8]
+            np.testing.assert_array_equal(passed.g, g[i])
+            np.testing.assert_array_equal(passed.reference_field, b[i])  # B_1' travels with it
+            assert (passed.state, passed.calibration_id) == (gt.UNCOMPENSATED, '')
         np.testing.assert_allclose(norms, [np.sqrt(np.sum(g[i] ** 2)) / NT for i in range(10)], rtol=1e-12)
 
         # A calibration with the exact parameters, on the latched topic: the true tensor (zero) comes out.
-        document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
-                                   sensor_positions=GEOMETRY.to_flat())
-        feeder.calibration.publish(String(data=document.to_yaml()))
+        exact_document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
+                                         sensor_positions=GEOMETRY.to_flat(), created_utc='2026-11-28T09:30:00Z')
+        feeder.calibration.publish(calibration_msg(exact_document.to_yaml()))
         wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'True',
                  10, 'the latched calibration', graph)
         for i in range(10, 20):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 20, 10, 'compensated tensors', graph)
+        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 20 and len(sets) == 20, 10,
+                 'compensated tensors', graph)
         compensated = np.array([probe.tensors['gradient/compensated'][T0 + i * 10**8] for i in range(10, 20)])
         assert np.abs(g[10:]).max() > 50 * NT
         assert np.abs(compensated).max() < 1e-6 * NT
+        assert {(sets[T0 + i * 10**8].state, sets[T0 + i * 10**8].calibration_id) for i in range(10, 20)} == {
+            (gt.COMPENSATED, '2026-11-28T09:30:00Z')}
         # A calibration for another array is refused; the current one is kept.
         other = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                 sensor_positions=core.TetraGeometry.regular(0.3).to_flat())
-        feeder.calibration.publish(String(data=other.to_yaml()))
+        feeder.calibration.publish(calibration_msg(other.to_yaml()))
         wait_for(lambda: 'other sensor positions' in _diag(probe, 'tetra/compensator: compensation')['message'],
                  10, 'the refusal', graph)
+        assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
+        # A message whose summary disagrees with the document it carries is refused too.
+        altered = calibration_msg(exact_document.to_yaml())
+        altered.parameters[0] += 1e-3
+        feeder.calibration.publish(altered)
+        wait_for(lambda: 'the field parameters disagrees with the document'
+                 in _diag(probe, 'tetra/compensator: compensation')['message'], 10, 'the refusal', graph)
         assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
         # Implausible calibrations (k = 1e308 would put inf on gradient/norm; a NaN position
         # compares false and used to pass the array check) are refused; the current one is kept.
@@ -80,9 +93,13 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
                                method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat())
         nan_positions = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                         sensor_positions=[float('nan')] + GEOMETRY.to_flat()[1:])
-        for document, reason in ((huge, 'k_soft[0, 0, 0] = 1e+308 is implausible'),
-                                 (nan_positions, 'sensor_positions[0] = nan is not finite')):
-            feeder.calibration.publish(String(data=document.to_yaml()))
+        # The implausible k has no summary (no publisher of ours writes one): the exact one's.
+        for document, summarized, reason in (
+                (huge, exact_document, 'k_soft[0, 0, 0] = 1e+308 is implausible'),
+                (nan_positions, nan_positions, 'sensor_positions[0] = nan is not finite')):
+            message = calibration_msg(summarized.to_yaml())
+            message.document = document.to_yaml()
+            feeder.calibration.publish(message)
             wait_for(lambda reason=reason: reason in _diag(probe, 'tetra/compensator: compensation')['message'],
                      10, 'the refusal', graph)
             assert _diag(probe, 'tetra/compensator: compensation')['compensating'] == 'True'
@@ -97,18 +114,18 @@ def test_missing_calibration_file_runs_uncompensated_then_follows_the_latched_to
         assert compensator.alive()
 
 
-def _sigma_subscription(probe) -> dict[int, np.ndarray]:
-    """``{stamp: sigma (3, 3) T/m}`` of ``gradient/sigma``, filled by the probe's thread."""
-    from sensor_msgs.msg import JointState
-
-    from tetra_gradiometer.io import conversions as cv
+def _compensated_subscription(probe) -> dict[int, gt.TensorSet]:
+    """``{stamp: TensorSet}`` of ``gradient/compensated``, filled by the probe's thread."""
     from tetra_gradiometer.nodes.common import derived_qos
 
-    sigmas: dict[int, np.ndarray] = {}
-    probe.create_subscription(
-        JointState, 'gradient/sigma',
-        lambda msg: sigmas.__setitem__(cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg)), derived_qos())
-    return sigmas
+    sets: dict[int, gt.TensorSet] = {}
+
+    def keep(msg) -> None:
+        tensor = gt.tensor_set_from_msg(msg)
+        sets[tensor.stamp_ns] = tensor
+
+    probe.create_subscription(gt.rclpy_class(), 'gradient/compensated', keep, derived_qos())
+    return sets
 
 
 def _covariance(rng, n_parameters=36):
@@ -118,9 +135,7 @@ def _covariance(rng, n_parameters=36):
     return root @ root.T / n_parameters * np.outer(scale, scale)
 
 
-def test_gradient_sigma_follows_the_calibration_and_is_absent_while_the_noise_is_unknown(tmp_path):
-    from std_msgs.msg import String
-
+def test_g_sigma_follows_the_calibration_and_is_nan_while_the_noise_is_unknown(tmp_path):
     from tetra_gradiometer.core.uncertainty import compensated_sigma
 
     rng = np.random.default_rng(8)
@@ -131,46 +146,44 @@ def test_gradient_sigma_follows_the_calibration_and_is_absent_while_the_noise_is
         # The calibration's own sigma model: frozen (tracking adds its state's variance).
         graph.start('compensator', calibration_publisher='test_feeder', calibration_file=str(tmp_path / 'missing.yaml'),
                     diagnostics_period_s=0.2, track_calibration=False)
-        sigmas = _sigma_subscription(probe)
+        sets = _compensated_subscription(probe)
         wait_for(lambda: _diag(probe, status).get('sigma', '').startswith('none: sensor noise unknown'),
                  30, 'compensator diagnostics', graph)
         wait_matched(feeder.raw, 2)
-        wait_connected(probe, graph, 'compensator', '/tetra/gradient/sigma', 1)
-        with probe.lock:
-            probe.collecting = True
-        for i in range(5):  # uncompensated, noise unknown: no sigma
-            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 5, 10, 'pass-through tensors', graph)
+        wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)
+        raw_sigma = np.arange(1.0, 10.0).reshape(3, 3) * 0.01 * NT
+        for i in range(5):  # uncompensated, noise unknown: the raw tensor's own sigma, as it came
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i], raw_sigma)
+        wait_for(lambda: len(sets) == 5, 10, 'pass-through tensors', graph)
+        for i in range(5):
+            np.testing.assert_array_equal(sets[T0 + i * 10**8].g_sigma, raw_sigma)
 
         document = CalibrationFile(parameters=exact, method='test', symmetric_k=False,
                                    sensor_positions=GEOMETRY.to_flat(), sensor_noise_t=noise, covariance=covariance)
-        feeder.calibration.publish(String(data=document.to_yaml()))
+        feeder.calibration.publish(calibration_msg(document.to_yaml()))
         wait_for(lambda: 'parameter covariance' in _diag(probe, status).get('sigma', ''), 10, 'the calibration', graph)
         for i in range(5, 15):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(sigmas) == 10, 10, 'sigma of the compensated tensors', graph)
+        wait_for(lambda: len(sets) == 15, 10, 'the compensated tensors', graph)
         stamps = [T0 + i * 10**8 for i in range(5, 15)]
-        assert sorted(sigmas) == stamps  # exactly the compensated samples, same stamps
         expected = compensated_sigma(b[5:15], GEOMETRY, noise, exact, covariance)  # Monte-Carlo tested
-        np.testing.assert_allclose([sigmas[s] for s in stamps], expected, rtol=1e-9)
+        np.testing.assert_allclose([sets[s].g_sigma for s in stamps], expected, rtol=1e-9)
         without_term = compensated_sigma(b[5:15], GEOMETRY, noise, exact)
         assert np.max(expected / without_term) > 1.05  # the covariance term is really there
 
-        # A calibration without a noise estimate (and sensor_noise_t 0): no sigma any more.
-        feeder.calibration.publish(String(data=CalibrationFile(
+        # A calibration without a noise estimate (and sensor_noise_t 0): sigma unknown, NaN.
+        feeder.calibration.publish(calibration_msg(CalibrationFile(
             parameters=exact, method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat()).to_yaml()))
         wait_for(lambda: 'no estimate in the calibration' in _diag(probe, status).get('sigma', ''), 10,
                  'the second calibration', graph)
         for i in range(15, 20):
-            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 20, 10, 'compensated tensors', graph)
-        time.sleep(0.3)
-        assert len(sigmas) == 10
+            feeder.publish_raw(T0 + i * 10**8, g[i], b[i], raw_sigma)
+        wait_for(lambda: len(sets) == 20, 10, 'compensated tensors', graph)
+        assert all(np.isnan(sets[T0 + i * 10**8].g_sigma).all() for i in range(15, 20))
+        assert {sets[T0 + i * 10**8].state for i in range(15, 20)} == {gt.COMPENSATED}
 
 
 def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibration_estimate(tmp_path):
-    from std_msgs.msg import String
-
     from tetra_gradiometer.core.uncertainty import compensated_sigma
 
     rng = np.random.default_rng(9)
@@ -180,29 +193,29 @@ def test_sensor_noise_t_gives_the_raw_tensor_its_sigma_and_overrides_the_calibra
     with ros_graph() as (graph, probe, feeder):
         graph.start('compensator', calibration_publisher='test_feeder', calibration_file=str(tmp_path / 'missing.yaml'), sensor_noise_t=noise,
                     diagnostics_period_s=0.2)
-        sigmas = _sigma_subscription(probe)
+        sets = _compensated_subscription(probe)
         wait_for(lambda: 'raw tensor' in _diag(probe, status).get('sigma', ''), 30, 'compensator diagnostics', graph)
         wait_matched(feeder.raw, 2)
-        wait_connected(probe, graph, 'compensator', '/tetra/gradient/sigma', 1)
+        wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)
         for i in range(3):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(sigmas) == 3, 10, 'sigma of the raw tensors', graph)
+        wait_for(lambda: len(sets) == 3, 10, 'sigma of the raw tensors', graph)
         # Independent truth: the spread of eq. 7 over noise draws on the four readings.
         draws = rng.normal(0.0, noise, (20_000, 4, 3)) + rng.normal(0, 5e-5, 3)
         spread = core.difference_tensor(draws, GEOMETRY).std(axis=0)
-        for sigma in sigmas.values():
-            np.testing.assert_allclose(sigma, spread, rtol=0.03)  # 20 000 draws: 0.5 % per std
+        for tensor in list(sets.values()):
+            np.testing.assert_allclose(tensor.g_sigma, spread, rtol=0.03)  # 20 000 draws: 0.5 % per std
 
         # The parameter beats the calibration's own estimate (0.3 nT here).
-        feeder.calibration.publish(String(data=CalibrationFile(
+        feeder.calibration.publish(calibration_msg(CalibrationFile(
             parameters=exact, method='test', symmetric_k=False, sensor_positions=GEOMETRY.to_flat(),
             sensor_noise_t=0.3 * NT).to_yaml()))
         wait_for(lambda: 'from sensor_noise_t' in _diag(probe, status).get('sigma', '')
                  and _diag(probe, status).get('compensating') == 'True', 10, 'the calibration', graph)
         for i in range(3, 6):
             feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-        wait_for(lambda: len(sigmas) == 6, 10, 'sigma of the compensated tensors', graph)
-        np.testing.assert_allclose([sigmas[T0 + i * 10**8] for i in range(3, 6)],
+        wait_for(lambda: len(sets) == 6, 10, 'sigma of the compensated tensors', graph)
+        np.testing.assert_allclose([sets[T0 + i * 10**8].g_sigma for i in range(3, 6)],
                                    compensated_sigma(b[3:6], GEOMETRY, noise, exact), rtol=1e-9)
 
 

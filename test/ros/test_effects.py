@@ -21,6 +21,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,7 @@ from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_matched,
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io import conversions as cv
+from tetra_gradiometer.io import gradient_tensor as gt
 from tetra_gradiometer.io.bag import MagneticBag
 from tetra_gradiometer.io.calibration import load_calibration
 
@@ -174,8 +176,15 @@ def _received(probe, status: str, key: str) -> int:
     return -1 if value is None else int(value)
 
 
+def _keep_sigma(sigmas: dict[int, np.ndarray], msg) -> None:
+    """The ``g_sigma`` (3, 3) T/m of a compensated GradientTensor into ``sigmas`` by stamp."""
+    tensor = gt.tensor_set_from_msg(msg)
+    if tensor.state == gt.COMPENSATED:
+        sigmas[tensor.stamp_ns] = tensor.g_sigma
+
+
 def _feed(feeder, offline: Offline, indices: range, taken, odom=None, chunk: int = 200) -> None:
-    """The bag's sets ``indices`` as ``gradient/raw`` and ``reference_field`` (what the tensor
+    """The bag's sets ``indices`` as ``gradient/raw`` (with ``B_1'``: what the tensor
     node makes of the bag: eq. 7 on the sets resampled to sensor 1's stamps), each after its
     ``/odom`` message when ``odom`` is given, ``chunk`` at a time: the next once ``taken()``
     (what the receiving end has counted) has the previous, so nothing is lost in transit on a
@@ -195,8 +204,6 @@ def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(of
     offline; and every temperature and battery message), ``~/calibrate``; the compensator
     follows the latched calibration, and the whole bag into it."""
     from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import JointState
-
     from tetra_gradiometer.nodes.common import derived_qos
 
     calibration_file = tmp_path / 'calibration.yaml'
@@ -207,10 +214,8 @@ def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(of
         odom = bag.read_series(cv.ODOM_TOPIC)
     assert np.array_equal(odom.stamps_ns, stamps)  # one message per set, same stamp
     with ros_graph() as (graph, probe, feeder):
-        probe.create_subscription(
-            JointState, 'gradient/sigma',
-            lambda msg: sigmas.__setitem__(cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg)),
-            derived_qos())
+        probe.create_subscription(gt.rclpy_class(), 'gradient/compensated', partial(_keep_sigma, sigmas),
+                                  derived_qos())
         odom_pub = feeder.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos())
         channels = ChannelPublisher(feeder, offline)
 
@@ -319,8 +324,6 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
     compensator follows the latched calibration; a second driver replays the whole bag.
     The calibration is the offline one and every compensated tensor within 1 % of the noise
     floor of ``compensate``'s CSV."""
-    from sensor_msgs.msg import JointState
-
     from tetra_gradiometer.nodes.common import derived_qos
 
     calibration_file = tmp_path / 'calibration.yaml'
@@ -330,10 +333,8 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
     driver = dict(mode='replay', bag=str(offline.bag), start_paused=True, min_subscribers=1,
                   diagnostics_period_s=0.2)
     with ros_graph() as (graph, probe, _):
-        probe.create_subscription(
-            JointState, 'gradient/sigma',
-            lambda msg: sigmas.__setitem__(cv.stamp_to_ns(msg.header.stamp), cv.tensor_from_msg(msg)),
-            derived_qos(20_000))  # as the probe's: all of them may wait for this thread
+        probe.create_subscription(gt.rclpy_class(), 'gradient/compensated', partial(_keep_sigma, sigmas),
+                                  derived_qos(20_000))  # as the probe's: all of them may wait for this thread
         # The magnetometers are best effort and the driver does not wait for the tensor at 8x:
         # queues of 2000 (12 s) ride out a stall of the loaded machine (at the default 50, 0.3 s,
         # a fresh-clone run lost 148 of the 1200 trim sets).
@@ -349,7 +350,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
                  and probe.count_publishers('/battery_state') >= 1
                  and probe.count_subscribers('/tetra/gradient/raw') >= 3
                  and probe.count_publishers('/tetra/gradient/raw') >= 2, 30, 'discovery', graph)
-        wait_tensor_delivers(probe, graph, raw=3, reference=2, readers=('calibrator', 'compensator'))
+        wait_tensor_delivers(probe, graph, raw=3, readers=('calibrator', 'compensator'))
         wait_for(lambda: _received(probe, CALIBRATION, 'samples') == 0, 20, 'the calibrator', graph)
         assert probe.call('calibrator/start').success
         _play(probe, graph, lambda: _received(probe, CALIBRATION, 'samples'), n_trim)
@@ -424,7 +425,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
 
 def test_a_missing_or_stale_channel_drops_the_sets_and_warns_naming_it(offline, tmp_path):
     """The offline calibration (its terms read ``/battery_state`` and the temperature), the
-    sets fed as ``gradient/raw`` and ``reference_field``: without battery messages nothing is
+    sets fed as ``gradient/raw``: without battery messages nothing is
     compensated (never with a zero current) and ``/diagnostics`` names the channel; with them
     the sets come out; when they stop for longer than 2 s of stamps, the sets are dropped
     again as stale."""

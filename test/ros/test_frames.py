@@ -1,8 +1,7 @@
 """Frame ids (REP 103/105) as a user sees them on the topics: the simulating
 driver's odometry (/tetra/odom, never the vehicle's /odom) is odom -> base_link and its magnetometers tetra_mag1..4 by default, every
-frame id is a parameter, the tensor publishes its gradient in ``array_frame_id`` and
-reference_field in the frame of the mag1 message it came from; a frame id with a leading
-'/' (tf2 refuses those) is refused at start-up."""
+frame id is a parameter, the tensor publishes its gradient (with B_1') in ``array_frame_id``;
+a frame id with a leading '/' (tf2 refuses those) is refused at start-up."""
 from __future__ import annotations
 
 import time
@@ -12,7 +11,9 @@ from ros_helpers import NodeProcess, ros_graph, unique_domain, wait_for
 
 def _frames(probe, graph, **driver_params) -> dict[str, tuple[str, ...]]:
     from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import JointState, MagneticField
+    from sensor_msgs.msg import MagneticField
+
+    from tetra_gradiometer.io import gradient_tensor as gt
 
     from tetra_gradiometer.nodes.common import derived_qos, sensor_qos
 
@@ -26,10 +27,8 @@ def _frames(probe, graph, **driver_params) -> dict[str, tuple[str, ...]]:
     for s in range(4):
         probe.create_subscription(MagneticField, f'/tetra/mag{s + 1}',
                                   lambda m, s=s: keep(f'mag{s + 1}', m.header.frame_id), sensor_qos(100))
-    probe.create_subscription(JointState, '/tetra/gradient/raw', lambda m: keep('raw', m.header.frame_id),
+    probe.create_subscription(gt.rclpy_class(), '/tetra/gradient/raw', lambda m: keep('raw', m.header.frame_id),
                               derived_qos())
-    probe.create_subscription(MagneticField, '/tetra/reference_field',
-                              lambda m: keep('reference', m.header.frame_id), derived_qos())
     # Real time for 10 s: a reader that matches the driver's writers late (discovery on a
     # loaded machine) still gets later messages; one per topic is all this test needs.
     graph.start('driver', mode='sim', rate=1.0, min_subscribers=2, max_duration_s=10.0, start_paused=True, **driver_params)
@@ -38,7 +37,7 @@ def _frames(probe, graph, **driver_params) -> dict[str, tuple[str, ...]]:
              30, 'the driver', graph)
     time.sleep(1.0)
     assert probe.call('driver/resume').success
-    wait_for(lambda: len(seen) == 7, 30, 'a message on each topic', graph)
+    wait_for(lambda: len(seen) == 6, 30, 'a message on each topic', graph)
     seen['absolute odom publishers'] = (str(probe.count_publishers('/odom')),)
     return seen
 
@@ -50,7 +49,7 @@ def test_default_frames_follow_rep_105():
     assert seen['odom'] == ('odom', 'base_link')
     assert seen['absolute odom publishers'] == ('0',)  # the vehicle's /odom is not the driver's
     assert [seen[f'mag{s}'][0] for s in range(1, 5)] == ['tetra_mag1', 'tetra_mag2', 'tetra_mag3', 'tetra_mag4']
-    assert seen['raw'] == ('tetra_array',) and seen['reference'] == ('tetra_mag1',)
+    assert seen['raw'] == ('tetra_array',)
 
 
 def test_every_frame_id_is_a_parameter():
@@ -60,7 +59,7 @@ def test_every_frame_id_is_a_parameter():
                        sensor_frame_ids=['auv/m1', 'auv/m2', 'auv/m3', 'auv/m4'])
     assert seen['odom'] == ('map', 'auv/base_link')
     assert [seen[f'mag{s}'][0] for s in range(1, 5)] == ['auv/m1', 'auv/m2', 'auv/m3', 'auv/m4']
-    assert seen['raw'] == ('auv/gradiometer',) and seen['reference'] == ('auv/m1',)
+    assert seen['raw'] == ('auv/gradiometer',)
 
 
 def test_a_frame_id_with_a_leading_slash_is_refused_at_start():

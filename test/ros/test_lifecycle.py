@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_helpers import interference_set, ros_graph, unique_domain, wait_connected, wait_for, wait_matched
+from ros_helpers import calibration_msg, interference_set, ros_graph, unique_domain, wait_connected, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile, save_calibration
@@ -59,8 +59,6 @@ def _calibration(parameters: core.InterferenceParameters) -> CalibrationFile:
 
 
 def test_compensator_transitions_through_the_lifecycle_services(tmp_path):
-    from std_msgs.msg import String
-
     calibration_file = tmp_path / 'calibration.yaml'
     calibration_file.write_text('tetra_gradiometer_calibration: 1\nk_soft: [[[0.1, ')
     g, b, exact = interference_set(40, rng=np.random.default_rng(3), directions='rich')
@@ -105,7 +103,7 @@ def test_compensator_transitions_through_the_lifecycle_services(tmp_path):
         send(10, 5)
         wait_for(lambda: len(received()) == 5, 10, 'pass-through tensors', graph)
         np.testing.assert_array_equal(received()[T0 + 10 * 10**8], g[10])
-        feeder.calibration.publish(String(data=_calibration(exact).to_yaml()))
+        feeder.calibration.publish(calibration_msg(_calibration(exact).to_yaml()))
         wait_for(lambda: 'compensating with topic' in process.output(), 10, 'the topic calibration', graph)
         send(15, 5)
         wait_for(lambda: len(received()) == 10, 10, 'compensated tensors', graph)

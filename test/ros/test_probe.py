@@ -14,30 +14,33 @@ from .ros_helpers import ros_graph
 
 
 @contextmanager
-def _dropping_server(name: str):
-    """``(probe, taken)``: a Trigger server ``name`` on the probe's context, polled by hand:
+def _dropping_server(name: str, kind: str = 'Trigger'):
+    """``(probe, taken)``: a server ``name`` (std_srvs/Trigger, or tetra_gradiometer_msgs/
+    Calibrate) on the probe's context, polled by hand:
     the first request is taken and dropped, every later one answered with its ordinal;
     ``taken`` the monotonic times of the requests it took."""
     from rclpy.node import Node
     from std_srvs.srv import Trigger
+    from tetra_gradiometer_msgs.srv import Calibrate
 
+    service_type = {'Trigger': Trigger, 'Calibrate': Calibrate}[kind]
     stop, taken = threading.Event(), []
     with ros_graph() as (_, probe, _feeder):
         node = Node('dropper', context=probe.context)
-        service = node.create_service(Trigger, name, lambda request, response: response)
+        service = node.create_service(service_type, name, lambda request, response: response)
 
         def run() -> None:
             try:
                 while not stop.is_set():
                     with service.handle:
-                        _, header = service.handle.service_take_request(Trigger.Request)
+                        _, header = service.handle.service_take_request(service_type.Request)
                     if header is None:  # nothing to take
                         time.sleep(0.01)
                         continue
                     taken.append(time.monotonic())
                     if len(taken) > 1:
                         service.send_response(
-                            Trigger.Response(success=True, message=f'request {len(taken)}'), header
+                            service_type.Response(success=True, message=f'request {len(taken)}'), header
                         )
             finally:
                 node.destroy_node()
@@ -68,7 +71,7 @@ def test_a_calibrate_request_is_not_sent_twice(monkeypatch):
     from tetra_gradiometer.cli import _probe
 
     monkeypatch.setattr(_probe, 'RESEND_S', 0.5)
-    with _dropping_server('/dropper/calibrate') as (probe, taken):
+    with _dropping_server('/dropper/calibrate', 'Calibrate') as (probe, taken):
         with pytest.raises(TimeoutError, match='did not answer within 2 s'):
             probe.call('/dropper/calibrate', timeout_s=2)
     assert len(taken) == 1

@@ -93,7 +93,7 @@ def _start(case: Case, domain: int, home: Path) -> None:
     remaps = {'__ns': case.ns}
     if case.state == 'solving':  # the test's feeder publishes in /tetra
         params.update(SOLVE_PARAMS, calibration_file=str(home / f'{case.ns[1:]}.yaml'))
-        remaps.update({'gradient/raw': '/tetra/gradient/raw', 'reference_field': '/tetra/reference_field'})
+        remaps.update({'gradient/raw': '/tetra/gradient/raw'})
     script = f'import sys; from tetra_gradiometer.nodes.process import main_{case.node}; sys.exit(main_{case.node}())'
     command = [sys.executable, '-c', script, '--ros-args', '--params-file', str(PARAMS)]
     if case.state == 'starting ignored':  # exec keeps an ignored signal ignored
@@ -153,10 +153,9 @@ def _state(probe: Any, case: Case, timeout_s: float) -> str:
 def _start_solves(probe: Any, feeder: Any, solving: list[Case]) -> None:
     """500 samples into the solving calibrators, then a 20 000-generation ~/calibrate each,
     pending until both report ``solving``."""
-    from std_srvs.srv import Trigger
+    from tetra_gradiometer_msgs.srv import Calibrate
 
     wait_matched(feeder.raw, len(solving))
-    wait_matched(feeder.reference, len(solving))
     keys = [f'{c.ns[1:]}/calibrator: calibration' for c in solving]
     for case in solving:
         assert probe.call(f'{case.ns}/calibrator/start').success
@@ -171,9 +170,9 @@ def _start_solves(probe: Any, feeder: Any, solving: list[Case]) -> None:
         wait_for(lambda key=key: probe.status(key).get('samples') == '500', 20, f'500 samples ({key})')
     for case in solving:
         assert probe.call(f'{case.ns}/calibrator/stop').success
-        client = probe.create_client(Trigger, f'{case.ns}/calibrator/calibrate')
+        client = probe.create_client(Calibrate, f'{case.ns}/calibrator/calibrate')
         assert client.wait_for_service(timeout_sec=10)
-        case.reply = client.call_async(Trigger.Request())
+        case.reply = client.call_async(Calibrate.Request())
     for key in keys:
         wait_for(lambda key=key: probe.status(key).get('state') == 'solving', 20, f'solving ({key})')
 

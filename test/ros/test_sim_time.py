@@ -48,7 +48,7 @@ def _replay(bag: str, rate: float) -> tuple[list[int], list[dict[str, float]]]:
         probe.create_subscription(Clock, '/clock', lambda msg: clocks.append(cv.stamp_to_ns(msg.clock)), 1000)
         probe.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 1000)
         graph.start('tensor', use_sim_time=True, diagnostics_period_s=PERIOD_S)
-        wait_for(lambda: probe.count_publishers('/tetra/reference_field') >= 1, 20, 'tensor node', graph)
+        wait_for(lambda: probe.count_publishers('/tetra/gradient/raw') >= 2, 20, 'tensor node', graph)  # and the feeder
         graph.start('driver', mode='replay', bag=bag, rate=rate, min_subscribers=1, start_paused=True)
         for topic in ('mag1', 'mag2', 'mag3', 'mag4'):
             wait_for(lambda t=topic: probe.count_publishers(f'/tetra/{t}') >= 2, 30, f'the driver on {topic}', graph)

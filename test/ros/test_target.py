@@ -17,6 +17,7 @@ from ros_helpers import ros_graph, wait_for, wait_matched
 from scipy.spatial.transform import Rotation
 
 from tetra_gradiometer.io import conversions as cv
+from tetra_gradiometer.io import gradient_tensor as gt
 from tetra_gradiometer.nodes import target_messages as tm
 
 T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
@@ -162,13 +163,17 @@ class _Outputs:
             return self.latest.get(topic)
 
 
+def _tensor_msg(types, g, stamp_ns: int):
+    """A compensated GradientTensor of ``g`` (3, 3) T/m at ``stamp_ns``."""
+    return gt.gradient_tensor_msg(types, gt.TensorSet(stamp_ns, g, state=gt.COMPENSATED))
+
+
 def _publishers(feeder):
     from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import JointState
 
     from tetra_gradiometer.nodes.common import derived_qos
 
-    return (feeder.create_publisher(JointState, cv.COMPENSATED_NODE_TOPIC, derived_qos()),
+    return (feeder.create_publisher(gt.rclpy_class(), cv.COMPENSATED_NODE_TOPIC, derived_qos()),
             feeder.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos()))
 
 
@@ -207,7 +212,7 @@ def _feed(feeder, publishers, stamps, tensors, positions, orientations, period_s
     types = cv.rclpy_types()
     tensor_pub, odom_pub = publishers
     for i, stamp in enumerate(stamps):
-        tensor_pub.publish(cv.tensor_msg(types, tensors[i], int(stamp)))
+        tensor_pub.publish(_tensor_msg(types, tensors[i], int(stamp)))
         odom_pub.publish(cv.odometry_msg(types, positions[i], orientations[i], int(stamp)))
         time.sleep(period_s)
 
@@ -269,7 +274,7 @@ def test_bad_input_is_dropped_and_counted_and_never_searched():
     malformed tensor message, a 3 s odometry outage, a NaN odometry message, an unfilled
     (zero-norm) orientation, dropped, and one scaled by 3, normalized."""
     from diagnostic_msgs.msg import DiagnosticArray
-    from sensor_msgs.msg import JointState
+    from rclpy.serialization import serialize_message
 
     warnings: list[str] = []
 
@@ -294,11 +299,12 @@ def test_bad_input_is_dropped_and_counted_and_never_searched():
         probe.create_subscription(DiagnosticArray, '/diagnostics', keep_warnings, 50)
         orientations = identity * np.where(np.arange(n) == 810, 0.0, np.where(np.arange(n) == 820, 3.0, 1.0))[:, None]
         for i in range(n):
-            tensor_pub.publish(cv.tensor_msg(types, tensors[i], int(tensor_stamps[i])))
+            tensor_pub.publish(_tensor_msg(types, tensors[i], int(tensor_stamps[i])))
             if i == 60:  # an older and an equal stamp
                 for stamp in (tensor_stamps[58], tensor_stamps[60]):
-                    tensor_pub.publish(cv.tensor_msg(types, tensors[0], int(stamp)))
-                tensor_pub.publish(JointState(name=['a'], position=[1.0]))
+                    tensor_pub.publish(_tensor_msg(types, tensors[0], int(stamp)))
+                whole = serialize_message(_tensor_msg(types, tensors[0], int(tensor_stamps[60])))
+                tensor_pub.publish(whole[:100])  # cut inside the doubles: malformed
             if not 700 <= i < 730:
                 position = positions[i] * (np.nan if i == 800 else 1.0)
                 odom_pub.publish(cv.odometry_msg(types, position, orientations[i], T0 + i * PERIOD_NS))

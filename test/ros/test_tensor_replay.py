@@ -94,9 +94,10 @@ class PublishTimes:
     time, ns) of every magnetometer message and every ``gradient/raw`` tensor, by stamp."""
 
     def __init__(self, probe) -> None:
-        from sensor_msgs.msg import JointState, MagneticField
+        from sensor_msgs.msg import MagneticField
 
         from tetra_gradiometer.io import conversions as cv
+        from tetra_gradiometer.io import gradient_tensor as gt
         from tetra_gradiometer.nodes.common import derived_qos, sensor_qos
 
         self.lock = threading.Lock()
@@ -106,7 +107,7 @@ class PublishTimes:
             probe.create_subscription(
                 MagneticField, topic,
                 lambda msg, info, s=sensor: self._note(self.mags[s], msg, info), sensor_qos(1000))
-        probe.create_subscription(JointState, 'gradient/raw',
+        probe.create_subscription(gt.rclpy_class(), 'gradient/raw',
                                   lambda msg, info: self._note(self.tensors, msg, info),
                                   derived_qos())
 

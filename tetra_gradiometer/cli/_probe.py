@@ -1,7 +1,8 @@
 """The operator side of the in-process graphs of ``demo`` and ``record`` (and of the tests):
 :func:`init_local_ros` starts rclpy for them, and :class:`Probe`, the operator/observer node,
-calls Trigger services, collects tensors by stamp, and keeps the latest ``/diagnostics``
-status of every component. Not part of the graph's contract."""
+calls the services (Trigger, and the calibrator's Calibrate), collects tensors by stamp, and
+keeps the latest ``/diagnostics`` status of every component. Not part of the graph's
+contract."""
 
 from __future__ import annotations
 
@@ -15,16 +16,17 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from ..io import conversions as cv
+from tetra_gradiometer_msgs.srv import Calibrate
+
+from ..io import gradient_tensor as gt
 from ..nodes.common import DERIVED_DEPTH, NAMESPACE, derived_qos
 
 TENSOR_TOPICS = ('gradient/raw', 'gradient/compensated', 'gradient/truth')
 RESEND_S = 5.0
-"""s: an unanswered Trigger request is sent again after this (see :meth:`Probe.call`)."""
+"""s: an unanswered request is sent again after this (see :meth:`Probe.call`)."""
 NOT_RESENT = frozenset({'calibrate'})
 """Services not asked twice: a second ``~/calibrate`` during a solve is refused, so its
 answer would stand for the first one's."""
@@ -99,17 +101,18 @@ class Probe(Node):
         self.percent = float('nan')
         for topic in TENSOR_TOPICS:
             self.create_subscription(
-                JointState, topic, partial(self._on_tensor, topic), derived_qos(depth)
+                gt.rclpy_class(), topic, partial(self._on_tensor, topic), derived_qos(depth)
             )
         self.create_subscription(Float64, 'compensated_percent', self._on_percent, derived_qos())
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
-        self._trigger_clients: dict[str, Any] = {}
+        self._service_clients: dict[str, Any] = {}
 
-    def _on_tensor(self, topic: str, msg: JointState) -> None:
+    def _on_tensor(self, topic: str, msg: Any) -> None:
         with self.lock:
             self.counts[topic] += 1
             if self.collecting:
-                self.tensors[topic][cv.stamp_to_ns(msg.header.stamp)] = cv.tensor_from_msg(msg)
+                tensor = gt.tensor_set_from_msg(msg)
+                self.tensors[topic][tensor.stamp_ns] = tensor.g
 
     def _on_percent(self, msg: Float64) -> None:
         self.percent = msg.data
@@ -132,8 +135,10 @@ class Probe(Node):
             )
         return np.array(common, dtype=np.int64), raw, compensated, truth
 
-    def call(self, service: str, timeout_s: float = 30.0) -> Any:
-        """Call a std_srvs/Trigger service (spun by another thread); return the response.
+    def call(self, service: str, timeout_s: float = 30.0, request: Any = None) -> Any:
+        """Call a service (spun by another thread) with ``request``; return the response. A
+        service named ``calibrate`` is a tetra_gradiometer_msgs/Calibrate (``request`` None:
+        its defaults, the node's parameters on every sample), the others std_srvs/Trigger.
 
         A request left unanswered for :data:`RESEND_S` is sent again on the same client, except
         to the services in :data:`NOT_RESENT`: rmw_fastrtps drops a reply when the server has
@@ -143,13 +148,15 @@ class Probe(Node):
         the reply to a second driver's ``~/resume``). By then the server has matched it. The
         other services are idempotent: a repeat changes nothing the first did not.
         """
-        client = self._trigger_clients.get(service)
+        name = service.rsplit('/', 1)[-1]
+        kind = Calibrate if name == 'calibrate' else Trigger
+        client = self._service_clients.get(service)
         if client is None:
-            client = self._trigger_clients[service] = self.create_client(Trigger, service)
+            client = self._service_clients[service] = self.create_client(kind, service)
         if not client.wait_for_service(timeout_sec=timeout_s):
             raise TimeoutError(f'service {service} is not available')
-        resend = service.rsplit('/', 1)[-1] not in NOT_RESENT
-        return ask(client, Trigger.Request(), timeout_s, RESEND_S if resend else None)
+        request = kind.Request() if request is None else request
+        return ask(client, request, timeout_s, None if name in NOT_RESENT else RESEND_S)
 
     def wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
         deadline = time.monotonic() + timeout_s

@@ -22,8 +22,8 @@ calibration's own estimate (``sensor_noise_T``); a calibration without one (olde
 
 ``--out-bag DIR`` writes the tensors into a new rosbag2 folder (``--out-storage``, default
 the input's storage) as ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` with
-``--raw``): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp =
-the set's stamp (``conversions.tensor_msg``).
+``--raw``): ``tetra_gradiometer_msgs/GradientTensor`` as the nodes publish it (the tensor
+and its 1-sigma in T/m, ``B_1'``, the state and calibration; header stamp = the set's stamp).
 
 ``--allow-missing-channels``: a channel the calibration's terms read (a current, the
 temperature) that the bag lacks altogether is otherwise refused by name (never taken as
@@ -187,8 +187,7 @@ def run(args: argparse.Namespace) -> int:
     counts = compensate_bag(
         args.bag,
         geometry,
-        compensation.parameters,
-        sigma=compensation.sigma,
+        compensation,
         health=health,
         tracking=tracking,
         csv=args.csv,

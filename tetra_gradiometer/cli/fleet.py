@@ -437,8 +437,7 @@ def _compensate(
     counts = compensate_bag(
         job.bag.bag,
         geometry,
-        compensation.parameters,
-        sigma=compensation.sigma,
+        compensation,
         health=health,
         tracking=tracking,
         statistics=statistics,

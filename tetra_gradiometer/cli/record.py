@@ -23,10 +23,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from sensor_msgs.msg import JointState, MagneticField
+from sensor_msgs.msg import MagneticField
 
 from ..errors import InputError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..nodes.common import NAMESPACE, derived_qos, sensor_qos
 from ._args import MAX_RATE, MAX_SEED, int_range, positive_float
 from .node import PARAMS_HELP
@@ -56,7 +57,9 @@ class Recorder(Node):
                 partial(self._mag, cv.BAG_MAG_TOPICS[sensor]),
                 sensor_qos(1000),
             )
-        self.create_subscription(JointState, 'gradient/truth', self._truth, derived_qos(1000))
+        self.create_subscription(
+            gt.rclpy_class(), 'gradient/truth', self._truth, derived_qos(1000)
+        )
         self.create_subscription(Odometry, cv.ODOM_NODE_TOPIC, self._odom, derived_qos(1000))
 
     def _write(self, topic: str, msg: Any, stamp: int) -> None:
@@ -73,12 +76,12 @@ class Recorder(Node):
             stamp,
         )
 
-    def _truth(self, msg: JointState) -> None:
-        stamp = cv.stamp_to_ns(msg.header.stamp)
+    def _truth(self, msg: Any) -> None:
+        tensor = gt.tensor_set_from_msg(msg)
         self._write(
             f'{NAMESPACE}/gradient/truth',
-            cv.tensor_msg(self._types, cv.tensor_from_msg(msg), stamp),
-            stamp,
+            gt.gradient_tensor_msg(self._types, tensor),
+            tensor.stamp_ns,
         )
 
     def _odom(self, msg: Odometry) -> None:

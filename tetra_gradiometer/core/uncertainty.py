@@ -47,6 +47,7 @@ __all__ = [
     'constraint_bias_form',
     'noise_jacobian',
     'noise_sigma',
+    'readings_sigma',
 ]
 
 
@@ -139,6 +140,24 @@ def noise_sigma(
     """
     jacobian = noise_jacobian(geometry, parameters)
     return float(sensor_noise_t) * np.sqrt(np.sum(jacobian**2, axis=1)).reshape(3, 3)
+
+
+def readings_sigma(jacobian: FloatArray, covariances_t2: ArrayLike) -> FloatArray:
+    """Per-component 1-sigma (9,) T/m of a tensor from its readings' covariances: the square
+    root of ``diag(J C J^T)``, ``C`` the (12, 12) block diagonal of the four sensors' (3, 3)
+    covariances (independent sensors; correlated axes within one are kept).
+
+    Parameters
+    ----------
+    jacobian : ndarray, shape (9, 12)
+        :func:`noise_jacobian`, 1/m.
+    covariances_t2 : array_like, shape (4, 9)
+        Each sensor's covariance, row-major 3 x 3, T^2 (as ``sensor_msgs/MagneticField``).
+    """
+    blocks = np.asarray(covariances_t2, dtype=float).reshape(4, 3, 3)
+    per_sensor = np.asarray(jacobian, dtype=float).reshape(9, 4, 3)
+    variance = np.einsum('rsm,smn,rsn->r', per_sensor, blocks, per_sensor)
+    return np.sqrt(np.maximum(variance, 0.0))
 
 
 def compensated_sigma(

@@ -19,8 +19,8 @@ Fast paths (the generic ones stay, and a test checks both agree):
   operations; otherwise it goes message by message through
   :class:`~tetra_gradiometer.io.matching.StampMatcher`.
 * :meth:`BagWriter.write_fields` and :meth:`BagWriter.write_tensors` encode MagneticField
-  and the tensor JointState directly (``conversions.magnetic_field_cdr``,
-  ``conversions.TensorCdr``: the nodes' writers), byte-identical to rosbags' serializer.
+  and GradientTensor directly (``conversions.magnetic_field_cdr``,
+  ``gradient_tensor.GradientTensorCdr``: the nodes' writers), byte-identical to rosbags'.
 
 Damage: a message that does not decode (cut short, absurd frame_id length,
 unknown encapsulation, header nanosec >= 1e9) and an unreadable storage chunk
@@ -51,6 +51,7 @@ from ..core.timebase import DEFAULT_TIMEBASE, ClockEstimate, ResampleCounters, T
 from ..core.units import S_PER_NS
 from ..errors import BagError, InputError
 from . import conversions as cv
+from . import gradient_tensor as gt
 from . import interfaces
 from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEncoding: re-exported)
     SCALAR_LAYOUTS,
@@ -585,15 +586,14 @@ class BagWriter:
         for sensor, (topic, frame) in enumerate(
             zip(cv.BAG_MAG_TOPICS, cv.MAG_FRAMES, strict=True)
         ):
-            self.write_raw(
-                topic,
-                cv.MAGNETIC_FIELD,
-                cv.magnetic_field_cdr(sample[sensor], stamp_ns, frame),
-                stamp_ns,
-            )
+            data = cv.magnetic_field_cdr(sample[sensor], stamp_ns, frame)
+            self.write_raw(topic, cv.MAGNETIC_FIELD, data, stamp_ns)
 
-    def write_tensors(self, topic: str, stamps_ns: np.ndarray, tensors: np.ndarray) -> None:
-        """A tensor topic from tensors (N, 3, 3) T/m (JointState CDR encoded directly)."""
-        writer = cv.TensorCdr(cv.ARRAY_FRAME)
-        for stamp, g in zip(stamps_ns, np.asarray(tensors, dtype=float), strict=True):
-            self.write_raw(topic, cv.JOINT_STATE, writer.write(g, int(stamp)), int(stamp))
+    def write_tensors(
+        self, topic: str, stamps_ns: np.ndarray, values: np.ndarray, state: int, calibration: str
+    ) -> None:
+        """A GradientTensor topic from ``values`` (N, 30) (``gradient_tensor.pack_sets``) in
+        ``state`` by ``calibration`` (its ``created_utc``; CDR encoded directly)."""
+        cdr = gt.GradientTensorCdr(cv.ARRAY_FRAME)
+        for t, row in zip(np.asarray(stamps_ns).tolist(), values, strict=True):
+            self.write_raw(topic, gt.GRADIENT_TENSOR, cdr.write(t, row, state, calibration), t)

@@ -11,8 +11,10 @@ Contract (README, "Topics"):
   ``magnetic_field_covariance`` row-major 3 x 3 in T^2, ``diag(sigma^2)`` of the per-axis
   sensor noise when known, -1 in the first element when unknown (REP 145).
 * tensors (``gradient/raw``, ``gradient/compensated``, ``gradient/truth``):
-  ``sensor_msgs/JointState`` with ``name = gxx, gxy, gxz, gyx, gyy, gyz, gzx, gzy, gzz``,
-  ``position`` = ``G_ij = dB_i/dx_j`` in T/m, frame ``tetra_array``.
+  ``tetra_gradiometer_msgs/GradientTensor`` (io/gradient_tensor.py), frame ``tetra_array``;
+  bags recorded before it hold ``sensor_msgs/JointState`` with ``name = gxx, gxy, gxz, gyx,
+  gyy, gyz, gzx, gzy, gzz``, ``position`` = ``G_ij = dB_i/dx_j`` in T/m (:func:`tensor_msg`,
+  :func:`tensor_from_msg`).
 * ``/odom``: ``nav_msgs/Odometry``, orientation rotates body vectors into ENU.
 * the target node's outputs: ``geometry_msgs/PoseArray`` (m, odom frame) and
   ``visualization_msgs/MarkerArray``, built by nodes/target_messages.py from the classes here.
@@ -20,7 +22,8 @@ Contract (README, "Topics"):
   ``/battery_state``: ``sensor_msgs/BatteryState`` (``current`` in A).
 
 The nodes' per-message paths (tensor, compensator, driver) read and write serialized
-messages (CDR bytes) with the functions at the end of this module: rclpy's conversion between
+messages (CDR bytes) with the functions at the end of this module (the tensor's in
+io/gradient_tensor.py): rclpy's conversion between
 Python message objects and C structs costs 10-15 us per message, a tenth of the budget per set
 at 1000 sets/s (bench/bench_chain.py).
 """
@@ -29,6 +32,7 @@ from __future__ import annotations
 
 import array
 import functools
+import importlib
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -107,6 +111,8 @@ POSE_ARRAY = 'geometry_msgs/msg/PoseArray'
 MARKER = 'visualization_msgs/msg/Marker'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 COLOR_RGBA = 'std_msgs/msg/ColorRGBA'
+#: Ours (tetra_gradiometer_msgs; io/gradient_tensor.py reads and writes it).
+GRADIENT_TENSOR = 'tetra_gradiometer_msgs/msg/GradientTensor'
 
 
 @dataclass(frozen=True)
@@ -161,6 +167,9 @@ def rclpy_types() -> MessageTypes:
         COLOR_RGBA: ColorRGBA,
         MARKER: Marker,
         MARKER_ARRAY: MarkerArray,
+        # By name: to mypy, the checkout's interface sources (tetra_gradiometer_msgs/, no
+        # Python) hide the installed package.
+        GRADIENT_TENSOR: importlib.import_module('tetra_gradiometer_msgs.msg').GradientTensor,
     }
     return MessageTypes(
         classes, lambda values: array.array('d', np.asarray(values, float).tolist())
@@ -261,7 +270,8 @@ def magnetic_field_reading(msg: Any) -> np.ndarray:
 def tensor_msg(
     types: MessageTypes, g: np.ndarray, stamp_ns: int, frame_id: str = ARRAY_FRAME
 ) -> Any:
-    """Tensor carrier: ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m."""
+    """The tensor ``sensor_msgs/JointState`` of older recordings: named ``gxx..gzz``,
+    positions in T/m."""
     values = np.asarray(g, dtype=float).reshape(9)
     empty = types.float_sequence(np.zeros(0))
     return types[JOINT_STATE](
@@ -407,57 +417,6 @@ def _cdr_stamp(stamp_ns: int) -> bytes:
     return _STAMP.pack(*divmod(int(stamp_ns), NS_PER_S))
 
 
-class TensorCdr:
-    """Writer and reader of serialized tensor ``JointState`` messages (names ``gxx..gzz``,
-    positions = the 9 values in T/m, no velocity or effort) in ``frame_id``: everything but
-    the stamp and the values is built once."""
-
-    def __init__(self, frame_id: str) -> None:
-        self.frame_id = frame_id
-        payload = bytearray(8)  # the stamp
-        _cdr_string(payload, frame_id)
-        _cdr_pad(payload, 4)
-        names = len(payload)
-        payload += _U32.pack(len(TENSOR_NAMES))
-        for name in TENSOR_NAMES:
-            _cdr_string(payload, name)  # 8 bytes each: no padding between them
-        self._names = bytes(payload[names:])  # what the reader compares
-        payload += _U32.pack(9)
-        _cdr_pad(payload, 8)
-        self._middle = bytes(payload[8:])
-        self._tail = _U32.pack(0) + _U32.pack(0)  # after 9 doubles: aligned to 4 already
-
-    def write(self, g: np.ndarray, stamp_ns: int) -> bytes:
-        """The serialized message of the tensor ``g`` (3, 3) (or (9,) row-major) T/m at
-        ``stamp_ns`` (integer ns)."""
-        data = np.ascontiguousarray(g, dtype='<f8').tobytes()
-        return b''.join((_CDR_LE, _cdr_stamp(stamp_ns), self._middle, data, self._tail))
-
-    def read(self, data: bytes) -> tuple[int, np.ndarray]:
-        """``(stamp_ns, tensor (3, 3) T/m)`` of a serialized tensor ``JointState`` (any frame,
-        any name order).
-
-        Raises
-        ------
-        MessageError
-            Not a tensor JointState (names, counts: :func:`tensor_from_msg`'s rule).
-        """
-        try:
-            stamp_ns, _, start = _cdr_header(data)
-            start += -(start - 4) % 4
-            names = self._names
-            if data[start : start + len(names) + 4] == names + _U32.pack(9):
-                start += len(names) + 4
-                start += -(start - 4) % 8
-                if start + 72 <= len(data):
-                    g = np.frombuffer(data, '<f8', 9, start).reshape(3, 3).astype(float)
-                    return stamp_ns, g
-        except MessageError:
-            pass
-        msg = _deserialize(data, JOINT_STATE)  # another order or encoding: the object rule
-        return stamp_to_ns(msg.header.stamp), tensor_from_msg(msg)
-
-
 def magnetic_field_cdr(
     field_t: np.ndarray, stamp_ns: int, frame_id: str, covariance_t2: np.ndarray | None = None
 ) -> bytes:
@@ -531,19 +490,10 @@ def _writers_agree() -> bool:
     from rclpy.serialization import deserialize_message, serialize_message
 
     types = rclpy_types()
-    stamp, g = 1_234_567_890_123_456_789, np.arange(1.0, 10.0).reshape(3, 3)
+    stamp = 1_234_567_890_123_456_789
     reading = np.r_[1e-5, -2e-5, 3e-5, np.arange(9.0) * 1e-20]
     try:
         for frame in ('', 'a', 'ab', 'abc', 'abcd', ARRAY_FRAME):
-            layout = TensorCdr(frame)
-            msg = deserialize_message(layout.write(g, stamp), types[JOINT_STATE])
-            if (stamp_to_ns(msg.header.stamp), msg.header.frame_id) != (stamp, frame):
-                return False
-            if not np.array_equal(tensor_from_msg(msg), g) or len(msg.velocity) + len(msg.effort):
-                return False
-            read = layout.read(serialize_message(tensor_msg(types, g, stamp, frame)))
-            if read[0] != stamp or not np.array_equal(read[1], g):
-                return False
             data = magnetic_field_cdr(reading[:3], stamp, frame, reading[3:])
             msg = deserialize_message(data, types[MAGNETIC_FIELD])
             if not np.array_equal(magnetic_field_reading(msg), reading):

@@ -4,8 +4,8 @@ Used by the tensor node (live topics) and the bag reader (recorded topics), so b
 and count incomplete sets the same way. Each sensor's stamps must increase; a set is the
 four queue heads when they lie within ``tolerance_ns`` of each other. A head that cannot
 match any more (another sensor has already moved past it) is dropped and counted.
-:class:`StampPairer` joins streams on identical stamps (the calibrator's and compensator's
-``gradient/raw`` with ``reference_field``).
+:class:`StampPairer` joins streams on identical stamps (the compensator's
+``gradient/compensated`` with ``gradient/truth``).
 """
 
 from __future__ import annotations

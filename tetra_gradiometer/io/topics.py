@@ -20,13 +20,14 @@ from . import conversions as cv
 
 __all__ = ['BagSource', 'checked_remap', 'namespaced', 'topic_list']
 
-#: The message type of each of ``conversions.CONTRACT_TOPICS``.
+#: The message types each of ``conversions.CONTRACT_TOPICS`` may hold (the tensor: a
+#: GradientTensor, or the JointState of older recordings).
 CONTRACT_TYPES = (
-    *(cv.MAGNETIC_FIELD,) * 4,
-    cv.JOINT_STATE,
-    cv.ODOMETRY,
-    cv.TEMPERATURE,
-    cv.BATTERY_STATE,
+    *((cv.MAGNETIC_FIELD,),) * 4,
+    (cv.GRADIENT_TENSOR, cv.JOINT_STATE),
+    (cv.ODOMETRY,),
+    (cv.TEMPERATURE,),
+    (cv.BATTERY_STATE,),
 )
 
 
@@ -119,11 +120,13 @@ def checked_remap(
             f'{path}: no topic {", ".join(missing)} in the bag (it has: {_listing(recorded)})'
         )
     types = dict(zip(cv.CONTRACT_TOPICS, CONTRACT_TYPES, strict=True))
-    wrong = [t for t, c in rules.items() if recorded[t] != types[c]]
+    wrong = [t for t, c in rules.items() if recorded[t] not in types[c]]
     if wrong:
         raise BagError(
             f'{path}: '
-            + '; '.join(f'{t} holds {recorded[t]}, not {types[rules[t]]}' for t in wrong)
+            + '; '.join(
+                f'{t} holds {recorded[t]}, not {" or ".join(types[rules[t]])}' for t in wrong
+            )
         )
     return dict(rules)
 
@@ -135,11 +138,11 @@ def namespaced(recorded: Mapping[str, str]) -> dict[str, str]:
     ends so on two topics (two vehicles) is left unmapped: the contract check then names what
     the bag has."""
     assumed = {}
-    for contract, msgtype in zip(cv.CONTRACT_TOPICS, CONTRACT_TYPES, strict=True):
+    for contract, msgtypes in zip(cv.CONTRACT_TOPICS, CONTRACT_TYPES, strict=True):
         if contract in recorded:
             continue
         last = '/' + contract.rsplit('/', 1)[-1]
-        found = [t for t, m in recorded.items() if m == msgtype and t.endswith(last)]
+        found = [t for t, m in recorded.items() if m in msgtypes and t.endswith(last)]
         if len(found) == 1 and found[0] not in assumed:
             assumed[found[0]] = contract
     return assumed

@@ -1,37 +1,41 @@
 """``calibrator`` node: identifies the interference parameters ``k``, ``b`` (eqs. 15-18).
 
-Pairs ``gradient/raw`` (``G_m``, T/m) with ``reference_field`` (``B_1'``, T) by identical
-stamp and accumulates the pairs while enabled. Services (std_srvs/Trigger):
+Reads ``gradient/raw`` (tetra_gradiometer_msgs/GradientTensor: ``G_m``, T/m, with the
+reference reading ``B_1'`` of the same set, T) and accumulates the sets while enabled.
+Services (std_srvs/Trigger but ``~/calibrate``):
 
 * ``~/start``: forget earlier samples and collect (fly the trim manoeuvre now);
 * ``~/stop``: stop collecting (samples are kept);
-* ``~/calibrate``: solve with ``method`` on a snapshot of the collected samples. Too few
-  samples, or a body-frame field spanning too few directions (the attitude-coverage
-  condition number is given), answer success=false with the reason. The known-gradient
-  methods solve as ``calibrate`` does (:func:`~tetra_gradiometer.pipelines.window_check.
-  identify_checked`): a regional world-frame gradient jointly when every sample has an
-  ``odom`` attitude (else it is assumed zero, as the reply and the file's ``notes`` say),
-  then the test of the fit's assumption; samples that fail it (a target, a bad stretch),
-  or whose last trim assessment predicts more than 2x the noise floor (too little
-  attitude excitation), answer success=false with the figures (the failing part in s
-  after the first sample, a passing sub-window), and nothing is written, unless ``force``
-  is true (then the warning goes into the file's ``notes``). On success the parameters are written
-  atomically to ``calibration_file`` (with the regional gradient, its 1-sigma and the
-  check) and published on ``calibration`` (std_msgs/String holding the calibration file's
-  YAML text, transient local = latched).
-  ``calibration_file`` is read-only after start-up (nobody on the ROS domain can point the
-  write elsewhere), relative paths resolve under ``$ROS_HOME`` (default ``~/.ros``), and
-  the write replaces only a previous calibration file: any other file there is left
-  untouched and the call answers success=false.
+* ``~/calibrate`` (tetra_gradiometer_msgs/srv/Calibrate; the request's ``window_s``,
+  ``force`` and ``effects`` apply to that call: :mod:`.calibrate_call`): solve with
+  ``method`` on a snapshot of the samples collected in the window. Too few samples, or a
+  body-frame field spanning too few directions (the attitude-coverage condition number is
+  given), answer success=false with the reason. The known-gradient methods solve as
+  ``calibrate`` does (:func:`~tetra_gradiometer.pipelines.window_check.identify_checked`):
+  a regional world-frame gradient jointly when every sample has an ``odom`` attitude (else
+  it is assumed zero, as the reply and the file's ``notes`` say), then the test of the fit's
+  assumption; samples that fail it (a target, a bad stretch), or whose last trim assessment
+  predicts more than 2x the noise floor (too little attitude excitation), answer
+  success=false with the figures (the failing part in s after the first sample, a passing
+  sub-window), and nothing is written, unless ``force`` (then the warning goes into the
+  file's ``notes``). On success the parameters are written atomically to
+  ``calibration_file`` (with the regional gradient, its 1-sigma, the check, this node's name
+  as ``source`` and the first and last sample stamps as ``samples_window_s``), published on
+  ``calibration`` (tetra_gradiometer_msgs/Calibration,
+  :mod:`~tetra_gradiometer.io.calibration_message`; transient local = latched), and the
+  response carries the fit's figures. ``calibration_file`` is read-only after start-up
+  (nobody on the ROS domain can point the write elsewhere), relative paths resolve under
+  ``$ROS_HOME`` (default ``~/.ros``), and the write replaces only a previous calibration
+  file: any other file there is left untouched and the call answers success=false.
 * ``~/cancel``: stop a running solve; its ``~/calibrate`` answers success=false
   "cancelled ..." and writes nothing.
 
 The solve runs off the executor (:class:`.solve_worker.SolveWorker`): in a worker thread
 (one at a time), while the ``~/calibrate`` callback, in a reentrant callback group, waits
-for it and then replies
-(synchronously, with the result). ``main()`` spins a MultiThreadedExecutor, so meanwhile
-the samples, ``~/cancel``, a second ``~/calibrate`` (answered at once: "a solve is already
-running") and ``/diagnostics`` (state ``solving``, ``solve_elapsed_s``) are served.
+for it and then replies (synchronously, with the result). ``main()`` spins a
+MultiThreadedExecutor, so meanwhile the samples, ``~/cancel``, a second ``~/calibrate``
+(answered at once: "a solve is already running") and ``/diagnostics`` (state ``solving``,
+``solve_elapsed_s``) are served.
 ``max_solve_s`` bounds the solve: ``paper_ga`` checks it and the cancel flag once per
 generation and, at the limit, returns its best individual so far (the reply says after how
 many generations); the closed-form methods take about a second per 10^6 samples and
@@ -81,9 +85,11 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+
+from tetra_gradiometer_msgs.msg import Calibration
+from tetra_gradiometer_msgs.srv import Calibrate
 
 from ..core import TetraGeometry
 from ..core.effects import parse_declaration
@@ -93,9 +99,10 @@ from ..core.plausibility import plausible_readings
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import OutputError, ParamsError, TetraError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..io.calibration import CalibrationFile, CalibrationFileError
+from ..io.calibration_message import calibration_fields
 from ..io.channels import TEMPERATURE, channel_topic, current_channels
-from ..io.matching import StampPairer
 from ..io.outputs import CALIBRATION, atomic_write_text
 from ..pipelines.effects_choice import EffectsChoice
 from ..pipelines.terms import WindowTerms
@@ -107,6 +114,7 @@ from ..pipelines.window_check import (
     joint_attitude,
 )
 from .authentication import key_id, node_key, sign
+from .calibrate_call import SUB_WINDOW, CalibrateCall, kept
 from .calibrator_params import DEFAULT_NOISE_T, PARAMETERS
 from .channels import (
     ChannelHistory,
@@ -122,7 +130,6 @@ from .common import (
     latched_qos,
     resolve_node_path,
     status,
-    tensor_or_nan,
 )
 from .managed import ManagedNode
 from .process import spin_node
@@ -134,8 +141,6 @@ GUIDANCE_PERIOD_S = 1.0
 #: (pipelines/window_check.forced).
 FORCE_NAME = 'force:=true'
 FORCED = f'WARNING ({FORCE_NAME})'
-#: How ``~/calibrate`` names a passing part of the samples (times from the first one, s).
-SUB_WINDOW = 'the samples {0:.0f}-{1:.0f} s after the first'
 
 
 class CalibratorNode(ManagedNode):
@@ -171,7 +176,6 @@ class CalibratorNode(ManagedNode):
         self._b: deque[np.ndarray] = deque()
         self._q: deque[np.ndarray] = deque()  # attitude per sample (NaN: unknown)
         self._t: deque[int] = deque()  # stamp per sample, ns
-        self._pairer = StampPairer(2)
         self._dropped_implausible = 0
         self._state = 'idle'
         self._last_result = 'no calibration yet'
@@ -201,22 +205,19 @@ class CalibratorNode(ManagedNode):
         self._n_received = 0
         self._assessment: TrimAssessment | None = None
 
-        self._cal_pub = self.create_lifecycle_publisher(String, 'calibration', latched_qos())
+        self._cal_pub = self.create_lifecycle_publisher(Calibration, 'calibration', latched_qos())
         self._diag_pub = self.diagnostics_publisher()
         self._horizon = self._diag_pub.inputs.watch_stamps(p['max_stamp_ahead_s'])
         gated = self.when_active
         raw = self.create_subscription(
-            JointState, 'gradient/raw', gated(self._on_raw), derived_qos()
+            gt.rclpy_class(), 'gradient/raw', gated(self._on_raw), derived_qos()
         )
         self._diag_pub.inputs.require(raw)
-        self.create_subscription(
-            MagneticField, 'reference_field', gated(self._on_reference), derived_qos()
-        )
         self.create_service(Trigger, '~/start', gated(self._on_start))
         self.create_service(Trigger, '~/stop', gated(self._on_stop))
         control = ReentrantCallbackGroup()  # served while a ~/calibrate waits for its solve
         self.create_service(
-            Trigger, '~/calibrate', gated(self._on_calibrate), callback_group=control
+            Calibrate, '~/calibrate', gated(self._on_calibrate), callback_group=control
         )
         self.create_service(Trigger, '~/cancel', gated(self._on_cancel), callback_group=control)
         self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
@@ -232,25 +233,18 @@ class CalibratorNode(ManagedNode):
 
     # ----------------------------------------------------------------- samples
 
-    def _on_raw(self, msg: JointState) -> None:
-        self._add(0, cv.stamp_to_ns(msg.header.stamp), tensor_or_nan(msg))
-
-    def _on_reference(self, msg: MagneticField) -> None:
-        self._add(1, cv.stamp_to_ns(msg.header.stamp), cv.magnetic_field_vector(msg))
-
-    def _add(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
-        if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
-            return
-        if not self._collecting:
+    def _on_raw(self, msg: Any) -> None:
+        """One GradientTensor: its ``G_m`` (3, 3) T/m and ``B_1'`` (3,) T, while collecting."""
+        tensor = gt.tensor_set_from_msg(msg)
+        stamp_ns = tensor.stamp_ns
+        if self._horizon.refuse('gradient/raw', stamp_ns) or not self._collecting:
             return
         with self._lock:
-            pair = self._pairer.add(stream, stamp_ns, value)
-            if pair is None:
-                return
-            if not (np.all(np.isfinite(pair[0])) and plausible_readings(pair[1])):
+            g, b = tensor.g, tensor.reference_field
+            if not (np.all(np.isfinite(g)) and plausible_readings(b)):
                 self._dropped_implausible += 1  # the offline tools' rule; never fitted
                 return
-            sample = (pair[0], pair[1], self._odom.at(stamp_ns))
+            sample = (g, b, self._odom.at(stamp_ns))
             self._g.append(sample[0])
             self._b.append(sample[1])
             self._q.append(sample[2])
@@ -349,7 +343,6 @@ class CalibratorNode(ManagedNode):
         with self._lock:
             discarded = len(self._g)
             self._g, self._b, self._q, self._t = deque(), deque(), deque(), deque()
-            self._pairer.clear()
             self._reset_guidance()
             self._epoch += 1
             self._collecting = True
@@ -369,9 +362,10 @@ class CalibratorNode(ManagedNode):
         return response
 
     def _on_calibrate(
-        self, request: Trigger.Request, response: Trigger.Response
-    ) -> Trigger.Response:
-        result = self._worker.run(self._calibrate)
+        self, request: Calibrate.Request, response: Calibrate.Response
+    ) -> Calibrate.Response:
+        response.residual_t_per_m = response.residual_over_floor = float('nan')
+        result = self._worker.run(lambda: self._calibrate(request, response))
         if result is None:
             response.success, response.message = False, 'a solve is already running'
             return response
@@ -403,14 +397,15 @@ class CalibratorNode(ManagedNode):
         rest of a closed-form solve), so no worker outlives the configuration."""
         self._worker.shutdown()
 
-    def _snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The samples in stamp order, one per stamp: stamps (n,) ns, ``G_m`` (n, 3, 3) T/m,
-        ``B_1'`` (n, 3) T."""
+    def _snapshot(self, call: CalibrateCall) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The samples in ``call``'s window in stamp order, one per stamp: stamps (n,) ns,
+        ``G_m`` (n, 3, 3) T/m, ``B_1'`` (n, 3) T."""
         with self._lock:
             t = np.array(self._t, dtype=np.int64)
             g = np.array(self._g).reshape(-1, 3, 3)
             b = np.array(self._b).reshape(-1, 3)
         _, first = np.unique(t, return_index=True)  # sorted; a repeated stamp counts once
+        first = first[call.select(t[first])]
         return t[first], g[first], b[first]
 
     def _options(self, method: str, stamps_ns: np.ndarray) -> tuple[Options, tuple[str, ...]]:
@@ -429,9 +424,16 @@ class CalibratorNode(ManagedNode):
         orientation, note = joint_attitude(self._odom.over(stamps_ns))
         return dataclasses.replace(options, orientation_xyzw=orientation), (note,)
 
-    def _calibrate(self) -> tuple[bool, str]:
-        """Solve on a snapshot of the samples; write and publish on success."""
-        t, g, b = self._snapshot()
+    def _calibrate(
+        self, request: Calibrate.Request, response: Calibrate.Response
+    ) -> tuple[bool, str]:
+        """Solve on a snapshot of the request's samples; write and publish on success (the
+        figures into ``response``)."""
+        try:
+            call = CalibrateCall.parse(request, self.get_parameter)
+        except TetraError as error:
+            return False, str(error)
+        t, g, b = self._snapshot(call)
         method = self.get_parameter('method').value
         minimum = int(self.get_parameter('min_samples').value)
         maximum = int(self.get_parameter('max_samples').value)
@@ -439,12 +441,13 @@ class CalibratorNode(ManagedNode):
             return False, f'min_samples {minimum} exceeds max_samples {maximum}: lower it'
         if len(g) < minimum:
             return False, (
-                f'{len(g)} samples are too few (need at least {minimum}); call ~/start, '
-                f'fly the trim manoeuvre, then ~/stop'
+                f'{call.describe(len(g))} are too few (need at least {minimum}); call '
+                '~/start, fly the trim manoeuvre, then ~/stop (or widen window_s)'
             )
+        response.samples = len(t)
         options, notes = self._options(method, t)
         try:
-            terms = self._terms(method, t, g, b, options)
+            terms = self._terms(method, t, g, b, options, call.effects)
             options = dataclasses.replace(options, terms=terms.candidates)
             checked = identify_checked(
                 method,
@@ -453,37 +456,45 @@ class CalibratorNode(ManagedNode):
                 b,
                 self._geometry,
                 options,
-                window=f'the {len(t)} samples since ~/start',
+                window=call.describe(len(t)),
                 first_ns=int(t[0]),
-                force=bool(self.get_parameter('force').value),
+                force=call.force,
                 force_name=FORCE_NAME,
                 sub_window=SUB_WINDOW,
                 notes=(*notes, *terms.notes),
-                assessment=self._assessment,  # the guidance's, at its last tick
+                # the guidance's at its last tick, of every sample: not of a narrower window
+                assessment=self._assessment if call.window_s is None else None,
                 lacking=terms.lacking,
             )
         except (TetraError, np.linalg.LinAlgError) as error:
             return False, str(error)
-        return self._keep(checked, method, terms)
+        return self._keep(checked, method, terms, (t[0] * S_PER_NS, t[-1] * S_PER_NS), response)
 
     def _terms(
-        self, method: str, t: np.ndarray, g: np.ndarray, b: np.ndarray, options: Options
+        self, method: str, t: np.ndarray, g: np.ndarray, b: np.ndarray, options: Options,
+        effects: str,
     ) -> WindowTerms:
         """The vehicle effects the samples are fitted with (``effects``; the channels'
         messages received), chosen as ``calibrate`` chooses them on a bag; none when the
         samples span too few field directions (the solve refuses them, saying so)."""
         if not attitude_coverage(b) <= options.max_coverage_condition:
             return WindowTerms()
-        choice = EffectsChoice.parse(self.get_parameter('effects').value, self._current_topics)
+        choice = EffectsChoice.parse(effects, self._current_topics)
         choice = dataclasses.replace(choice, signals=self._signals)
         series = self._channels.series()
         orientation = options.orientation_xyzw
         return sample_terms(method, t, g, b, series, self._geometry, choice, orientation)
 
     def _keep(
-        self, checked: CheckedCalibration, method: str, terms: WindowTerms
+        self,
+        checked: CheckedCalibration,
+        method: str,
+        terms: WindowTerms,
+        window_s: tuple[float, float],
+        response: Calibrate.Response,
     ) -> tuple[bool, str]:
-        """Write and publish a solved calibration (unless cancelled); the reply."""
+        """Write and publish a solved calibration (unless cancelled) fitted on the samples
+        stamped ``window_s`` (first, last, s); the reply, its figures into ``response``."""
         result = checked.calibration
         generations = int(self.get_parameter('ga_generations').value)
         ran = result.details.get('generations', generations)
@@ -504,6 +515,8 @@ class CalibratorNode(ManagedNode):
             **calibration.diagnostics,
             **checked.diagnostics(),
             'effects': terms.diagnostics(),
+            'source': self.get_fully_qualified_name(),
+            'samples_window_s': [float(v) for v in window_s],
         }
         calibration = dataclasses.replace(calibration, diagnostics=diagnostics)
         path, text = self._calibration_path, calibration.to_yaml()
@@ -512,21 +525,14 @@ class CalibratorNode(ManagedNode):
             atomic_write_text(path, text, CALIBRATION, force=True)
         except (OSError, OutputError) as error:
             return False, f'solved, but cannot write {path}: {error}'
-        self._cal_pub.publish(String(data=text))
+        message = Calibration(**calibration_fields(text, 'the calibration written'))
+        message.header.stamp = self.get_clock().now().to_msg()
+        message.header.frame_id = cv.ARRAY_FRAME
+        self._cal_pub.publish(message)
         self._forced = next((n for n in checked.notes if n.startswith(FORCED)), '')
         self._calibrations += 1
         self._state = 'calibrated' if not self._collecting else 'collecting'
-        s = result.summary()
-        check = '' if checked.check is None else f'; {checked.check.text(SUB_WINDOW)}'
-        regional = f'; regional gradient (ENU, nT/m) {g}' if (g := checked.regional_text()) else ''
-        notes = ''.join(f'; {note}' for note in checked.notes)
-        return True, (
-            f'{s["method"]}: {s["n_samples"]} samples, {s["n_parameters"]} parameters, rank '
-            f'{s["rank"]}, condition number {s["condition_number"]:.3g}, attitude coverage '
-            f'{s["attitude_coverage_condition"]:.3g}, fit residual '
-            f'{s["residual_rms_nT_per_m"]:.3g} nT/m{regional}{check}{stopped}'
-            f'{notes}; written to {path}'
-        )
+        return True, kept(response, checked, stopped, path)
 
     def _publish_diagnostics(self) -> None:
         odom = self._odom.check.report()  # odom messages dropped or normalized since the last
@@ -555,7 +561,6 @@ class CalibratorNode(ManagedNode):
                     'solve_elapsed_s': float(elapsed),
                     'samples': self.n_samples,
                     'calibrations': self._calibrations,
-                    'unpaired_evicted': self._pairer.evicted,
                     'dropped_implausible': self._dropped_implausible,
                     **self._odom.check.values(),
                     'method': self.get_parameter('method').value,

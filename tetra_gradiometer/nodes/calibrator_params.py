@@ -110,7 +110,8 @@ PARAMETERS = [
         'force',
         False,
         '~/calibrate keeps a calibration whose samples fail the test of its assumption '
-        "(residual vs sensor noise), warning in the file's notes (false: refused, not written).",
+        "(residual vs sensor noise), warning in the file's notes (false: refused, not written); "
+        "the default of the request's force, which a call's true overrides.",
     ),
     ParamSpec('ga_seed', 0, 'paper_ga: random seed.', int_range=(0, 2**31 - 1)),
     ParamSpec(
@@ -148,7 +149,8 @@ PARAMETERS = [
     ParamSpec(
         'effects',
         'auto',
-        'Vehicle effects ~/calibrate fits with k, b (known_gradient_lstsq_general only): '
+        'Vehicle effects ~/calibrate fits with k, b (known_gradient_lstsq_general only) when its '
+        'request leaves effects empty: '
         '"auto" (those whose channels have messages, kept when they pass the held-out test), '
         '"none" (k, b only) or effect names separated by commas (vehicle_current, '
         'eddy_current, thermal_drift; refused when a channel they read has no message), as '

@@ -22,10 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..errors import ParamsError, TetraError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 
 NAMESPACE = '/tetra'
 
@@ -551,15 +550,6 @@ def status(
 OK, WARN, ERROR = 0, 1, 2
 
 
-def tensor_or_nan(msg: Any) -> np.ndarray:
-    """A tensor JointState as (3, 3) T/m; a malformed one (wrong names or count) as NaN, which
-    the callers' non-finite checks drop and count, so one bad message cannot stop a node."""
-    try:
-        return cv.tensor_from_msg(msg)
-    except cv.MessageError:
-        return np.full((3, 3), np.nan)
-
-
 def check_serialization() -> None:
     """Refuse to configure a node whose per-message path reads and writes serialized messages
     (io/conversions) when the RMW serializes otherwise (never seen: Fast DDS, Cyclone DDS and
@@ -570,10 +560,11 @@ def check_serialization() -> None:
     TetraError
         The RMW's serialization differs from io/conversions' CDR layout.
     """
-    if not cv.cdr_agrees():
+    if not (cv.cdr_agrees() and gt.cdr_agrees()):
         rmw = os.environ.get('RMW_IMPLEMENTATION', 'the default RMW')
         raise TetraError(
-            f'{rmw} does not serialize sensor_msgs/MagneticField and JointState as plain CDR '
-            '(XCDR1, little endian), which this node reads and writes directly '
-            '(io/conversions.py); use rmw_fastrtps_cpp or rmw_cyclonedds_cpp'
+            f'{rmw} does not serialize sensor_msgs/MagneticField and GradientTensor as plain '
+            'CDR (XCDR1, little endian), which this node reads and writes directly '
+            '(io/conversions.py, io/gradient_tensor.py); use rmw_fastrtps_cpp or '
+            'rmw_cyclonedds_cpp'
         )

@@ -1,18 +1,20 @@
 """``compensator`` node: ``G = G_m - D`` (eq. 19) on every measured tensor.
 
 Loads ``calibration_file`` on configure (corrupt, or of another array: configuration refused,
-nodes/managed.py) and follows the latched ``calibration`` topic (a calibration file's YAML in
-std_msgs/String); without one, or with a refused one, it runs uncompensated
+nodes/managed.py) and follows the latched ``calibration`` topic (tetra_gradiometer_msgs/
+Calibration, io/calibration_message.py); without one, or with a refused one, it runs uncompensated
 (``gradient/compensated`` = ``gradient/raw``) or on the one it has, WARN on ``/diagnostics``.
 
-Pairs ``gradient/raw`` (T/m) with ``reference_field`` (``B_1'``, T) by stamp and publishes
-``gradient/compensated`` (JointState, T/m), ``gradient/norm`` (Float64, nT/m) and
-``gradient/sigma`` (JointState ``gxx..gzz``, the 1-sigma of each component, T/m:
-core/uncertainty.py, from ``sensor_noise_t`` or else the calibration's noise estimate, and
-the calibration's covariance; none while the noise is unknown). With ``gradient/truth`` at
-the same stamp it publishes the running ``epsilon`` (eq. 24) and ``compensated_percent``; a
-new calibration or ``~/reset_metrics`` restarts them. ``track_calibration`` follows the
-calibration's drift and steps online as ``compensate --track-calibration`` (.calibration_tracking).
+Reads ``gradient/raw`` (tetra_gradiometer_msgs/GradientTensor: ``G_m``, T/m, with ``B_1'``,
+T) and publishes ``gradient/compensated`` (GradientTensor, state COMPENSATED with the
+calibration's ``created_utc`` as ``calibration_id``, or UNCOMPENSATED; ``g_sigma`` the 1-sigma
+of each component, T/m: core/uncertainty.py, from ``sensor_noise_t`` or else the
+calibration's noise estimate, and the calibration's covariance; uncompensated without a
+noise figure, the raw message's; else NaN) and ``gradient/norm`` (Float64, nT/m). With
+``gradient/truth`` at the same stamp it publishes the running ``epsilon`` (eq. 24) and
+``compensated_percent``; a new calibration or ``~/reset_metrics`` restarts them.
+``track_calibration`` follows the calibration's drift and steps online as ``compensate
+--track-calibration`` (.calibration_tracking).
 
 Vehicle effects: a calibration with terms (``D = (k B_1' + b + sum W x) a^-1``) makes the
 node read the channels they read (:mod:`.channels`: temperature, currents, declared
@@ -30,9 +32,10 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
+
+from tetra_gradiometer_msgs.msg import Calibration
 
 from ..core import InterferenceParameters, TetraGeometry, compensate
 from ..core.health import MIN_SOURCE_RANGE_EDGES, HealthConfig, HealthMonitor
@@ -43,12 +46,14 @@ from ..core.uncertainty import SigmaModel
 from ..core.units import NT_PER_T, S_PER_NS
 from ..errors import InputError, MessageError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..io.calibration import (
     CalibrationFile,
     CalibrationFileError,
     check_positions,
     load_calibration,
 )
+from ..io.calibration_message import calibration_from_message
 from ..io.channels import channel_topic
 from ..io.matching import StampPairer
 from ..pipelines.health import alarm_cause
@@ -99,14 +104,15 @@ PARAMETERS = [
     ParamSpec(
         'max_pending',
         1000,
-        'Bound of the stamp-pairing buffers, messages (at most 100000, 8 min at 200 sets/s).',
+        'Bound of the buffer pairing gradient/compensated with gradient/truth by stamp, '
+        'messages (at most 100000, 8 min at 200 sets/s).',
         int_range=(1, 100_000),
     ),
     ParamSpec(
         'sensor_noise_t',
         0.0,
         'White noise per axis of each magnetometer, tesla RMS (0 to 1e-6), propagated into '
-        "gradient/sigma; 0 = the loaded calibration's estimate (none: no gradient/sigma). "
+        "gradient/compensated's g_sigma; 0 = the loaded calibration's estimate (none: NaN). "
         '(The driver and calibrator read the same value.)',
         non_negative,
         float_range=(0.0, 1e-6),
@@ -128,7 +134,7 @@ PARAMETERS = [
         'track_calibration',
         True,
         "Follow the calibration's drift and steps online (core/tracking.py, with odom's "
-        'attitude when heard by the first set) and add its variance to gradient/sigma; '
+        'attitude when heard by the first set) and add its variance to g_sigma; '
         'false: the calibration as loaded. Read-only.',
         read_only=True,
     ),
@@ -157,7 +163,6 @@ class CompensatorNode(ManagedNode):
         ``calibration`` topic brings one)."""
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._array_frame = p['array_frame_id']
-        self._inputs = StampPairer(2, p['max_pending'])  # raw, reference
         self._truth = StampPairer(2, p['max_pending'])  # (raw, compensated), truth
         self._warn = Throttle(p['warn_throttle_s'])
         # Not ``_parameters``: rclpy's Node keeps its declared parameters under that name.
@@ -172,7 +177,7 @@ class CompensatorNode(ManagedNode):
         self._gate = CalibrationGate(
             self._watch, topic, publisher, node_key(p['calibration_key_file'])
         )
-        self._waiting: tuple[float, str] | None = None  # (arrival, text): publisher unnamed yet
+        self._waiting: tuple[float, Calibration] | None = None  # publisher not named yet
         self._noise = float(p['sensor_noise_t'])
         self._sigma: SigmaModel | None = None
         self._sigma_text = ''
@@ -196,11 +201,10 @@ class CompensatorNode(ManagedNode):
 
         # The per-sample path reads and writes serialized messages (io/conversions).
         check_serialization()
-        self._cdr = cv.TensorCdr(self._array_frame)
+        self._cdr = gt.GradientTensorCdr(self._array_frame)
         publish, data = self.create_lifecycle_publisher, derived_qos()
-        self._comp_pub = publish(JointState, cv.COMPENSATED_NODE_TOPIC, data)
+        self._comp_pub = publish(gt.rclpy_class(), cv.COMPENSATED_NODE_TOPIC, data)
         self._norm_pub = publish(Float64, 'gradient/norm', data)
-        self._sigma_pub = publish(JointState, 'gradient/sigma', data)
         self._eps_pub = publish(Float64, 'epsilon', data)
         self._pct_pub = publish(Float64, 'compensated_percent', data)
         self._alarm_pub = publish(String, 'health/alarm', latched_qos(depth=100))
@@ -210,16 +214,15 @@ class CompensatorNode(ManagedNode):
             self._tracking = LiveTracking(self, self.when_active, self._horizon)
         self._load_file(resolve_node_path(p['calibration_file']))
         gated = self.when_active
-        self.create_subscription(String, 'calibration', gated(self._on_calibration), latched_qos())
+        on_calibration = gated(self._on_calibration)
+        self.create_subscription(Calibration, 'calibration', on_calibration, latched_qos())
+        tensor = gt.rclpy_class()
         raw = self.create_subscription(
-            JointState, 'gradient/raw', gated(self._on_raw), derived_qos(), raw=True
+            tensor, 'gradient/raw', gated(self._on_raw), derived_qos(), raw=True
         )
         self._diag_pub.inputs.require(raw)
         self.create_subscription(
-            MagneticField, 'reference_field', gated(self._on_reference), derived_qos(), raw=True
-        )
-        self.create_subscription(
-            JointState, 'gradient/truth', gated(self._on_truth), derived_qos(), raw=True
+            tensor, 'gradient/truth', gated(self._on_truth), derived_qos(), raw=True
         )
         self.create_service(Trigger, '~/reset_metrics', gated(self._on_reset))
         self.create_diagnostics_timer(p['diagnostics_period_s'], self._publish_diagnostics)
@@ -248,22 +251,22 @@ class CompensatorNode(ManagedNode):
         self._gate.check_file(path.read_text(encoding='utf-8'), str(path))  # with a key
         self._apply(calibration, f'file {path}')
 
-    def _on_calibration(self, msg: String) -> None:
-        self._judge(msg.data, time.monotonic())
+    def _on_calibration(self, msg: Calibration) -> None:
+        self._judge(msg, time.monotonic())
 
     def _judge_waiting(self) -> None:
         if self._waiting is not None:
             self._judge(self._waiting[1], self._waiting[0])
 
-    def _judge(self, text: str, arrived: float) -> None:
+    def _judge(self, msg: Calibration, arrived: float) -> None:
         """Adopt a calibration from the topic when the gate admits it (its publisher, its
         signature) and it is not older than the one in use under a key (a replay)."""
         self._waiting = None
         try:
-            if not self._gate.admit(text, time.monotonic() - arrived):
-                self._waiting = (arrived, text)  # the graph has not named the publisher yet
+            if not self._gate.admit(msg.document, time.monotonic() - arrived):
+                self._waiting = (arrived, msg)  # the graph has not named the publisher yet
                 return
-            calibration = CalibrationFile.from_yaml(text, source='the calibration topic')
+            calibration = calibration_from_message(msg, 'the calibration topic')
             if self._gate.key is not None and calibration.created_utc < self._created:
                 raise Refused(
                     f'a signed calibration from {self._gate.publisher} created '
@@ -344,10 +347,9 @@ class CompensatorNode(ManagedNode):
         self._health, self._health_text, parameters = None, 'off: no calibration', None
         if calibration is not None:
             parameters, covariance = calibration.parameters, calibration.covariance
-            if parameters.terms:  # the monitor's model is k, b: their block of the covariance
-                size = 36  # the general k, b lead InterferenceParameters.full_vector
-                parameters = parameters.without_terms()
-                covariance = None if covariance is None else covariance[:size, :size]
+            if parameters.terms:  # the monitor's model is k, b: their block of the covariance,
+                parameters = parameters.without_terms()  # the general 36 lead full_vector
+                covariance = None if covariance is None else covariance[:36, :36]
             self._health = HealthMonitor(
                 self._geometry, parameters, noise, covariance, self._health_config
             )
@@ -393,33 +395,18 @@ class CompensatorNode(ManagedNode):
     # ----------------------------------------------------------------- samples
 
     def _on_raw(self, data: bytes) -> None:
-        """A serialized tensor JointState; a malformed one is dropped and counted."""
+        """A serialized GradientTensor; a malformed one is dropped and counted."""
         try:
-            stamp_ns, g_raw = self._cdr.read(data)
+            stamp_ns, values, _, _ = self._cdr.read(data)
         except MessageError as error:
             self._drop(None, f'a malformed gradient/raw ({error})')
             return
-        self._pair(0, stamp_ns, g_raw)
-
-    def _on_reference(self, data: bytes) -> None:
-        """A serialized MagneticField (``B_1'``); a malformed one is dropped and counted."""
-        try:
-            stamp_ns, _, reading = cv.magnetic_field_from_cdr(data)
-        except MessageError as error:
-            self._drop(None, f'a malformed reference_field ({error})')
-            return
-        self._pair(1, stamp_ns, reading[:3])
-
-    def _pair(self, stream: int, stamp_ns: int, value: np.ndarray) -> None:
-        if self._horizon.refuse(('gradient/raw', 'reference_field')[stream], stamp_ns):
-            return
-        pair = self._inputs.add(stream, stamp_ns, value)
-        if pair is None:
+        if self._horizon.refuse('gradient/raw', stamp_ns):
             return
         if self._effects is None:
-            self._compensate(stamp_ns, *pair)
+            self._compensate(stamp_ns, values)
             return
-        for held in self._effects.submit(stamp_ns, (stamp_ns, *pair), time.monotonic()):
+        for held in self._effects.submit(stamp_ns, (stamp_ns, values), time.monotonic()):
             self._compensate(*held)  # in order, once its channels reached its stamp
 
     def _release_held(self, flush: bool = False) -> None:
@@ -428,8 +415,10 @@ class CompensatorNode(ManagedNode):
             for held in self._effects.release(time.monotonic(), flush=flush):
                 self._compensate(*held)
 
-    def _compensate(self, stamp_ns: int, g_raw: np.ndarray, b_reference: np.ndarray) -> None:
-        """Eq. 19 on one sample: ``G_m`` (3, 3) T/m, ``B_1'`` (3,) T."""
+    def _compensate(self, stamp_ns: int, values: np.ndarray) -> None:
+        """Eq. 19 on one set: ``values`` (30,) as io/gradient_tensor.GradientTensorCdr reads
+        them (``G_m`` T/m, its 1-sigma T/m, ``B_1'`` T, its covariance T^2)."""
+        g_raw, b_reference = values[:9].reshape(3, 3), values[18:21]
         if not (np.all(np.isfinite(g_raw)) and plausible_readings(b_reference)):
             self._drop(stamp_ns, 'a non-finite, implausible or malformed input')
             return
@@ -457,14 +446,19 @@ class CompensatorNode(ManagedNode):
         if not (np.all(np.isfinite(g)) and np.isfinite(norm_nt)):  # never publish inf or NaN
             self._drop(stamp_ns, 'a non-finite compensated tensor')
             return
-        self._comp_pub.publish(self._cdr.write(g, stamp_ns))
+        if self._sigma is not None:  # overflow of an absurd covariance: NaN, unknown
+            sigma = np.sqrt(self._sigma.one(b_reference, x).reshape(9) ** 2 + variance)
+            sigma[~np.isfinite(sigma)] = np.nan
+        else:  # uncompensated, the raw tensor's own sigma holds
+            sigma = gt.UNKNOWN_SIGMA if self.compensating else values[9:18]
+        out = np.concatenate((g.reshape(9), sigma, values[18:]))
+        if self.compensating:
+            self._comp_pub.publish(self._cdr.write(stamp_ns, out, gt.COMPENSATED, self._created))
+        else:
+            self._comp_pub.publish(self._cdr.write(stamp_ns, out, gt.UNCOMPENSATED))
         self._norm_pub.publish(cv.float64_cdr(norm_nt))
         if self._health is not None:
             self._health_buffer.append((stamp_ns * S_PER_NS, g, b_reference))
-        if self._sigma is not None:
-            sigma = np.sqrt(self._sigma.one(b_reference, x) ** 2 + variance.reshape(3, 3))
-            if np.all(np.isfinite(sigma)):  # overflow of an absurd covariance: say nothing
-                self._sigma_pub.publish(self._cdr.write(sigma, stamp_ns))
         self.published += 1
         self.compensated += self._interference is not None
         self._pair_truth(0, stamp_ns, (g_raw, g))
@@ -479,11 +473,11 @@ class CompensatorNode(ManagedNode):
         """A serialized ``gradient/truth``; a malformed one cannot be scored: its sample stays
         unscored (evicted, counted as ``unscored_evicted``)."""
         try:
-            stamp_ns, g_true = self._cdr.read(data)
+            stamp_ns, values, _, _ = self._cdr.read(data)
         except MessageError:
             return
         if not self._horizon.refuse('gradient/truth', stamp_ns):
-            self._pair_truth(1, stamp_ns, g_true)
+            self._pair_truth(1, stamp_ns, values[:9].reshape(3, 3))
 
     def _pair_truth(self, stream: int, stamp_ns: int, value: Any) -> None:
         """Join ``(G_m, G)`` (stream 0) with ``gradient/truth`` (stream 1) and score the pair."""
@@ -543,17 +537,14 @@ class CompensatorNode(ManagedNode):
                     'dropped_non_finite': self.dropped_non_finite,
                     'epsilon': float(eps),
                     'scored_samples': self._eps_count,
-                    'unpaired_evicted': self._inputs.evicted,
                     'unscored_evicted': self._truth.evicted,
                     'authentication': self._gate.authentication,
                     'calibration_publisher': self._gate.publisher,
                 },
             )
         )
-        array.status.append(
-            status(self, 'channels', channel_level, channel_text, '', channel_values)
-        )
-        array.status.append(self._health_status())
+        channels = status(self, 'channels', channel_level, channel_text, '', channel_values)
+        array.status.extend((channels, self._health_status()))
         self._diag_pub.publish(array)
 
     def _channels_status(self) -> tuple[int, str, dict[str, Any]]:

@@ -11,8 +11,9 @@ far from the target, then a survey line over a dipole). It publishes ``mag1``..`
 (sensor_msgs/MagneticField, T, frames tetra_mag1..4, header.stamp = sample time: the start
 time plus the simulated time of the sample; ``magnetic_field_covariance`` = ``diag(sigma^2)``
 T^2 of the scenario's sensor noise), ``gradient/truth`` (the simulator's ``g_true``,
-JointState T/m) and ``odom`` (nav_msgs/Odometry, body -> world ENU): every topic relative,
-so in the suite's namespace (``/tetra/odom``), never the vehicle's own ``/odom``.
+tetra_gradiometer_msgs/GradientTensor, T/m; its other fields unknown) and ``odom``
+(nav_msgs/Odometry, body -> world ENU): every topic relative, so in the suite's namespace
+(``/tetra/odom``), never the vehicle's own ``/odom``.
 
 ``mode: replay`` plays a rosbag2 folder (sqlite3 or mcap): the magnetometer topics, and
 ``/tetra/gradient/truth`` and ``/odom`` when recorded (published as ``gradient/truth`` and
@@ -53,7 +54,7 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import BatteryState, JointState, MagneticField, Temperature
+from sensor_msgs.msg import BatteryState, MagneticField, Temperature
 from std_srvs.srv import Trigger
 
 from ..core.units import NS_PER_S
@@ -278,8 +279,9 @@ class DriverNode(ManagedNode):
             (MAG, s): self.create_lifecycle_publisher(MagneticField, topic, mag_qos)
             for s, topic in enumerate(cv.MAG_TOPICS)
         }
+        tensor = cv.rclpy_types()[cv.GRADIENT_TENSOR]
         self._pubs[(TRUTH, 0)] = self.create_lifecycle_publisher(
-            JointState, 'gradient/truth', derived_qos()
+            tensor, 'gradient/truth', derived_qos()
         )
         self._pubs[(ODOM, 0)] = self.create_lifecycle_publisher(
             Odometry, cv.ODOM_NODE_TOPIC, derived_qos()
@@ -307,9 +309,7 @@ class DriverNode(ManagedNode):
         self._clock_ns = -CLOCK_STEP_NS
         gated = self.when_active
         if self._rate == 0:
-            self.create_subscription(
-                JointState, p['pace_topic'], gated(self._on_ack), derived_qos()
-            )
+            self.create_subscription(tensor, p['pace_topic'], gated(self._on_ack), derived_qos())
         self.create_service(Trigger, '~/resume', gated(self._on_resume))
         self.create_service(Trigger, '~/pause', gated(self._on_pause))
         # Wall-clock (steady) timers: the driver is the source of /clock, so it must not wait
@@ -436,7 +436,7 @@ class DriverNode(ManagedNode):
                 self._in_flight.append(frame.mag1_stamp)
         self.segment = frame.segment
 
-    def _on_ack(self, msg: JointState) -> None:
+    def _on_ack(self, msg: Any) -> None:
         """rate 0: a tensor came back; release the sets up to its stamp."""
         stamp = cv.stamp_to_ns(msg.header.stamp)
         while self._in_flight and self._in_flight[0] <= stamp:

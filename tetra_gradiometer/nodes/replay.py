@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Generator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -40,6 +40,7 @@ from .._optional import require
 from ..core import MissionData
 from ..core.units import NS_PER_S, S_PER_NS
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..io.bag_decode import checked_stamp_ns, skip_reason
 from ..io.bag_skips import SkippedMessage, guarded_messages
 from ..io.bag_skips import summary as bag_summary
@@ -114,8 +115,12 @@ def describe_bag(
         )
         channels = channel_topics(bag)
         signals = signal_topics(bag)
-    return {'messages': count, 'topics': ', '.join(topics), 'channels': ', '.join(channels),
-            'signals': signals}
+    return {
+        'messages': count,
+        'topics': ', '.join(topics),
+        'channels': ', '.join(channels),
+        'signals': signals,
+    }
 
 
 def channel_topics(bag: MagneticBag) -> tuple[str, ...]:
@@ -203,7 +208,9 @@ def iter_frames(
                     else:
                         msg: Any = reader.deserialize(raw, connection.msgtype)
                         stamp = checked_stamp_ns(msg.header.stamp)
-                        frame_msg = _rebuild(types, key, msg, stamp, default_covariance, topic)
+                        frame_msg = _rebuild(
+                            types, key, (msg, connection.msgtype), stamp, default_covariance, topic
+                        )
                 except Exception as error:  # a malformed message costs itself
                     on_skip(SkippedMessage(connection.topic, log_ns, skip_reason(error)))
                     continue
@@ -230,15 +237,18 @@ def _channels_first(frames: list[Frame]) -> list[Frame]:
 def _rebuild(
     types: cv.MessageTypes,
     key: str,
-    msg: Any,
+    recorded: tuple[Any, str],
     stamp: int,
     default_covariance: np.ndarray,
     topic: str,
 ) -> Any:
-    """A recorded (rosbags) message as one of ``types``; a magnetometer without a usable
-    recorded covariance gets ``default_covariance`` (9,) T^2. A channel keeps what the
+    """A recorded (rosbags) message and its type as one of ``types``: a tensor (a
+    GradientTensor, or the JointState of older recordings) as a GradientTensor; a
+    magnetometer without a usable recorded covariance gets ``default_covariance`` (9,) T^2.
+    A channel keeps what the
     effects read: a temperature (degC, its variance) or a BatteryState's ``current`` (A; the
     rest unknown, NaN), with the recorded stamp and frame."""
+    msg, msgtype = recorded
     if key == MAG:
         covariance = cv.magnetic_field_covariance(msg)
         if not cv.known_covariance(covariance):
@@ -247,7 +257,8 @@ def _rebuild(
             types, cv.magnetic_field_vector(msg), stamp, msg.header.frame_id, covariance
         )
     if key == TRUTH:
-        return cv.tensor_msg(types, cv.tensor_from_msg(msg), stamp)
+        tensor = gt.tensor_set_from_msg(msg, msgtype)
+        return gt.gradient_tensor_msg(types, replace(tensor, stamp_ns=stamp))
     if key == CHANNEL:
         if topic == cv.TEMPERATURE_TOPIC:
             out = cv.temperature_msg(types, msg.temperature, stamp, msg.header.frame_id)
@@ -347,7 +358,8 @@ def _mission_frames(
             (MAG, s, cv.magnetic_field_msg(types, fields[s], stamp, sensors[s], covariance))
             for s in range(4)
         ]
-        items.append((TRUTH, 0, cv.tensor_msg(types, mission.g_true[i], stamp)))
+        truth = gt.TensorSet(stamp, mission.g_true[i])
+        items.append((TRUTH, 0, gt.gradient_tensor_msg(types, truth)))
         odom = cv.odometry_msg(
             types,
             mission.position_enu[i],

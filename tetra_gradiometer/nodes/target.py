@@ -1,6 +1,7 @@
 """``target`` node: magnetic targets located live from the compensated tensor and odometry.
 
-Subscribes to ``gradient/compensated`` (the compensator's JointState, T/m, body frame) and
+Subscribes to ``gradient/compensated`` (the compensator's tetra_gradiometer_msgs/GradientTensor,
+T/m, body frame) and
 ``odom`` (nav_msgs/Odometry: relative, the driver's ``/tetra/odom``; on a vehicle remap it to
 the navigation's, ``-r odom:=/odom``, as the calibrator). The track (nodes/track.py): tensors
 averaged over ``1 / sample_rate_hz`` (anti-alias: the detector and the fit need no more than
@@ -48,7 +49,6 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
@@ -57,6 +57,7 @@ from ..core.targets import DetectorSettings, LocatorSettings, locate
 from ..core.units import S_PER_NS
 from ..errors import InputError, MessageError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..pipelines.window_check import MAX_ODOM_GAP_S
 from . import target_messages as tm
 from .common import (
@@ -218,7 +219,7 @@ class TargetNode(ManagedNode):
         self._no_odom_reported = 0
 
         check_serialization()  # the tensor is read from its serialized message
-        self._cdr = cv.TensorCdr(cv.ARRAY_FRAME)
+        self._cdr = gt.GradientTensorCdr(cv.ARRAY_FRAME)
         self._types = cv.rclpy_types()
         self._targets_pub = self.create_lifecycle_publisher(
             PoseArray, TARGETS_TOPIC, latched_qos()
@@ -236,7 +237,11 @@ class TargetNode(ManagedNode):
         )
         gated = self.when_active
         tensor = self.create_subscription(
-            JointState, cv.COMPENSATED_NODE_TOPIC, gated(self._on_tensor), derived_qos(), raw=True
+            gt.rclpy_class(),
+            cv.COMPENSATED_NODE_TOPIC,
+            gated(self._on_tensor),
+            derived_qos(),
+            raw=True,
         )
         odom = self.create_subscription(
             Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos()
@@ -257,16 +262,16 @@ class TargetNode(ManagedNode):
     # ----------------------------------------------------------------- input
 
     def _on_tensor(self, data: bytes) -> None:
-        """A serialized tensor JointState; a malformed or bad one is dropped and counted."""
+        """A serialized GradientTensor; a malformed or bad one is dropped and counted."""
         try:
-            stamp_ns, g = self._cdr.read(data)
+            stamp_ns, values, _, _ = self._cdr.read(data)
         except MessageError as error:
             self.dropped_malformed += 1
             self._warn_drop(f'a malformed {cv.COMPENSATED_NODE_TOPIC} ({error})')
             return
         if self._horizon.refuse(cv.COMPENSATED_NODE_TOPIC, stamp_ns):
             return
-        reason = self._track.add_tensor(stamp_ns, g)
+        reason = self._track.add_tensor(stamp_ns, values[:9].reshape(3, 3))
         if reason is not None:
             self._warn_drop(f'{reason} at stamp {stamp_ns} ns')
 

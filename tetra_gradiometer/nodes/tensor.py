@@ -8,13 +8,12 @@ the latest sensor's next sample, up to one sample period, one more per message o
 or stamps are paired within ``stamp_tolerance_s`` (``sync: nearest``,
 :class:`~tetra_gradiometer.io.matching.StampMatcher`). It drops and counts incomplete
 sets and sets with a non-finite or implausible reading (``|B| > max_field_t`` on any
-sensor), and publishes, for every good set, with its reference stamp:
-
-* ``gradient/raw`` (sensor_msgs/JointState gxx..gzz, T/m, reliable): ``G_m``;
-* ``reference_field`` (sensor_msgs/MagneticField, T, reliable): ``B_1'``, the reference
-  reading of the same set (the calibrator and compensator pair it with ``gradient/raw``
-  by identical stamp), with that ``mag1`` message's ``magnetic_field_covariance`` (T^2;
-  an unknown or non-finite one is published as REP 145's unknown, -1 first).
+sensor), and publishes, for every good set, ``gradient/raw``
+(tetra_gradiometer_msgs/GradientTensor, reliable, stamped with the set's reference instant,
+state RAW): ``G_m`` (T/m); its 1-sigma (T/m) from the four readings' covariances through the
+geometry (core/uncertainty.readings_sigma), NaN unless all four are known; and ``B_1'``, the
+reference reading of the same set (T), with that ``mag1`` reading's covariance (T^2; 0 when
+unknown or non-finite).
 
 ``/diagnostics``: per sensor rate (Hz), staleness (s since its last message; both on the
 node's clock, so ``/clock`` under ``use_sim_time``: a replay at any rate gives the bag's), invalid
@@ -31,15 +30,17 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from sensor_msgs.msg import JointState, MagneticField
+from sensor_msgs.msg import MagneticField
 
 from ..core import TetraGeometry, difference_tensor
 from ..core.live_streams import LiveStreamCheck
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..core.timebase import SYNC_METHODS, Resampler, TimeBase
+from ..core.uncertainty import noise_jacobian, readings_sigma
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import MessageError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..io.matching import StampMatcher
 from .common import (
     ARRAY_FRAME_SPEC,
@@ -158,7 +159,7 @@ MATCHER_KEYS = {
 
 
 class TensorNode(ManagedNode):
-    """Matches the four magnetometers by stamp and publishes ``G_m`` and ``B_1'``."""
+    """Forms sets of the four magnetometers and publishes ``G_m`` with ``B_1'``."""
 
     PARAMETERS = PARAMETERS
     DYNAMIC = LOCKED = ('max_field_t', 'stale_timeout_s')
@@ -171,7 +172,8 @@ class TensorNode(ManagedNode):
         self._geometry = TetraGeometry.from_flat(p['sensor_positions'])
         self._max_field = float(p['max_field_t'])
         self._array_frame = p['array_frame_id']
-        self._mag1_frame = cv.MAG_FRAMES[0]  # then that of the last mag1 message
+        self._jacobian = noise_jacobian(self._geometry)
+        self._sigma_of: tuple[bytes, np.ndarray] = (b'', gt.UNKNOWN_SIGMA)  # covariances, sigma
         self._stale_timeout = float(p['stale_timeout_s'])
         self._timebase = TimeBase(
             sync=p['sync'],
@@ -205,10 +207,9 @@ class TensorNode(ManagedNode):
         self.sets_stale = 0
 
         check_serialization()
-        self._raw_cdr = cv.TensorCdr(self._array_frame)
-        self._raw_pub = self.create_lifecycle_publisher(JointState, 'gradient/raw', derived_qos())
-        self._ref_pub = self.create_lifecycle_publisher(
-            MagneticField, 'reference_field', derived_qos()
+        self._raw_cdr = gt.GradientTensorCdr(self._array_frame)
+        self._raw_pub = self.create_lifecycle_publisher(
+            gt.rclpy_class(), 'gradient/raw', derived_qos()
         )
         self._diag_pub = self.diagnostics_publisher()
         self._horizon = self._diag_pub.inputs.watch_stamps(
@@ -242,9 +243,9 @@ class TensorNode(ManagedNode):
         self._last_arrival[sensor] = self._now_s()
         self._ever[sensor] = True
         try:
-            # Each reading's covariance travels with its field (12 values): the reference_field
-            # of a set gets that of its own mag1 message (interpolated on a grid reference).
-            stamp, frame_id, reading = cv.magnetic_field_from_cdr(data)
+            # Each reading's covariance travels with its field (12 values) into its set's
+            # g_sigma and reference_field_covariance (interpolated on a grid reference).
+            stamp, _, reading = cv.magnetic_field_from_cdr(data)
         except MessageError as error:
             self._invalid[sensor] += 1
             if self._warn():
@@ -263,8 +264,6 @@ class TensorNode(ManagedNode):
             self._reset_matcher(sensor, last - stamp)
         self._last_stamp[sensor] = stamp
         self._stamped[sensor] += 1
-        if sensor == 0:
-            self._mag1_frame = frame_id
         sets: Iterable[tuple[int, np.ndarray]]
         if isinstance(self._matcher, Resampler):
             stamps, values = self._matcher.add_one(sensor, stamp, reading)
@@ -272,7 +271,7 @@ class TensorNode(ManagedNode):
         else:
             sets = self._matcher.add(sensor, stamp, reading)
         for stamp_ns, readings in sets:
-            self._emit(stamp_ns, readings[:, :3], readings[0, 3:])
+            self._emit(stamp_ns, readings[:, :3], readings[:, 3:])
 
     def _new_former(self) -> Resampler | StampMatcher:
         """The set former the parameters ask for, empty."""
@@ -304,9 +303,9 @@ class TensorNode(ManagedNode):
         }
         return {key: value + self._earlier.get(key, 0) for key, value in counters.items()}
 
-    def _emit(self, stamp_ns: int, fields: np.ndarray, covariance: np.ndarray) -> None:
-        """Check one matched set (4, 3) T and publish ``G_m`` (T/m) and ``B_1'`` (T) with
-        sensor 1's covariance (9,) T^2."""
+    def _emit(self, stamp_ns: int, fields: np.ndarray, covariances: np.ndarray) -> None:
+        """Check one matched set (4, 3) T and publish ``G_m`` (T/m) with its 1-sigma and
+        ``B_1'`` (T), from the readings' covariances (4, 9) T^2."""
         bad = ~plausible_readings(fields, self._max_field)  # the offline tools' rule
         if bad.any():
             self.sets_invalid += 1
@@ -327,13 +326,22 @@ class TensorNode(ManagedNode):
         if not np.all(np.isfinite(g)):  # cannot happen for finite fields; never publish non-finite
             self.sets_invalid += 1
             return
-        self._raw_pub.publish(self._raw_cdr.write(g, stamp_ns))
-        if not cv.known_covariance(covariance):  # also never publish a non-finite one
-            covariance = cv.UNKNOWN_COVARIANCE
-        self._ref_pub.publish(
-            cv.magnetic_field_cdr(fields[0], stamp_ns, self._mag1_frame, covariance)
+        reference = (
+            covariances[0] if cv.known_covariance(covariances[0]) else gt.UNKNOWN_COVARIANCE
         )
+        values = np.concatenate((g.reshape(9), self._sigma(covariances), fields[0], reference))
+        self._raw_pub.publish(self._raw_cdr.write(stamp_ns, values))
         self.sets_published += 1
+
+    def _sigma(self, covariances: np.ndarray) -> np.ndarray:
+        """The tensor's 1-sigma (9,) T/m from the four covariances (4, 9) T^2; NaN unless
+        all four are known. (The covariances seldom change: the last result is kept.)"""
+        key = covariances.tobytes()
+        if key != self._sigma_of[0]:
+            known = all(cv.known_covariance(c) for c in covariances)
+            sigma = readings_sigma(self._jacobian, covariances) if known else gt.UNKNOWN_SIGMA
+            self._sigma_of = (key, sigma if np.all(np.isfinite(sigma)) else gt.UNKNOWN_SIGMA)
+        return self._sigma_of[1]
 
     def _now_ns(self) -> int:
         return int(self.get_clock().now().nanoseconds)
@@ -458,7 +466,6 @@ class TensorNode(ManagedNode):
                     # Matched readers of the outputs (rmw, both sides of discovery done): who
                     # receives the tensors from now on; a reader not yet matched misses them.
                     'gradient/raw subscribers': self._raw_pub.get_subscription_count(),
-                    'reference_field subscribers': self._ref_pub.get_subscription_count(),
                 },
             )
         )

@@ -14,7 +14,9 @@ The default method fits the vehicle effects the window calls for with ``k``, ``b
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,7 +45,9 @@ from ..io.recording import odometry_at
 from .effects_choice import EffectsChoice
 from .terms import WindowTerms, window_terms
 from .window_check import (
+    EXPLAINING,
     KNOWN_GRADIENT_METHODS,
+    REJECTED,
     UNREAD,
     CheckedCalibration,
     WindowCheck,
@@ -371,21 +375,74 @@ def _solve(
         options, method, bag_path, stamps, fields[:, 0], earth_field_enu
     )
     terms = _terms(bag_path, sets, thinned, geometry, method, effects, options)
-    options = dataclasses.replace(options, terms=terms.candidates)
-    checked = identify_checked(
+    fitted = dataclasses.replace(options, terms=terms.candidates)
+    solve = functools.partial(
+        identify_checked,
         method,
         stamps,
         difference_tensor(fields, geometry),
         fields[:, 0],
         geometry,
-        options,
         window=window,
         first_ns=sets.first_ns,
-        force=force,
         notes=(*axes_note, *note, *terms.notes),
-        lacking={**terms.lacking, **_unread_signals(bag_path, effects)},
     )
-    return checked, options, terms
+    lacking = {**terms.lacking, **_unread_signals(bag_path, effects)}
+    try:
+        checked = solve(fitted, force=force, lacking=lacking)
+        if checked.check is None or checked.check.passed:
+            return checked, fitted, terms
+    except AssumptionError:
+        pass
+    # The check failed: its cause from evidence, the held-out selection on the bag's signals
+    # (a second solve, on this path only).
+    def passes(candidates: tuple[Any, ...]) -> bool:
+        with_them = dataclasses.replace(options, terms=candidates)
+        check = solve(with_them, force=True, lacking={}).check
+        return check is not None and check.passed
+
+    evidence = _signal_evidence(
+        bag_path, sets, thinned, geometry, method, effects, options, terms, passes
+    )
+    return solve(fitted, force=force, lacking={**lacking, **evidence}), fitted, terms
+
+
+def _signal_evidence(
+    bag_path: str | os.PathLike[str],
+    sets: WindowSets,
+    thinned: int,
+    geometry: TetraGeometry,
+    method: str,
+    effects: EffectsChoice | None,
+    options: Options,
+    terms: WindowTerms,
+    passes: Callable[[tuple[Any, ...]], bool],
+) -> dict[str, str]:
+    """Whether the vehicle's recorded signals explain a window that fails its check:
+    ``{EXPLAINING: names}`` for the effects the automatic selection (every recorded signal
+    offered, each held-out tested) keeps and the fit does not read, when the window
+    ``passes`` its check with them (an effect that explains part of a target's pass, e.g.
+    an eddy term on the field's rate along the track, is no evidence); else ``{REJECTED:
+    topics}`` for the signal topics tested and not kept; {} when none was tested."""
+    choice = effects or EffectsChoice()
+    if not (choice.automatic and choice.discover):
+        automatic = dataclasses.replace(choice, names=None, discover=True, source='auto')
+        fitted = {c.name for c in terms.candidates}
+        terms = _terms(bag_path, sets, thinned, geometry, method, automatic, options)
+        kept = [c.name for c in terms.candidates if c.name not in fitted]
+        if kept and passes(terms.candidates):
+            return {EXPLAINING: ', '.join(kept)}
+    from ..io.discovery import signal_topics
+
+    with MagneticBag(bag_path) as bag:
+        tested = signal_topics(bag)
+    kept_topics = {
+        parse_declaration(c.name).topic
+        for c in terms.candidates
+        if c.name.startswith(SIGNAL_PREFIX)
+    }
+    rejected = [t for t in tested if t not in kept_topics]
+    return {REJECTED: ', '.join(rejected)} if rejected else {}
 
 
 def _unread_signals(

@@ -7,24 +7,23 @@ CSV (written to a temporary file, renamed into place at the end)::
 
     stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz,sigma_gxx,sigma_gxy,...,sigma_gzz
 
-one row per matched set (sets with an implausible reading, non-finite or ``|B| > 1e-3 T``,
-are dropped and counted);
-``stamp_s`` is the **absolute** header stamp of sensor 1 in seconds since the Unix epoch,
-printed exactly from the integer nanoseconds (9 decimals); ``gij = G_ij = dB_i/dx_j`` in
-**nT/m** (6 decimals), body frame; ``sigma_gij`` its standard uncertainty (1-sigma, nT/m, 6
-decimals) from the sensor noise and the calibration's parameter covariance
+one row per matched set (sets with an implausible reading, non-finite or ``|B| > 1e-3 T``, are
+dropped and counted); ``stamp_s`` is the **absolute** header stamp of sensor 1 in seconds since
+the Unix epoch, printed exactly from the integer nanoseconds (9 decimals); ``gij`` =
+``G_ij = dB_i/dx_j`` in **nT/m** (6 decimals), body frame; ``sigma_gij`` its standard uncertainty
+(1-sigma, nT/m, 6 decimals) from the sensor noise and the calibration's parameter covariance
 (:mod:`~tetra_gradiometer.core.uncertainty`, :func:`load_compensation` says which noise).
 Without a sensor-noise figure (the raw tensor without ``--sensor-noise-nt``) the nine
-``sigma_`` columns are left out. Compensated without a channel (``allow_missing_channels``:
-a channel the calibration's terms read is absent from the bag), the CSV starts with one
-comment line, ``# compensated WITHOUT <channel> (<topic>): ...`` (:meth:`.terms.HeldTerms.
-text`), before the header: the terms reading it are held at their calibration-window mean
-and the sigma columns include their spread over that window. With the calibration tracked
-(:mod:`.tracking`) the tensors and sigma are the tracked ones and nine ``db_*`` columns follow.
+``sigma_`` columns are left out. Compensated without a channel (``allow_missing_channels``: a
+channel the calibration's terms read is absent from the bag), the CSV starts with one comment
+line, ``# compensated WITHOUT <channel> (<topic>): ...`` (:meth:`.terms.HeldTerms.text`),
+before the header: the terms reading it are held at their calibration-window mean and the sigma
+columns include their spread over that window. With the calibration tracked (:mod:`.tracking`)
+the tensors and sigma are the tracked ones and nine ``db_*`` columns follow.
 
 The output bag holds ``/tetra/gradient/compensated`` (``/tetra/gradient/raw`` for the raw
-tensor): ``sensor_msgs/JointState`` named ``gxx..gzz``, positions in T/m, header stamp = the
-set's stamp (``conversions.tensor_msg``).
+tensor): ``tetra_gradiometer_msgs/GradientTensor`` as the nodes publish it (``g``, ``g_sigma``
+NaN without a noise figure, ``B_1'``; COMPENSATED with the ``created_utc``, or RAW).
 """
 
 from __future__ import annotations
@@ -50,6 +49,7 @@ from ..core.uncertainty import SigmaModel
 from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS, T_PER_NT
 from ..errors import BagError, InputError, OutputError
 from ..io import conversions as cv
+from ..io import gradient_tensor as gt
 from ..io.bag import BagWriter, MagneticBag, SetCounters
 from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, atomic_output, check_output
@@ -240,7 +240,7 @@ class Compensation:
         That covariance (for the health monitor's calibration-error bound): of ``k``, ``b``
         only when the calibration has terms.
     forced : the checks the calibration was kept over (``--force``), each use says them
-    fitted : its bag and window end, s (:func:`~.tracking.fitted_window`), or None
+    calibration_id : the calibration's ``created_utc`` ('' for the raw tensor)
     """
 
     parameters: InterferenceParameters | None
@@ -250,7 +250,8 @@ class Compensation:
     with_covariance: bool = False
     covariance: np.ndarray | None = None
     forced: tuple[str, ...] = ()
-    fitted: tuple[str, float] | None = None
+    calibration_id: str = ''
+    fitted: tuple[str, float] | None = None  # its bag and window end, s (fitted_window)
 
 
 def health_recorder(
@@ -320,6 +321,7 @@ def load_compensation(
         calibration.covariance is not None,
         covariance,
         calibration.forced_warnings(),
+        calibration.created_utc,
         fitted_window(calibration.diagnostics),
     )
 
@@ -327,9 +329,8 @@ def load_compensation(
 def compensate_bag(
     bag_path: PathLike,
     geometry: TetraGeometry,
-    parameters: InterferenceParameters | None,
+    compensation: Compensation,
     *,
-    sigma: SigmaModel | None = None,
     health: HealthRecorder | None = None,
     tracking: TrackedStream | None = None,
     statistics: TensorStatistics | None = None,
@@ -350,10 +351,9 @@ def compensate_bag(
     ----------
     bag_path : path of the rosbag2 folder to read
     geometry : TetraGeometry of the array that recorded the bag
-    parameters : InterferenceParameters or None
-        ``k``, ``b`` of eq. 19 and the terms (their channels read from the bag, a set where
-        one is unknown dropped and counted); None writes the raw tensor (eq. 7).
-    sigma : SigmaModel, optional; the tensor's 1-sigma: the CSV's nine ``sigma_`` columns
+    compensation : its ``parameters`` (``k``, ``b`` of eq. 19 and the terms, their channels read
+        from the bag, a set where one is unknown dropped and counted; None writes the raw
+        tensor, eq. 7), ``sigma`` (the CSV's nine ``sigma_`` columns) and ``calibration_id``
     health, statistics : optional; fed every chunk of compensated (and raw) tensors
     tracking : optional; the tracked calibration's tensors, sigma, ``db_*`` CSV columns
     csv, out_bag, out_storage : outputs (one at least, each written atomically); the bag's
@@ -373,6 +373,7 @@ def compensate_bag(
         channel the terms read is not in the bag (unless ``allow_missing_channels``)
     OutputError : an output is not ours to replace
     """
+    parameters, sigma = compensation.parameters, compensation.sigma
     inputs, topic = tuple(inputs), RAW_TOPIC if parameters is None else COMPENSATED_TOPIC
     n_sets, first, last, dropped, sample = 0, 0, 0, DroppedSets(), TensorSample()
     monitor = health if tracking is None or tracking.health is None else None  # else it feeds
@@ -392,9 +393,10 @@ def compensate_bag(
             if not len(stamps):
                 continue
             raw, tensors = _tensors(fields, geometry, parameters, x)
-            sigmas = None if handle is None else _sigmas(sigma, fields, x, terms)
+            sigmas = _sigmas(sigma, fields, x, terms)
             tensors, sigmas, offsets = _tracked(tracking, stamps, fields, tensors, sigmas, bag)
-            _write(handle, writer, topic, stamps, tensors, sigmas, offsets)
+            chunk = (stamps, tensors, sigmas, offsets, fields[:, 0])
+            _write(handle, writer, topic, chunk, compensation.calibration_id)
             _feed(monitor, statistics, stamps, fields, raw, tensors, bag.reader.start_time)
             sample.add(tensors)
             first, last = int(stamps[0]) if n_sets == 0 else first, int(stamps[-1])
@@ -443,10 +445,9 @@ def _sigmas(
 ) -> FloatArray | None:
     """The chunk's 1-sigma (n, 3, 3) T/m, widened in quadrature by the held terms' spread
     (None without a sigma model)."""
-    held = None if terms is None else terms.held
     if sigma is None:
         return None
-    sigmas = sigma(fields[:, 0, :], regressors)
+    sigmas, held = sigma(fields[:, 0, :], regressors), None if terms is None else terms.held
     return sigmas if held is None else np.sqrt(sigmas**2 + held.sigma_t_per_m**2)
 
 
@@ -520,8 +521,7 @@ def _tracked(
     sigmas: FloatArray | None,
     bag: MagneticBag,
 ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
-    """The chunk's tensors and 1-sigma with the calibration tracked, and the change removed
-    (n, 9) T; unchanged (and None) without tracking."""
+    """The chunk tracked: its tensors, 1-sigma and the change removed (n, 9) T (None untracked)."""
     if tracking is None:
         return tensors, sigmas, None
     return tracking.apply(stamps, fields, tensors, sigmas, bag.reader.start_time)
@@ -587,12 +587,14 @@ def _write(
     handle: TextIO | None,
     writer: BagWriter | None,
     topic: str,
-    stamps: IntArray,
-    tensors: FloatArray,
-    sigmas: FloatArray | None,
-    offsets: FloatArray | None = None,
+    chunk: tuple[IntArray, FloatArray, FloatArray | None, FloatArray | None, FloatArray],
+    calibration: str,
 ) -> None:
+    """A chunk (stamps, tensors, sigma, the tracker's offsets, ``B_1'``) to CSV and bag."""
+    stamps, tensors, sigmas, offsets, refs = chunk
     if handle is not None:
         handle.write(format_rows(stamps, tensors, sigmas, offsets))
-    if writer is not None:
-        writer.write_tensors(topic, stamps, tensors)
+    if writer is not None:  # RAW on the raw topic, else COMPENSATED by ``calibration``
+        values = gt.pack_sets(tensors, sigmas, refs)
+        state = gt.RAW if topic == RAW_TOPIC else gt.COMPENSATED
+        writer.write_tensors(topic, stamps, values, state, calibration)

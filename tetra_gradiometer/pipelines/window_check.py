@@ -164,9 +164,13 @@ class AttitudeHistory:
         return orientation_at(stamps, quats, stamps_ns)
 
 
-#: The key of ``lacking`` (:meth:`WindowCheck.cause`) that names the recorded signals the
-#: fit does not read.
+#: The keys of ``lacking`` (:meth:`WindowCheck.cause`) naming the recorded signals the fit
+#: does not read, those the held-out selection keeps on the window although the fit does not
+#: read them (the evidence that the vehicle causes the misfit), and those it offered and
+#: rejected (the evidence that no recorded vehicle signal does).
 UNREAD = 'unread signals'
+EXPLAINING = 'explaining signals'
+REJECTED = 'rejected signals'
 
 
 @dataclass(frozen=True)
@@ -191,19 +195,32 @@ class WindowCheck:
         return self.consistency.passed
 
     def cause(self, lacking: dict[str, str] | None = None) -> str:
-        """What the misfit's shape says it is (:mod:`~tetra_gradiometer.core.
-        identification.misfit`), naming the effects whose channels the data lack and the
-        recorded signals the fit does not read (``lacking[UNREAD]``): a magnet or a current
-        outside the array is symmetric and traceless too, so only a signal that explains
-        it can tell the vehicle from a target."""
+        """What explains the misfit, from evidence: recorded vehicle signals that the held-out
+        selection keeps on the window (``lacking[EXPLAINING]``) make it the vehicle's; only
+        without them is a misfit of a field's shape (:mod:`~tetra_gradiometer.core.
+        identification.misfit`) a target's or the geology's, saying which signals were
+        tested and rejected (``lacking[REJECTED]``). A magnet or a current outside the array
+        is symmetric and traceless too, so the shape alone never tells the vehicle from a
+        target. Otherwise names the effects whose channels the data lack and the recorded
+        signals nothing tested (``lacking[UNREAD]``)."""
         lacking = dict(lacking or {})
         unread = lacking.pop(UNREAD, '')
+        rejected = lacking.pop(REJECTED, '')
+        explaining = lacking.pop(EXPLAINING, '')
+        if explaining:
+            return (
+                f'the vehicle: signals it records explain the misfit ({explaining}: kept by '
+                'the held-out test of the automatic selection, --effects auto, and not read '
+                'by this fit)'
+            )
         vehicle = (
             f'; or a source on the vehicle that a signal it records explains ({unread}: '
             '`discrepancy` tests them, vehicle_signals declares them)'
             if unread
             else ''
         )
+        if rejected:
+            vehicle = f'; no signal the vehicle records explains it (tested: {rejected})'
         share = self.field_share
         if share is not None and share >= FIELD_SHARE:
             return (

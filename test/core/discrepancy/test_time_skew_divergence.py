@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from tetra_gradiometer.core.discrepancy import analyze
-from tetra_gradiometer.core.discrepancy.effects import LIBRARY, Context
+from tetra_gradiometer.core.discrepancy.candidate import Context
+from tetra_gradiometer.core.discrepancy.effects import LIBRARY
 from tetra_gradiometer.core.discrepancy.fit import fit_current
 from tetra_gradiometer.core.discrepancy.prepare import RecordedRun, prepare
 from tetra_gradiometer.core.discrepancy.search import _candidates

@@ -1,6 +1,8 @@
 """Discrepancy workflow: find where the simulated (model-predicted) and the
 measured sensor readings of a recorded run disagree, name the missing physical effect from
-a library of candidates, add it, and show the held-out gap shrink to the noise floor.
+the candidates (every effect of the one registry,
+:data:`tetra_gradiometer.core.effects.EFFECTS`, and the search's detectors of model
+errors), add it, and show the held-out gap shrink to the noise floor.
 
 ``analyze(run, geometry, earth_field_enu=None)`` returns a :class:`Report`;
 ``tetra_gradiometer.reports.discrepancy.write_report(report, out_dir)`` writes ``report.json``,
@@ -11,7 +13,8 @@ arrays) or anything with the same attributes.
 """
 
 from .analysis import analyze
-from .effects import CANDIDATES, LIBRARY, OPEN_WORLD, Candidate
+from .candidate import Candidate
+from .effects import CANDIDATES, LIBRARY, OPEN_WORLD
 from .prepare import RecordedRun
 from .result import BASE_MODEL, Report, Settings, Step, criterion_text
 

@@ -50,13 +50,13 @@ import numpy as np
 
 from ...errors import InputError
 from ..geometry import TetraGeometry
+from .candidate import Candidate
 from .dipoles import Located, Track, locate_targets, model_targets, track_of
-from .effects import CANDIDATES, LIBRARY, Candidate
-from .prepare import Prepared, RunLike, prepare, testable
+from .effects import CANDIDATES, LIBRARY, signal_candidates, testable
+from .prepare import Prepared, RunLike, prepare
 from .relocation import outside_detector, relocate
 from .result import Report, Settings
 from .search import SearchResult, search_effects
-from .signals import signal_candidates
 from .summary import RunInfo, build_report
 from .targets import TargetSpans, find_target_spans
 

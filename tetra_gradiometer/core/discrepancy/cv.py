@@ -10,6 +10,8 @@ import numpy as np
 import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
 
+from ..identification._selection import held_out_blocks
+
 Array = NDArray[np.float64]
 Index = NDArray[np.int_]
 
@@ -53,24 +55,20 @@ class Fit:
 class Gram:
     """Per-fold Gram matrices of ``Z`` (N, m, q): columns are normalised regressors, then
     target and offset vectors (left unscaled). Blocks of ``block_s`` seconds are dealt to
-    ``n_folds`` folds in turn (interleaved contiguous blocks)."""
+    ``n_folds`` folds in turn (:func:`~..identification._selection.held_out_blocks`)."""
 
     def __init__(self, z: Array, t: Array, block_s: float, n_folds: int) -> None:
         n, m, q = z.shape
-        edges = np.searchsorted(t, np.arange(t[0], t[-1] + block_s, block_s)[1:], side='left')
-        bounds = np.concatenate([[0], edges[edges < n], [n]])
-        bounds = np.unique(bounds)
-        n_blocks = len(bounds) - 1
-        n_folds = max(2, min(n_folds, n_blocks))
+        blocks = held_out_blocks(t, block_s, n_folds)
+        n_folds = max(2, 1 + max(fold for _, _, fold in blocks))  # one block: one empty fold
         self.folds = np.zeros((n_folds, q, q))
         self.fold_rows = np.zeros(n_folds)
         self.fold_of_sample = np.zeros(n, dtype=int)
-        for b in range(n_blocks):
-            lo, hi = bounds[b], bounds[b + 1]
+        for lo, hi, fold in blocks:
             zb = z[lo:hi].reshape(-1, q)
-            self.folds[b % n_folds] += zb.T @ zb
-            self.fold_rows[b % n_folds] += zb.shape[0]
-            self.fold_of_sample[lo:hi] = b % n_folds
+            self.folds[fold] += zb.T @ zb
+            self.fold_rows[fold] += zb.shape[0]
+            self.fold_of_sample[lo:hi] = fold
         self.total = self.folds.sum(axis=0)
         self.n = float(n * m)
 
@@ -139,25 +137,16 @@ def noise_floor(residual: Array) -> tuple[float, Array]:
     return float(np.sqrt(np.mean(sigma**2))), sigma
 
 
-def lstsq_full(sensors: tuple[int, ...], cols: Array, target: Array) -> Array:
-    """Least squares on all samples of the view (normal equations on normalised columns,
-    eigen-solve with a rank cut-off); physical coefficients (per column)."""
-    a = flat(cols, sensors)
-    a = a.reshape(-1, a.shape[-1])
-    y = flat(target, sensors).reshape(-1)
-    gram = a.T @ a
-    norm = np.sqrt(np.diag(gram)).copy()
-    norm[norm == 0] = 1.0
-    coef, _ = solve(gram / np.outer(norm, norm), (a.T @ y) / norm)
-    result: Array = coef / norm
-    return result
-
-
-def lstsq_rows(
-    sensors: tuple[int, ...], cols: Array, target: Array, rows: NDArray[np.bool_]
+def lstsq_view(
+    sensors: tuple[int, ...],
+    cols: Array,
+    target: Array,
+    rows: NDArray[np.bool_] | None = None,
 ) -> Array:
-    """Least squares on the samples ``rows`` (bool, N) only; physical coefficients."""
-    if not rows.all():  # (all rows: no copy of the columns, the same numbers)
+    """Least squares of ``target`` (N, 4, 3) nT on ``cols`` (N, 4, 3, p) in the view
+    (normal equations on normalised columns): physical coefficients (p,). On all samples an
+    eigen-solve with a rank cut-off; on the samples ``rows`` (bool, N) the ridge solve."""
+    if rows is not None and not rows.all():  # (all rows: no copy of the columns)
         cols, target = cols[rows], target[rows]
     a = flat(cols, sensors)
     a = a.reshape(-1, a.shape[-1])
@@ -165,7 +154,9 @@ def lstsq_rows(
     gram = a.T @ a
     norm = np.sqrt(np.diag(gram)).copy()
     norm[norm == 0] = 1.0
-    result: Array = solve_fast(gram / np.outer(norm, norm), (a.T @ y) / norm) / norm
+    gram, rhs = gram / np.outer(norm, norm), (a.T @ y) / norm
+    coef = solve(gram, rhs)[0] if rows is None else solve_fast(gram, rhs)
+    result: Array = coef / norm
     return result
 
 

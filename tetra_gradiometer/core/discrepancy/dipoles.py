@@ -49,7 +49,7 @@ from ..fields import MU0_OVER_4PI
 from ..geometry import TetraGeometry
 from ..targets.forward import sensor_points
 from ..units import NT_PER_T
-from .cv import flat, lstsq_full, noise_floor, solve_fast
+from .cv import flat, lstsq_view, noise_floor, solve_fast
 from .prepare import Prepared, with_targets
 from .result import Settings
 from .targets import detector_columns, full_model_residual, robust_start, settle
@@ -444,7 +444,7 @@ def _moments(
     modelled = model_targets(prep, track, positions, prior)
     cols = detector_columns(modelled, names, np.ones(len(prep.t), dtype=bool), settings)
     y = modelled.fields - modelled.base_offset
-    coef = lstsq_full(prep.sensors, cols, y)
+    coef = lstsq_view(prep.sensors, cols, y)
     start = prep.base_cols.shape[-1] - len(prep.target_labels)
     return coef[start : start + 3 * len(positions)].reshape(-1, 3)
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from .effects import Candidate
+from .candidate import Candidate
 from .fit import CurrentFit, Family, column_bounds, restrict
 from .openworld import OpenWorld, find_lines, find_steps
 from .prepare import Prepared

@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from .effects import LIBRARY, line_label, step_label
+from .detectors import line_label, step_label
+from .effects import LIBRARY
 from .result import Step
 from .search import CONFOUNDED_SHARE, SearchResult
 

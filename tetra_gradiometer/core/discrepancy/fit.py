@@ -9,8 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import IdentifiabilityError
-from .cv import ALL_SENSORS, flat, lstsq_full, solve_fast
-from .effects import Candidate, Context, Estimate
+from .candidate import Candidate, Context, Estimate
+from .cv import ALL_SENSORS, flat, lstsq_view, solve_fast
 from .prepare import Prepared, refresh_background, refresh_pair_background, smoothed
 
 Array = NDArray[np.float64]
@@ -234,7 +234,7 @@ def fit_current(prep: Prepared, active: tuple[Family, ...], y: Array, knot_s: fl
     for _ in range(8):
         cur_off = sum((f.offset for f in active if f.offset is not None), np.zeros_like(y))
         cur_cols = np.concatenate([prep.base_cols] + [f.cols for f in active], axis=-1)
-        coef = lstsq_full(prep.sensors, cur_cols, y - cur_off)
+        coef = lstsq_view(prep.sensors, cur_cols, y - cur_off)
         prediction = prep.base_offset + np.einsum('nsap,p->nsa', cur_cols, coef) + cur_off
         if not np.all(np.isfinite(prediction)):
             raise IdentifiabilityError(

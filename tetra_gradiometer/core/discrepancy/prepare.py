@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from ...errors import InputError
 from ..model import SYMMETRIC_ENTRIES
 from ..units import NT_PER_T
-from .effects import Candidate, PiecewiseSpline, recorded_currents
+from .detectors import PiecewiseSpline
 from .openworld import OpenWorld
 
 Array = NDArray[np.float64]
@@ -549,47 +549,3 @@ def _pieces(
     for j in np.flatnonzero(jump):
         piece[idx[max(j - 1, 0) : j + 3]] = -1
     return piece, int(jump.sum())
-
-
-#: Why a candidate that needs a recorded input cannot be tested without it.
-_NO_ODOM = (
-    'no usable /odom: without an absolute attitude reference only the pair differences '
-    "B_i' - B_1' are observable; sensor 1's own soft and hard iron is absorbed into "
-    'K_i1 (I + K_1)^-1 (its small non-symmetric remainder would look like sensor_misalignment)'
-)
-
-
-def _untestable_reason(candidate: Candidate, prep: Prepared) -> str | None:
-    """Why the run cannot test ``candidate`` (None: it can)."""
-    if 'odom' in candidate.requires and not prep.absolute:
-        return candidate.no_odom_reason or _NO_ODOM
-    if 'temperature' in candidate.requires:
-        if prep.temperature_c is None:
-            return 'no /tetra/temperature read: the drift has no regressor'
-        if np.ptp(prep.temperature_c) < 1e-3:
-            return (
-                'the recorded temperature does not vary (< 0.001 degC): a drift is a '
-                'constant offset'
-            )
-    elif 'current' in candidate.requires:
-        currents = recorded_currents(prep.current_a, prep.extra_currents)
-        if not currents:
-            return 'no /battery_state read: the field has no regressor'
-        if all(np.ptp(values) < 1e-3 for _, values in currents):
-            return 'the recorded current does not vary (< 1 mA): its field is a constant offset'
-    return None
-
-
-def testable(
-    prep: Prepared, candidates: tuple[Candidate, ...]
-) -> tuple[tuple[Candidate, ...], dict[str, str]]:
-    """The candidates the run can test, and why each of the others cannot."""
-    out: list[Candidate] = []
-    untestable: dict[str, str] = {}
-    for candidate in candidates:
-        reason = _untestable_reason(candidate, prep)
-        if reason is None:
-            out.append(candidate)
-        else:
-            untestable[candidate.name] = reason
-    return tuple(out), untestable

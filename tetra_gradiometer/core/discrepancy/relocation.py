@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .cv import lstsq_full
+from .cv import lstsq_view
 from .dipoles import Located, Track, model_targets, refine, target_columns
 from .prepare import Prepared
 from .search import SearchResult
@@ -61,7 +61,7 @@ def relocate(
     )
     cols, _ = target_columns(track, positions)
     design = np.concatenate([other, cols], axis=-1)
-    coef = lstsq_full(prep.sensors, design, prep.fields - prep.base_offset - fit.offset)
+    coef = lstsq_view(prep.sensors, design, prep.fields - prep.base_offset - fit.offset)
     moments = coef[-cols.shape[-1] :].reshape(-1, 3)
     moved = np.linalg.norm(positions - located.positions, axis=1)
     return Relocated(

@@ -12,13 +12,13 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
 
 from ..effects import SIGNAL_PREFIX
+from ..identification._selection import held_out_f_test
+from .candidate import Candidate
 from .cv import ALL_SENSORS, Fit, Gram, block_length, flat, noise_floor
 from .discovery import open_world_move
-from .effects import Candidate
 from .fit import (
     CurrentFit,
     Family,
@@ -130,12 +130,7 @@ class _Round:
         n_obs = self.gram.n
         dp = res.rank - ref.rank
         gain = ref.cv - res.cv
-        dof = max(n_obs - res.rank, 1.0)
-        if dp > 0 and gain > 0:
-            fstat = (gain / dp) / (res.cv / dof)
-            pval = float(scipy.stats.f.sf(fstat, dp, dof))
-        else:
-            fstat, pval = 0.0, 1.0
+        fstat, pval = held_out_f_test(ref.cv, res.cv, dp, max(n_obs - res.rank, 1.0))
         own = 3 if (sensor >= 1 or (sensor == 0 and self.absolute)) else self.channels
         explained = float(np.sqrt(max(gain, 0.0) / (n_obs / self.channels * own)))
         dbic = self.bic(res) - self.bic(ref)

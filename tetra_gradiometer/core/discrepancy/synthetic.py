@@ -30,7 +30,8 @@ from ..simulator import (
     simulate,
 )
 from ..units import NS_PER_S, NT_PER_T, S_PER_NS
-from .effects import CANDIDATES, LIBRARY, Hidden
+from .candidate import Hidden
+from .effects import CANDIDATES, LIBRARY
 from .prepare import RecordedRun
 
 Array = NDArray[np.float64]

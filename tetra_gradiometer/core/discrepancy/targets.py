@@ -15,8 +15,9 @@ from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial.transform import Rotation
 
-from .cv import ALL_SENSORS, flat, lstsq_rows, noise_floor, solve_fast
-from .effects import CANDIDATES, Context
+from .candidate import Context
+from .cv import ALL_SENSORS, flat, lstsq_view, noise_floor, solve_fast
+from .effects import CANDIDATES
 from .prepare import Prepared, refresh_background
 from .result import Settings
 
@@ -80,7 +81,7 @@ def detector_columns(
     """Columns (N, 4, 3, p) of the base model plus every global candidate (the library's
     ``in_detector`` families among ``names``)."""
     y = prep.fields - prep.base_offset
-    coef = lstsq_rows(prep.sensors, prep.base_cols, y, include)
+    coef = lstsq_view(prep.sensors, prep.base_cols, y, include)
     prediction = prep.base_offset + prep.base_cols @ coef
     ctx = Context(
         prep.t,
@@ -109,7 +110,7 @@ def full_model_residual(
     y = prep.fields - prep.base_offset
     for _ in range(3):
         cols = detector_columns(prep, names, include, settings)
-        coef = lstsq_rows(prep.sensors, cols, y, include)
+        coef = lstsq_view(prep.sensors, cols, y, include)
         if not prep.absolute:
             break
         prep, moved = refresh_background(prep, coef[:6])

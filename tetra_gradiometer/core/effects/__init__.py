@@ -12,8 +12,9 @@ Adding an effect is one of:
 * for what a declaration cannot express, one module in any installed package, named by an
   entry point of the group :data:`ENTRY_POINT_GROUP` (``name = module:EffectClass``): an
   :class:`Effect` subclass setting ``name`` (the entry point's), ``physics``, ``file_unit``,
-  ``file_factor``, ``channels`` (the recorded channels it reads) and implementing
-  ``labels`` and ``regressors`` (``live`` defaults to ``regressors`` on each sample);
+  ``file_factor``, ``channels`` (the recorded channels it reads), optionally
+  ``separated_by``, and implementing ``labels`` and ``regressors`` (``live`` defaults to
+  ``regressors`` on each sample);
 * here, one module and one line in :data:`EFFECTS`.
 
 Model: ``D = (k B_1' + b + sum_terms W x(t)) a^-1`` (the pair differences' interference

@@ -123,6 +123,15 @@ class Effect(ABC):
     #: whichever of a family is recorded (every current) say so in :meth:`inputs` instead.
     channels: ClassVar[tuple[str, ...]] = ()
 
+    #: The data that tell the effect's field from look-alikes (a report's advice when two
+    #: effects explain the same part of a residual); '' when not said.
+    separated_by: ClassVar[str] = ''
+    #: The regressor's zero is a value :meth:`reference` fixes at calibration (a reference
+    #: temperature), not a physical zero: the field holds an unknown constant besides, which
+    #: each sensor's hard iron takes (a model whose sensor has no hard iron of its own fits
+    #: a constant beside the term).
+    arbitrary_zero: ClassVar[bool] = False
+
     def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
         """The channels the effect reads, from the channel names ``available``; () when a
         channel it needs is missing (the effect cannot be fitted)."""

@@ -150,8 +150,10 @@ class LiveRate:
 
     def window(self) -> tuple[np.ndarray, np.ndarray]:
         """The kept samples: times (n,) s and values (n, k)."""
-        return (np.array([item[0] for item in self.history]),
-                np.array([item[1] for item in self.history]))
+        return (
+            np.array([item[0] for item in self.history]),
+            np.array([item[1] for item in self.history]),
+        )
 
     def reset(self) -> None:
         self.history.clear()
@@ -183,6 +185,11 @@ class EddyCurrent(Effect):
     )
     file_unit = 's'
     file_factor = 1.0
+    separated_by = (
+        'turns about different axes at different rates (a general 3x3 response to the '
+        "field rate; a delay is isotropic and also follows the field's curvature, which "
+        'fast, short manoeuvres bring out)'
+    )
 
     def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
         return (REFERENCE_RATE,)

@@ -162,6 +162,7 @@ class RecordedSignal(Effect):
         '3-vector per sensor (nT per unit of the function).'
     )
     file_factor = NT_PER_T
+    separated_by = 'its own time course: the recorded signal, not the attitude'
 
     def __init__(self, declaration: Declaration) -> None:
         self.declaration = declaration

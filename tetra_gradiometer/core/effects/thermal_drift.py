@@ -41,6 +41,11 @@ class ThermalDrift(Effect):
     )
     file_unit = 'nT/degC'
     file_factor = NT_PER_T
+    separated_by = (
+        'a temperature change while the attitude and the current stay steady (or a run '
+        'whose temperature does not follow its manoeuvres)'
+    )
+    arbitrary_zero = True
 
     def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
         return (TEMPERATURE,) if TEMPERATURE in available else ()

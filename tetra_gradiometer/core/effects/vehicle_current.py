@@ -40,6 +40,9 @@ class VehicleCurrent(Effect):
     )
     file_unit = 'nT/A'
     file_factor = NT_PER_T
+    separated_by = (
+        'current changes at steady attitude and temperature (thruster steps during a straight leg)'
+    )
 
     def inputs(self, available: tuple[str, ...]) -> tuple[str, ...]:
         return tuple(sorted(name for name in available if name.startswith(CURRENT_PREFIX)))

@@ -20,6 +20,7 @@ from ..model import InterferenceParameters, interference_tensor, n_parameters
 from ..types import ArrayLike, FloatArray
 from ..units import NT_PER_T
 from ._linear import AffineReduction, LinearSolution, reduce_affine, solve_scaled
+from ._selection import PAIR_WHITENER
 from .result import TensorCalibration
 
 #: Fewest samples any solver accepts.
@@ -81,7 +82,7 @@ def noise_whitener(geometry: TetraGeometry) -> FloatArray:
     A tensor row is ``e a^-1`` with ``e = (n_2 - n_1, n_3 - n_1, n_4 - n_1)`` per axis,
     covariance ``sigma^2 (I + 1 1^T)``; ``(I + 1 1^T)^(-1/2) = I - 1 1^T / 6``.
     """
-    return geometry.a @ (np.eye(3) - np.ones((3, 3)) / 6.0)
+    return geometry.a @ PAIR_WHITENER
 
 
 def reduced_design(

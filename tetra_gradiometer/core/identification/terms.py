@@ -34,13 +34,13 @@ from typing import Any
 import numpy as np
 
 from ...errors import IdentifiabilityError
-from .._distributions import f_sf
 from ..effects import Channels, Term, current_channel, effect
 from ..geometry import TetraGeometry
 from ..model import InterferenceParameters
 from ..types import FloatArray
 from ..units import NT_PER_T
 from ..vehicle_signals import BATTERY_TOPIC
+from ._selection import PAIR_WHITENER, held_out_blocks, held_out_f_test
 from .lstsq import REGIONAL_BASIS, _body_tensor, _orientations
 from .result import TensorCalibration
 
@@ -52,8 +52,6 @@ ALPHA = 1.0e-3
 MIN_GAIN = 0.01
 #: Fewest samples a selection is made on (5 blocks of at least 20).
 MIN_SELECTION_SAMPLES = 100
-#: Whitening of the pair differences' noise, ``(I + 1 1^T)^(-1/2)`` (see the module).
-PAIR_WHITENER = np.eye(3) - np.ones((3, 3)) / 6.0
 _PAIR_UNWHITENER = np.linalg.inv(PAIR_WHITENER)
 
 METHOD = 'known_gradient_lstsq_general'
@@ -355,20 +353,6 @@ def _heldout_rss(
     return total
 
 
-def _held_out_test(rss: float, rss_with: float, p: int, rows: int) -> tuple[float, float, float]:
-    """The held-out F statistic, its p-value and the gain of a candidate of ``p`` parameters
-    that takes the held-out sum of squares from ``rss`` to ``rss_with`` (``rows`` of them);
-    noise-free data (a zero sum) give no gain, or an infinite F when the candidate fits it
-    exactly."""
-    if rss <= 0.0:
-        return 0.0, 1.0, 0.0
-    gain = 1.0 - rss_with / rss
-    if rss_with <= 0.0:
-        return float('inf'), 0.0, gain
-    f_stat = ((rss - rss_with) / p) / (rss_with / rows)
-    return f_stat, f_sf(f_stat, p, rows), gain
-
-
 @dataclass(frozen=True)
 class Selection:
     """What :func:`select_terms` chose and why.
@@ -420,7 +404,9 @@ def select_terms(
     n = len(keep)
     if n < MIN_SELECTION_SAMPLES:
         return Selection((), {})
-    fold_of = np.minimum((np.arange(n) * folds) // max(n, 1), folds - 1)
+    fold_of = np.zeros(n, dtype=int)
+    for start, stop, fold in held_out_blocks(np.arange(n, dtype=float), n / folds, folds):
+        fold_of[start:stop] = fold
     y = pairs[keep]
     b1 = b_reference[keep]
     reg = None if regional is None else regional[keep]
@@ -439,7 +425,8 @@ def select_terms(
                 unsolved[candidate.name] = why
                 continue
             unsolved.pop(candidate.name, None)
-            f_stat, p_value, gain = _held_out_test(rss, rss_with, 9 * candidate.size, rows)
+            f_stat, p_value = held_out_f_test(rss, rss_with, 9 * candidate.size, rows)
+            gain = 1.0 - rss_with / rss
             passed = p_value < alpha / len(remaining) and gain >= min_gain
             tests.append((passed, gain, candidate, rss_with, f_stat, p_value))
             evidence[candidate.name] = {
