@@ -112,7 +112,8 @@ def test_round_trip_reaches_the_noise_floor(tmp_path, storage, reference_clean):
     header, stamps, compensated = read_csv(tmp_path / 'comp.csv')
     _, raw_stamps, raw = read_csv(tmp_path / 'raw.csv')
     assert header == ('stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz,'
-                      'sigma_gxx,sigma_gxy,sigma_gxz,sigma_gyx,sigma_gyy,sigma_gyz,sigma_gzx,sigma_gzy,sigma_gzz')
+                      'sigma_gxx,sigma_gxy,sigma_gxz,sigma_gyx,sigma_gyy,sigma_gyz,sigma_gzx,sigma_gzy,sigma_gzz,'
+                      'db_21x,db_21y,db_21z,db_31x,db_31y,db_31z,db_41x,db_41y,db_41z')  # tracked: the default
     assert Path(tmp_path / 'raw.csv').read_text().startswith('stamp_s,gxx,gxy,gxz,gyx,gyy,gyz,gzx,gzy,gzz\n')
     assert np.array_equal(stamps, truth['stamps_ns']) and np.array_equal(raw_stamps, stamps)
     assert stamps[0] == 1_767_225_600 * 10**9  # absolute seconds, from --start-utc

@@ -216,12 +216,22 @@ def test_one_sample_at_a_time_equals_a_chunk(with_world):
     assert asked == ([5] * (len(data.t) // 5 - 1) if with_world else [])
 
 
-def test_a_vehicle_that_does_not_change_stays_where_it_was():
+def test_a_vehicle_that_does_not_change_stays_where_it_was_and_keeps_its_sigma():
     mission = build_mission(13, drift=False, step=False)
-    _, _, _, frozen, tracked, _ = _track(mission)
+    _, _, fields, frozen, tracked, variance = _track(mission)
     survey = np.ones(len(frozen), dtype=bool)
     assert _ratio(mission, tracked, survey) <= 1.05 * _ratio(mission, frozen, survey)
     assert _ratio(mission, frozen, survey) < 1.05  # the calibration holds: nothing to follow
+    # The constraints see no change, so the state's 1-sigma stays far below the sets' own
+    # (a calibration error, correlated in time: survey cells would keep it) ...
+    calibration = mission.calibration
+    sigma = SigmaModel.build(GEOMETRY, calibration.details['sensor_noise_nT'] * 1e-9,
+                             calibration.parameters, calibration.covariance)(fields[:, 0])
+    assert np.sqrt(np.median(variance)) < 0.2 * np.median(sigma)
+    # ... and the sigma stays honest against the truth.
+    error = (tracked - mission.g_true[mission.survey]).reshape(-1, 9)
+    inside = float(np.mean(np.abs(error) <= 2 * np.sqrt(sigma.reshape(-1, 9) ** 2 + variance)))
+    assert 0.92 <= inside <= 0.98
 
 
 def test_a_target_passing_close_is_not_taken_for_a_step():

@@ -248,6 +248,7 @@ def _tracking(
         compensation.sensor_noise_t,
         health,
         asked=args.track,
+        fitted=compensation.fitted,
     )
     if tracking is None and note:  # else its summary line says how it tracked
         print(f'note: {note}', file=sys.stderr)

@@ -427,7 +427,12 @@ def _compensate(
     statistics = TensorStatistics()
     health = health_recorder(geometry, compensation)
     tracking, _ = tracked_stream(
-        job.bag.bag, geometry, compensation.parameters, compensation.sensor_noise_t, health
+        job.bag.bag,
+        geometry,
+        compensation.parameters,
+        compensation.sensor_noise_t,
+        health,
+        fitted=compensation.fitted,
     )
     counts = compensate_bag(
         job.bag.bag,

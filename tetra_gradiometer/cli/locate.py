@@ -35,6 +35,7 @@ from ..io.outputs import TARGETS, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.compensation import health_recorder, load_compensation
 from ..pipelines.targets import Search, locate_bag
+from ..pipelines.tracking import fitted_window
 from ..reports.targets import write_locate_report
 from ._args import (
     MAX_FALSE_ALARMS_PER_HOUR,
@@ -146,7 +147,11 @@ def run(args: argparse.Namespace) -> int:
         allow_missing_channels=args.allow_missing_channels,
         earth_field_enu=earth_field_from_params(params, str(args.params)),
         health=health,
-        tracking=(None if args.calibration is None else calibration.sensor_noise_t, args.track),
+        tracking=(
+            None if args.calibration is None else calibration.sensor_noise_t,
+            args.track,
+            None if args.calibration is None else fitted_window(calibration.diagnostics),
+        ),
     )
     out = write_locate_report(
         result, args.out, plots=not args.no_plots, force=args.force, inputs=inputs

@@ -33,7 +33,10 @@ What the data observe:
   (``offset_rate_t_per_sqrt_s``) and a smaller one in the hidden ones
   (``hidden_rate_t_per_sqrt_s``). The constraints pin the fraction within seconds and,
   through this prior, predict part of what they do not see; what the hull's bodies do unlike
-  each other stays in the hidden part and its covariance.
+  each other stays in the hidden part and its covariance. How fast the vehicle changes is
+  learnt from the constrained combinations (their means over ``change_span_s``,
+  ``change_lag_s`` apart) and scales these rates: a vehicle that does not change keeps its
+  state's covariance near zero.
 
 Process model: random walks (a relaxation is a slow, smooth walk). Blocks of ``block_s``
 seconds are one update each (information form: sums over the block's samples, then one
@@ -61,6 +64,8 @@ from ._kalman import (
     N_OFFSETS,
     N_WORLD,
     Block,
+    LaggedRate,
+    TrackerEvent,
     Trial,
     information_update,
     step_directions,
@@ -72,7 +77,6 @@ from .geometry import TetraGeometry
 from .model import InterferenceParameters
 from .types import FloatArray
 from .uncertainty import noise_jacobian
-from .units import NT_PER_T
 
 __all__ = [
     'OffsetTracker',
@@ -82,9 +86,6 @@ __all__ = [
     'handed_over',
     'monitor_feed',
 ]
-
-#: Two blocks are on one heading when their forward axes are within 10 degrees.
-STRAIGHT_COSINE = float(np.cos(np.radians(10.0)))
 
 
 @dataclass(frozen=True)
@@ -107,7 +108,13 @@ class TrackerConfig:
       hypothesis is fitted before the best is kept, s; ``stuck_s``: a gate closed this long
       is taken for a step no monitor handed over, and fitted ``confirm_s`` (a source passing
       close fits one sensor's step for a second, not for five), s.
-    * ``initial_sigma_t``: the offsets' change at the start, per axis, T.
+    * ``initial_sigma_t``: the offsets' change at the start, per axis, T (0: the start is
+      the calibration; a prior there slows what the constraints teach the hidden part).
+    * ``change_span_s``, ``change_lag_s``, ``change_memory_s``, ``change_scale_min``: the
+      offsets' process noise (the rates above) is scaled by how fast the constrained
+      combinations change (their means over ``change_span_s``, ``change_lag_s`` apart,
+      averaged over ``change_memory_s``), within ``change_scale_min`` (where it starts) and
+      1: a vehicle that does not change keeps its state's 1-sigma near zero.
     * ``gate_p``: a block whose innovation is less likely than this is not learnt from.
     """
 
@@ -125,7 +132,11 @@ class TrackerConfig:
     trial_s: float = 1.0
     stuck_s: float = 3.0
     confirm_s: float = 5.0
-    initial_sigma_t: float = 0.02e-9
+    initial_sigma_t: float = 0.0
+    change_span_s: float = 10.0
+    change_lag_s: float = 60.0
+    change_memory_s: float = 120.0
+    change_scale_min: float = 0.001
     gate_p: float = 1e-6
 
     def __post_init__(self) -> None:
@@ -137,44 +148,6 @@ class TrackerConfig:
                 raise InputError(f'TrackerConfig.{name} must be positive, got {value}')
         if self.gate_p >= 1:
             raise InputError(f'TrackerConfig.gate_p must be below 1, got {self.gate_p}')
-
-
-@dataclass(frozen=True)
-class TrackerEvent:
-    """One entry of the audit trail: ``t_s`` (the block's end, or the step's time), s;
-    ``kind`` (``update``, ``gated``, ``excluded``, ``step``, ``transient``: a closed gate
-    no sensor's step explains); ``offsets_t`` (3, 3) the pair
-    offsets' change after it, T; ``sigma_t`` (3, 3) its 1-sigma, T; ``sensors`` (1-based, a
-    step's); ``statistic`` the block's innovation chi-square (a step's: its hypothesis's,
-    summed over ``trial_s``); a step's ``step_t`` (3,) the sensor's offset jump and
-    ``step_sigma_t`` (3,) its 1-sigma, T (its axes)."""
-
-    t_s: float
-    kind: str
-    offsets_t: FloatArray
-    sigma_t: FloatArray
-    sensors: tuple[int, ...] = ()
-    statistic: float = float('nan')
-    step_t: FloatArray | None = None
-    step_sigma_t: FloatArray | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, offsets in nT."""
-        return {
-            't_s': float(self.t_s),
-            'kind': self.kind,
-            'offsets_nT': (self.offsets_t * NT_PER_T).round(6).tolist(),
-            'sigma_nT': (self.sigma_t * NT_PER_T).round(6).tolist(),
-            'sensors': list(self.sensors),
-            'statistic': None if np.isnan(self.statistic) else float(self.statistic),
-        } | (
-            {}
-            if self.step_t is None or self.step_sigma_t is None
-            else {
-                'step_nT': (self.step_t * NT_PER_T).round(6).tolist(),
-                'step_sigma_nT': (self.step_sigma_t * NT_PER_T).round(6).tolist(),
-            }
-        )
 
 
 @dataclass
@@ -233,25 +206,48 @@ class OffsetTracker:
         self.monitored = monitored
         self._h = affine_interference_design(geometry, symmetric=False)[3][:, 27:]  # (9, 9)
         jacobian = noise_jacobian(geometry, parameters)
-        rows = np.eye(9) if with_world else CONSTRAINT_ROWS
-        noise = sensor_noise_t**2 * rows @ jacobian @ jacobian.T @ rows.T
-        self._whiten = np.linalg.inv(np.linalg.cholesky(noise)) @ rows  # (m, 9)
+
+        def whitening(rows: FloatArray) -> FloatArray:  # (m, 9): unit noise per sample
+            noise = sensor_noise_t**2 * rows @ jacobian @ jacobian.T @ rows.T
+            return np.linalg.inv(np.linalg.cholesky(noise)) @ rows
+
+        self._whiten = whitening(np.eye(9) if with_world else CONSTRAINT_ROWS)
+        self._seen_white = whitening(CONSTRAINT_ROWS)
         self._h_white = self._whiten @ self._h
         self._pattern = parameters.b_hard.reshape(9)
         seen = CONSTRAINT_ROWS @ self._h  # (4, 9): the combinations observed at every instant
         self._seen = np.linalg.pinv(seen) @ seen  # projector onto them
         self._steps = step_directions(self._h, jacobian)
         rates = self.config
-        # The offsets' process noise per second: along b, in the observed and hidden parts.
+        # The offsets' process noise per second: along b and in the observed part (scaled by
+        # the learnt change), in the hidden part (without the attitude nothing observes it,
+        # so nothing scales it down).
         self._offset_rate = (
             rates.relative_rate_per_sqrt_s**2 * np.outer(self._pattern, self._pattern)
             + rates.offset_rate_t_per_sqrt_s**2 * self._seen
-            + rates.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
         )
+        self._hidden_rate = rates.hidden_rate_t_per_sqrt_s**2 * (np.eye(N_OFFSETS) - self._seen)
         size = N_OFFSETS + (N_WORLD if with_world else 0)
         self._x = np.zeros(size)
         self._p = np.zeros((size, size))
-        self._p[:N_OFFSETS, :N_OFFSETS] = self.config.initial_sigma_t**2 * np.eye(N_OFFSETS)
+        self._p[:N_OFFSETS, :N_OFFSETS] = rates.initial_sigma_t**2 * np.eye(N_OFFSETS)
+        rate = self._offset_rate + self._hidden_rate
+        seen_rate = self._seen_white @ self._h @ rate @ self._h.T @ self._seen_white.T
+        group = max(1, round(rates.change_span_s / rates.block_s))
+        self._change = LaggedRate(
+            max(1, round(rates.change_lag_s / rates.change_span_s)),
+            rates.change_span_s / rates.change_memory_s,
+            float(np.trace(seen_rate)) * rates.block_s * group,
+            rates.change_scale_min,
+            group,
+        )
+        # The world's pairs on one heading: a body-fixed error turning would read as world.
+        self._world = LaggedRate(
+            max(1, round(rates.world_lag_s / rates.block_s)),
+            rates.block_s / rates.world_memory_s,
+            N_WORLD * rates.block_s,
+            rates.world_rate_t_per_m_sqrt_s**2,
+        )
         if with_world:
             self._p[N_OFFSETS:, N_OFFSETS:] = self.config.world_sigma_t_per_m**2 * np.eye(N_WORLD)
         self._origin: float | None = None
@@ -261,8 +257,6 @@ class OffsetTracker:
         self._trial: Trial | None = None
         self._gated = 0
         self._noise = sensor_noise_t**2 * jacobian @ jacobian.T  # (9, 9) of vec(G), (T/m)^2
-        self._world_rate2 = self.config.world_rate_t_per_m_sqrt_s**2
-        self._world_means: dict[int, tuple[FloatArray, float, FloatArray]] = {}
         self.events: list[TrackerEvent] = []
 
     # ------------------------------------------------------------------ public
@@ -406,12 +400,14 @@ class OffsetTracker:
         start, stop = rows
         w = keep[start:stop]
         y = (g[start:stop].reshape(-1, 9) @ self._whiten.T) * w[:, None]  # (k, m)
+        seen = g[start:stop].reshape(-1, 9) @ self._seen_white.T  # (k, 4)
         block = self._open if self._open is not None and self._open.index == index else None
         if block is None:
             block = self._open = Block(index, self._x.size)
         block.t_end = float(t_s[stop - 1])
         block.n += float(w.sum())
         block.excluded += int(np.sum(w == 0))
+        block.seen += w @ seen
         h = self._h_white
         columns = [np.broadcast_to(h, (stop - start, *h.shape))]
         if rotation is not None:
@@ -425,30 +421,6 @@ class OffsetTracker:
         a = np.concatenate(columns, axis=2) * np.sqrt(w)[:, None, None]  # (k, m, size)
         block.info += np.einsum('kmi,kmj->ij', a, a)
         block.vector += np.einsum('kmi,km->i', a, y)
-
-    def _learn_world_rate(self, block: Block) -> None:
-        """The world gradient's random-walk rate, from blocks ``world_lag_s`` apart on one
-        heading: their world-frame means differ by the world's change plus the noise of both
-        means (known), so the excess over the noise, per second of lag and averaged over
-        ``world_memory_s``, is the walk's variance per second at the scale of a turn. Over
-        geology it grows and a turn then teaches the offsets little; in a uniform field it
-        shrinks and a turn separates them. Pairs across a turn are left out: a body-fixed
-        error rotating with the body would read as a changing world."""
-        config = self.config
-        mean = block.world / block.n
-        noise = block.world_noise / block.n**2
-        heading = block.heading / np.linalg.norm(block.heading)
-        lag = max(1, int(round(config.world_lag_s / config.block_s)))
-        self._world_means[block.index] = (mean, noise, heading)
-        earlier = self._world_means.pop(block.index - lag, None)
-        for stale in [k for k in self._world_means if k <= block.index - lag]:
-            del self._world_means[stale]
-        if earlier is None or float(heading @ earlier[2]) < STRAIGHT_COSINE:
-            return
-        excess = float(np.sum((mean - earlier[0]) ** 2)) - noise - earlier[1]
-        weight = config.block_s / config.world_memory_s
-        per_second = excess / (N_WORLD * lag * config.block_s)
-        self._world_rate2 = (1 - weight) * self._world_rate2 + weight * per_second
 
     def _advance(self, index: int) -> None:
         """Close the open block when ``index`` is a later one: update, then the process noise
@@ -468,7 +440,8 @@ class OffsetTracker:
             self._record(block.t_end, 'excluded')
             return
         if self.with_world:
-            self._learn_world_rate(block)
+            heading = block.heading / np.linalg.norm(block.heading)
+            self._world.add(block.index, block.world, block.n, block.world_noise, heading)
         if self._trial is not None:
             self._try(block)
             return
@@ -481,6 +454,7 @@ class OffsetTracker:
             return
         self._gated = 0
         self._x, self._p = x, p
+        self._change.add(block.index, block.seen, block.n, 4.0 * block.n)
         self._record(block.t_end, 'update', statistic=statistic)
 
     def _start_trial(self, t_s: float, named: tuple[int, ...], duration_s: float) -> None:
@@ -501,6 +475,7 @@ class OffsetTracker:
         self._trial.follow = bool(named)
         self._x, self._p = states[1 if named else 0]
         self._gated = 0
+        self._change.restart()
 
     def _try(self, block: Block) -> None:
         """Every hypothesis updated on the block (no step: only through the gate) and scored
@@ -554,12 +529,15 @@ class OffsetTracker:
         hypothesis of a step being sought)."""
         config = self.config
         q = np.zeros_like(self._p)
-        q[:N_OFFSETS, :N_OFFSETS] = seconds * self._offset_rate
+        scale = min(max(self._change.rate, config.change_scale_min), 1.0)
+        hidden = scale if self.with_world else 1.0
+        q[:N_OFFSETS, :N_OFFSETS] = seconds * (
+            scale * self._offset_rate + hidden * self._hidden_rate
+        )
         if self.with_world:
-            learnt = config.world_margin * self._world_rate2
+            learnt = config.world_margin * self._world.rate
             rate2 = max(learnt, config.world_rate_min_t_per_m_sqrt_s**2)
-            world = rate2 * seconds
-            q[N_OFFSETS:, N_OFFSETS:] = world * np.eye(N_WORLD)
+            q[N_OFFSETS:, N_OFFSETS:] = rate2 * seconds * np.eye(N_WORLD)
         self._p = self._p + q
         if self._trial is not None:
             self._trial.states = [(x, p + q) for x, p in self._trial.states]

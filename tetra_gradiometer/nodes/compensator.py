@@ -132,7 +132,7 @@ PARAMETERS = [
     ),
     ParamSpec(
         'track_calibration',
-        False,
+        True,
         "Follow the calibration's drift and steps online (core/tracking.py, with odom's "
         'attitude when heard by the first set) and add its variance to g_sigma; '
         'false: the calibration as loaded. Read-only.',

@@ -55,7 +55,7 @@ from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, atomic_output, check_output
 from .health import HealthRecorder
 from .terms import StreamRegressors
-from .tracking import TrackedStream
+from .tracking import TrackedStream, fitted_window
 
 __all__ = [
     'COMPENSATED_TOPIC',
@@ -251,6 +251,7 @@ class Compensation:
     covariance: np.ndarray | None = None
     forced: tuple[str, ...] = ()
     calibration_id: str = ''
+    fitted: tuple[str, float] | None = None  # its bag and window end, s (fitted_window)
 
 
 def health_recorder(
@@ -321,6 +322,7 @@ def load_compensation(
         covariance,
         calibration.forced_warnings(),
         calibration.created_utc,
+        fitted_window(calibration.diagnostics),
     )
 
 
@@ -519,8 +521,7 @@ def _tracked(
     sigmas: FloatArray | None,
     bag: MagneticBag,
 ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
-    """The chunk's tensors and 1-sigma with the calibration tracked, and the change removed
-    (n, 9) T; unchanged (and None) without tracking."""
+    """The chunk tracked: its tensors, 1-sigma and the change removed (n, 9) T (None untracked)."""
     if tracking is None:
         return tensors, sigmas, None
     return tracking.apply(stamps, fields, tensors, sigmas, bag.reader.start_time)

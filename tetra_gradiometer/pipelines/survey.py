@@ -315,7 +315,15 @@ def _compensated(
     assert recording.position_m is not None  # survey_bag refuses a bag without /odom
     track = (recording.t_s, recording.position_m, tracking[0])
     body, variance, _ = track_tensors(
-        bag, geometry, parameters, compensation.sensor_noise_t, recording, body, track, tracking[1]
+        bag,
+        geometry,
+        parameters,
+        compensation.sensor_noise_t,
+        recording,
+        body,
+        track,
+        tracking[1],
+        compensation.fitted,
     )
     total[known] = sigma(fields[known, 0, :], xk)
     noise[known] = noise_model(fields[known, 0, :], xk)

@@ -95,7 +95,7 @@ def locate_bag(
     allow_missing_channels: bool = False,
     earth_field_enu: np.ndarray | None = None,
     health: HealthRecorder | None = None,
-    tracking: tuple[float | None, bool | None] = (None, False),
+    tracking: tuple[float | None, bool | None, tuple[str, float] | None] = (None, False, None),
 ) -> BagTargets:
     """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
     7, when None) and, with ``comparison``, the raw one too. ``allow_missing_channels``: a
@@ -103,8 +103,9 @@ def locate_bag(
     mean instead of refusing (``compensate --allow-missing-channels``). ``earth_field_enu``
     (3,) T, the params file's: the odometry's world frame is tested against it. ``health``
     (pipelines/health) is fed the compensated sets: the output checks itself.
-    ``tracking``: the calibration's sensor noise (T) and whether to track it
-    (pipelines/tracking.py; None: as ``compensate`` by default).
+    ``tracking``: the calibration's sensor noise (T), whether to track it
+    (pipelines/tracking.py; None: as ``compensate`` by default) and its bag and window end
+    (:func:`~.tracking.fitted_window`).
 
     Raises
     ------
@@ -136,6 +137,7 @@ def locate_bag(
             g,
             (track.t_s, track.positions, track.rotations),
             asked=tracking[1],
+            fitted=tracking[2],
         )
         kinds.append(('compensated', g))
         if health is not None:

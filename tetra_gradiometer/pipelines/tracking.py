@@ -18,7 +18,10 @@ the change removed from each row, nT.
 
 from __future__ import annotations
 
+import os
+import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,6 +40,7 @@ __all__ = [
     'TRACK_BY_DEFAULT',
     'TRACKING_COLUMNS',
     'TrackedStream',
+    'fitted_window',
     'odometry_orientation',
     'target_spans',
     'track_tensors',
@@ -44,12 +48,11 @@ __all__ = [
 ]
 
 #: Whether ``compensate``, ``survey``, ``locate``, ``batch`` (and the compensator node's
-#: ``track_calibration``) track the calibration unless told otherwise. Off: on drifting hulls
-#: tracking brings 7-9x the floor back to 1.0-1.1x with ``/odom`` (bench/results/tracker.json),
-#: but on vehicles that do not change it costs 1-3 % (bench_window's missions), 2.06x the
-#: floor where the bag opens with a trim over the target (1.01x frozen), and survey cells'
-#: sigma 2.2-3.3x (docs/offline.md).
-TRACK_BY_DEFAULT = False
+#: ``track_calibration``) track the calibration unless told otherwise (``--freeze-calibration``
+#: switches it off). On: drifting hulls go from 7-12x the floor frozen to 1.01-1.03x with
+#: ``/odom`` (bench/results/tracker.json); vehicles that do not change stay within 0.5 % of
+#: frozen (bench/results/window.json) and survey cells keep their sigma (docs/offline.md).
+TRACK_BY_DEFAULT = True
 
 #: Seconds each side of a detected anomaly the tracker does not learn from.
 TARGET_MARGIN_S = 5.0
@@ -82,6 +85,30 @@ def odometry_orientation(bag: Any) -> tuple[OrientationSource | None, str]:
     return OrientationSource(check.stamps_ns, check.pose[:, cv.POSE_ORIENTATION]), ''
 
 
+def fitted_window(diagnostics: dict[str, Any]) -> tuple[str, float] | None:
+    """A calibration file's bag and the end of its window (s from the bag's first set;
+    ``inf`` for the whole bag) from its ``diagnostics`` (``bag``, ``window_s``), or None
+    when it does not say."""
+    bag, window = diagnostics.get('bag'), str(diagnostics.get('window_s', ''))
+    if not bag:
+        return None
+    if window == 'whole bag':
+        return str(bag), float('inf')
+    found = re.fullmatch(r'\s*(\S+?):(\S+?)\s*s?\s*', window)
+    return (str(bag), float(found.group(2))) if found else None
+
+
+def learning_start_s(bag_path: Any, fitted: tuple[str, float] | None) -> float:
+    """Seconds from the bag's first set before which the tracker does not learn: the end
+    of the calibration's window when it was fitted on this bag (the fit is the truth up to
+    there; a trim before it, over a target, would teach the offsets a wrong change), else
+    ``-inf``."""
+    if fitted is None:
+        return float('-inf')
+    same = Path(os.fspath(fitted[0])).resolve() == Path(os.fspath(bag_path)).resolve()
+    return fitted[1] if same else float('-inf')
+
+
 def tracked_stream(
     bag_path: Any,
     geometry: TetraGeometry,
@@ -89,11 +116,14 @@ def tracked_stream(
     sensor_noise_t: float | None,
     health: HealthRecorder | None,
     asked: bool | None = None,
+    fitted: tuple[str, float] | None = None,
 ) -> tuple[TrackedStream | None, str]:
     """The tracker of a bag's compensation (``compensate``, ``batch``), with ``/odom`` when
     it is usable, and what it goes without ('' when nothing). ``asked`` True or False
     (``--track-calibration``, ``--freeze-calibration``), None: :data:`TRACK_BY_DEFAULT`, and
-    then no tracker, with a note, when the calibration gives no sensor noise.
+    then no tracker, with a note, when the calibration gives no sensor noise. ``fitted``:
+    the calibration's bag and window end (:func:`fitted_window`): in that bag the tracker
+    learns only after it.
 
     Raises
     ------
@@ -113,7 +143,9 @@ def tracked_stream(
         )
     with MagneticBag(bag_path) as bag:
         orientation, note = odometry_orientation(bag)
-    return TrackedStream(geometry, parameters, sensor_noise_t, orientation, health), note
+    tracking = TrackedStream(geometry, parameters, sensor_noise_t, orientation, health)
+    tracking.learn_after_s = learning_start_s(bag_path, fitted)
+    return tracking, note
 
 
 def target_spans(
@@ -150,14 +182,17 @@ def track_tensors(
     tensors: FloatArray,
     track: tuple[FloatArray, FloatArray, FloatArray],
     asked: bool | None = None,
+    fitted: tuple[str, float] | None = None,
 ) -> tuple[FloatArray, FloatArray, str]:
     """A whole recording's compensated ``tensors`` (N, 3, 3) T/m tracked as ``compensate``
     tracks them (``survey``, ``locate``), never learning from the anomalies
     detected along ``track`` (``t_s``, ``positions``, ``rotations``: :func:`target_spans`):
     the tracked tensors (NaN rows stay NaN), the state's variance (N, 3, 3) (T/m)^2 and the
     tracker's summary line (or why there is none). ``recording``: its ``stamps_ns`` (N,)
-    and ``fields`` (N, 4, 3) T; ``asked``: as :func:`tracked_stream`'s."""
-    tracking, note = tracked_stream(bag_path, geometry, parameters, sensor_noise_t, None, asked)
+    and ``fields`` (N, 4, 3) T; ``asked``, ``fitted``: as :func:`tracked_stream`'s."""
+    tracking, note = tracked_stream(
+        bag_path, geometry, parameters, sensor_noise_t, None, asked, fitted
+    )
     variance = np.zeros_like(tensors)
     if tracking is None:
         return tensors, variance, note
@@ -214,6 +249,9 @@ class TrackedStream:
         )
         self.orientation = orientation
         self.health = health
+        #: Seconds from the first set up to which the sets stay as compensated (the
+        #: calibration's own window in its bag, :func:`learning_start_s`).
+        self.learn_after_s = float('-inf')
         self._origin_ns: int | None = None
 
     def __call__(
@@ -227,27 +265,46 @@ class TrackedStream:
         """One chunk: ``stamps_ns`` (n,), ``fields`` (n, 4, 3) T, ``tensors`` (n, 3, 3) T/m
         compensated with the frozen calibration, ``exclude`` (n,) bool samples not learnt
         from (targets). Returns the tracked tensors (n, 3, 3) T/m,
-        the state's variance per component (n, 9) (T/m)^2 and the change removed (n, 9) T."""
+        the state's variance per component (n, 9) (T/m)^2 and the change removed (n, 9) T.
+        Sets up to :attr:`learn_after_s` (s from the first set) are the frozen ones: the
+        tracker starts after them."""
         if self._origin_ns is None and len(stamps_ns):
             self._origin_ns = int(stamps_ns[0])
         elapsed = np.asarray(stamps_ns, dtype=np.int64) - (self._origin_ns or 0)
         t_s = elapsed.astype(np.float64) * S_PER_NS
-        quaternions = None if self.orientation is None else self.orientation(stamps_ns)
-        feed = None
+        n = len(t_s)
+        held = int(np.searchsorted(t_s, self.learn_after_s, side='right'))
+        g, variance, offsets = tensors.copy(), np.zeros((n, 9)), np.zeros((n, 9))
         health = self.health
+        if held and health is not None:
+            health.add(stamps_ns[:held], fields[:held], tensors[:held], bag_start_ns=bag_start_ns)
+        if held == n:
+            return g, variance, offsets
+        rows = slice(held, n)
+        quaternions = None if self.orientation is None else self.orientation(stamps_ns[rows])
+        feed = None
         if health is not None:
 
-            def feed(start: int, stop: int, g: FloatArray) -> list[tuple[float, tuple[int, ...]]]:
+            def feed(
+                start: int, stop: int, tracked: FloatArray
+            ) -> list[tuple[float, tuple[int, ...]]]:
                 before = len(health.monitor.alarms)
-                rows = slice(start, stop)
-                health.add(stamps_ns[rows], fields[rows], g, bag_start_ns=bag_start_ns)
+                part = slice(held + start, held + stop)
+                health.add(stamps_ns[part], fields[part], tracked, bag_start_ns=bag_start_ns)
                 steps = handed_over(health.monitor.alarms[before:])
                 # The monitor's times are from the bag's start, the tracker's from the first set.
                 shift = ((health.origin_ns or 0) - (self._origin_ns or 0)) * S_PER_NS
                 return [(t + shift, sensors) for t, sensors in steps]
 
-        chunk = self.tracker.update(t_s, tensors, quaternions, exclude, health=feed)
-        return chunk.g, chunk.variance, chunk.offsets
+        chunk = self.tracker.update(
+            t_s[rows],
+            tensors[rows],
+            quaternions,
+            None if exclude is None else exclude[rows],
+            health=feed,
+        )
+        g[rows], variance[rows], offsets[rows] = chunk.g, chunk.variance, chunk.offsets
+        return g, variance, offsets
 
     #: The CSV header's further columns.
     csv_columns = ',' + ','.join(TRACKING_COLUMNS)
