@@ -240,7 +240,8 @@ class TensorNode(ManagedNode):
         """One serialized MagneticField (T): queue its reading; publish every set it completes.
         (Serialized: io/conversions reads the bytes, no message object per reading.)"""
         self._received[sensor] += 1
-        self._last_arrival[sensor] = self._now_s()
+        now_ns = self._now_ns()  # one clock read per message: 10 us each, a set reads 4
+        self._last_arrival[sensor] = now_ns * S_PER_NS
         self._ever[sensor] = True
         try:
             # Each reading's covariance travels with its field (12 values) into its set's
@@ -253,7 +254,7 @@ class TensorNode(ManagedNode):
             return
         if self._horizon.refuse(cv.MAG_TOPICS[sensor], stamp):  # never into the set former
             return
-        if not self._streams.accept(sensor, stamp, self._now_ns(), *reading[:3].tolist()):
+        if not self._streams.accept(sensor, stamp, now_ns, *reading[:3].tolist()):
             if self._warn():
                 self.get_logger().warning(
                     f'dropped a {cv.MAG_TOPICS[sensor]} reading: {self._stream_text(sensor)}'
@@ -319,7 +320,7 @@ class TensorNode(ManagedNode):
                     f'({self.sets_invalid} sets dropped so far)'
                 )
             return
-        if self._stale_sensors():
+        if self._stale_sensors(max(self._last_arrival)):  # the arrival just stamped: now
             self.sets_stale += 1
             return
         g = difference_tensor(fields[None], self._geometry)[0]
@@ -368,8 +369,9 @@ class TensorNode(ManagedNode):
         10x real time, or paused, shows the bag's rates and staleness, not the wall clock's)."""
         return self.get_clock().now().nanoseconds * S_PER_NS
 
-    def _stale_sensors(self) -> list[int]:
-        now = self._now_s()
+    def _stale_sensors(self, now: float | None = None) -> list[int]:
+        """The sensors silent beyond ``stale_timeout_s`` at ``now`` (s, default: the clock)."""
+        now = self._now_s() if now is None else now
         return [s for s in range(4) if now - self._last_arrival[s] > self._stale_timeout]
 
     def _update_rates(self) -> None:
