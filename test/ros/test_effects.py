@@ -374,7 +374,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
         # for the test and ~45 s wall, paced 21-22 s and 27-32 s with two busy processes beside
         # it. The trim stays at 8x: the calibrator is not on the compensator's path, and paced
         # by it at rate 0 its best-effort channels lost messages (1 of 2 runs).
-        graph.start('driver', rate=0.0, pace_topic='gradient/compensated', max_in_flight=4, **driver)
+        graph.start('driver', rate=0.0, **driver)
         wait_for(lambda: probe.count_publishers('/battery_state') >= 1
                  and probe.count_publishers('/tetra/temperature') >= 1, 30, 'the second driver', graph)
         wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)

@@ -202,8 +202,8 @@ def test_the_offline_reference_holds_every_sensor_1_instant_it_can_resolve(repla
 
 
 def test_replayed_as_fast_as_the_chain_takes_it_the_tensors_are_the_offline_ones(replay):
-    """``rate: 0``: the driver runs ahead of the tensors by ``max_in_flight`` sets."""
-    played = _play(replay, rate=0.0, max_in_flight=4)
+    """``rate: 0``: the driver runs at most 4 sets ahead of the tensors."""
+    played = _play(replay, rate=0.0)
     worst = _assert_offline_tensors(played.tensors, replay, played.logs)
     # The node's clock estimates on /diagnostics: the simulated offsets (as offline).
     offsets_ms = [float(status['clock_offset_ms']) for status in played.sensors]

@@ -29,10 +29,10 @@ recorded covariance; one recorded without (all zero) gets
 Pacing: ``rate`` times real time (by sample time in sim, by log time in replay; a frame
 more than ``MAX_CATCH_UP_S`` late, after a stall, restarts the pacing from itself rather
 than the backlog going out at once: counted as ``pace_restarts``), or with
-``rate: 0`` as fast as the graph takes it: at most ``max_in_flight`` sets are published
-ahead of the last ``pace_topic`` message received (``gradient/raw``, the tensor node; or
-``gradient/compensated``, the end of the chain: after ``ack_timeout_s`` without one, the
-driver moves on and counts a timeout).
+``rate: 0`` as fast as the chain takes it: at most ``ACK_WINDOW`` sets are published ahead
+of the last tensor the chain gave back with their stamp, the end of the chain that runs:
+``gradient/compensated`` while a compensator publishes it, else ``gradient/raw`` (the
+tensor node). After ``ACK_TIMEOUT_S`` without one, the driver moves on and counts a timeout.
 
 ``start_paused`` waits for ``~/resume``; ``hold_between_segments`` (sim) pauses after each
 scenario segment until ``~/resume`` (so a trim can be calibrated before the survey starts).
@@ -71,16 +71,20 @@ from .common import (
     diagnostics_period_spec,
     frame_ids,
     non_negative,
-    one_of,
-    positive,
     status,
 )
 from .managed import ManagedNode
 from .process import spin_node
 from .replay import CHANNEL, MAG, ODOM, SIGNAL, TRUTH, Frame
 
-#: rate 0: the topics whose messages may pace the replay (``pace_topic``).
-PACE_TOPICS = ('gradient/raw', 'gradient/compensated')
+#: rate 0: sets published ahead of the last one the chain gave back. Small, so that no
+#: reader's queue (1000 sets) can overflow however little CPU its node gets.
+ACK_WINDOW = 4
+
+#: rate 0: s without a tensor back before the driver moves on (counted as ``ack_timeouts``);
+#: also how long gradient/raw is ignored after a gradient/compensated (the compensator paces
+#: while it answers: a compensator short of CPU slows the replay instead of dropping sets).
+ACK_TIMEOUT_S = 0.5
 
 #: Why the driver refuses to configure without a ``mode``.
 MODE_UNSET = (
@@ -132,8 +136,8 @@ PARAMETERS = [
     ParamSpec(
         'rate',
         1.0,
-        'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by pace_topic). '
-        'At most 1000.',
+        'Speed: multiple of real time; 0 = as fast as the chain takes it (paced by '
+        'gradient/compensated, or gradient/raw without a compensator). At most 1000.',
         non_negative,
         float_range=(0.0, 1000.0),
     ),
@@ -161,29 +165,6 @@ PARAMETERS = [
         'Play only this much sample time, s (0: all; at most 1e6 s, 11.6 days of mission).',
         non_negative,
         float_range=(0.0, 1e6),
-    ),
-    ParamSpec(
-        'max_in_flight',
-        4,
-        'rate 0: sets published ahead of the last gradient/raw received (at most 1000, the '
-        "tensor node's pending queue; beyond, sets are lost, not faster).",
-        int_range=(1, 1000),
-    ),
-    ParamSpec(
-        'pace_topic',
-        'gradient/raw',
-        'rate 0: the tensor topic that paces the replay: gradient/raw (the tensor node) or '
-        'gradient/compensated (the whole chain: a compensator short of CPU slows the replay '
-        'instead of dropping the oldest sets of its 1000-set queue).',
-        one_of(*PACE_TOPICS),
-    ),
-    ParamSpec(
-        'ack_timeout_s',
-        0.5,
-        'rate 0: move on after this long without gradient/raw, s (0.01-60: shorter than a '
-        'tensor round trip counts every set as a timeout).',
-        positive,
-        float_range=(0.01, 60.0),
     ),
     ParamSpec(
         'publisher_depth',
@@ -250,8 +231,6 @@ class DriverNode(ManagedNode):
         publishers, services and timers."""
         self._rate = float(p['rate'])
         self._hold = bool(p['hold_between_segments'])
-        self._window = int(p['max_in_flight'])
-        self._ack_timeout = float(p['ack_timeout_s'])
         if not p['mode']:
             raise ParamsError(MODE_UNSET)
         self._mode = p['mode']
@@ -269,6 +248,7 @@ class DriverNode(ManagedNode):
         self.pace_restarts = 0
         self._in_flight: deque[int] = deque()
         self._last_progress = time.monotonic()
+        self._compensated_at = -ACK_TIMEOUT_S  # monotonic s of the last gradient/compensated
         self._origin = (time.monotonic(), self._next.pace_ns if self._next else 0)
 
         # REP 2003: a sensor driver publishes with the system default (reliable, volatile);
@@ -309,7 +289,10 @@ class DriverNode(ManagedNode):
         self._clock_ns = -CLOCK_STEP_NS
         gated = self.when_active
         if self._rate == 0:
-            self.create_subscription(tensor, p['pace_topic'], gated(self._on_ack), derived_qos())
+            self.create_subscription(tensor, 'gradient/raw', gated(self._on_raw), derived_qos())
+            self.create_subscription(
+                tensor, cv.COMPENSATED_NODE_TOPIC, gated(self._on_compensated), derived_qos()
+            )
         self.create_service(Trigger, '~/resume', gated(self._on_resume))
         self.create_service(Trigger, '~/pause', gated(self._on_pause))
         # Wall-clock (steady) timers: the driver is the source of /clock, so it must not wait
@@ -412,8 +395,8 @@ class DriverNode(ManagedNode):
                 if frame.pace_ns < due_ns - MAX_CATCH_UP_S * self._rate * NS_PER_S:
                     self._origin = (now, frame.pace_ns)
                     self.pace_restarts += 1
-            elif len(self._in_flight) >= self._window:
-                if now - self._last_progress < self._ack_timeout:
+            elif len(self._in_flight) >= ACK_WINDOW:
+                if now - self._last_progress < ACK_TIMEOUT_S:
                     return
                 self.ack_timeouts += 1
                 self._in_flight.clear()
@@ -435,6 +418,16 @@ class DriverNode(ManagedNode):
                     self._last_progress = time.monotonic()
                 self._in_flight.append(frame.mag1_stamp)
         self.segment = frame.segment
+
+    def _on_raw(self, msg: Any) -> None:
+        """rate 0: the tensor node's tensor paces unless a compensator has answered lately."""
+        if time.monotonic() - self._compensated_at >= ACK_TIMEOUT_S:
+            self._on_ack(msg)
+
+    def _on_compensated(self, msg: Any) -> None:
+        """rate 0: the end of the chain answered: it paces."""
+        self._compensated_at = time.monotonic()
+        self._on_ack(msg)
 
     def _on_ack(self, msg: Any) -> None:
         """rate 0: a tensor came back; release the sets up to its stamp."""
