@@ -34,3 +34,23 @@ def node_in_process(node_class: type, monkeypatch: Any, **parameters: Any) -> It
         if node is not None:
             node.destroy_node()
         context.try_shutdown()
+
+
+def last_status(published: list, name: str) -> dict:
+    """The values of the last ``/diagnostics`` status ``name`` in ``published``, with its
+    ``message`` and ``level`` (0 OK, 1 WARN, 2 ERROR); {} when none was published."""
+    for topic, array in reversed(published):
+        if topic == '/diagnostics':
+            for found in array.status:
+                if found.name == name:
+                    return {**{v.key: v.value for v in found.values}, 'message': found.message,
+                            'level': found.level[0]}
+    return {}
+
+
+def deserialized(published: list, topic: str, message_class: type) -> list:
+    """The messages published on ``topic``, serialized ones deserialized as ``message_class``."""
+    from rclpy.serialization import deserialize_message
+
+    return [deserialize_message(m, message_class) if isinstance(m, bytes) else m
+            for t, m in published if t == topic]

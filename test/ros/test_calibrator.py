@@ -9,7 +9,7 @@ import re
 import time
 
 import numpy as np
-from in_process import node_in_process
+from in_process import last_status, node_in_process
 from ros_helpers import interference_set, ros_graph, set_parameter, wait_for, wait_matched
 
 from tetra_gradiometer import core
@@ -64,9 +64,7 @@ def _collect(node, stamps, g, b, q=None) -> None:
 def _status(node, published) -> dict:
     """The calibrator's /diagnostics status published now: its values, ``message``, ``level``."""
     node._publish_diagnostics()
-    array = [m for topic, m in published if topic == '/diagnostics'][-1]
-    (found,) = [s for s in array.status if s.name == CALIBRATION]
-    return {**{v.key: v.value for v in found.values}, 'message': found.message, 'level': found.level[0]}
+    return last_status(published, CALIBRATION)
 
 
 def _stamps(n: int, first: int = 0) -> np.ndarray:
