@@ -12,25 +12,42 @@ from typing import Any
 from ros_helpers import unique_domain
 
 
+#: ``[node, published]`` of each node in process; node None while it is being built.
+_CAPTURES: list[list[Any]] = []
+
+
+def _capture(publisher: Any, msg: Any) -> None:
+    """Into the ``published`` of the node owning ``publisher`` (or of the one being built)."""
+    for node, published in _CAPTURES:
+        if node is None or any(p is publisher for p in node.publishers):
+            published.append((publisher.topic_name, msg))
+            return
+    raise AssertionError(f'a publish on {publisher.topic_name} by no node in process')
+
+
 @contextlib.contextmanager
 def node_in_process(node_class: type, monkeypatch: Any, **parameters: Any) -> Iterator[tuple[Any, list]]:
     """``(node, published)``: a ``node_class`` built with ``parameters`` in a context of its
-    own; ``published`` receives ``(topic, message)`` for every publish of any publisher (a
-    serialized message stays bytes)."""
+    own; ``published`` receives ``(topic, message)`` for every publish of its publishers (a
+    serialized message stays bytes). Several may be open at once, each capturing its own."""
     import rclpy
     from rclpy.parameter import Parameter
     from rclpy.publisher import Publisher
 
     published: list[tuple[str, Any]] = []
-    monkeypatch.setattr(Publisher, 'publish', lambda self, msg: published.append((self.topic_name, msg)))
+    monkeypatch.setattr(Publisher, 'publish', _capture)
+    capture = [None, published]
+    _CAPTURES.append(capture)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=unique_domain())
     node = None
     try:
         node = node_class(context=context,
                           parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()])
+        capture[0] = node
         yield node, published
     finally:
+        _CAPTURES.remove(capture)
         if node is not None:
             node.destroy_node()
         context.try_shutdown()
