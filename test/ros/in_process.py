@@ -71,3 +71,13 @@ def deserialized(published: list, topic: str, message_class: type) -> list:
 
     return [deserialize_message(m, message_class) if isinstance(m, bytes) else m
             for t, m in published if t == topic]
+
+
+def set_sim_time(node: Any, stamp_ns: int) -> None:
+    """The node's time (``use_sim_time``) to ``stamp_ns``, through its own ``/clock``
+    subscription's callback, as a /clock message would set it."""
+    from builtin_interfaces.msg import Time
+    from rosgraph_msgs.msg import Clock
+
+    (clock,) = [s for s in node.subscriptions if s.topic_name == '/clock']
+    clock.callback(Clock(clock=Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)))
