@@ -7,7 +7,6 @@ also in this process, on a clock the test owns."""
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -54,11 +53,19 @@ def _replay(bag: str, rate: float) -> tuple[list[int], list[dict[str, float]]]:
         for topic in ('mag1', 'mag2', 'mag3', 'mag4'):
             wait_for(lambda t=topic: probe.count_publishers(f'/tetra/{t}') >= 2, 30, f'the driver on {topic}', graph)
         wait_for(lambda: probe.count_publishers('/clock') >= 1, 30, 'the driver on /clock', graph)
-        time.sleep(2.0)  # the tensor node's side of the discovery
+
+        def matched() -> bool:  # the tensor node's side of the discovery: the driver's writers
+            inputs = probe.status('tetra/tensor: inputs')
+            return int(inputs.get('/clock publishers', 0)) >= 1 and all(
+                int(inputs.get(f'/tetra/mag{s} publishers', 0)) >= 2 for s in range(1, 5))
+
+        wait_for(matched, 30, "the tensor node to see the driver's publishers", graph)
         assert probe.call('driver/resume').success
         wait_for(lambda: probe.status('tetra/driver: playback').get('state') == 'finished',
                  SECONDS / rate + 30, 'the end of the replay', graph)
-        time.sleep(0.5)
+        with lock:  # a status after the last reading
+            done = len(statuses)
+        wait_for(lambda: len(statuses) > done + 1, 10, 'the statuses after the replay', graph)
     with lock:
         return list(clocks), list(statuses)
 
