@@ -81,3 +81,24 @@ def set_sim_time(node: Any, stamp_ns: int) -> None:
 
     (clock,) = [s for s in node.subscriptions if s.topic_name == '/clock']
     clock.callback(Clock(clock=Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)))
+
+
+
+@contextlib.contextmanager
+def compensator_in_process(monkeypatch: Any, **parameters: Any) -> Iterator[tuple[Any, list]]:
+    """:func:`node_in_process` of the compensator, the graph (as the node asks it) naming
+    its configured calibration publisher alone: a calibration handed to its callback is that
+    node's, and its signature is checked as the topic's would be."""
+    from tetra_gradiometer.nodes.compensator import CompensatorNode
+
+    with node_in_process(CompensatorNode, monkeypatch, **parameters) as (node, published):
+        monkeypatch.setattr(node._watch, 'publishers', lambda topic: [node._gate.publisher])
+        yield node, published
+
+
+def served(node: Any, name: str) -> Any:
+    """The callback the node serves ``~/name`` with, as a request reaches it (its wrappers:
+    the activity gate, the log line of a state-changing call)."""
+    names = (f'~/{name}', f'{node.get_fully_qualified_name()}/{name}')  # as created, or expanded
+    (service,) = [s for s in node.services if s.srv_name in names]
+    return service.callback

@@ -2,13 +2,13 @@
 exact parameters from the calibration topic give the true (zero) tensor, each GradientTensor
 saying its state and calibration; refusals of calibrations that do not fit; its sigma; the
 health alarm. Node logic in this process (test/ros/in_process.py: its callbacks called with
-serialized tensors, what it publishes captured; the topic's publisher check is
-test_calibration_authentication.py's); over real DDS, a corrupt file refuses the start (the
-lifecycle refusal: test_lifecycle.py)."""
+serialized tensors, what it publishes captured, the graph naming the configured publisher:
+who publishes is test_calibration_authentication.py's, over real DDS); as a process, a
+corrupt file refuses the start (the lifecycle refusal: test_lifecycle.py)."""
 from __future__ import annotations
 
 import numpy as np
-from in_process import deserialized, last_status, node_in_process
+from in_process import compensator_in_process, deserialized, last_status
 from ros_helpers import calibration_msg, interference_set, ros_graph
 
 from tetra_gradiometer import core
@@ -22,19 +22,7 @@ COMPENSATION = 'tetra/compensator: compensation'
 
 
 def _compensator(monkeypatch, calibration_file, **parameters):
-    """``(node, published)`` of a compensator in this process; every calibration handed to
-    its callback is past the publisher check (what the graph names)."""
-    import contextlib
-
-    from tetra_gradiometer.nodes.compensator import CompensatorNode
-
-    @contextlib.contextmanager
-    def built():
-        with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration_file),
-                             **parameters) as (node, published):
-            monkeypatch.setattr(node._gate, 'admit', lambda text, waited_s: True)
-            yield node, published
-    return built()
+    return compensator_in_process(monkeypatch, calibration_file=str(calibration_file), **parameters)
 
 
 def _raw(node, i, g, b, g_sigma=None) -> None:

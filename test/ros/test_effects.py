@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from in_process import deserialized, last_status, node_in_process
+from in_process import compensator_in_process, deserialized, last_status, node_in_process
 from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_tensor_delivers
 
 from tetra_gradiometer import core
@@ -179,19 +179,8 @@ def _raw_messages(offline: Offline, indices) -> list[bytes]:
 
 
 def _compensator(monkeypatch, calibration_file):
-    """A compensator in this process (test/ros/in_process.py) without the tracker; every
-    calibration handed to its callback is past the publisher check (the graph's)."""
-    import contextlib
-
-    from tetra_gradiometer.nodes.compensator import CompensatorNode
-
-    @contextlib.contextmanager
-    def built():
-        with node_in_process(CompensatorNode, monkeypatch, calibration_file=str(calibration_file),
-                             track_calibration=False) as (node, published):
-            monkeypatch.setattr(node._gate, 'admit', lambda text, waited_s: True)
-            yield node, published
-    return built()
+    """A compensator in this process (test/ros/in_process.py), without the tracker."""
+    return compensator_in_process(monkeypatch, calibration_file=str(calibration_file), track_calibration=False)
 
 
 def _compensated(published) -> dict[int, gt.TensorSet]:
