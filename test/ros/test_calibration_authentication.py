@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 import yaml
-from ros_helpers import calibration_msg, interference_set, ros_graph, wait_for, wait_matched
+from ros_helpers import calibration_msg, interference_set, ros_graph, wait_for
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile
