@@ -125,7 +125,6 @@ class Played:
 
     tensors: dict[int, np.ndarray]  # gradient/raw by stamp, T/m
     times: PublishTimes
-    sensors: list[dict]  # the tensor node's last /diagnostics status of mag1..mag4
     logs: str  # the driver's final playback status and the nodes' output
 
 
@@ -166,12 +165,10 @@ def _play(replay: Replay, **driver_params) -> Played:
         else:
             raise AssertionError(
                 f'replay did not finish ({probe.status(PLAYBACK)})\n{graph.logs()}')
-        time.sleep(0.5)  # one more /diagnostics of the tensor node after the last set
         with probe.lock:
             live = dict(probe.tensors['gradient/raw'])
-        sensors = [dict(probe.status(f'tetra/tensor: mag{s}')) for s in range(1, 5)]
         logs = f'{PLAYBACK}: {probe.status(PLAYBACK)}\n{graph.logs()}'
-    return Played(live, times, sensors, logs)
+    return Played(live, times, logs)
 
 
 def _assert_offline_tensors(live: dict[int, np.ndarray], replay: Replay, logs: str) -> float:
