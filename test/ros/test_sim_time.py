@@ -98,10 +98,10 @@ def test_replay_publishes_clock_and_diagnostics_follow_the_bag_time(bag):
     middle = playing[1:-1]  # the first window starts before the data, the last may be partial
     # The rate is on the readings' own stamps: the bag's, however late the executor runs (the
     # node clock gave 29-142 Hz under load; the wall clock would give 500 Hz at 10x). Over
-    # best-effort DDS a loaded machine loses readings (32 and 38 Hz windows seen at load 8.5):
-    # never above the bag's, and exactly it where nothing was lost (every window: in process).
+    # best-effort DDS a loaded machine loses readings (32 to 46 Hz windows seen at load 8 to
+    # 20): never above the bag's here; exactly the bag's in every window in process below.
     fresh = [b['rate_hz'] for a, b in zip(middle, middle[1:]) if b['received'] > a['received']]
-    assert fresh and max(fresh) == pytest.approx(RATE_HZ, rel=1e-6), fresh
+    assert fresh and max(fresh) <= RATE_HZ * (1 + 1e-6), fresh
     assert max(s['staleness_s'] for s in middle) < 0.2
 
 
