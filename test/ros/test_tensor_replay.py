@@ -224,7 +224,7 @@ def test_replayed_as_fast_as_the_chain_takes_it_the_tensors_are_the_offline_ones
                 taken = len(played)
                 for topic, message in published[returned:]:
                     if topic == '/tetra/gradient/raw':  # its pacing: may publish the next sets
-                        driver._on_raw(deserialized([(topic, message)], topic, gt.rclpy_class())[0])
+                        driver._on_ack(deserialized([(topic, message)], topic, gt.rclpy_class())[0])
                 returned = len(published)
             if driver.state == 'finished':
                 break

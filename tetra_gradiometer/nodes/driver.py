@@ -29,10 +29,9 @@ recorded covariance; one recorded without (all zero) gets
 Pacing: ``rate`` times real time (by sample time in sim, by log time in replay; a frame
 more than ``MAX_CATCH_UP_S`` late, after a stall, restarts the pacing from itself rather
 than the backlog going out at once: counted as ``pace_restarts``), or with
-``rate: 0`` as fast as the chain takes it: at most ``ACK_WINDOW`` sets are published ahead
-of the last tensor the chain gave back with their stamp, the end of the chain that runs:
-``gradient/compensated`` while a compensator publishes it, else ``gradient/raw`` (the
-tensor node). After ``ACK_TIMEOUT_S`` without one, the driver moves on and counts a timeout.
+``rate: 0`` as fast as the tensor node takes it: at most ``ACK_WINDOW`` sets are published
+ahead of the last ``gradient/raw`` received. After ``ACK_TIMEOUT_S`` without one, the driver
+moves on and counts a timeout.
 
 ``start_paused`` waits for ``~/resume``; ``hold_between_segments`` (sim) pauses after each
 scenario segment until ``~/resume`` (so a trim can be calibrated before the survey starts).
@@ -77,13 +76,11 @@ from .managed import ManagedNode
 from .process import spin_node
 from .replay import CHANNEL, MAG, ODOM, SIGNAL, TRUTH, Frame
 
-#: rate 0: sets published ahead of the last one the chain gave back. Small, so that no
-#: reader's queue (1000 sets) can overflow however little CPU its node gets.
+#: rate 0: sets published ahead of the last gradient/raw received (the tensor node's
+#: pending queue is far deeper; a small window keeps its readers' queues short).
 ACK_WINDOW = 4
 
-#: rate 0: s without a tensor back before the driver moves on (counted as ``ack_timeouts``);
-#: also how long gradient/raw is ignored after a gradient/compensated (the compensator paces
-#: while it answers: a compensator short of CPU slows the replay instead of dropping sets).
+#: rate 0: s without a gradient/raw before the driver moves on (counted as ``ack_timeouts``).
 ACK_TIMEOUT_S = 0.5
 
 #: Why the driver refuses to configure without a ``mode``.
@@ -136,8 +133,8 @@ PARAMETERS = [
     ParamSpec(
         'rate',
         1.0,
-        'Speed: multiple of real time; 0 = as fast as the chain takes it (paced by '
-        'gradient/compensated, or gradient/raw without a compensator). At most 1000.',
+        'Speed: multiple of real time; 0 = as fast as the tensor node takes it (paced by '
+        'gradient/raw). At most 1000.',
         non_negative,
         float_range=(0.0, 1000.0),
     ),
@@ -248,7 +245,6 @@ class DriverNode(ManagedNode):
         self.pace_restarts = 0
         self._in_flight: deque[int] = deque()
         self._last_progress = time.monotonic()
-        self._compensated_at = -ACK_TIMEOUT_S  # monotonic s of the last gradient/compensated
         self._origin = (time.monotonic(), self._next.pace_ns if self._next else 0)
 
         # REP 2003: a sensor driver publishes with the system default (reliable, volatile);
@@ -289,10 +285,7 @@ class DriverNode(ManagedNode):
         self._clock_ns = -CLOCK_STEP_NS
         gated = self.when_active
         if self._rate == 0:
-            self.create_subscription(tensor, 'gradient/raw', gated(self._on_raw), derived_qos())
-            self.create_subscription(
-                tensor, cv.COMPENSATED_NODE_TOPIC, gated(self._on_compensated), derived_qos()
-            )
+            self.create_subscription(tensor, 'gradient/raw', gated(self._on_ack), derived_qos())
         self.create_service(Trigger, '~/resume', gated(self._on_resume))
         self.create_service(Trigger, '~/pause', gated(self._on_pause))
         # Wall-clock (steady) timers: the driver is the source of /clock, so it must not wait
@@ -418,16 +411,6 @@ class DriverNode(ManagedNode):
                     self._last_progress = time.monotonic()
                 self._in_flight.append(frame.mag1_stamp)
         self.segment = frame.segment
-
-    def _on_raw(self, msg: Any) -> None:
-        """rate 0: the tensor node's tensor paces unless a compensator has answered lately."""
-        if time.monotonic() - self._compensated_at >= ACK_TIMEOUT_S:
-            self._on_ack(msg)
-
-    def _on_compensated(self, msg: Any) -> None:
-        """rate 0: the end of the chain answered: it paces."""
-        self._compensated_at = time.monotonic()
-        self._on_ack(msg)
 
     def _on_ack(self, msg: Any) -> None:
         """rate 0: a tensor came back; release the sets up to its stamp."""
