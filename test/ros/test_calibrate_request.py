@@ -25,14 +25,17 @@ def _calibrator(monkeypatch, tmp_path, **parameters):
 
 
 def _collect(node, g, b) -> np.ndarray:
-    """~/start, then the sets at 10 Hz from T0_S; their stamps, ns."""
+    """~/start, then the sets on gradient/raw at 10 Hz from T0_S; their stamps, ns."""
     from std_srvs.srv import Trigger
+
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.io import gradient_tensor as gt
 
     assert node._on_start(Trigger.Request(), Trigger.Response()).success
     stamps = T0_S * NS + np.arange(len(g)) * NS // 10
+    types = cv.rclpy_types()
     for stamp, g_i, b_i in zip(stamps, g, b, strict=True):
-        node._add(0, int(stamp), g_i)
-        node._add(1, int(stamp), b_i)
+        node._on_raw(gt.gradient_tensor_msg(types, gt.TensorSet(int(stamp), g_i, reference_field=b_i)))
     assert node.n_samples == len(g)
     return stamps
 

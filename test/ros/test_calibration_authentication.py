@@ -1,7 +1,8 @@
-"""Issue 34, a calibration adopted only from its author, over real DDS: the compensator takes
+"""Issue 34, a calibration adopted only from its author: over real DDS, the compensator takes
 the topic only while the configured calibrator is its one publisher and, with a key, only a
-calibration whose HMAC-SHA256 signature verifies (files at start too); the calibrator signs
-what it writes and publishes. Every refusal is a WARN naming the publishing node."""
+calibration whose HMAC-SHA256 signature verifies; in this process (test/ros/in_process.py),
+files at start verified too, and the calibrator signs what it writes and publishes. Every
+refusal is a WARN naming the publishing node."""
 from __future__ import annotations
 
 import hashlib
@@ -9,8 +10,9 @@ import hmac
 import json
 
 import numpy as np
+import pytest
 import yaml
-from ros_helpers import calibration_msg, interference_set, ros_graph, wait_for, wait_matched
+from ros_helpers import calibration_msg, interference_set, ros_graph, wait_for
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import CalibrationFile
@@ -109,68 +111,80 @@ def test_forged_calibrations_on_the_topic_are_refused_naming_the_publisher(tmp_p
         assert process.alive()
 
 
-def test_the_file_at_start_is_verified_with_a_key_and_said_unauthenticated_without(tmp_path):
-    from ros_helpers import NodeProcess, unique_domain
+def test_the_file_at_start_is_verified_with_a_key_and_said_unauthenticated_without(monkeypatch, tmp_path):
+    """In this process (test/ros/in_process.py): the compensator's configuration refuses an
+    unsigned file or a key others may read; a signed file is adopted; without a key it says
+    calibrations are unauthenticated."""
+    from in_process import compensator_in_process, last_status
+
+    from tetra_gradiometer.errors import TetraError
 
     rng = np.random.default_rng(12)
     _, _, exact = interference_set(10, rng, 'rich')
     calibration_file = tmp_path / 'calibration.yaml'
     calibration_file.write_text(_calibration(exact))  # unsigned
     key_file = _key_file(tmp_path)
-    code, output = NodeProcess('compensator', unique_domain(), {
-        'calibration_file': str(calibration_file), 'calibration_key_file': str(key_file)}).refusal()
-    assert code == 1 and 'cannot start:' in output and 'is not signed' in output and 'Traceback' not in output
+    parameters = {'calibration_file': str(calibration_file), 'calibration_key_file': str(key_file)}
+    with pytest.raises(TetraError, match='is not signed'):
+        compensator_in_process(monkeypatch, **parameters).__enter__()
     key_file.chmod(0o644)
-    code, output = NodeProcess('compensator', unique_domain(), {
-        'calibration_file': str(calibration_file), 'calibration_key_file': str(key_file)}).refusal()
-    assert code == 1 and 'chmod 600' in output
+    with pytest.raises(TetraError, match='chmod 600'):
+        compensator_in_process(monkeypatch, **parameters).__enter__()
     key_file.chmod(0o600)
     calibration_file.write_text(_signed(_calibration(exact)))
-    with ros_graph() as (graph, probe, _):
-        graph.start('compensator', calibration_file=str(calibration_file), calibration_key_file=str(key_file),
-                    diagnostics_period_s=0.2)
-        wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True', 30, 'the signed file', graph)
-        assert 'unauthenticated' not in probe.status(COMPENSATION)['message']
-        graph.stop('compensator')
-        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)  # no key
-        wait_for(lambda: 'unauthenticated (no calibration_key_file)' in probe.status(COMPENSATION).get('message', ''),
-                 30, 'unauthenticated', graph)
-        assert probe.status(COMPENSATION)['authentication'].startswith('none')
+    with compensator_in_process(monkeypatch, **parameters) as (node, published):
+        node._publish_diagnostics()
+        status = last_status(published, COMPENSATION)
+        assert status['compensating'] == 'True' and 'unauthenticated' not in status['message'], status
+    with compensator_in_process(monkeypatch, calibration_file=str(calibration_file)) as (node, published):  # no key
+        node._publish_diagnostics()
+        status = last_status(published, COMPENSATION)
+        assert 'unauthenticated (no calibration_key_file)' in status['message'], status
+        assert status['authentication'].startswith('none')
 
 
-def test_the_calibrator_signs_what_it_writes_and_publishes_and_the_compensator_adopts_it(tmp_path):
-    import time
+def test_the_calibrator_signs_what_it_writes_and_publishes_and_the_compensator_adopts_it(monkeypatch, tmp_path, capfd):
+    """In this process: the calibrator fed, ~/calibrate; its published calibration handed to
+    a compensator with the same key, the graph naming the calibrator as its publisher."""
+    from std_srvs.srv import Trigger
+    from tetra_gradiometer_msgs.srv import Calibrate
+
+    from in_process import compensator_in_process, last_status, node_in_process, served
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.io import gradient_tensor as gt
+    from tetra_gradiometer.nodes.calibrator import CalibratorNode
 
     rng = np.random.default_rng(13)
     key_file = _key_file(tmp_path)
     calibration_file = tmp_path / 'calibration.yaml'
     g, b, exact = interference_set(300, rng, 'rich')
-    with ros_graph() as (graph, probe, feeder):
-        graph.start('calibrator', calibration_file=str(calibration_file), calibration_key_file=str(key_file))
-        graph.start('compensator', calibration_file=str(tmp_path / 'compensator.yaml'),
-                    calibration_key_file=str(key_file), diagnostics_period_s=0.2)
-        wait_matched(feeder.raw, 2)
-        wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'False', 30, 'diagnostics', graph)
-        assert probe.call('calibrator/start').success
-        wait_for(lambda: probe.status('tetra/calibrator: calibration').get('samples') == '0', 10, 'started', graph)
+    types = cv.rclpy_types()
+    with node_in_process(CalibratorNode, monkeypatch, calibration_file=str(calibration_file),
+                         calibration_key_file=str(key_file)) as (calibrator, from_calibrator), \
+            compensator_in_process(monkeypatch, calibration_file=str(tmp_path / 'compensator.yaml'),
+                                   calibration_key_file=str(key_file)) as (compensator, published):
+        assert served(calibrator, 'start')(Trigger.Request(), Trigger.Response()).success
         for i in range(len(g)):
-            feeder.publish_raw(T0 + i * 10**8, g[i], b[i])
-            time.sleep(0.002)
-        wait_for(lambda: probe.status('tetra/calibrator: calibration').get('samples') == '300', 15, 'samples', graph)
-        assert probe.call('calibrator/stop').success
-        reply = probe.call('calibrator/calibrate')
+            calibrator._on_raw(gt.gradient_tensor_msg(types, gt.TensorSet(T0 + i * 10**8, g[i], reference_field=b[i])))
+        assert served(calibrator, 'stop')(Trigger.Request(), Trigger.Response()).success
+        reply = served(calibrator, 'calibrate')(Calibrate.Request(), Calibrate.Response())
         assert reply.success, reply.message
-        wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True', 10, 'adopted', graph)
-        assert 'topic calibration from /tetra/calibrator' in probe.status(COMPENSATION)['message']
-        output = graph.processes['calibrator'].output()  # state-changing calls logged at WARN
-        for line in ('~/start called: done: collecting (0 earlier samples discarded)',
-                     '~/stop called: done: stopped with 300 samples', '~/calibrate called: done: '):
-            assert any('WARN' in row and line in row for row in output.splitlines()), line
-        text = calibration_file.read_text()
-        body, _, _ = text.partition('signature:\n')
-        assert yaml.safe_load(text)['signature'] == yaml.safe_load(_signed(body))['signature']
-        saved = CalibrationFile.from_yaml(text)
-        np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
+        (message,) = [m for t, m in from_calibrator if t == '/tetra/calibration']
+        compensator._on_calibration(message)
+        compensator._publish_diagnostics()
+        status = last_status(published, COMPENSATION)
+        assert status['compensating'] == 'True', status
+        assert 'topic calibration from /tetra/calibrator' in status['message']
+    output = capfd.readouterr().err  # state-changing calls logged at WARN
+    for line in ('~/start called: done: collecting (0 earlier samples discarded)',
+                 '~/stop called: done: stopped with 300 samples', '~/calibrate called: done: '):
+        assert any('WARN' in row and line in row for row in output.splitlines()), line
+    text = calibration_file.read_text()
+    body, _, _ = text.partition('signature:\n')
+    assert yaml.safe_load(text)['signature'] == yaml.safe_load(_signed(body))['signature']
+    assert message.document == text
+    saved = CalibrationFile.from_yaml(text)
+    np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
 
 
 def test_without_a_key_a_second_node_under_the_calibrators_name_is_refused(tmp_path):

@@ -1,13 +1,16 @@
-"""nodes/calibrator.py as a process over real DDS: refusals with the reason, the exact
-parameters of a known vehicle, the paper's objective satisfied (eqs. 21-22), and files it
-must never write."""
+"""nodes/calibrator.py: refusals with the reason, the exact parameters of a known vehicle,
+the paper's objective satisfied (eqs. 21-22), files it must never write, the trim guidance,
+the regional gradient from odom. Node logic in this process (test/ros/in_process.py: its
+callbacks called, what it publishes captured); over real DDS, the solve off the executor
+(cancel and the time budget answered while it runs) and the process's refusal at start."""
 from __future__ import annotations
 
 import re
 import time
 
 import numpy as np
-from ros_helpers import interference_set, reconfigure, ros_graph, set_parameter, wait_for, wait_matched
+from in_process import last_status, node_in_process
+from ros_helpers import interference_set, ros_graph, set_parameter, wait_for, wait_matched
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io.calibration import load_calibration
@@ -15,6 +18,116 @@ from tetra_gradiometer.io.calibration import load_calibration
 T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
 GEOMETRY = core.TetraGeometry.regular(0.5)
 CALIBRATION = 'tetra/calibrator: calibration'
+
+
+def _calibrator(monkeypatch, calibration_file, **parameters):
+    """``(node, published)`` of a calibrator in this process writing ``calibration_file``."""
+    from tetra_gradiometer.nodes.calibrator import CalibratorNode
+
+    return node_in_process(CalibratorNode, monkeypatch, calibration_file=str(calibration_file), **parameters)
+
+
+def _trigger(handler):
+    from std_srvs.srv import Trigger
+
+    return handler(Trigger.Request(), Trigger.Response())
+
+
+def _calibrate(node):
+    from tetra_gradiometer_msgs.srv import Calibrate
+
+    return node._on_calibrate(Calibrate.Request(), Calibrate.Response())
+
+
+def _set(node, name, value):
+    """The node's answer to setting one parameter."""
+    from rclpy.parameter import Parameter
+
+    return node.set_parameters([Parameter(name, value=value)])[0]
+
+
+def _collect(node, stamps, g, b, q=None) -> None:
+    """~/start, each set (with its odom when ``q``) through the callbacks, ~/stop; every set kept
+    but the implausible ones."""
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.io import gradient_tensor as gt
+
+    assert _trigger(node._on_start).success
+    types = cv.rclpy_types()
+    for i, stamp in enumerate(int(s) for s in stamps):
+        if q is not None:
+            node._on_odom(cv.odometry_msg(types, np.zeros(3), q[i], stamp))
+        node._on_raw(gt.gradient_tensor_msg(types, gt.TensorSet(stamp, g[i], reference_field=b[i])))
+    assert _trigger(node._on_stop).success
+
+
+def _status(node, published) -> dict:
+    """The calibrator's /diagnostics status published now: its values, ``message``, ``level``."""
+    node._publish_diagnostics()
+    return last_status(published, CALIBRATION)
+
+
+def _stamps(n: int, first: int = 0) -> np.ndarray:
+    """``n`` stamps 0.1 s apart from set ``first``, ns."""
+    return T0 + (first + np.arange(n)) * 10**8
+
+
+def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_condition_number(monkeypatch, tmp_path):
+    calibration_file = tmp_path / 'calibration.yaml'
+    rng = np.random.default_rng(3)
+    with _calibrator(monkeypatch, calibration_file) as (node, published):
+        reply = _calibrate(node)
+        assert not reply.success and 'too few' in reply.message
+
+        g, b, _ = interference_set(300, rng, 'one')
+        _collect(node, _stamps(300), g, b)
+        reply = _calibrate(node)
+        assert not reply.success
+        assert 'too few directions' in reply.message and 'condition number' in reply.message
+        assert not calibration_file.exists()
+
+        # Rich directions: the calibration is exact (no noise), written and latched. One
+        # reference reading of 1 T among them is dropped and counted, never fitted.
+        g, b, exact = interference_set(300, rng, 'rich')
+        b_faulty = b.copy()
+        b_faulty[10] = [1.0, 0.0, 0.0]
+        _collect(node, _stamps(300, first=1000), g, b_faulty)
+        status = _status(node, published)
+        assert (status['samples'], status['dropped_implausible']) == ('299', '1'), status
+        reply = _calibrate(node)
+        assert reply.success, reply.message
+        saved = load_calibration(calibration_file)
+        np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(saved.parameters.b_hard, exact.b_hard, rtol=0, atol=1e-15)
+        result = _set(node, 'method', 'constraint_lstsq')
+        assert not result.successful and 'read-only while calibrator is configured' in result.reason
+
+    # The paper's objective on the same samples: the compensated training tensors become
+    # symmetric and traceless, as eqs. 21-22 ask. The method decides what is written.
+    with _calibrator(monkeypatch, calibration_file, method='constraint_lstsq') as (node, _):
+        _collect(node, _stamps(300, first=2000), g, b_faulty)
+        reply = _calibrate(node)
+        assert reply.success and reply.message.startswith('constraint_lstsq'), reply.message
+    paper = load_calibration(calibration_file)
+    compensated = core.compensate(g, b, paper.parameters, GEOMETRY)
+    assert np.abs(compensated - np.swapaxes(compensated, 1, 2)).max() < 1e-6 * np.abs(g).max()
+    assert np.abs(np.trace(compensated, axis1=1, axis2=2)).max() < 1e-6 * np.abs(g).max()
+
+
+def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_path_is_read_only(monkeypatch, tmp_path):
+    """Fault table rows: nobody on the ROS domain can turn ~/calibrate into a file writer."""
+    precious = tmp_path / 'vehicle.conf'
+    precious.write_bytes(b'rudder_gain: 3\n')
+    rng = np.random.default_rng(4)
+    with _calibrator(monkeypatch, precious) as (node, _):
+        result = _set(node, 'calibration_file', str(tmp_path / 'elsewhere.yaml'))
+        assert not result.successful and 'read-only' in result.reason.lower(), result.reason
+        g, b, _ = interference_set(200, rng, 'rich')
+        _collect(node, _stamps(200), g, b)
+        reply = _calibrate(node)
+        assert not reply.success and 'not a calibration file' in reply.message, reply.message
+    assert precious.read_bytes() == b'rudder_gain: 3\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['vehicle.conf']
 
 
 def _feed_and_stop(probe, feeder, graph, g, b, first=0, kept=None) -> None:
@@ -30,78 +143,6 @@ def _feed_and_stop(probe, feeder, graph, g, b, first=0, kept=None) -> None:
     reply = probe.call('calibrator/stop')
     assert f'{kept} samples' in reply.message, reply.message
 
-
-def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_condition_number(tmp_path):
-    calibration_file = tmp_path / 'calibration.yaml'
-    rng = np.random.default_rng(3)
-    with ros_graph() as (graph, probe, feeder):
-        graph.start('calibrator', calibration_file=str(calibration_file))
-        # Up and reporting first: a request sent as soon as the service is discovered can
-        # reach a server whose request reader has not matched the client yet, and is lost
-        # (a loaded run waited 30 s for its answer).
-        wait_for(lambda: probe.status(CALIBRATION).get('state') == 'idle', 30, 'the calibrator', graph)
-        reply = probe.call('calibrator/calibrate')
-        assert not reply.success and 'too few' in reply.message
-
-        wait_matched(feeder.raw, 1)
-        assert probe.call('calibrator/start').success
-        g, b, _ = interference_set(300, rng, 'one')
-        _feed_and_stop(probe, feeder, graph, g, b)
-        reply = probe.call('calibrator/calibrate')
-        assert not reply.success
-        assert 'too few directions' in reply.message and 'condition number' in reply.message
-        assert not calibration_file.exists()
-
-        # Rich directions: the calibration is exact (no noise), written and latched. One
-        # reference reading of 1 T among them is dropped and counted, never fitted.
-        assert probe.call('calibrator/start').success
-        g, b, exact = interference_set(300, rng, 'rich')
-        b_faulty = b.copy()
-        b_faulty[10] = [1.0, 0.0, 0.0]
-        _feed_and_stop(probe, feeder, graph, g, b_faulty, first=1000, kept=299)
-        assert probe.status(CALIBRATION).get('dropped_implausible') == '1'
-        reply = probe.call('calibrator/calibrate')
-        assert reply.success, reply.message
-        saved = load_calibration(calibration_file)
-        np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(saved.parameters.b_hard, exact.b_hard, rtol=0, atol=1e-15)
-
-        # The paper's objective on the same samples: the compensated training tensors become
-        # symmetric and traceless, as eqs. 21-22 ask. The method decides what is written:
-        # refused while configured, set after cleanup, the samples fed again.
-        result = set_parameter(probe, graph, 'calibrator', 'method', 'constraint_lstsq')
-        assert not result.successful and 'read-only while calibrator is configured' in result.reason
-        reconfigure(probe, graph, 'calibrator', method='constraint_lstsq')
-        time.sleep(1.0)  # the new subscriptions matched by the feeder
-        wait_matched(feeder.raw, 1)
-        assert probe.call('calibrator/start').success
-        _feed_and_stop(probe, feeder, graph, g, b_faulty, first=2000, kept=299)
-        reply = probe.call('calibrator/calibrate')
-        assert reply.success and reply.message.startswith('constraint_lstsq'), reply.message
-        paper = load_calibration(calibration_file)
-        compensated = core.compensate(g, b, paper.parameters, GEOMETRY)
-        assert np.abs(compensated - np.swapaxes(compensated, 1, 2)).max() < 1e-6 * np.abs(g).max()
-        assert np.abs(np.trace(compensated, axis1=1, axis2=2)).max() < 1e-6 * np.abs(g).max()
-
-
-def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_path_is_read_only(tmp_path):
-    """Fault table rows: nobody on the ROS domain can turn ~/calibrate into a file writer."""
-    precious = tmp_path / 'vehicle.conf'
-    precious.write_bytes(b'rudder_gain: 3\n')
-    rng = np.random.default_rng(4)
-    with ros_graph() as (graph, probe, feeder):
-        graph.start('calibrator', calibration_file=str(precious))
-        result = set_parameter(probe, graph, 'calibrator', 'calibration_file', str(tmp_path / 'elsewhere.yaml'))
-        assert not result.successful and 'read-only' in result.reason.lower(), result.reason
-
-        wait_matched(feeder.raw, 1)
-        assert probe.call('calibrator/start').success
-        g, b, _ = interference_set(200, rng, 'rich')
-        _feed_and_stop(probe, feeder, graph, g, b)
-        reply = probe.call('calibrator/calibrate')
-        assert not reply.success and 'not a calibration file' in reply.message, reply.message
-    assert precious.read_bytes() == b'rudder_gain: 3\n'
-    assert sorted(p.name for p in tmp_path.iterdir()) == ['vehicle.conf']
 
 
 def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max_solve_s(tmp_path):
@@ -159,73 +200,43 @@ def test_a_long_ga_solve_runs_off_the_executor_is_cancellable_and_bounded_by_max
         assert np.all(np.isfinite(saved.parameters.to_vector(symmetric=True)))
 
 
-def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_from_odom(tmp_path):
-    """~/guidance (about 1 Hz, latched JSON) and the key figures on /diagnostics: one field
+def test_while_collecting_the_calibrator_publishes_trim_guidance_with_attitude_from_odom(monkeypatch, tmp_path):
+    """~/guidance (latched JSON, from its timer) and the key figures on /diagnostics: one field
     direction, the vehicle level on heading north (its odom), is not enough and gets advice;
     after ~/start, rich directions are enough. Truth: the attitudes and directions fed."""
     import json
 
-    from nav_msgs.msg import Odometry
     from scipy.spatial.transform import Rotation
-    from std_msgs.msg import String
-
-    from tetra_gradiometer.io import conversions as cv
-    from tetra_gradiometer.nodes.common import derived_qos, latched_qos
 
     rng = np.random.default_rng(6)
-    received: list[dict] = []
-    with ros_graph() as (graph, probe, feeder):
-        graph.start('calibrator', calibration_file=str(tmp_path / 'calibration.yaml'))
-        probe.create_subscription(String, 'calibrator/guidance', lambda m: received.append(json.loads(m.data)),
-                                  latched_qos())
-        odom = probe.create_publisher(Odometry, '/tetra/odom', derived_qos())  # the driver's
-        for publisher in (feeder.raw, odom):
-            wait_matched(publisher, 1)
-        assert probe.call('calibrator/start').success
+    with _calibrator(monkeypatch, tmp_path / 'calibration.yaml') as (node, published):
+        def guidance() -> dict:
+            node._publish_guidance()
+            return json.loads([m for t, m in published if t == '/tetra/calibrator/guidance'][-1].data)
+
         north = Rotation.from_euler('ZYX', [90.0, 0.0, 0.0], degrees=True).as_quat()  # yaw 90° from east
         g, b, _ = interference_set(200, rng, 'one')
-        for i in range(len(g)):
-            stamp = T0 + i * 10**8
-            odom.publish(cv.odometry_msg(feeder.types, np.zeros(3), north, stamp))
-            feeder.publish_raw(stamp, g[i], b[i])
-            time.sleep(0.002)
-        wait_for(lambda: received and received[-1]['samples'] == 200, 30, 'guidance on 200 samples', graph)
-        document = received[-1]
+        _collect(node, _stamps(200), g, b, q=np.tile(north, (200, 1)))
+        document = guidance()
+        assert document['samples'] == 200
         assert document['enough'] is False and document['ratio'] > 10, document['text']
         assert document['advice']['kind'] in ('roll', 'pitch', 'level turn') and 'next: ' in document['text']
         counts = np.array(document['coverage']['counts'])
         assert document['coverage']['source'] == 'attitude'
-        assert counts[0, 2, 2] >= 195 and counts.sum() == counts[0, 2, 2]  # heading 0-30°, level
-        wait_for(lambda: probe.status(CALIBRATION).get('next_manoeuvre') == document['advice']['text'], 5,
-                 'the advice on /diagnostics', graph)
-        assert probe.status(CALIBRATION)['guidance'] == 'not enough'
+        assert counts[0, 2, 2] == 200 and counts.sum() == 200  # heading 0-30°, level
+        status = _status(node, published)
+        assert status['next_manoeuvre'] == document['advice']['text'] and status['guidance'] == 'not enough'
 
         # The site's field is checked like the offline tools' (|B| <= 1e-3 T) at run time too.
-        refused = _set_vector(probe, graph, 'earth_field_enu', [1.0, 0.0, 0.0])
+        refused = _set(node, 'earth_field_enu', [1.0, 0.0, 0.0])
         assert not refused.successful and 'earth_field_enu' in refused.reason and '0.001 T' in refused.reason
 
-        assert probe.call('calibrator/start').success  # forgets the sums too
         g, b, _ = interference_set(300, rng, 'rich')
-        for i in range(len(g)):
-            feeder.publish_raw(T0 + (1000 + i) * 10**8, g[i], b[i])
-            time.sleep(0.002)
-        wait_for(lambda: received[-1]['samples'] == 300, 10, 'guidance on the 300 new samples', graph)
-        document = received[-1]
+        _collect(node, _stamps(300, first=1000), g, b)  # ~/start forgets the sums too
+        document = guidance()
+        assert document['samples'] == 300
         assert document['enough'] is True and document['advice'] is None, document['text']
         assert document['coverage']['source'] == 'field direction'  # the last odom is too old
-
-
-def _set_vector(probe, graph, name, values):
-    """``calibrator/set_parameters`` for one double-array parameter; its result."""
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
-
-    client = probe.create_client(SetParameters, 'calibrator/set_parameters')
-    assert client.wait_for_service(timeout_sec=30)
-    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=[float(v) for v in values])
-    future = client.call_async(SetParameters.Request(parameters=[Parameter(name=name, value=value)]))
-    wait_for(future.done, 10, 'set_parameters', graph)
-    return future.result().results[0]
 
 
 def test_an_implausible_earth_field_is_refused_at_start_with_the_reason():
@@ -254,40 +265,18 @@ def _trim(seed, dipoles=()):
     return stamps, core.difference_tensor(fields, GEOMETRY), fields[:, 0], mission.orientation_xyzw, g_world
 
 
-def _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q) -> None:
-    from tetra_gradiometer.io import conversions as cv
-
-    assert probe.call('calibrator/start').success
-    wait_for(lambda: probe.status(CALIBRATION).get('samples') == '0', 10, 'samples 0 after ~/start', graph)
-    for i in range(len(g)):
-        odom.publish(cv.odometry_msg(feeder.types, np.zeros(3), q[i], int(stamps[i])))
-        feeder.publish_raw(int(stamps[i]), g[i], b[i])
-        time.sleep(0.008)  # 3 messages per sample: paced so the node keeps up on 2 loaded cores
-    wait_for(lambda: probe.status(CALIBRATION).get('samples') == str(len(g)), 20, f'{len(g)} samples', graph)
-    assert probe.call('calibrator/stop').success
-
-
-def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a_target(tmp_path):
-    """~/calibrate as `calibrate` does: with the vehicle's /odom (remapped to the
-    calibrator's odom), the simulator's 4 nT/m regional gradient is recovered within 3 sigma
-    and stored; a trim over a magnetic target (its gradient changes along the circle) is
-    refused with the figures and nothing written, and written with the warning only with
-    force:=true."""
+def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a_target(monkeypatch, tmp_path):
+    """~/calibrate as `calibrate` does: with the vehicle's odom, the simulator's 4 nT/m
+    regional gradient is recovered within 3 sigma and stored; a trim over a magnetic target
+    (its gradient changes along the circle) is refused with the figures and nothing written,
+    and written with the warning only with force:=true (read-only while configured)."""
     import yaml
-    from nav_msgs.msg import Odometry
-
-    from tetra_gradiometer.nodes.common import derived_qos
 
     calibration_file = tmp_path / 'calibration.yaml'
-    with ros_graph() as (graph, probe, feeder):
-        # On a vehicle: the navigation's /odom, by remapping the calibrator's relative odom.
-        graph.start('calibrator', remaps={'odom': '/odom'}, calibration_file=str(calibration_file))
-        odom = probe.create_publisher(Odometry, '/odom', derived_qos())
-        for publisher in (feeder.raw, odom):
-            wait_matched(publisher, 1)
+    with _calibrator(monkeypatch, calibration_file) as (node, _):
         stamps, g, b, q, g_world = _trim(8)
-        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
-        reply = probe.call('calibrator/calibrate')
+        _collect(node, stamps, g, b, q)
+        reply = _calibrate(node)
         assert reply.success and 'regional gradient (ENU, nT/m) gxx' in reply.message, reply.message
         diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
         fitted = np.array(diagnostics['regional_gradient_enu_nT_per_m'])
@@ -299,66 +288,52 @@ def test_calibrate_fits_a_regional_gradient_with_odom_and_refuses_samples_over_a
 
         target = core.Dipole([0.0, 0.0, -65.0], [2e3, 1e3, -3e3])
         stamps, g, b, q, _ = _trim(9, dipoles=(target,))
-        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
-        reply = probe.call('calibrator/calibrate')
+        _collect(node, stamps, g, b, q)
+        reply = _calibrate(node)
         assert not reply.success, reply.message
         assert re.search(r'does not fit the model \(.*\): .*x the noise.*force:=true', reply.message), \
             reply.message
         assert not calibration_file.exists()
-        refused = set_parameter(probe, graph, 'calibrator', 'force', True)
+        refused = _set(node, 'force', True)
         assert not refused.successful and 'read-only while calibrator is configured' in refused.reason
-        reconfigure(probe, graph, 'calibrator', force=True)
-        time.sleep(1.0)  # the new subscriptions matched by the feeder and odom
-        for publisher in (feeder.raw, odom):
-            wait_matched(publisher, 1)
-        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, q)
-        reply = probe.call('calibrator/calibrate')
+
+    with _calibrator(monkeypatch, calibration_file, force=True) as (node, published):
+        _collect(node, stamps, g, b, q)
+        reply = _calibrate(node)
         assert reply.success and 'WARNING (force:=true)' in reply.message, reply.message
         # A forced calibration keeps the calibrator at WARN, saying so.
-        wait_for(lambda: 'forced' in probe.status(CALIBRATION).get('message', ''), 5, 'forced', graph)
-        assert probe.status(CALIBRATION)['level'] == 1
-        diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
-        assert diagnostics['window_check']['passed'] is False
-        assert any(note.startswith('WARNING (force:=true)') for note in diagnostics['notes'])
+        status = _status(node, published)
+        assert 'forced' in status['message'] and status['level'] == 1, status
+    diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
+    assert diagnostics['window_check']['passed'] is False
+    assert any(note.startswith('WARNING (force:=true)') for note in diagnostics['notes'])
 
 
-def test_unfilled_and_unnormalized_odom_orientations_are_dropped_counted_and_named(tmp_path):
-    """Issue 30 item 2, live: among a trim's /odom, three unfilled orientations (all zeros) and
-    one scaled by 3. The calibrator drops and counts the first, normalizes the second, says so
-    at WARN on /diagnostics, and ~/calibrate fits the regional gradient as with a clean /odom
-    (within 3 sigma of the simulator's; was `ValueError: Found zero norm quaternions`)."""
+def test_unfilled_and_unnormalized_odom_orientations_are_dropped_counted_and_named(monkeypatch, tmp_path):
+    """Among a trim's odom, three unfilled orientations (all zeros) and one scaled by 3: the
+    calibrator drops and counts the first, normalizes the second, says so at WARN on
+    /diagnostics, and ~/calibrate fits the regional gradient as with a clean odom (within
+    3 sigma of the simulator's)."""
     import yaml
-    from diagnostic_msgs.msg import DiagnosticArray
-    from nav_msgs.msg import Odometry
-
-    from tetra_gradiometer.nodes.common import derived_qos
-
-    warnings: list[str] = []
-
-    def keep_warnings(msg) -> None:
-        warnings.extend(s.message for s in msg.status if s.name == CALIBRATION and s.level == bytes([1]))
 
     calibration_file = tmp_path / 'calibration.yaml'
-    with ros_graph() as (graph, probe, feeder):
-        graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
-        probe.create_subscription(DiagnosticArray, '/diagnostics', keep_warnings, 50)
-        odom = probe.create_publisher(Odometry, '/tetra/odom', derived_qos())
-        for publisher in (feeder.raw, odom):
-            wait_matched(publisher, 1)
+    with _calibrator(monkeypatch, calibration_file) as (node, published):
         stamps, g, b, q, g_world = _trim(8)
         fed = q.copy()
         fed[200:203] = 0.0
         fed[400] *= 3.0
-        _feed_with_odom(probe, feeder, graph, odom, stamps, g, b, fed)
-        reply = probe.call('calibrator/calibrate')
+        _collect(node, stamps, g, b, fed)
+        reply = _calibrate(node)
         assert reply.success and 'regional gradient (ENU, nT/m) gxx' in reply.message, reply.message
-        status = probe.status(CALIBRATION)
+        status = _status(node, published)
     diagnostics = yaml.safe_load(calibration_file.read_text())['diagnostics']
     fitted = np.array(diagnostics['regional_gradient_enu_nT_per_m'])
     sigma = np.array(diagnostics['regional_gradient_sigma_nT_per_m'])
     assert np.all(np.abs(fitted - g_world * 1e9) <= 3 * sigma + 1e-6), (fitted - g_world * 1e9) / sigma
     assert (status['odom_dropped_zero_norm'], status['odom_normalized']) == ('3', '1'), status
-    # Reported per diagnostics period: the three may straddle two reports; the last says all.
+    # Said at WARN in the report after they came (the one ~/calibrate publishes).
+    warnings = [s.message for topic, m in published if topic == '/diagnostics' for s in m.status
+                if s.name == CALIBRATION and s.level == bytes([1])]
     assert any('with a zero-norm or non-finite orientation dropped' in w and '3 in all' in w for w in warnings), \
         warnings
     assert any('1 odometry orientation not of unit norm (norm 3) normalized' in w for w in warnings), warnings

@@ -8,11 +8,9 @@ the same data). Truth: ``core.compensate`` with the regressors of the decimated 
 interpolated (io/channels.ChannelSeries.on), the offline path."""
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import yaml
-from ros_helpers import ros_graph, wait_for, wait_matched
+from in_process import deserialized, last_status, node_in_process
 
 from tetra_gradiometer import core
 from tetra_gradiometer.__main__ import main
@@ -74,56 +72,46 @@ def _last_before(series: ChannelSeries, stamps: np.ndarray) -> np.ndarray:
     return np.where(index >= 0, series.values[np.maximum(index, 0)], np.nan)
 
 
-def _received(probe, key: str) -> int:
-    value = probe.status(CHANNELS).get(key)
-    return -1 if value is None else int(value)
+def test_late_channel_messages_give_the_offline_tensors(monkeypatch, tmp_path):
+    """The compensator in this process (test/ros/in_process.py), handed the sets and the late
+    battery messages in the order they arrive; the sets after the last message are released
+    by its timer once the steady clock is two battery periods on."""
+    from rclpy.serialization import serialize_message
 
-
-def test_late_channel_messages_give_the_offline_tensors(tmp_path):
-    from sensor_msgs.msg import BatteryState
-
-    from tetra_gradiometer.nodes.common import derived_qos
+    from tetra_gradiometer.io import gradient_tensor as gt
+    from tetra_gradiometer.nodes import compensator as compensator_module
 
     calibration, stamps, raw, b1, battery, expected = _offline(tmp_path)
     floor = core.noise_floor(0.05 * NT, GEOMETRY)
     # Without the hold the last message would be used: far from offline.
     last = np.abs(expected['last'] - expected['offline']).reshape(len(stamps), 9).max(axis=1)
     assert np.nanmax(last) > 5 * floor
-    with ros_graph() as (graph, probe, feeder):
+    types = cv.rclpy_types()
+    with node_in_process(compensator_module.CompensatorNode, monkeypatch,
+                         calibration_file=str(calibration), track_calibration=False) as (node, published):
         # Against the frozen calibration's offline tensors: the hold, not the tracker, is tested.
-        graph.start('compensator', calibration_file=str(calibration), diagnostics_period_s=0.2, track_calibration=False)
-        types = cv.rclpy_types()
-        publisher = feeder.create_publisher(BatteryState, cv.BATTERY_TOPIC, derived_qos())
-        wait_matched(feeder.raw, 2)
-        wait_for(lambda: publisher.get_subscription_count() >= 1, 20, 'the battery subscription', graph)
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/compensated') >= 1, 10, 'publisher', graph)
-        time.sleep(0.5)
-        with probe.lock:
-            probe.collecting = True
         sent = 0
         for i, stamp in enumerate(stamps):
-            feeder.publish_raw(int(stamp), raw[i], b1[i])
+            tensor = gt.TensorSet(int(stamp), raw[i], reference_field=b1[i])
+            node._on_raw(serialize_message(gt.gradient_tensor_msg(types, tensor)))
             # The battery messages 0.3 s old by this set's stamp: behind the sets.
             while sent < len(battery.stamps_ns) and battery.stamps_ns[sent] + LATENCY_NS <= stamp:
-                publisher.publish(cv.battery_msg(types, battery.values[sent], int(battery.stamps_ns[sent])))
+                node._on_channel(BATTERY, cv.battery_msg(types, battery.values[sent], int(battery.stamps_ns[sent])))
                 sent += 1
-            if i % 100 == 99:  # a chunk at a time: best effort loses nothing in transit
-                wait_for(lambda: _received(probe, f'{BATTERY} (/battery_state) messages') == sent, 20,
-                         'the battery messages taken', graph)
         while sent < len(battery.stamps_ns):
-            publisher.publish(cv.battery_msg(types, battery.values[sent], int(battery.stamps_ns[sent])))
+            node._on_channel(BATTERY, cv.battery_msg(types, battery.values[sent], int(battery.stamps_ns[sent])))
             sent += 1
-        # The sets after the last message go after two of its periods of the steady clock.
-        first = int(np.searchsorted(stamps, battery.stamps_ns[0] + LATENCY_NS))
-        wait_for(lambda: len(probe.tensors['gradient/compensated']) >= len(stamps) - first - 1, 30,
-                 'the compensated sets', graph)
-        time.sleep(0.5)
-        with probe.lock:
-            live = dict(probe.tensors['gradient/compensated'])
-        held = _received(probe, 'sets held for a channel message')
+        later = compensator_module.time.monotonic() + 10.0
+        monkeypatch.setattr(compensator_module.time, 'monotonic', lambda: later)
+        node._release_held()
+        node._publish_diagnostics()
+        held = int(last_status(published, CHANNELS)['sets held for a channel message'])
+    live = {t.stamp_ns: t.g for t in map(gt.tensor_set_from_msg,
+                                         deserialized(published, '/tetra/gradient/compensated', gt.rclpy_class()))}
     index = np.searchsorted(stamps, np.array(sorted(live)))
     got = np.array([live[s] for s in sorted(live)])
     # Every set after the battery's first delivery (0.3 s) but the first eddy-free ones.
+    first = int(np.searchsorted(stamps, battery.stamps_ns[0] + LATENCY_NS))
     assert len(live) >= len(stamps) - first - 1, (len(live), len(stamps), first)
     error = np.abs(got - expected['offline'][index]).reshape(len(got), 9).max(axis=1)
     assert error.max() < 0.01 * floor, error.max() / floor

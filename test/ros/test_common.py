@@ -1,17 +1,18 @@
 """nodes/common.py: declared parameters. The node modules' ``PARAMETERS`` lists are the single
 source of truth: config/tetra_gradiometer.yaml and the table in docs/ros.md must agree with
 them (no ROS graph needed: the lists are read by import), and bad values are refused at
-start with the reason (nodes as processes)."""
+start with the reason: in this process, as nodes/process.spin_node starts a node (the
+arguments ``python -m tetra_gradiometer node`` gives rclpy, the node's constructor, the
+check of its overrides), and one of each kind as a process (exit 1, one line, no traceback)."""
 from __future__ import annotations
 
 import re
 import subprocess
 import sys
-import time
 
 import pytest
 import yaml
-from ros_helpers import REPO, NodeProcess, unique_domain
+from ros_helpers import PARAMS, REPO, NodeProcess, ros_value, unique_domain
 
 
 
@@ -91,6 +92,52 @@ def _assert_one_line_refusal(code, output, *expected):
         assert text in lines[0], lines[0]
 
 
+def _refusal(name: str, params: dict | None = None, params_file=PARAMS) -> str | None:
+    """Why the node ``name`` refuses to start with ``params`` (``-p`` overrides) and
+    ``params_file``, or None: nodes/process.spin_node's steps in this process, each in a
+    context of its own (rclpy's arguments, the constructor, the overrides' check)."""
+    import rclpy
+    from rclpy.exceptions import ParameterException
+
+    from tetra_gradiometer.cli.node import ros_arguments
+    from tetra_gradiometer.errors import TetraError
+    from tetra_gradiometer.nodes.calibrator import CalibratorNode
+    from tetra_gradiometer.nodes.compensator import CompensatorNode
+    from tetra_gradiometer.nodes.driver import DriverNode
+    from tetra_gradiometer.nodes.process import _rcl_reason, _start_refusal
+    from tetra_gradiometer.nodes.target import TargetNode
+    from tetra_gradiometer.nodes.tensor import TensorNode
+
+    node_class = {'driver': DriverNode, 'tensor': TensorNode, 'calibrator': CalibratorNode,
+                  'compensator': CompensatorNode, 'target': TargetNode}[name]
+
+    extra = [item for key, value in (params or {}).items() for item in ('-p', f'{key}:={ros_value(value)}')]
+    args = ros_arguments(str(params_file), extra)
+    context = rclpy.Context()
+    try:
+        rclpy.init(args=args, context=context, domain_id=unique_domain())
+    except RuntimeError as error:
+        return _rcl_reason(error)
+    try:
+        try:
+            node = node_class(context=context)
+        except (TetraError, ParameterException) as error:
+            return str(error)
+        try:
+            return _start_refusal(node, args)
+        finally:
+            node.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
+def _assert_refused(reason: str | None, *expected: str) -> None:
+    """One line holding every ``expected`` text."""
+    assert reason is not None and '\n' not in reason, reason
+    for text in expected:
+        assert text in reason, reason
+
+
 @pytest.mark.parametrize('name, params, expected', [
     ('tensor', {'sensor_positions': [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0]}, ['coplanar']),
     ('tensor', {'stamp_tolerance_s': -1.0}, ["'stamp_tolerance_s' = -1.0", '[1e-06, 1]']),
@@ -118,8 +165,7 @@ def _assert_one_line_refusal(code, output, *expected):
     ('driver', {'mode': 'sim', 'max_pending': 10}, ["unknown parameter 'max_pending'", 'declared:']),
 ])
 def test_bad_parameters_are_refused_at_start_with_one_line(name, params, expected):
-    code, output = NodeProcess(name, unique_domain(), params).refusal()
-    _assert_one_line_refusal(code, output, *expected)
+    _assert_refused(_refusal(name, params), *expected)
 
 
 @pytest.mark.parametrize('name, document, expected', [
@@ -137,8 +183,7 @@ def test_bad_parameters_are_refused_at_start_with_one_line(name, params, expecte
 def test_bad_parameters_in_a_params_file_are_refused_at_start_with_one_line(tmp_path, name, document, expected):
     params_file = tmp_path / 'params.yaml'
     params_file.write_text(yaml.safe_dump(document))
-    code, output = NodeProcess(name, unique_domain(), params_file=params_file).refusal()
-    _assert_one_line_refusal(code, output, *expected)
+    _assert_refused(_refusal(name, params_file=params_file), *expected)
 
 
 def test_entries_for_other_nodes_and_rclpy_builtins_are_not_refused(tmp_path):
@@ -149,14 +194,25 @@ def test_entries_for_other_nodes_and_rclpy_builtins_are_not_refused(tmp_path):
         '/**': {'ros__parameters': {'stamp_tolerance_s': 0.002, 'earth_field_enu': [0.0, 2e-5, -4.5e-5]}},
         '/tetra/tensor': {'ros__parameters': {'rat': 1.0, 'max_pending': 0}},
     }))
-    process = NodeProcess('compensator', unique_domain(), {'use_sim_time': False}, params_file=params_file)
-    try:
-        time.sleep(4.0)
-        output = process.output()
-        assert process.alive(), output
-    finally:
-        process.stop()
-    assert 'cannot start' not in output and 'Traceback' not in output, output
+    assert _refusal('compensator', {'use_sim_time': False}, params_file=params_file) is None
+
+
+@pytest.mark.parametrize('name, params, params_file, expected', [
+    ('tensor', {'stamp_tolerance_s': -1.0}, None, ["'stamp_tolerance_s' = -1.0", '[1e-06, 1]']),
+    ('driver', {'rate': 10}, None, ["'rate' = 10", 'an integer', 'a double', 'decimal point']),
+    ('driver', {'mode': 'sim', 'rat': 10.0}, None, ["unknown parameter 'rat'", 'declared:', 'rate']),
+    ('compensator', None, {'/tetra/compenstor': {'ros__parameters': {'max_pending': 10}}},
+     ['no section for /tetra/compensator', "is '/tetra/compenstor' meant to be '/tetra/compensator'?"]),
+])
+def test_a_node_process_refusing_its_parameters_exits_1_with_one_line(tmp_path, name, params, params_file, expected):
+    """As a user meets them: one of each kind (range, type, an undeclared name, a misnamed
+    section of the params file) as the process ``python -m tetra_gradiometer node``."""
+    path = PARAMS
+    if params_file is not None:
+        path = tmp_path / 'params.yaml'
+        path.write_text(yaml.safe_dump(params_file))
+    code, output = NodeProcess(name, unique_domain(), params, params_file=path).refusal()
+    _assert_one_line_refusal(code, output, *expected)
 
 
 def test_a_missing_params_file_is_one_error_line(tmp_path):

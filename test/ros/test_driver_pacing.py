@@ -1,5 +1,6 @@
-"""The driver's pacing at ``rate > 0`` on a clock the test owns: a stalled driver does not
-send its backlog in one burst (best-effort readers drop it), and no set is skipped."""
+"""The driver's pacing on a clock the test owns: at ``rate > 0`` a stalled driver does not
+send its backlog in one burst (best-effort readers drop it), and no set is skipped; at
+``rate: 0`` it waits for the tensor node."""
 from __future__ import annotations
 
 import numpy as np
@@ -63,3 +64,45 @@ def test_a_stalled_driver_restarts_its_pacing_instead_of_bursting_and_skips_no_s
     assert per_tick[stall_tick] <= allowance + 1, per_tick[stall_tick]
     assert np.all(per_tick[stall_tick + 1:] <= due_per_tick + 1)
     assert node.pace_restarts == 1
+
+
+def test_at_rate_0_the_driver_waits_for_the_tensor_node(monkeypatch):
+    """``rate: 0``: at most 4 sets ahead of the last gradient/raw received; 0.5 s without one,
+    the driver moves on and counts a timeout (WARN)."""
+    from in_process import node_in_process
+
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.io import gradient_tensor as gt
+    from tetra_gradiometer.io.scenario import load_scenario_or_default
+    from tetra_gradiometer.nodes import driver as driver_module
+    from tetra_gradiometer.nodes.driver import DriverNode
+
+    now = [1000.0]
+    monkeypatch.setattr(driver_module.time, 'monotonic', lambda: now[0])
+    types = cv.rclpy_types()
+
+    def back(stamp: int):
+        return gt.gradient_tensor_msg(types, gt.TensorSet(stamp, np.zeros((3, 3))))
+
+    with node_in_process(DriverNode, monkeypatch, mode='sim', rate=0.0, max_duration_s=5.0) as (node, published):
+        def sets() -> list[int]:  # mag1 stamps published so far, ns
+            return [cv.stamp_to_ns(m.header.stamp) for t, m in published if t == '/tetra/mag1']
+
+        node._tick()
+        assert len(sets()) == 4  # the window: nothing came back yet
+        now[0] += 0.4
+        node._tick()
+        assert len(sets()) == 4
+        node._on_ack(back(sets()[1]))  # the tensor node gave sets 1 and 2 back: two more go
+        assert len(sets()) == 6 and node.ack_timeouts == 0
+        now[0] += 0.6  # nothing back: the driver moves on, a window at a time, and says so
+        node._tick()
+        assert len(sets()) == 10 and node.ack_timeouts == 1
+        node._publish_diagnostics()
+        (array,) = [m for t, m in published if t == '/diagnostics'][-1:]
+        (playback,) = [s for s in array.status if s.name.endswith('playback')]
+        assert playback.level == bytes([driver_module.WARN])
+        assert {v.key: v.value for v in playback.values}['ack_timeouts'] == '1'
+    # Every set once, in sample order (the built-in scenario's sample period apart).
+    scenario, _ = load_scenario_or_default()
+    np.testing.assert_allclose(np.diff(sets()), 1e9 / scenario.sample_rate_hz, rtol=0, atol=1)

@@ -4,14 +4,13 @@ do on the bag.
 
 One simulated bag (``simulate`` on a scenario with the three effects: a 60 s trim then a
 60 s line at 20 Hz, ``/battery_state`` and ``/tetra/temperature`` recorded) is calibrated
-and compensated offline by the commands; then this process replays it into the calibrator
-and compensator nodes: the temperature and battery messages as recorded, the trim's sets (as
-the tensor node makes them of the bag: test_tensor_replay.py) with their ``/odom``, and,
-once the compensator follows the calibration, the whole bag. Each chunk is sent once the
-node has counted the previous (nothing lost in transit on a loaded machine: the nodes'
-outputs are compared set by set). The live calibration is the offline one and every
-compensated tensor and its sigma are within 1 % of the noise floor of the offline CSV, the
-same sets dropped (the first eddy rates).
+and compensated offline by the commands; then the calibrator and compensator nodes, in this
+process (test/ros/in_process.py), are handed the temperature and battery messages as
+recorded, the trim's sets (as the tensor node makes them of the bag: test_tensor_replay.py)
+with their odom, and, once the compensator follows the calibration, the whole bag. The live
+calibration is the offline one and every compensated tensor and its sigma are within 1 % of
+the noise floor of the offline CSV, the same sets dropped (the first eddy rates). Over real
+DDS, the driver replays the bag through the four node processes (the chain end to end).
 
 And a channel that is missing or stale is never taken as zero: the compensator drops the set
 and goes WARN on ``/diagnostics`` naming the channel.
@@ -27,7 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_matched, wait_tensor_delivers
+from in_process import compensator_in_process, deserialized, last_status, node_in_process
+from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_tensor_delivers
 
 from tetra_gradiometer import core
 from tetra_gradiometer.io import conversions as cv
@@ -45,6 +45,7 @@ COMPENSATION = 'tetra/compensator: compensation'
 CHANNELS = 'tetra/compensator: channels'
 CALIBRATION = 'tetra/calibrator: calibration'
 BATTERY = 'current:/battery_state'
+TEMPERATURE = 'temperature'
 
 
 def _scenario() -> dict:
@@ -139,38 +140,6 @@ def test_the_offline_commands_fit_and_apply_every_effect(offline):
     assert n_sets - 5 <= len(offline.stamps) < n_sets, offline.calibrate_text
 
 
-class ChannelPublisher:
-    """Publishes the bag's temperature and battery messages (as recorded) from the test."""
-
-    def __init__(self, node, offline: Offline) -> None:
-        from sensor_msgs.msg import BatteryState, Temperature
-
-        from tetra_gradiometer.nodes.common import derived_qos
-
-        self.types = cv.rclpy_types()
-        self.offline = offline
-        self.temperature = node.create_publisher(Temperature, cv.TEMPERATURE_TOPIC, derived_qos())
-        self.battery = node.create_publisher(BatteryState, cv.BATTERY_TOPIC, derived_qos())
-
-    def publish(self, until_ns: int | None = None, battery: bool = True, pace: int = 100,
-                taken=None) -> int:
-        """Every message (up to ``until_ns``), ``pace`` at a time; with ``taken`` (the count
-        of each topic's messages a node reports) each chunk once the node has the previous
-        (its subscriptions are best effort: a burst can overflow them); the count per topic."""
-        t, c = self.offline.temperature, self.offline.current
-        n = len(t.stamps_ns) if until_ns is None else int(np.searchsorted(t.stamps_ns, until_ns, 'right'))
-        for i in range(n):
-            self.temperature.publish(cv.temperature_msg(self.types, t.values[i, 0], int(t.stamps_ns[i])))
-            if battery:
-                self.battery.publish(cv.battery_msg(self.types, c.values[i, 0], int(c.stamps_ns[i])))
-            if i % pace == pace - 1 or i == n - 1:
-                if taken is None:
-                    time.sleep(0.03)
-                else:
-                    wait_for(lambda: min(taken()) >= i + 1, 20, f'a node to take {i + 1} messages')
-        return n
-
-
 def _received(probe, status: str, key: str) -> int:
     value = probe.status(status).get(key)
     return -1 if value is None else int(value)
@@ -183,89 +152,95 @@ def _keep_sigma(sigmas: dict[int, np.ndarray], msg) -> None:
         sigmas[tensor.stamp_ns] = tensor.g_sigma
 
 
-def _feed(feeder, offline: Offline, indices: range, taken, odom=None, chunk: int = 200) -> None:
-    """The bag's sets ``indices`` as ``gradient/raw`` (with ``B_1'``: what the tensor
-    node makes of the bag: eq. 7 on the sets resampled to sensor 1's stamps), each after its
-    ``/odom`` message when ``odom`` is given, ``chunk`` at a time: the next once ``taken()``
-    (what the receiving end has counted) has the previous, so nothing is lost in transit on a
-    loaded machine."""
+def _channel_messages(offline: Offline, until_ns: int | None = None, battery: bool = True) -> list:
+    """``(channel, message)`` of the bag's temperature and battery messages (up to
+    ``until_ns``), in their recorded order."""
+    types = cv.rclpy_types()
+    t, c = offline.temperature, offline.current
+    n = len(t.stamps_ns) if until_ns is None else int(np.searchsorted(t.stamps_ns, until_ns, 'right'))
+    messages = []
+    for i in range(n):
+        messages.append((TEMPERATURE, cv.temperature_msg(types, t.values[i, 0], int(t.stamps_ns[i]))))
+        if battery:
+            messages.append((BATTERY, cv.battery_msg(types, c.values[i, 0], int(c.stamps_ns[i]))))
+    return messages
+
+
+def _raw_messages(offline: Offline, indices) -> list[bytes]:
+    """The bag's sets ``indices`` as serialized ``gradient/raw`` (with ``B_1'``: what the
+    tensor node makes of the bag: eq. 7 on the sets resampled to sensor 1's stamps)."""
+    from rclpy.serialization import serialize_message
+
     stamps, fields = offline.sets
     g = core.difference_tensor(fields, GEOMETRY)
-    for n, i in enumerate(indices, 1):
-        if odom is not None:
-            odom(i)
-        feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
-        if n % chunk == 0 or n == len(indices):
-            wait_for(lambda n=n: taken() >= n, 30, f'{n} of the sets taken')
+    types = cv.rclpy_types()
+    return [serialize_message(gt.gradient_tensor_msg(types, gt.TensorSet(int(stamps[i]), g[i], reference_field=fields[i, 0])))
+            for i in indices]
 
 
-def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(offline, tmp_path):
-    """The bag's trim into the calibrator (with its ``/odom``: the joint regional gradient, as
+def _compensator(monkeypatch, calibration_file):
+    """A compensator in this process (test/ros/in_process.py), without the tracker."""
+    return compensator_in_process(monkeypatch, calibration_file=str(calibration_file), track_calibration=False)
+
+
+def _compensated(published) -> dict[int, gt.TensorSet]:
+    return {t.stamp_ns: t for t in map(gt.tensor_set_from_msg,
+                                       deserialized(published, '/tetra/gradient/compensated', gt.rclpy_class()))}
+
+
+def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(monkeypatch, offline, tmp_path):
+    """The nodes in this process (test/ros/in_process.py), handed what the chain would bring:
+    the bag's trim into the calibrator (with its odom: the joint regional gradient, as
     offline; and every temperature and battery message), ``~/calibrate``; the compensator
-    follows the latched calibration, and the whole bag into it."""
-    from nav_msgs.msg import Odometry
-    from tetra_gradiometer.nodes.common import derived_qos
+    takes the trim's sets too (uncompensated), follows the published calibration, and takes
+    the whole bag."""
+    from rclpy.serialization import deserialize_message
+    from std_srvs.srv import Trigger
+    from tetra_gradiometer_msgs.srv import Calibrate
+
+    from tetra_gradiometer.nodes.calibrator import CalibratorNode
 
     calibration_file = tmp_path / 'calibration.yaml'
     stamps = offline.sets[0]
     n_trim = int(np.sum(stamps - stamps[0] <= TRIM_S * 1e9))
-    sigmas: dict[int, np.ndarray] = {}
     with MagneticBag(offline.bag) as bag:
         odom = bag.read_series(cv.ODOM_TOPIC)
     assert np.array_equal(odom.stamps_ns, stamps)  # one message per set, same stamp
-    with ros_graph() as (graph, probe, feeder):
-        probe.create_subscription(gt.rclpy_class(), 'gradient/compensated', partial(_keep_sigma, sigmas),
-                                  derived_qos())
-        odom_pub = feeder.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos())
-        channels = ChannelPublisher(feeder, offline)
-
-        def publish_odom(i: int) -> None:
-            pose = odom.values[i]
-            odom_pub.publish(cv.odometry_msg(channels.types, pose[cv.POSE_POSITION],
-                                             pose[cv.POSE_ORIENTATION], int(odom.stamps_ns[i])))
-
-        graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
-        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2, track_calibration=False)
-        wait_matched(feeder.raw, 3)  # calibrator, compensator, probe
-        wait_matched(odom_pub, 1)
-        wait_for(lambda: channels.battery.get_subscription_count() >= 1
-                 and channels.temperature.get_subscription_count() >= 1, 30, 'discovery', graph)
-        wait_for(lambda: _received(probe, CALIBRATION, 'samples') == 0, 20, 'the calibrator', graph)
+    types = cv.rclpy_types()
+    trim = _raw_messages(offline, range(n_trim))
+    with node_in_process(CalibratorNode, monkeypatch, calibration_file=str(calibration_file)) as (calibrator, from_calibrator), \
+            _compensator(monkeypatch, calibration_file) as (compensator, published):
         # The channels first (the whole recording, as the offline tools read it), then the trim.
-        channels.publish(pace=200, taken=lambda: (_received(probe, CALIBRATION, 'temperature messages'),
-                                                  _received(probe, CALIBRATION, f'{BATTERY} messages')))
-        assert probe.call('calibrator/start').success
-        _feed(feeder, offline, range(n_trim), lambda: _received(probe, CALIBRATION, 'samples'), publish_odom)
-        assert probe.call('calibrator/stop').success
-        reply = probe.call('calibrator/calibrate', timeout_s=60)
+        for name, message in _channel_messages(offline):
+            calibrator._on_channel(name, message)
+        assert calibrator._on_start(Trigger.Request(), Trigger.Response()).success
+        for i, data in enumerate(trim):
+            pose = odom.values[i]
+            calibrator._on_odom(cv.odometry_msg(types, pose[cv.POSE_POSITION], pose[cv.POSE_ORIENTATION],
+                                                int(odom.stamps_ns[i])))
+            calibrator._on_raw(deserialize_message(data, gt.rclpy_class()))
+            compensator._on_raw(data)
+        assert calibrator._on_stop(Trigger.Request(), Trigger.Response()).success
+        reply = calibrator._on_calibrate(Calibrate.Request(), Calibrate.Response())
         assert reply.success, reply.message
         assert 'effects (auto): vehicle_current' in reply.message, reply.message
 
-        # The compensator follows the calibration and subscribes to its channels.
-        wait_for(lambda: probe.status(COMPENSATION).get('compensating') == 'True'
-                 and channels.battery.get_subscription_count() >= 2
-                 and channels.temperature.get_subscription_count() >= 2, 20,
-                 'the compensator to follow the calibration and its channels', graph)
-        time.sleep(0.5)
-        channels.publish(pace=200, taken=lambda: (
-            _received(probe, CHANNELS, f'{BATTERY} (/battery_state) messages'),
-            _received(probe, CHANNELS, 'temperature (/tetra/temperature) messages')))
-        with probe.lock:
-            probe.collecting = True
-        published = _received(probe, COMPENSATION, 'published')  # the trim, uncompensated
-
-        def compensated() -> int:  # the sets the compensator has taken, as seen here
-            with probe.lock:
-                out = len(probe.tensors['gradient/compensated'])
-            return min(out, len(sigmas)) + max(_received(probe, CHANNELS, 'sets dropped without reference_rate'), 0)
-
+        # The compensator follows the calibration and reads its channels.
+        (calibration,) = [m for t, m in from_calibrator if t == '/tetra/calibration']
+        compensator._on_calibration(calibration)
+        compensator._publish_diagnostics()
+        assert last_status(published, COMPENSATION)['compensating'] == 'True'
+        for name, message in _channel_messages(offline):
+            compensator._on_channel(name, message)
+        before = compensator.published  # the trim, uncompensated
+        assert before == n_trim
         # Sets 0.. again: their stamps go back (a restarted replay): the eddy history restarts.
-        _feed(feeder, offline, range(len(stamps)), compensated)
-        time.sleep(0.5)  # anything extra would come now
-        with probe.lock:
-            live = dict(probe.tensors['gradient/compensated'])
-        channel_status = dict(probe.status(CHANNELS))
-        assert _received(probe, COMPENSATION, 'published') - published == len(offline.stamps)
+        for data in _raw_messages(offline, range(len(stamps))):
+            compensator._on_raw(data)
+        compensator._publish_diagnostics()
+        channel_status = last_status(published, CHANNELS)
+        assert compensator.published - before == len(offline.stamps)
+        live = {s: t for s, t in _compensated(published).items() if t.state == gt.COMPENSATED}
 
     # The calibration: the offline one (same sets, channels, selection and solve).
     saved, reference = load_calibration(calibration_file), load_calibration(offline.calibration)
@@ -278,10 +253,9 @@ def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(of
 
     # The tensors: the same sets (the first eddy rates dropped alike), within 1 % of the floor.
     assert sorted(live) == offline.stamps.tolist(), (len(live), len(offline.stamps))
-    assert sorted(sigmas) == offline.stamps.tolist()
-    tensors = np.array([live[s] for s in offline.stamps])
+    tensors = np.array([live[s].g for s in offline.stamps])
     worst = float(np.max(np.abs(tensors - offline.tensors))) / offline.floor
-    sigma_live = np.array([sigmas[s] for s in offline.stamps])
+    sigma_live = np.array([live[s].g_sigma for s in offline.stamps])
     worst_sigma = float(np.max(np.abs(sigma_live - offline.sigmas))) / offline.floor
     live_ratios, offline_ratios = offline.residuals(tensors), offline.residuals(offline.tensors)
     print(f'\nlive vs offline: parameters within {worst_parameter:.1e} of their sigma; over '
@@ -374,7 +348,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
         # for the test and ~45 s wall, paced 21-22 s and 27-32 s with two busy processes beside
         # it. The trim stays at 8x: the calibrator is not on the compensator's path, and paced
         # by it at rate 0 its best-effort channels lost messages (1 of 2 runs).
-        graph.start('driver', rate=0.0, pace_topic='gradient/compensated', max_in_flight=4, **driver)
+        graph.start('driver', rate=0.0, **driver)
         wait_for(lambda: probe.count_publishers('/battery_state') >= 1
                  and probe.count_publishers('/tetra/temperature') >= 1, 30, 'the second driver', graph)
         wait_connected(probe, graph, 'compensator', '/tetra/gradient/compensated', 1)
@@ -423,71 +397,58 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
     assert channel_status['level'] == 0, channel_status
 
 
-def test_a_missing_or_stale_channel_drops_the_sets_and_warns_naming_it(offline, tmp_path):
+def test_a_missing_or_stale_channel_drops_the_sets_and_warns_naming_it(monkeypatch, offline):
     """The offline calibration (its terms read ``/battery_state`` and the temperature), the
-    sets fed as ``gradient/raw``: without battery messages nothing is
+    sets handed to the compensator in this process: without battery messages nothing is
     compensated (never with a zero current) and ``/diagnostics`` names the channel; with them
     the sets come out; when they stop for longer than 2 s of stamps, the sets are dropped
     again as stale."""
-    from diagnostic_msgs.msg import DiagnosticArray
-    from std_msgs.msg import Float64
+    from tetra_gradiometer.nodes import compensator as compensator_module
 
-    stamps, fields = offline.sets
-    g = core.difference_tensor(fields, GEOMETRY)
-    norms: list[float] = []
-    # Every channels message, not only the latest: the report that counts the drops says
-    # 'never compensated with zero', the next (no new drop, 0.2 s later) 'no message yet'; a
-    # test thread slowed by a loaded machine polled past the first (seen once in a full run).
-    channel_messages: list[str] = []
-    with ros_graph() as (graph, probe, feeder):
-        graph.start('compensator', calibration_file=str(offline.calibration), diagnostics_period_s=0.2, track_calibration=False)
-        probe.create_subscription(Float64, 'gradient/norm', lambda msg: norms.append(msg.data), 100)
-        probe.create_subscription(DiagnosticArray, '/diagnostics', lambda msg: channel_messages.extend(
-            s.message for s in msg.status if s.name == CHANNELS), 100)
-        channels = ChannelPublisher(feeder, offline)
-        wait_matched(feeder.raw, 2)
-        wait_for(lambda: channels.battery.get_subscription_count() >= 1
-                 and channels.temperature.get_subscription_count() >= 1, 20, 'channel subscriptions', graph)
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/norm') >= 1, 10, 'norm publisher', graph)
-        time.sleep(0.5)
-        with probe.lock:
-            probe.collecting = True
+    stamps = offline.sets[0]
+    types = cv.rclpy_types()
+    sets = _raw_messages(offline, range(300))
+    with _compensator(monkeypatch, offline.calibration) as (node, published):
+        def status(name: str) -> dict:
+            node._publish_diagnostics()
+            return last_status(published, name)
 
         # Temperature only: every set dropped, WARN naming the battery current.
-        channels.publish(until_ns=int(stamps[99]), battery=False)
-        for i in range(100):
-            feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
-        wait_for(lambda: _received(probe, CHANNELS, f'sets dropped without {BATTERY}') == 100, 20,
-                 'the sets dropped for the battery current', graph)
-        status = probe.status(CHANNELS)
-        assert status['level'] == 1 and BATTERY in status['message'] and '/battery_state' in status['message']
-        wait_for(lambda: any('never compensated with zero' in m and BATTERY in m for m in channel_messages),
-                 5, 'a channels report of the drops', graph)
-        compensation = probe.status(COMPENSATION)
+        for name, message in _channel_messages(offline, until_ns=int(stamps[99]), battery=False):
+            node._on_channel(name, message)
+        for data in sets[:100]:
+            node._on_raw(data)
+        channels = status(CHANNELS)
+        assert channels[f'sets dropped without {BATTERY}'] == '100'
+        assert channels['level'] == 1 and BATTERY in channels['message'] and '/battery_state' in channels['message']
+        assert 'never compensated with zero' in channels['message'], channels['message']
+        compensation = status(COMPENSATION)
         assert compensation['level'] == 1 and BATTERY in compensation['message']
-        assert probe.tensors['gradient/compensated'] == {} and norms == []
+        assert _compensated(published) == {} and [t for t, _ in published if t == '/tetra/gradient/norm'] == []
 
         # With the current: compensated.
-        channels.publish(until_ns=int(stamps[199]))
-        for i in range(100, 200):
-            feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
-        wait_for(lambda: len(probe.tensors['gradient/compensated']) == 100, 20, 'compensated sets', graph)
-        wait_for(lambda: probe.status(CHANNELS).get('level') == 0, 10, 'the channels OK again', graph)
-        assert sorted(probe.tensors['gradient/compensated']) == stamps[100:200].tolist()
+        for name, message in _channel_messages(offline, until_ns=int(stamps[199])):
+            node._on_channel(name, message)
+        for data in sets[100:200]:
+            node._on_raw(data)
+        assert sorted(_compensated(published)) == stamps[100:200].tolist()
+        assert status(CHANNELS)['level'] == 0
 
         # The battery falls silent (the temperature goes on): stale after 2 s of stamps.
         t = offline.temperature
+        for data in sets[200:300]:
+            node._on_raw(data)
         for i in range(200, 300):
-            feeder.publish_raw(int(stamps[i]), g[i], fields[i, 0])
-        for i in range(200, 300):
-            channels.temperature.publish(cv.temperature_msg(channels.types, t.values[i, 0], int(t.stamps_ns[i])))
+            node._on_channel(TEMPERATURE, cv.temperature_msg(types, t.values[i, 0], int(t.stamps_ns[i])))
+        later = compensator_module.time.monotonic() + 10.0  # its timer, once no set need wait longer
+        monkeypatch.setattr(compensator_module.time, 'monotonic', lambda: later)
+        node._release_held()
         stale = int(np.sum(stamps[200:300] - offline.current.stamps_ns[199] > 2e9))
-        wait_for(lambda: _received(probe, CHANNELS, f'sets dropped without {BATTERY}') == 100 + stale, 20,
-                 'the sets dropped for a stale battery current', graph)
-        status = probe.status(CHANNELS)
-        assert status['level'] == 1 and 'stale' in status['message'] and BATTERY in status['message']
-        assert len(probe.tensors['gradient/compensated']) == 200 - stale
-    print(f'\n{status["message"]}')
+        channels = status(CHANNELS)
+        assert channels[f'sets dropped without {BATTERY}'] == str(100 + stale)
+        assert channels['level'] == 1 and 'stale' in channels['message'] and BATTERY in channels['message']
+        assert len(_compensated(published)) == 200 - stale
+    print(f'\n{channels["message"]}')
 
 
 @pytest.mark.parametrize('params, expected', [
@@ -503,20 +464,24 @@ def test_bad_effects_parameters_are_refused_at_start(params, expected):
     assert all(text in line for text in expected), line
 
 
-def test_the_calibrator_reads_the_further_current_topics_and_refuses_a_bad_effects_value(tmp_path):
-    from ros_helpers import set_parameter
+def test_the_calibrator_reads_the_further_current_topics_and_refuses_a_bad_effects_value(monkeypatch, tmp_path):
+    from rclpy.parameter import Parameter
 
-    with ros_graph() as (graph, probe, _):
-        graph.start('calibrator', calibration_file=str(tmp_path / 'c.yaml'), diagnostics_period_s=0.2,
-                    current_topics=['/thruster1/battery', '/thruster2/battery'], effects='none')
-        for topic in ('/battery_state', '/thruster1/battery', '/thruster2/battery', '/tetra/temperature'):
-            wait_for(lambda t=topic: probe.count_subscribers(t) >= 1, 30, f'a subscription to {topic}', graph)
-        wait_for(lambda: _received(probe, CALIBRATION, 'current:/thruster2/battery messages') == 0, 20,
-                 'the calibrator diagnostics', graph)
-        assert probe.status(CALIBRATION)['effects'] == 'none'
-        refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal')
-        assert not refused.successful and 'unknown thermal' in refused.reason
-        refused = set_parameter(probe, graph, 'calibrator', 'effects', 'thermal_drift')
-        assert not refused.successful and 'read-only while calibrator is configured' in refused.reason
-        refused = set_parameter(probe, graph, 'calibrator', 'current_topics', '/x')
-        assert not refused.successful
+    from tetra_gradiometer.nodes.calibrator import CalibratorNode
+
+    with node_in_process(CalibratorNode, monkeypatch, calibration_file=str(tmp_path / 'c.yaml'),
+                         current_topics=['/thruster1/battery', '/thruster2/battery'], effects='none') as (node, published):
+        subscribed = {subscription.topic_name for subscription in node.subscriptions}
+        assert {'/battery_state', '/thruster1/battery', '/thruster2/battery', '/tetra/temperature'} <= subscribed
+        node._publish_diagnostics()
+        status = last_status(published, CALIBRATION)
+        assert status['current:/thruster2/battery messages'] == '0' and status['effects'] == 'none'
+
+        def refused(name, value):
+            return node.set_parameters([Parameter(name, value=value)])[0]
+
+        result = refused('effects', 'thermal')
+        assert not result.successful and 'unknown thermal' in result.reason
+        result = refused('effects', 'thermal_drift')
+        assert not result.successful and 'read-only while calibrator is configured' in result.reason
+        assert not refused('current_topics', '/x').successful

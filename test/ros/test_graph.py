@@ -27,7 +27,7 @@ GEOMETRY = core.TetraGeometry.regular(0.5)
 #: 48 s wall and 50 s CPU (rate 0: 16 s, 12 s). Paced by gradient/raw, rate 0 does not wait
 #: for the calibrator and compensator (docs/ros.md): under 3 parallel ROS runs and 4 busy
 #: processes (far beyond CI) the calibrator's 1000-set queue overflowed once; the survey is
-#: paced by gradient/compensated (``pace_topic``).
+#: the survey's sets are counted as the compensator takes them (``wait_for``).
 REPLAY_RATE = 0.0
 
 
@@ -69,10 +69,10 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
         graph.start('tensor')
         graph.start('calibrator', calibration_file=str(calibration_file))
         graph.start('compensator', calibration_file=str(calibration_file))
-        # Paced by the end of the chain (uncompensated, the compensator passes the raw tensor
-        # on): at 20x real time, beside a module that computes, the compensator fell behind
-        # and dropped 459 and 513 of the 1500 survey sets in two fresh-clone runs.
-        graph.start('driver', mode='sim', rate=0.0, pace_topic='gradient/compensated', start_paused=True,
+        # Rate 0, paced by the tensor node: at 20x real time, beside a module that computes,
+        # the compensator fell behind and dropped 459 and 513 of the 1500 survey sets in two
+        # fresh-clone runs.
+        graph.start('driver', mode='sim', rate=0.0, start_paused=True,
                     hold_between_segments=True, min_subscribers=1)
         _wait_discovered(probe, graph)
         # A missing calibration file: the compensator runs, uncompensated, and says so.
@@ -187,16 +187,14 @@ def test_replayed_bags_give_the_offline_core_tensors(tmp_path):
         graph.stop('driver')
         with probe.lock:
             probe.collecting = True
-        # Paced by the compensator's output: paced by the tensor node, a compensator short of
-        # CPU (two other busy processes) dropped 335-368 of the 1500 sets from its queue.
+        # Rate 0, paced by the tensor node (a compensator short of CPU, two other busy
+        # processes, dropped 335-368 of the 1500 sets from its queue in earlier runs).
         graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'survey'), rate=REPLAY_RATE,
-                    min_subscribers=1, start_paused=True, pace_topic='gradient/compensated')
+                    min_subscribers=1, start_paused=True)
         # The new driver's truth publisher must be known to the compensator and the probe first.
         wait_for(lambda: probe.count_publishers('/tetra/gradient/truth') >= 1, 30, 'the new driver', graph)
         wait_connected(probe, graph, 'driver', '/tetra/gradient/truth', 1)
         wait_tensor_delivers(probe, graph, raw=3, readers=('compensator',))
-        wait_for(lambda: probe.count_subscribers('/tetra/gradient/compensated') >= 2, 30,
-                 "the driver's pacing subscription", graph)
         assert probe.call('driver/resume').success
         # Polled cheaply (paired() under the probe's lock every 20 ms slowed its thread until
         # the replay outran it); the probe may still be taking the trim's last tensors when

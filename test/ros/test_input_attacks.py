@@ -1,7 +1,7 @@
-"""Issue 34, inputs from where they should come, over real DDS: a second publisher on an input
-topic is a WARN naming its node, and a reading stamped ahead of the node's clock (another
-process's mag2 500 ms ahead, odometry 1 s ahead) is refused and counted and never evicts the
-real readings."""
+"""Issue 34, inputs from where they should come: a second publisher on an input topic is a
+WARN naming its node, and a reading stamped ahead of the node's clock (another process's mag2
+500 ms ahead over real DDS; odometry 1 s ahead, in this process) is refused and counted and
+never evicts the real readings."""
 from __future__ import annotations
 
 import time
@@ -61,28 +61,22 @@ def test_mag2_from_another_process_stamped_ahead_is_refused_and_named_and_no_rea
             intruder.destroy_node()
 
 
-def test_odometry_stamped_ahead_is_refused_by_the_target_and_calibrator():
-    import rclpy
-    from nav_msgs.msg import Odometry
+def test_odometry_stamped_ahead_is_refused_by_the_target_and_calibrator(monkeypatch, tmp_path):
+    """In this process (test/ros/in_process.py): an odometry message 1 s ahead of the node's
+    clock, then one stamped now, handed to each node's odom callback."""
+    from in_process import last_status, node_in_process
 
-    from tetra_gradiometer.nodes.common import derived_qos
+    from tetra_gradiometer.nodes.calibrator import CalibratorNode
+    from tetra_gradiometer.nodes.target import TargetNode
 
-    with ros_graph() as (graph, probe, _):
-        graph.start('target', diagnostics_period_s=0.2)
-        graph.start('calibrator', diagnostics_period_s=0.2)
-        navigation = rclpy.create_node('navigation', namespace='/tetra', context=probe.context)
-        try:
-            odom = navigation.create_publisher(Odometry, 'odom', derived_qos())
-            wait_matched(odom, 2)
-            time.sleep(1.0)  # the nodes' side of the discovery
+    types = cv.rclpy_types()
+    for node_class, name, extra in ((TargetNode, 'target', {}),
+                                    (CalibratorNode, 'calibrator', {'calibration_file': str(tmp_path / 'c.yaml')})):
+        with node_in_process(node_class, monkeypatch, **extra) as (node, published):
             now = time.time_ns()
-            odom.publish(cv.odometry_msg(cv.rclpy_types(), np.array([200.0, 0.0, 0.0]),
-                                         np.array([0.0, 0.0, 0.0, 1.0]), now + 10**9))
-            odom.publish(cv.odometry_msg(cv.rclpy_types(), np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), now))
-            for name in ('target', 'calibrator'):
-                status = f'tetra/{name}: inputs'
-                wait_for(lambda s=status: probe.status(s).get('refused_future odom') == '1', 10, status, graph)
-            wait_for(lambda: probe.status('tetra/target: targets').get('dropped_out_of_order') == '0', 10,
-                     'the target diagnostics', graph)
-        finally:
-            navigation.destroy_node()
+            node._on_odom(cv.odometry_msg(types, np.array([200.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]), now + 10**9))
+            node._on_odom(cv.odometry_msg(types, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), now))
+            node._publish_diagnostics()
+            assert last_status(published, f'tetra/{name}: inputs')['refused_future odom'] == '1', name
+            if name == 'target':
+                assert last_status(published, 'tetra/target: targets')['dropped_out_of_order'] == '0'

@@ -7,7 +7,6 @@ touches rclpy's private lifecycle members. A deactivated node keeps publishing W
 freeze them)."""
 from __future__ import annotations
 
-import os
 import time
 from typing import Any
 
@@ -101,71 +100,47 @@ def test_no_module_touches_rclpys_private_lifecycle_members():
     assert found == []
 
 
-class _Listener:
-    """Every status on /diagnostics named with ``prefix``, from its creation on."""
-
-    def __init__(self, node: Any, executor: Any, prefix: str) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        self.seen: list = []
-        self.executor = executor
-        node.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda msg: self.seen.extend(s for s in msg.status if s.name.startswith(prefix)), 100)
-
-    def during(self, seconds: float) -> list:
-        """The statuses received while spinning ``seconds`` (and any received just before)."""
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.05)
-        seen, self.seen = self.seen, []
-        return seen
-
-
 @pytest.mark.parametrize('name', ['compensator', 'tensor'])
-def test_a_deactivated_node_keeps_reporting_inactive_on_the_steady_clock(name, tmp_path):
-    """use_sim_time with no /clock: the node's ROS time stands still at 0, yet the statuses
-    come every 0.1 s (steady clock); deactivated, every status is WARN 'inactive: ...'."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+def test_a_deactivated_node_keeps_reporting_inactive_on_the_steady_clock(name, monkeypatch, tmp_path):
+    """use_sim_time with no /clock: the node's ROS time stands still at 0, yet its diagnostics
+    timers are on the steady clock and stay armed while inactive; deactivated, every status
+    is WARN 'inactive: ...'; shut down, the last word is WARN 'finalized', and the timers
+    stop. In this process (test/ros/in_process.py): the timers' callbacks called."""
+    from in_process import node_in_process
+    from rclpy.clock import ClockType
 
-    context = rclpy.Context()  # a namespace of its own: another test's nodes on the domain differ
-    rclpy.init(context=context, domain_id=unique_domain(), args=['--ros-args', '-r', f'__ns:=/steady{os.getpid()}'])
-    executor = SingleThreadedExecutor(context=context)
-    nodes: list = []
-    try:
-        node = _classes()[name](parameter_overrides=_overrides(
-            name, tmp_path, diagnostics_period_s=0.1, use_sim_time=True), context=context)
-        listener = rclpy.create_node('listener', context=context)
-        nodes = [node, listener]
-        for each in nodes:
-            executor.add_node(each)
-        statuses = _Listener(listener, executor, node.get_fully_qualified_name().lstrip('/') + ': ')
-        node.bring_up()
+    extra = {'calibration_file': str(tmp_path / 'calibration.yaml')} if name == 'compensator' else {}
+    with node_in_process(_classes()[name], monkeypatch, diagnostics_period_s=0.1, use_sim_time=True,
+                         **extra) as (node, published):
         assert node.get_clock().now().nanoseconds == 0  # sim time, no /clock: frozen
-        statuses.during(0.3)  # those of the configuration (inactive) still in flight
-        active = statuses.during(1.5)
-        assert len({s.name for s in active}) >= 1 and len(active) >= 5, active
-        assert not any(s.message.startswith('inactive') for s in active)
-        node.trigger_deactivate()
-        statuses.during(0.3)  # the last active ones still in flight
-        inactive = statuses.during(1.5)
+        timers = [t for t in node.timers if t.callback == node._publish_diagnostics]
+        assert timers and all(t.clock.clock_type == ClockType.STEADY_TIME for t in timers)
+        prefix = node.get_fully_qualified_name().lstrip('/') + ': '
+
+        def fired() -> list:
+            """The node's statuses published by one period of its diagnostics timers."""
+            published.clear()
+            for timer in timers:
+                assert not timer.is_canceled()
+                timer.callback()
+            return [s for topic, m in published if topic == '/diagnostics' for s in m.status
+                    if s.name.startswith(prefix)]
+
+        active = fired()
         names = {s.name for s in active}
-        assert len(inactive) >= 5 * len(names)  # 15 periods of 0.1 s, each with every status
+        assert names and not any(s.message.startswith('inactive') for s in active)
+        node.trigger_deactivate()
+        inactive = fired()
         assert {s.name for s in inactive} == names
         assert all(s.level[0] >= 1 and s.message.startswith('inactive: ') for s in inactive), inactive
-        # Shut down: the statuses' last word is WARN 'finalized', then nothing more comes.
-        statuses.during(0.3)
+        # Shut down: the statuses' last word is WARN 'finalized', then the timers stop.
+        published.clear()
         node.trigger_shutdown()
-        last = {s.name: s for s in statuses.during(0.5)}  # (earlier ones may still be queued)
+        last = {s.name: s for topic, m in published if topic == '/diagnostics' for s in m.status
+                if s.name.startswith(prefix)}
         assert set(last) == names and all(
             s.level[0] >= 1 and s.message.startswith('finalized (shut down): ') for s in last.values()), last
-        assert statuses.during(0.5) == []
-    finally:
-        executor.shutdown(timeout_sec=2)
-        for each in nodes:
-            each.destroy_node()
-        rclpy.try_shutdown(context=context)
+        assert not any(t in node.timers for t in timers)  # destroyed: nothing more comes
 
 
 def test_a_node_process_asked_for_an_invalid_transition_keeps_running():
@@ -189,10 +164,17 @@ def test_a_node_process_asked_for_an_invalid_transition_keeps_running():
 
     with ros_graph() as (graph, probe, feeder):
         process = graph.start('compensator')
-        for transition in (Transition.TRANSITION_ACTIVATE, Transition.TRANSITION_CONFIGURE,
-                           Transition.TRANSITION_CLEANUP, 99):
-            request = ChangeState.Request(transition=Transition(id=transition))
-            assert call(probe, ChangeState, 'change_state', request, timeout=2) is None
+        # The four invalid requests at once, none answered within 2 s (one wait for all).
+        client = probe.create_client(ChangeState, 'compensator/change_state')
+        assert client.wait_for_service(timeout_sec=30)
+        futures = [client.call_async(ChangeState.Request(transition=Transition(id=transition)))
+                   for transition in (Transition.TRANSITION_ACTIVATE, Transition.TRANSITION_CONFIGURE,
+                                      Transition.TRANSITION_CLEANUP, 99)]
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline and not any(f.done() for f in futures):
+            time.sleep(0.05)
+        assert not any(f.done() for f in futures)
+        probe.destroy_client(client)
         assert process.alive(), process.output()
         assert call(probe, GetState, 'get_state', GetState.Request()).current_state.label == 'active'
         deactivate = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_DEACTIVATE))

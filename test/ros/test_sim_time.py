@@ -1,12 +1,12 @@
-"""Sim time on replay, over real DDS: the replaying driver publishes ``/clock`` from the bag's
+"""Sim time on replay: the replaying driver publishes ``/clock`` from the bag's
 log times, and a tensor node with ``use_sim_time`` reports the bag's rates and staleness on
 ``/diagnostics`` whatever the playback speed (10x gives the same figures as 1x; on the wall
 clock 10x would show 500 Hz). The statuses themselves come on the steady clock (sim
-time cannot freeze them), so 10x gives a tenth as many."""
+time cannot freeze them), so 10x gives a tenth as many. Over real DDS at 10x; the figures
+also in this process, on a clock the test owns."""
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -53,11 +53,19 @@ def _replay(bag: str, rate: float) -> tuple[list[int], list[dict[str, float]]]:
         for topic in ('mag1', 'mag2', 'mag3', 'mag4'):
             wait_for(lambda t=topic: probe.count_publishers(f'/tetra/{t}') >= 2, 30, f'the driver on {topic}', graph)
         wait_for(lambda: probe.count_publishers('/clock') >= 1, 30, 'the driver on /clock', graph)
-        time.sleep(2.0)  # the tensor node's side of the discovery
+
+        def matched() -> bool:  # the tensor node's side of the discovery: the driver's writers
+            inputs = probe.status('tetra/tensor: inputs')
+            return int(inputs.get('/clock publishers', 0)) >= 1 and all(
+                int(inputs.get(f'/tetra/mag{s} publishers', 0)) >= 2 for s in range(1, 5))
+
+        wait_for(matched, 30, "the tensor node to see the driver's publishers", graph)
         assert probe.call('driver/resume').success
         wait_for(lambda: probe.status('tetra/driver: playback').get('state') == 'finished',
                  SECONDS / rate + 30, 'the end of the replay', graph)
-        time.sleep(0.5)
+        with lock:  # a status after the last reading
+            done = len(statuses)
+        wait_for(lambda: len(statuses) > done + 1, 10, 'the statuses after the replay', graph)
     with lock:
         return list(clocks), list(statuses)
 
@@ -72,8 +80,8 @@ def bag(tmp_path_factory) -> str:
     return str(folder)
 
 
-@pytest.mark.parametrize('rate', [1.0, 10.0])
-def test_replay_publishes_clock_and_diagnostics_follow_the_bag_time(bag, rate):
+def test_replay_publishes_clock_and_diagnostics_follow_the_bag_time(bag):
+    rate = 10.0
     clocks, statuses = _replay(bag, rate)
     last = T0 + (int(RATE_HZ * SECONDS) - 1) * int(1e9 / RATE_HZ)
     # /clock: the bag's log times, never backwards, from the first sample to the last.
@@ -88,9 +96,55 @@ def test_replay_publishes_clock_and_diagnostics_follow_the_bag_time(bag, rate):
     during = len([s for s in playing if s['received'] < RATE_HZ * SECONDS])
     assert expected - 3 <= during <= 2 * expected + 3
     middle = playing[1:-1]  # the first window starts before the data, the last may be partial
-    # The rate is on the readings' own stamps: exactly the bag's in every window with new
-    # readings, however late the executor runs (the node clock gave 29-142 Hz under load; the
-    # wall clock would give 500 Hz at 10x).
+    # The rate is on the readings' own stamps: the bag's, however late the executor runs (the
+    # node clock gave 29-142 Hz under load; the wall clock would give 500 Hz at 10x). Over
+    # best-effort DDS a loaded machine loses readings (32 to 46 Hz windows seen at load 8 to
+    # 20): never above the bag's here; exactly the bag's in every window in process below.
     fresh = [b['rate_hz'] for a, b in zip(middle, middle[1:]) if b['received'] > a['received']]
-    assert fresh and np.allclose(fresh, RATE_HZ, rtol=1e-6), fresh
+    assert fresh and max(fresh) <= RATE_HZ * (1 + 1e-6), fresh
+    assert max(s['staleness_s'] for s in middle) < 0.2
+
+
+def test_the_tensor_node_reports_the_bag_rates_on_the_clock_the_driver_publishes(monkeypatch, bag):
+    """In this process (test/ros/in_process.py): the driver replays the bag at 10x on a steady
+    clock the test owns; its /clock messages and magnetometer messages, in the order it
+    published them, go to a tensor node with use_sim_time (its /clock callback, its
+    magnetometer callbacks), whose diagnostics are taken every 0.1 s of bag time: the bag's
+    rate in every window, the staleness within a window."""
+    from rclpy.serialization import serialize_message
+
+    from in_process import last_status, node_in_process
+    from tetra_gradiometer.nodes import driver as driver_module
+    from tetra_gradiometer.nodes.tensor import TensorNode
+
+    now = [1000.0]
+    monkeypatch.setattr(driver_module.time, 'monotonic', lambda: now[0])
+    with node_in_process(driver_module.DriverNode, monkeypatch, mode='replay', bag=bag, rate=10.0) as (driver, played):
+        while driver.state != 'finished':
+            now[0] += 0.005
+            driver._tick()
+            assert now[0] < 1010.0, driver.state
+    clocks = [cv.stamp_to_ns(m.clock) for t, m in played if t == '/clock']
+    last = T0 + (int(RATE_HZ * SECONDS) - 1) * int(1e9 / RATE_HZ)
+    assert clocks[0] == T0 and clocks[-1] == last and np.all(np.diff(clocks) > 0)
+
+    statuses = []
+    with node_in_process(TensorNode, monkeypatch, use_sim_time=True) as (node, published):
+        (clock,) = [s for s in node.subscriptions if s.topic_name == '/clock']
+        mags = {f'/tetra/mag{s + 1}': s for s in range(4)}
+        next_report = T0 + int(PERIOD_S * 1e9)
+        for topic, message in played:
+            if topic == '/clock':
+                clock.callback(message)
+                if cv.stamp_to_ns(message.clock) >= next_report:  # the diagnostics timer, on bag time
+                    node._publish_diagnostics()
+                    statuses.append({k: float(v) for k, v in last_status(published, 'tetra/tensor: mag1').items()
+                                     if k in ('rate_hz', 'staleness_s', 'received')})
+                    next_report += int(PERIOD_S * 1e9)
+            elif topic in mags:
+                node._on_mag(mags[topic], message if isinstance(message, bytes) else serialize_message(message))
+    assert len(statuses) == pytest.approx(SECONDS / PERIOD_S, abs=1)  # on the bag's time
+    middle = statuses[1:-1]
+    fresh = [b['rate_hz'] for a, b in zip(middle, middle[1:]) if b['received'] > a['received']]
+    assert len(fresh) >= len(middle) - 2 and np.allclose(fresh, RATE_HZ, rtol=1e-6), fresh
     assert max(s['staleness_s'] for s in middle) < 0.2

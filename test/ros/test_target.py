@@ -8,12 +8,11 @@ construction of the bad input."""
 from __future__ import annotations
 
 import json
-import threading
 import time
 
 import numpy as np
 import pytest
-from ros_helpers import ros_graph, wait_for, wait_matched
+from in_process import last_status, node_in_process
 from scipy.spatial.transform import Rotation
 
 from tetra_gradiometer.io import conversions as cv
@@ -130,64 +129,39 @@ def test_pose_array_marker_array_and_json_string_read_back_through_rclpy():
 # --------------------------------------------------------------------------- the node
 
 
-class _Outputs:
-    """The target node's latest outputs and every ``/diagnostics`` status of it, by probe."""
-
-    def __init__(self, probe) -> None:
-        from geometry_msgs.msg import PoseArray
-        from std_msgs.msg import String
-        from visualization_msgs.msg import MarkerArray
-
-        from tetra_gradiometer.nodes.common import latched_qos
-        from tetra_gradiometer.nodes.target import (
-            DETECTIONS_TOPIC,
-            JSON_TOPIC,
-            MARKERS_TOPIC,
-            TARGETS_TOPIC,
-        )
-
-        self.lock = threading.Lock()
-        self.latest: dict[str, object] = {}
-        self.counts: dict[str, int] = {}
-        for kind, topic in ((PoseArray, TARGETS_TOPIC), (MarkerArray, MARKERS_TOPIC), (String, JSON_TOPIC),
-                            (PoseArray, DETECTIONS_TOPIC)):
-            probe.create_subscription(kind, topic, lambda msg, topic=topic: self._keep(topic, msg), latched_qos())
-
-    def _keep(self, topic: str, msg) -> None:
-        with self.lock:
-            self.latest[topic] = msg
-            self.counts[topic] = self.counts.get(topic, 0) + 1
-
-    def get(self, topic: str):
-        with self.lock:
-            return self.latest.get(topic)
-
-
 def _tensor_msg(types, g, stamp_ns: int):
     """A compensated GradientTensor of ``g`` (3, 3) T/m at ``stamp_ns``."""
     return gt.gradient_tensor_msg(types, gt.TensorSet(stamp_ns, g, state=gt.COMPENSATED))
 
 
-def _publishers(feeder):
-    from nav_msgs.msg import Odometry
-
-    from tetra_gradiometer.nodes.common import derived_qos
-
-    return (feeder.create_publisher(gt.rclpy_class(), cv.COMPENSATED_NODE_TOPIC, derived_qos()),
-            feeder.create_publisher(Odometry, cv.ODOM_NODE_TOPIC, derived_qos()))
-
-
-def _start(graph, probe, feeder, **params):
-    graph.start('target', diagnostics_period_s=0.2, warn_throttle_s=30.0, **params)
-    tensors, odom = _publishers(feeder)
-    wait_matched(tensors, 2, 30)  # the target node and the probe
-    wait_matched(odom, 1, 30)
-    wait_for(lambda: bool(probe.status(STATUS)), 20, 'the target node diagnostics', graph)
-    return tensors, odom
-
-
 STATUS = 'tetra/target: targets'
 DIPOLE = {'position_m': [10.0, 3.0, -45.0], 'moment_Am2': [1.2e4, -1.0e4, -2.5e4]}  # |m| 2.95e4 A m^2
+
+
+def _target_node(monkeypatch, **params):
+    """``(node, published)`` of a target node in this process (test/ros/in_process.py)."""
+    from tetra_gradiometer.nodes.target import TargetNode
+
+    return node_in_process(TargetNode, monkeypatch, warn_throttle_s=30.0, **params)
+
+
+def _searched(node, published, expected: int) -> dict:
+    """Tick the node (its timer) until its search has taken ``expected`` samples and is done
+    (the search runs on a worker thread); its /diagnostics status then."""
+    deadline = time.monotonic() + 60.0
+    while True:
+        node._tick()
+        node._publish_diagnostics()
+        status = last_status(published, STATUS)
+        if status.get('searched_samples') == str(expected) and status.get('searching') == 'False':
+            return status
+        assert time.monotonic() < deadline, status
+        time.sleep(0.05)
+
+
+def _latest(published, topic: str):
+    found = [m for t, m in published if t == topic]
+    return found[-1] if found else None
 
 
 def _simulated_survey():
@@ -208,44 +182,26 @@ def _simulated_survey():
     return stamps, difference_tensor(noisy, scenario.geometry), mission.position_enu, mission.orientation_xyzw
 
 
-def _feed(feeder, publishers, stamps, tensors, positions, orientations, period_s=0.001) -> None:
-    types = cv.rclpy_types()
-    tensor_pub, odom_pub = publishers
-    for i, stamp in enumerate(stamps):
-        tensor_pub.publish(_tensor_msg(types, tensors[i], int(stamp)))
-        odom_pub.publish(cv.odometry_msg(types, positions[i], orientations[i], int(stamp)))
-        time.sleep(period_s)
+def test_the_node_locates_the_simulated_dipole_and_latches_its_outputs(monkeypatch):
+    from rclpy.qos import DurabilityPolicy
+    from rclpy.serialization import serialize_message
 
-
-def test_the_node_locates_the_simulated_dipole_and_latches_its_outputs():
     stamps, tensors, positions, orientations = _simulated_survey()
     n = len(stamps)
-    with ros_graph() as (graph, probe, feeder):
-        outputs = _Outputs(probe)
-        publishers = _start(graph, probe, feeder, update_period_s=2.0)
-        _feed(feeder, publishers, stamps, tensors, positions, orientations)
-        # The last sample's bin stays open (a bin closes when a later one begins).
-        final = int(stamps[-2])
-
-        def settled() -> bool:
-            poses, text = outputs.get('targets'), outputs.get('targets/json')
-            if poses is None or text is None or cv.stamp_to_ns(poses.header.stamp) != final:
-                return False
-            document = json.loads(text.data)
-            return [t['position_m'] for t in document['targets']] == [
-                [p.position.x, p.position.y, p.position.z] for p in poses.poses]
-
-        wait_for(settled, 45, 'the search of the whole survey', graph)
-        wait_for(lambda: outputs.get('detections') is not None
-                 and cv.stamp_to_ns(outputs.get('detections').header.stamp) == final, 5, 'detections', graph)
-        wait_for(lambda: probe.status(STATUS).get('searched_samples') == str(n - 1), 20, 'diagnostics', graph)
-        status = probe.status(STATUS)
-        poses, document = outputs.get('targets'), json.loads(outputs.get('targets/json').data)
-        markers, detections = outputs.get('targets/markers').markers, outputs.get('detections')
-        late = _Outputs(probe)  # a subscriber that joins now gets the latched results
-        wait_for(lambda: late.get('targets') is not None and late.get('targets/json') is not None, 10,
-                 'the latched outputs for a late subscriber', graph)
-        assert cv.stamp_to_ns(late.get('targets').header.stamp) == final
+    types = cv.rclpy_types()
+    with _target_node(monkeypatch, update_period_s=2.0) as (node, published):
+        for i, stamp in enumerate(stamps):
+            node._on_tensor(serialize_message(_tensor_msg(types, tensors[i], int(stamp))))
+            node._on_odom(cv.odometry_msg(types, positions[i], orientations[i], int(stamp)))
+        status = _searched(node, published, n - 1)  # the last sample's bin stays open
+        # A subscriber that joins late gets the results: the outputs are latched.
+        for topic in ('targets', 'targets/markers', 'targets/json', 'detections'):
+            (publisher,) = [p for p in node.publishers if p.topic_name == f'/tetra/{topic}']
+            assert publisher.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL, topic
+    poses, document = _latest(published, '/tetra/targets'), json.loads(_latest(published, '/tetra/targets/json').data)
+    markers, detections = _latest(published, '/tetra/targets/markers').markers, _latest(published, '/tetra/detections')
+    final = int(stamps[-2])
+    assert cv.stamp_to_ns(poses.header.stamp) == final and cv.stamp_to_ns(detections.header.stamp) == final
     assert status['level'] == 0 and status['received'] == str(n)
     for name in ('dropped_malformed', 'dropped_non_finite', 'dropped_out_of_order', 'dropped_no_odom'):
         assert status[name] == '0', (name, status)
@@ -269,17 +225,11 @@ def test_the_node_locates_the_simulated_dipole_and_latches_its_outputs():
     assert np.min(np.linalg.norm(peaks[:, :2] - found[:2], axis=1)) < 15.0  # abeam of it
 
 
-def test_bad_input_is_dropped_and_counted_and_never_searched():
+def test_bad_input_is_dropped_and_counted_and_never_searched(monkeypatch):
     """A 90 s straight leg over nothing: four non-finite tensors, two stamps out of order, a
     malformed tensor message, a 3 s odometry outage, a NaN odometry message, an unfilled
     (zero-norm) orientation, dropped, and one scaled by 3, normalized."""
-    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.serialization import serialize_message
-
-    warnings: list[str] = []
-
-    def keep_warnings(msg) -> None:
-        warnings.extend(s.message for s in msg.status if s.name == STATUS and s.level == bytes([1]))
 
     rng = np.random.default_rng(9)
     n = 900
@@ -293,32 +243,27 @@ def test_bad_input_is_dropped_and_counted_and_never_searched():
     # odometry for stamps 70.0-72.9 s, the tensors 70.43 .. 72.43 s are over 0.5 s from any.
     tensor_stamps = T0 + np.arange(n) * PERIOD_NS + 30_000_000
     types = cv.rclpy_types()
-    with ros_graph() as (graph, probe, feeder):
-        outputs = _Outputs(probe)
-        tensor_pub, odom_pub = _start(graph, probe, feeder, update_period_s=1.0)
-        probe.create_subscription(DiagnosticArray, '/diagnostics', keep_warnings, 50)
+    with _target_node(monkeypatch, update_period_s=1.0) as (node, published):
         orientations = identity * np.where(np.arange(n) == 810, 0.0, np.where(np.arange(n) == 820, 3.0, 1.0))[:, None]
         for i in range(n):
-            tensor_pub.publish(_tensor_msg(types, tensors[i], int(tensor_stamps[i])))
+            node._on_tensor(serialize_message(_tensor_msg(types, tensors[i], int(tensor_stamps[i]))))
             if i == 60:  # an older and an equal stamp
                 for stamp in (tensor_stamps[58], tensor_stamps[60]):
-                    tensor_pub.publish(_tensor_msg(types, tensors[0], int(stamp)))
+                    node._on_tensor(serialize_message(_tensor_msg(types, tensors[0], int(stamp))))
                 whole = serialize_message(_tensor_msg(types, tensors[0], int(tensor_stamps[60])))
-                tensor_pub.publish(whole[:100])  # cut inside the doubles: malformed
+                node._on_tensor(whole[:100])  # cut inside the doubles: malformed
             if not 700 <= i < 730:
                 position = positions[i] * (np.nan if i == 800 else 1.0)
-                odom_pub.publish(cv.odometry_msg(types, position, orientations[i], T0 + i * PERIOD_NS))
-            time.sleep(0.001)
-            if i % 150 == 149:  # no faster than the node takes them: none lost on a loaded machine
-                wait_for(lambda i=i: int(probe.status(STATUS).get('received', 0)) > i, 30,
-                         'the target node to take the tensors sent', graph)
+                node._on_odom(cv.odometry_msg(types, position, orientations[i], T0 + i * PERIOD_NS))
+            if i % 100 == 99:
+                node._tick()  # its timer: poses resolved as the samples come
+                node._publish_diagnostics()
         expected = n - 4 - 21 - 1  # non-finite, no odometry, the last bin (still open)
-        wait_for(lambda: probe.status(STATUS).get('searched_samples') == str(expected)
-                 and probe.status(STATUS).get('searching') == 'False', 45, 'the search of every sample', graph)
-        status = probe.status(STATUS)
-        poses, text = outputs.get('targets'), outputs.get('targets/json')
-        wait_for(lambda: outputs.get('detections') is not None, 5, 'detections', graph)
-        detections = outputs.get('detections')
+        status = _searched(node, published, expected)
+    poses, text = _latest(published, '/tetra/targets'), _latest(published, '/tetra/targets/json')
+    detections = _latest(published, '/tetra/detections')
+    warnings = [s.message for topic, m in published if topic == '/diagnostics' for s in m.status
+                if s.name == STATUS and s.level == bytes([1])]
     counts = {name: int(status[name]) for name in (
         'received', 'buffered_samples', 'pending_samples', 'dropped_malformed', 'dropped_non_finite',
         'dropped_out_of_order', 'dropped_no_odom', 'odom_dropped', 'odom_dropped_zero_norm', 'odom_normalized',

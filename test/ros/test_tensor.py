@@ -1,12 +1,15 @@
-"""nodes/tensor.py as a process over real DDS: exact linear fields whose eq. 7 tensor is known,
-bad readings dropped and counted, a silent sensor reported, run-time parameter validation."""
+"""nodes/tensor.py: exact linear fields whose eq. 7 tensor is known, bad readings dropped and
+counted, a silent sensor reported (in this process: test/ros/in_process.py, its sim time set
+through its /clock callback); over real DDS, run-time parameter validation and the
+resolved name of a remapped topic nobody publishes."""
 from __future__ import annotations
 
 import re
-import time
 
 import numpy as np
-from ros_helpers import reconfigure, ros_graph, set_parameter, uniform_gradient_fields, wait_connected, wait_for, wait_matched
+import pytest
+from in_process import deserialized, last_status, node_in_process, set_sim_time
+from ros_helpers import reconfigure, ros_graph, set_parameter, uniform_gradient_fields, wait_for
 
 from tetra_gradiometer import core
 
@@ -21,103 +24,109 @@ def _diag(probe, name: str) -> dict:
     return probe.status(name)
 
 
-def _tensor_graph_feed(feeder, probe, graph, n: int, start: int, bad: dict[int, tuple[int, float]] | None = None,
-                       skip: tuple[int, ...] = (), period_s: float = 0.004) -> None:
-    """Publish ``n`` sets of the exact linear field from stamp index ``start``; ``bad`` maps a
-    set index to (sensor, value) written into that sensor's x component."""
-    fields = uniform_gradient_fields(GEOMETRY.positions, B0, G_KNOWN)
-    for i in range(start, start + n):
-        values = fields.copy()
-        if bad and i in bad:
-            sensor, value = bad[i]
-            values[sensor, 0] = value
-        feeder.publish_set(T0 + i * 10**8, values, skip=skip)
-        time.sleep(period_s)
-
-
+FIELDS = uniform_gradient_fields(GEOMETRY.positions, B0, G_KNOWN)
 #: Set index -> (sensor, bad value of its x component).
 BAD = {10: (1, float('nan')), 11: (2, float('inf')), 12: (3, 2e-3), 13: (0, -float('inf')),
        **{i: (1, float('nan')) for i in range(20, 30)}}
 
 
-def _feed_bad_readings(graph, probe, feeder, **params):
-    """Start the tensor node with ``params``, then feed 60 sets with the readings of BAD."""
-    tensor = graph.start('tensor', warn_throttle_s=30.0, diagnostics_period_s=0.2, **params)
-    for publisher in feeder.mags:
-        wait_matched(publisher, 1)
-    wait_connected(probe, graph, 'tensor', '/tetra/gradient/raw', 2)  # the feeder's and the node's
-    with probe.lock:
-        probe.collecting = True
-    _tensor_graph_feed(feeder, probe, graph, 60, 0, BAD)
-    return tensor
+def _tensor_node(monkeypatch, **params):
+    """``(node, published)`` of a tensor node in this process (test/ros/in_process.py)."""
+    from tetra_gradiometer.nodes.tensor import TensorNode
+
+    return node_in_process(TensorNode, monkeypatch, **params)
 
 
-def test_non_finite_and_implausible_readings_drop_the_set_and_nothing_non_finite_is_published():
+def _feed(node, n: int, start: int, bad: dict[int, tuple[int, float]] | None = None, skip: tuple[int, ...] = (),
+          clock_ns: int | None = None) -> None:
+    """Hand the node ``n`` sets of the exact linear field from stamp index ``start``, serialized;
+    ``bad`` maps a set index to (sensor, value) written into that sensor's x component;
+    sensors in ``skip`` stay silent. ``clock_ns``: its sim time follows the stamps, from there."""
+    from rclpy.serialization import serialize_message
+
+    from tetra_gradiometer.io import conversions as cv
+
+    types = cv.rclpy_types()
+    for i in range(start, start + n):
+        if clock_ns is not None:
+            set_sim_time(node, clock_ns + i * 10**8)
+        values = FIELDS.copy()
+        if bad and i in bad:
+            sensor, value = bad[i]
+            values[sensor, 0] = value
+        for s in range(4):
+            if s not in skip:
+                node._on_mag(s, serialize_message(cv.magnetic_field_msg(types, values[s], T0 + i * 10**8, cv.MAG_FRAMES[s])))
+
+
+def _raw(published) -> dict[int, np.ndarray]:
+    """``{stamp: g (3, 3)}`` published on gradient/raw."""
+    from tetra_gradiometer.io import gradient_tensor as gt
+
+    return {t.stamp_ns: t.g for t in map(gt.tensor_set_from_msg,
+                                         deserialized(published, '/tetra/gradient/raw', gt.rclpy_class()))}
+
+
+def _status(node, published, name: str) -> dict:
+    node._publish_diagnostics()
+    return last_status(published, name)
+
+
+def test_non_finite_and_implausible_readings_drop_the_set_and_nothing_non_finite_is_published(monkeypatch, capfd):
     """Pairing stamps (sync nearest): a bad reading costs its set."""
-    with ros_graph() as (graph, probe, feeder):
-        tensor = _feed_bad_readings(graph, probe, feeder, sync='nearest')
-        bad = BAD
-        good = 60 - len(bad)
-        wait_for(lambda: probe.counts['gradient/raw'] >= good, 10, f'the good tensors ({probe.counts})', graph)
-        time.sleep(0.5)
-        raw = probe.tensors['gradient/raw']
-        matching = _diag(probe, 'tetra/tensor: matching')
-        wait_for(lambda: _diag(probe, 'tetra/tensor: matching').get('sets_dropped_invalid') == str(len(bad)),
-                 5, 'drop counters', graph)
-        per_sensor = [int(_diag(probe, f'tetra/tensor: mag{s}')['dropped_invalid']) for s in range(1, 5)]
-        log = tensor.output()
-    assert probe.counts['gradient/raw'] == good
-    assert sorted(raw) == [T0 + i * 10**8 for i in range(60) if i not in bad]
+    with _tensor_node(monkeypatch, sync='nearest', warn_throttle_s=30.0) as (node, published):
+        _feed(node, 60, 0, BAD)
+        raw = _raw(published)
+        matching = _status(node, published, 'tetra/tensor: matching')
+        per_sensor = [int(last_status(published, f'tetra/tensor: mag{s}')['dropped_invalid']) for s in range(1, 5)]
+    log = capfd.readouterr().err
+    assert sorted(raw) == [T0 + i * 10**8 for i in range(60) if i not in BAD]
     tensors = np.array(list(raw.values()))
     assert np.all(np.isfinite(tensors))
     np.testing.assert_allclose(tensors, np.broadcast_to(G_KNOWN, tensors.shape), rtol=0, atol=1e-12 * 1e-6)
+    assert matching['sets_dropped_invalid'] == str(len(BAD))
     assert matching['messages_dropped_unmatched'] == '0'
     assert per_sensor == [1, 11, 1, 1]
     assert 1 <= log.count('dropped a set') <= 2  # warned, and throttled
 
 
-def test_resampling_drops_a_bad_reading_with_its_own_set_and_never_interpolates_it():
+def test_resampling_drops_a_bad_reading_with_its_own_set_and_never_interpolates_it(monkeypatch):
     """Resampling (the default): a bad reading costs its own set (dropped and counted, as
     when pairing) and is never interpolated into its neighbours, also ten in a row."""
-    with ros_graph() as (graph, probe, feeder):
-        _feed_bad_readings(graph, probe, feeder)
-        # The streams share their stamps: every other instant is an exact sample of each sensor.
-        expected = [T0 + i * 10**8 for i in range(60) if i not in BAD]
-        wait_for(lambda: probe.counts['gradient/raw'] >= len(expected), 10, f'tensors ({probe.counts})', graph)
-        time.sleep(0.5)
-        raw = dict(probe.tensors['gradient/raw'])
-        wait_for(lambda: [_diag(probe, f'tetra/tensor: mag{s}').get('dropped_invalid') for s in range(1, 5)]
-                 == ['1', '11', '1', '1'], 5, 'per-sensor refusals', graph)
-        matching = _diag(probe, 'tetra/tensor: matching')
-    assert sorted(raw) == expected
+    with _tensor_node(monkeypatch, warn_throttle_s=30.0) as (node, published):
+        _feed(node, 60, 0, BAD)
+        raw = _raw(published)
+        matching = _status(node, published, 'tetra/tensor: matching')
+        per_sensor = [last_status(published, f'tetra/tensor: mag{s}')['dropped_invalid'] for s in range(1, 5)]
+    # The streams share their stamps: every other instant is an exact sample of each sensor.
+    assert sorted(raw) == [T0 + i * 10**8 for i in range(60) if i not in BAD]
     tensors = np.array(list(raw.values()))
     np.testing.assert_allclose(tensors, np.broadcast_to(G_KNOWN, tensors.shape), rtol=0, atol=1e-10 * NT)
+    assert per_sensor == ['1', '11', '1', '1']
     assert matching['sets_dropped_invalid'] == '14' and matching['sets_skipped_gap'] == '0'
     assert matching['sets_matched'] == '60'
 
 
-def test_a_silent_sensor_is_an_error_on_diagnostics_and_no_tensor_is_published_until_it_returns():
-    with ros_graph() as (graph, probe, feeder):
-        graph.start('tensor', stale_timeout_s=0.3, diagnostics_period_s=0.1)
-        for publisher in feeder.mags:
-            wait_matched(publisher, 1)
-        wait_connected(probe, graph, 'tensor', '/tetra/gradient/raw', 2)  # the feeder's and the node's
-        _tensor_graph_feed(feeder, probe, graph, 50, 0, period_s=0.01)
-        wait_for(lambda: probe.counts['gradient/raw'] == 50, 5, '50 tensors', graph)
-        wait_for(lambda: _diag(probe, 'tetra/tensor: mag3').get('level') == 0, 5, 'mag3 OK', graph)
+def test_a_silent_sensor_is_an_error_on_diagnostics_and_no_tensor_is_published_until_it_returns(monkeypatch):
+    """Its sim time follows the sets (10 Hz) from 1000 s: mag3 silent for 10 s of it."""
+    clock_ns = 1000 * 10**9
+    with _tensor_node(monkeypatch, stale_timeout_s=0.3, use_sim_time=True) as (node, published):
+        _feed(node, 50, 0, clock_ns=clock_ns)
+        assert len(_raw(published)) == 50
+        assert _status(node, published, 'tetra/tensor: mag3')['level'] == 0
 
-        _tensor_graph_feed(feeder, probe, graph, 100, 50, skip=(2,), period_s=0.01)  # mag3 silent ~1 s
-        mag3 = _diag(probe, 'tetra/tensor: mag3')
-        matching = _diag(probe, 'tetra/tensor: matching')
+        _feed(node, 100, 50, skip=(2,), clock_ns=clock_ns)  # mag3 silent
+        mag3 = _status(node, published, 'tetra/tensor: mag3')
+        matching = last_status(published, 'tetra/tensor: matching')
         assert mag3['level'] == 2 and 'stale' in mag3['message'], mag3
-        assert float(mag3['staleness_s']) > 0.3
+        assert float(mag3['staleness_s']) == pytest.approx(10.0)  # its last reading at set 49, now set 149
         assert matching['level'] == 2 and 'mag3' in matching['message']
-        assert _diag(probe, 'tetra/tensor: mag1')['level'] == 0
-        assert probe.counts['gradient/raw'] == 50
+        assert last_status(published, 'tetra/tensor: mag1')['level'] == 0
+        assert len(_raw(published)) == 50
 
-        _tensor_graph_feed(feeder, probe, graph, 50, 150, period_s=0.01)  # back
-        wait_for(lambda: probe.counts['gradient/raw'] >= 95, 5, 'tensors again', graph)
-        wait_for(lambda: _diag(probe, 'tetra/tensor: mag3').get('level') == 0, 5, 'mag3 OK again', graph)
+        _feed(node, 50, 150, clock_ns=clock_ns)  # back
+        assert len(_raw(published)) >= 95
+        assert _status(node, published, 'tetra/tensor: mag3')['level'] == 0
 
 
 def test_a_bad_value_set_at_run_time_is_refused():

@@ -26,13 +26,13 @@ from ._yaml import read_yaml
 #: Every parameter the package's nodes declare (``config/tetra_gradiometer.yaml``'s names),
 #: and ROS 2's own ``use_sim_time``: the names a section of the package may hold.
 KNOWN_PARAMETERS = frozenset(
-    """ack_timeout_s array_frame_id autostart bag base_frame_id calibration_file
+    """array_frame_id autostart bag base_frame_id calibration_file
     calibration_key_file calibration_publisher current_topics
     diagnostics_period_s earth_field_enu effects false_alarms_per_hour force ga_generations
     ga_seed health_false_alarms_per_hour health_min_source_range_edges history_s
     hold_between_segments jump_back_s loop max_coverage_condition max_duration_s max_field_t
-    max_gap_periods max_in_flight max_stamp_ahead_s max_pending max_samples max_solve_s
-    method min_samples min_subscribers mode odom_frame_id pace_topic publish_clock publisher_depth
+    max_gap_periods max_stamp_ahead_s max_pending max_samples max_solve_s
+    method min_samples min_subscribers mode odom_frame_id publish_clock publisher_depth
     rate
     reference_rate_hz
     replay_remap sample_rate_hz scenario seed sensor_frame_ids sensor_noise_t sensor_positions

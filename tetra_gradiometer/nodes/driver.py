@@ -29,10 +29,9 @@ recorded covariance; one recorded without (all zero) gets
 Pacing: ``rate`` times real time (by sample time in sim, by log time in replay; a frame
 more than ``MAX_CATCH_UP_S`` late, after a stall, restarts the pacing from itself rather
 than the backlog going out at once: counted as ``pace_restarts``), or with
-``rate: 0`` as fast as the graph takes it: at most ``max_in_flight`` sets are published
-ahead of the last ``pace_topic`` message received (``gradient/raw``, the tensor node; or
-``gradient/compensated``, the end of the chain: after ``ack_timeout_s`` without one, the
-driver moves on and counts a timeout).
+``rate: 0`` as fast as the tensor node takes it: at most ``ACK_WINDOW`` sets are published
+ahead of the last ``gradient/raw`` received. After ``ACK_TIMEOUT_S`` without one, the driver
+moves on and counts a timeout.
 
 ``start_paused`` waits for ``~/resume``; ``hold_between_segments`` (sim) pauses after each
 scenario segment until ``~/resume`` (so a trim can be calibrated before the survey starts).
@@ -71,16 +70,18 @@ from .common import (
     diagnostics_period_spec,
     frame_ids,
     non_negative,
-    one_of,
-    positive,
     status,
 )
 from .managed import ManagedNode
 from .process import spin_node
 from .replay import CHANNEL, MAG, ODOM, SIGNAL, TRUTH, Frame
 
-#: rate 0: the topics whose messages may pace the replay (``pace_topic``).
-PACE_TOPICS = ('gradient/raw', 'gradient/compensated')
+#: rate 0: sets published ahead of the last gradient/raw received (the tensor node's
+#: pending queue is far deeper; a small window keeps its readers' queues short).
+ACK_WINDOW = 4
+
+#: rate 0: s without a gradient/raw before the driver moves on (counted as ``ack_timeouts``).
+ACK_TIMEOUT_S = 0.5
 
 #: Why the driver refuses to configure without a ``mode``.
 MODE_UNSET = (
@@ -132,8 +133,8 @@ PARAMETERS = [
     ParamSpec(
         'rate',
         1.0,
-        'Speed: multiple of real time; 0 = as fast as the graph takes it (paced by pace_topic). '
-        'At most 1000.',
+        'Speed: multiple of real time; 0 = as fast as the tensor node takes it (paced by '
+        'gradient/raw). At most 1000.',
         non_negative,
         float_range=(0.0, 1000.0),
     ),
@@ -161,29 +162,6 @@ PARAMETERS = [
         'Play only this much sample time, s (0: all; at most 1e6 s, 11.6 days of mission).',
         non_negative,
         float_range=(0.0, 1e6),
-    ),
-    ParamSpec(
-        'max_in_flight',
-        4,
-        'rate 0: sets published ahead of the last gradient/raw received (at most 1000, the '
-        "tensor node's pending queue; beyond, sets are lost, not faster).",
-        int_range=(1, 1000),
-    ),
-    ParamSpec(
-        'pace_topic',
-        'gradient/raw',
-        'rate 0: the tensor topic that paces the replay: gradient/raw (the tensor node) or '
-        'gradient/compensated (the whole chain: a compensator short of CPU slows the replay '
-        'instead of dropping the oldest sets of its 1000-set queue).',
-        one_of(*PACE_TOPICS),
-    ),
-    ParamSpec(
-        'ack_timeout_s',
-        0.5,
-        'rate 0: move on after this long without gradient/raw, s (0.01-60: shorter than a '
-        'tensor round trip counts every set as a timeout).',
-        positive,
-        float_range=(0.01, 60.0),
     ),
     ParamSpec(
         'publisher_depth',
@@ -250,8 +228,6 @@ class DriverNode(ManagedNode):
         publishers, services and timers."""
         self._rate = float(p['rate'])
         self._hold = bool(p['hold_between_segments'])
-        self._window = int(p['max_in_flight'])
-        self._ack_timeout = float(p['ack_timeout_s'])
         if not p['mode']:
             raise ParamsError(MODE_UNSET)
         self._mode = p['mode']
@@ -309,7 +285,7 @@ class DriverNode(ManagedNode):
         self._clock_ns = -CLOCK_STEP_NS
         gated = self.when_active
         if self._rate == 0:
-            self.create_subscription(tensor, p['pace_topic'], gated(self._on_ack), derived_qos())
+            self.create_subscription(tensor, 'gradient/raw', gated(self._on_ack), derived_qos())
         self.create_service(Trigger, '~/resume', gated(self._on_resume))
         self.create_service(Trigger, '~/pause', gated(self._on_pause))
         # Wall-clock (steady) timers: the driver is the source of /clock, so it must not wait
@@ -412,8 +388,8 @@ class DriverNode(ManagedNode):
                 if frame.pace_ns < due_ns - MAX_CATCH_UP_S * self._rate * NS_PER_S:
                     self._origin = (now, frame.pace_ns)
                     self.pace_restarts += 1
-            elif len(self._in_flight) >= self._window:
-                if now - self._last_progress < self._ack_timeout:
+            elif len(self._in_flight) >= ACK_WINDOW:
+                if now - self._last_progress < ACK_TIMEOUT_S:
                     return
                 self.ack_timeouts += 1
                 self._in_flight.clear()
