@@ -89,9 +89,9 @@ def test_pairing_nearest_stamps_is_what_failed(tmp_path):
     nearest = TimeBase(sync='nearest', tolerance_s=10e-3)
     # The paper's model alone (--effects none): a sensor read a few ms late errs by its delay
     # times dB/dt, which an eddy term would absorb (the isotropic part of one, to first order).
-    # The misfit is the vehicle's shape, not a field's: the refusal says so.
+    # The refusal names that evidence: with the eddy term the window passes.
     paper = EffectsChoice.parse('none')
-    with pytest.raises(AssumptionError, match=r'does not fit the model \(.*not a field.*x the noise'):
+    with pytest.raises(AssumptionError, match=r'does not fit the model \(the vehicle: .*eddy_current.*x the noise'):
         calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0), timebase=nearest,
                       effects=paper)
     paired = calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0), timebase=nearest,

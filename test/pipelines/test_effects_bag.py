@@ -114,11 +114,12 @@ def test_calibrate_selects_the_effects_and_compensate_reaches_the_noise(bags, al
     residual, sigma = _survey_residual(csv, truth)
     # The noise floor: the compensated tensor's 1-sigma (sensor noise through eq. 7 and 19).
     assert residual < 1.2 * sigma
-    # Without the terms the same trim cannot calibrate (the window check refuses).
+    # Without the terms the same trim cannot calibrate (the window check refuses), and the
+    # refusal names the effects the recorded channels explain.
     assert_refused(
         run_cli(capsys, 'calibrate', bag, '--params', params, '--window', TRIM,
                 '--out', tmp_path / 'none.yaml', '--effects', 'none'),
-        'not a field but an effect of the vehicle',
+        'the vehicle: effects its recorded signals explain (',
     )
 
 

@@ -167,7 +167,7 @@ def test_declared_signals_bring_a_vehicle_of_fins_and_cables_to_the_floor(capsys
                            '0:239.9', '--out', root / 'refused.yaml', '--effects', 'none')
     # The cause from evidence: the held-out selection keeps the recorded signals (a magnet or a
     # current outside the array is as symmetric and traceless as a target's field).
-    assert code == 1 and 'does not fit the model (the vehicle: signals it records explain the misfit' in err, err
+    assert code == 1 and 'does not fit the model (the vehicle: effects its recorded signals explain (' in err, err
     assert 'signal:/joint_states#position[fin1]:harmonic' in err and 'a target' not in err, err
     plain, out = _survey_residual(capsys, root, mission, survey, root / 'plain.yaml', '--force', '--effects', 'none')
     assert plain is None or plain > 10 * floor, (plain, out)  # without them: far from it

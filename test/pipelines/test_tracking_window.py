@@ -1,6 +1,6 @@
-"""The tracker does not learn over the calibration's own window in its bag (pipelines/
-tracking.py: ``fitted_window``, ``learning_start_s``, ``TrackedStream.learn_after_s``): up
-to the window's end the sets are the frozen ones, after it the change is learnt."""
+"""The tracker does not learn from sets stamped up to the calibration's last fitted set
+(pipelines/tracking.py: ``learn_after_ns``, ``TrackedStream.learn_after_ns``): up to there
+the sets are the frozen ones, after it the change is learnt."""
 
 from __future__ import annotations
 
@@ -14,25 +14,15 @@ from tetra_gradiometer.core import (
     difference_tensor,
     simulate,
 )
-from tetra_gradiometer.pipelines.tracking import TrackedStream, fitted_window, learning_start_s
+from tetra_gradiometer.pipelines.tracking import TrackedStream, learn_after_ns
 
 GEOMETRY = TetraGeometry.regular(0.5)
 
 
-def test_the_window_is_read_from_the_calibration_diagnostics():
-    assert fitted_window({'bag': 'b', 'window_s': '600:839.9 s'}) == ('b', 839.9)
-    assert fitted_window({'bag': 'b', 'window_s': 'whole bag'}) == ('b', float('inf'))
-    assert fitted_window({'window_s': '0:10 s'}) is None  # which bag it was is not known
-    assert fitted_window({'bag': 'b', 'window_s': 'somewhere'}) is None
-
-
-def test_only_the_calibration_s_own_bag_waits_for_the_window_end(tmp_path):
-    bag = tmp_path / 'mission'
-    bag.mkdir()
-    assert learning_start_s(bag, (str(bag), 42.0)) == 42.0
-    assert learning_start_s(tmp_path / '.' / 'mission', (str(bag), 42.0)) == 42.0
-    assert learning_start_s(tmp_path / 'other', (str(bag), 42.0)) == float('-inf')
-    assert learning_start_s(bag, None) == float('-inf')
+def test_the_last_fitted_stamp_is_read_from_the_calibration_diagnostics():
+    assert learn_after_ns({'samples_window_s': [1_700_000_000.0, 1_700_000_839.9]}) == 1_700_000_839_900_000_000
+    assert learn_after_ns({'bag': 'b', 'window_s': '0:10 s'}) is None  # no stamps: learnt from the start
+    assert learn_after_ns({'samples_window_s': 'somewhere'}) is None
 
 
 def test_sets_up_to_the_window_end_are_the_frozen_ones_and_the_change_is_learnt_after():
@@ -48,7 +38,7 @@ def test_sets_up_to_the_window_end_are_the_frozen_ones_and_the_change_is_learnt_
     g = difference_tensor(fields, GEOMETRY)
     stamps = 1_700_000_000 * 10**9 + np.round(data.t * 1e9).astype(np.int64)
     stream = TrackedStream(GEOMETRY, InterferenceParameters.zero(), 0.05e-9)
-    stream.learn_after_s = 20.0
+    stream.learn_after_ns = int(stamps[0]) + 20 * 10**9
     halves = [stream(stamps[rows], fields[rows], g[rows], int(stamps[0]))
               for rows in (slice(0, 150), slice(150, None))]
     tracked = np.concatenate([h[0] for h in halves])

@@ -35,7 +35,7 @@ from ..io.outputs import TARGETS, check_output
 from ..io.params import earth_field_from_params, geometry_from_params, load_params
 from ..pipelines.compensation import health_recorder, load_compensation
 from ..pipelines.targets import Search, locate_bag
-from ..pipelines.tracking import fitted_window
+from ..pipelines.tracking import learn_after_ns
 from ..reports.targets import write_locate_report
 from ._args import (
     MAX_FALSE_ALARMS_PER_HOUR,
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         tracking=(
             None if args.calibration is None else calibration.sensor_noise_t,
             args.track,
-            None if args.calibration is None else fitted_window(calibration.diagnostics),
+            None if args.calibration is None else learn_after_ns(calibration.diagnostics),
         ),
     )
     out = write_locate_report(

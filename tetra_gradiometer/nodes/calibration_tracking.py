@@ -38,6 +38,7 @@ class LiveTracking:
         self._node, self._horizon = node, horizon
         self._odom = AttitudeHistory(length=MAX_ODOM_MESSAGES)
         self._model: tuple[Any, InterferenceParameters, float] | None = None
+        self._learn_after_ns: int | None = None
         self.tracker: OffsetTracker | None = None
         self._sent, self._last_ns = 0, 0
         self._pub = node.create_lifecycle_publisher(
@@ -45,16 +46,23 @@ class LiveTracking:
         )
         node.create_subscription(Odometry, cv.ODOM_NODE_TOPIC, gated(self._on_odom), derived_qos())
 
-    def start(self, geometry: Any, parameters: Any, noise: float) -> None:
-        """Track ``parameters`` afresh (None: no calibration, nothing tracked)."""
+    def start(
+        self, geometry: Any, parameters: Any, noise: float, learn_after_ns: int | None = None
+    ) -> None:
+        """Track ``parameters`` afresh (None: no calibration, nothing tracked), learning only
+        from sets stamped after ``learn_after_ns`` (the calibration's last fitted set,
+        pipelines/tracking.learn_after_ns: compensate's rule)."""
         self._model = None if parameters is None else (geometry, parameters, noise)
+        self._learn_after_ns = learn_after_ns
         self.tracker, self._sent = None, 0
 
     def one(self, stamp_ns: int, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``g`` (3, 3) T/m compensated with the calibration -> tracked, and the state's
         variance (9,) (T/m)^2 (zeros while nothing is tracked). A stamp before the last (a
         replay started again) starts the tracker afresh."""
-        if self._model is None:
+        if self._model is None or (
+            self._learn_after_ns is not None and stamp_ns <= self._learn_after_ns
+        ):
             return g, np.zeros(9)
         if self.tracker is not None and stamp_ns < self._last_ns:  # a replay started again
             self.tracker, self._sent = None, 0

@@ -57,6 +57,7 @@ from ..io.calibration_message import calibration_from_message
 from ..io.channels import channel_topic
 from ..io.matching import StampPairer
 from ..pipelines.health import alarm_cause
+from ..pipelines.tracking import learn_after_ns
 from .authentication import CalibrationGate, Refused, key_file_spec, node_key
 from .calibration_tracking import LiveTracking
 from .channels import LiveEffects, channel_message, channel_stamp, subscribe_channels
@@ -355,7 +356,8 @@ class CompensatorNode(ManagedNode):
             )
             self._health_text = 'watching'
         if self._tracking is not None:
-            self._tracking.start(self._geometry, parameters, noise)
+            fitted = None if calibration is None else learn_after_ns(calibration.diagnostics)
+            self._tracking.start(self._geometry, parameters, noise, fitted)
 
     def _feed_health(self) -> None:
         """Feed the buffered samples to the monitor; publish new (and newly settled) alarms."""

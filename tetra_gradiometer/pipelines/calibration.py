@@ -538,6 +538,9 @@ def _diagnostics(result: BagCalibration, bag_path: str | os.PathLike[str]) -> di
     return {
         'bag': str(bag_path),
         'window_s': result.window,
+        # The first and last fitted sets' stamps, s (the calibrator node's key too): where the
+        # tracker starts learning (pipelines/tracking.learn_after_ns).
+        'samples_window_s': [float(result.stamps_ns[i]) * S_PER_NS for i in (0, -1)],
         'sets_in_window': result.sets_in_window,
         'thinned_every': result.thinned_every,
         'attitude_coverage_condition': result.calibration.details['attitude_coverage_condition'],

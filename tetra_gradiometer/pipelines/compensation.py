@@ -55,7 +55,7 @@ from ..io.calibration import check_positions, load_calibration
 from ..io.outputs import BAG, CSV, atomic_output, check_output
 from .health import HealthRecorder
 from .terms import StreamRegressors
-from .tracking import TrackedStream, fitted_window
+from .tracking import TrackedStream, learn_after_ns
 
 __all__ = [
     'COMPENSATED_TOPIC',
@@ -251,7 +251,7 @@ class Compensation:
     covariance: np.ndarray | None = None
     forced: tuple[str, ...] = ()
     calibration_id: str = ''
-    fitted: tuple[str, float] | None = None  # its bag and window end, s (fitted_window)
+    fitted: int | None = None  # the last fitted stamp, ns (learn_after_ns)
 
 
 def health_recorder(
@@ -322,7 +322,7 @@ def load_compensation(
         covariance,
         calibration.forced_warnings(),
         calibration.created_utc,
-        fitted_window(calibration.diagnostics),
+        learn_after_ns(calibration.diagnostics),
     )
 
 

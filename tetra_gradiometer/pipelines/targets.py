@@ -95,7 +95,7 @@ def locate_bag(
     allow_missing_channels: bool = False,
     earth_field_enu: np.ndarray | None = None,
     health: HealthRecorder | None = None,
-    tracking: tuple[float | None, bool | None, tuple[str, float] | None] = (None, False, None),
+    tracking: tuple[float | None, bool | None, int | None] = (None, False, None),
 ) -> BagTargets:
     """Search the bag's compensated tensor (eq. 19 with ``parameters``; the raw tensor, eq.
     7, when None) and, with ``comparison``, the raw one too. ``allow_missing_channels``: a
@@ -104,8 +104,8 @@ def locate_bag(
     (3,) T, the params file's: the odometry's world frame is tested against it. ``health``
     (pipelines/health) is fed the compensated sets: the output checks itself.
     ``tracking``: the calibration's sensor noise (T), whether to track it
-    (pipelines/tracking.py; None: as ``compensate`` by default) and its bag and window end
-    (:func:`~.tracking.fitted_window`).
+    (pipelines/tracking.py; None: as ``compensate`` by default) and its last fitted stamp, ns
+    (:func:`~.tracking.learn_after_ns`).
 
     Raises
     ------

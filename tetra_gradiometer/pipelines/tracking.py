@@ -18,10 +18,7 @@ the change removed from each row, nT.
 
 from __future__ import annotations
 
-import os
-import re
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,7 +28,7 @@ from ..core.model import InterferenceParameters
 from ..core.odometry import check_odometry
 from ..core.tracking import OffsetTracker, TrackerConfig, handed_over
 from ..core.types import FloatArray
-from ..core.units import NT_PER_T, S_PER_NS
+from ..core.units import NS_PER_S, NT_PER_T, S_PER_NS
 from ..errors import InputError
 from ..io import conversions as cv
 from .health import HealthRecorder
@@ -40,7 +37,7 @@ __all__ = [
     'TRACK_BY_DEFAULT',
     'TRACKING_COLUMNS',
     'TrackedStream',
-    'fitted_window',
+    'learn_after_ns',
     'odometry_orientation',
     'target_spans',
     'track_tensors',
@@ -85,28 +82,19 @@ def odometry_orientation(bag: Any) -> tuple[OrientationSource | None, str]:
     return OrientationSource(check.stamps_ns, check.pose[:, cv.POSE_ORIENTATION]), ''
 
 
-def fitted_window(diagnostics: dict[str, Any]) -> tuple[str, float] | None:
-    """A calibration file's bag and the end of its window (s from the bag's first set;
-    ``inf`` for the whole bag) from its ``diagnostics`` (``bag``, ``window_s``), or None
-    when it does not say."""
-    bag, window = diagnostics.get('bag'), str(diagnostics.get('window_s', ''))
-    if not bag:
+def learn_after_ns(diagnostics: dict[str, Any]) -> int | None:
+    """The stamp (ns) up to which the tracker does not learn: the last set the calibration
+    fitted (its ``diagnostics``' ``samples_window_s``, written by ``calibrate`` and the
+    calibrator node), or None when the file does not say. Up to there the fit is the truth:
+    a stream holding the calibration's own trim (one bag of the whole mission, or its live
+    replay) is compensated as fitted until the trim's end, and a trim before it, over a
+    target, teaches the offsets nothing. A stream recorded before the calibration is not
+    tracked at all. One rule, on stamps, for ``compensate`` and the compensator node."""
+    window: Any = diagnostics.get('samples_window_s')
+    try:
+        return int(round(float(window[1]) * NS_PER_S))
+    except (TypeError, ValueError, IndexError):
         return None
-    if window == 'whole bag':
-        return str(bag), float('inf')
-    found = re.fullmatch(r'\s*(\S+?):(\S+?)\s*s?\s*', window)
-    return (str(bag), float(found.group(2))) if found else None
-
-
-def learning_start_s(bag_path: Any, fitted: tuple[str, float] | None) -> float:
-    """Seconds from the bag's first set before which the tracker does not learn: the end
-    of the calibration's window when it was fitted on this bag (the fit is the truth up to
-    there; a trim before it, over a target, would teach the offsets a wrong change), else
-    ``-inf``."""
-    if fitted is None:
-        return float('-inf')
-    same = Path(os.fspath(fitted[0])).resolve() == Path(os.fspath(bag_path)).resolve()
-    return fitted[1] if same else float('-inf')
 
 
 def tracked_stream(
@@ -116,14 +104,14 @@ def tracked_stream(
     sensor_noise_t: float | None,
     health: HealthRecorder | None,
     asked: bool | None = None,
-    fitted: tuple[str, float] | None = None,
+    fitted: int | None = None,
 ) -> tuple[TrackedStream | None, str]:
     """The tracker of a bag's compensation (``compensate``, ``batch``), with ``/odom`` when
     it is usable, and what it goes without ('' when nothing). ``asked`` True or False
     (``--track-calibration``, ``--freeze-calibration``), None: :data:`TRACK_BY_DEFAULT`, and
     then no tracker, with a note, when the calibration gives no sensor noise. ``fitted``:
-    the calibration's bag and window end (:func:`fitted_window`): in that bag the tracker
-    learns only after it.
+    the calibration's last fitted stamp (:func:`learn_after_ns`): the tracker learns only
+    from the sets stamped after it.
 
     Raises
     ------
@@ -144,7 +132,7 @@ def tracked_stream(
     with MagneticBag(bag_path) as bag:
         orientation, note = odometry_orientation(bag)
     tracking = TrackedStream(geometry, parameters, sensor_noise_t, orientation, health)
-    tracking.learn_after_s = learning_start_s(bag_path, fitted)
+    tracking.learn_after_ns = fitted
     return tracking, note
 
 
@@ -182,7 +170,7 @@ def track_tensors(
     tensors: FloatArray,
     track: tuple[FloatArray, FloatArray, FloatArray],
     asked: bool | None = None,
-    fitted: tuple[str, float] | None = None,
+    fitted: int | None = None,
 ) -> tuple[FloatArray, FloatArray, str]:
     """A whole recording's compensated ``tensors`` (N, 3, 3) T/m tracked as ``compensate``
     tracks them (``survey``, ``locate``), never learning from the anomalies
@@ -249,9 +237,8 @@ class TrackedStream:
         )
         self.orientation = orientation
         self.health = health
-        #: Seconds from the first set up to which the sets stay as compensated (the
-        #: calibration's own window in its bag, :func:`learning_start_s`).
-        self.learn_after_s = float('-inf')
+        #: The stamp (ns) up to which the sets stay as compensated (:func:`learn_after_ns`).
+        self.learn_after_ns: int | None = None
         self._origin_ns: int | None = None
 
     def __call__(
@@ -266,14 +253,18 @@ class TrackedStream:
         compensated with the frozen calibration, ``exclude`` (n,) bool samples not learnt
         from (targets). Returns the tracked tensors (n, 3, 3) T/m,
         the state's variance per component (n, 9) (T/m)^2 and the change removed (n, 9) T.
-        Sets up to :attr:`learn_after_s` (s from the first set) are the frozen ones: the
-        tracker starts after them."""
+        Sets stamped up to :attr:`learn_after_ns` are the frozen ones: the tracker starts
+        after them."""
         if self._origin_ns is None and len(stamps_ns):
             self._origin_ns = int(stamps_ns[0])
         elapsed = np.asarray(stamps_ns, dtype=np.int64) - (self._origin_ns or 0)
         t_s = elapsed.astype(np.float64) * S_PER_NS
         n = len(t_s)
-        held = int(np.searchsorted(t_s, self.learn_after_s, side='right'))
+        held = (
+            0
+            if self.learn_after_ns is None
+            else int(np.searchsorted(stamps_ns, self.learn_after_ns, side='right'))
+        )
         g, variance, offsets = tensors.copy(), np.zeros((n, 9)), np.zeros((n, 9))
         health = self.health
         if held and health is not None:

@@ -209,9 +209,9 @@ class WindowCheck:
         explaining = lacking.pop(EXPLAINING, '')
         if explaining:
             return (
-                f'the vehicle: signals it records explain the misfit ({explaining}: kept by '
-                'the held-out test of the automatic selection, --effects auto, and not read '
-                'by this fit)'
+                f'the vehicle: effects its recorded signals explain ({explaining}: kept by '
+                'the held-out test of the automatic selection, --effects auto, and the window '
+                'passes with them; this fit does not read them)'
             )
         vehicle = (
             f'; or a source on the vehicle that a signal it records explains ({unread}: '
