@@ -101,7 +101,10 @@ def test_the_file_calibrate_writes_round_trips_with_its_bag_and_window_as_proven
     written = yaml.safe_load(text)
     message = _through_cdr(calibration_fields(text))
     assert message.source == str(REPO / 'bags' / 'trim') and message.signature == ''
-    np.testing.assert_array_equal(message.window_s, written['diagnostics']['window_found']['window_s'])
+    # The window as the fitted sets' stamps (s): the found window's span, in bag time.
+    np.testing.assert_array_equal(message.window_s, written['diagnostics']['samples_window_s'])
+    start, end = written['diagnostics']['window_found']['window_s']
+    assert abs((message.window_s[1] - message.window_s[0]) - (end - start)) < 1e-3, message.window_s
     assert message.sensor_noise_t == written['sensor_noise_T']
     assert message.rank == written['diagnostics']['rank'] == 36
     np.testing.assert_array_equal(message.parameters[:27], np.ravel(written['k_soft']))
