@@ -12,8 +12,8 @@ refuses a corrupt calibration file).
 
 Provenance: ``source`` is the diagnostics' ``source`` (the calibrator's node name) or else
 ``bag`` (``calibrate``'s bag); ``window_s`` is the diagnostics' ``samples_window_s`` (the
-first and last fitted samples' stamps, s: the calibrator's and ``calibrate``'s) or else ``window_found.window_s`` (seconds
-into ``calibrate``'s bag), else ``[0, 0]``.
+first and last fitted samples' stamps, s: the calibrator's and ``calibrate``'s) or else
+``window_found.window_s`` (seconds into ``calibrate``'s bag), else ``[0, 0]``.
 """
 
 from __future__ import annotations
