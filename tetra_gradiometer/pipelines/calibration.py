@@ -401,21 +401,16 @@ def _solve(
         check = solve(with_them, force=True, lacking={}).check
         return check is not None and check.passed
 
-    evidence = _signal_evidence(
-        bag_path, sets, thinned, geometry, method, effects, options, terms, passes
-    )
+    offer = functools.partial(_terms, bag_path, sets, thinned, geometry, method, options=options)
+    evidence = _signal_evidence(bag_path, effects, terms, offer, passes)
     return solve(fitted, force=force, lacking={**lacking, **evidence}), fitted, terms
 
 
 def _signal_evidence(
     bag_path: str | os.PathLike[str],
-    sets: WindowSets,
-    thinned: int,
-    geometry: TetraGeometry,
-    method: str,
     effects: EffectsChoice | None,
-    options: Options,
     terms: WindowTerms,
+    offer: Callable[[EffectsChoice], WindowTerms],
     passes: Callable[[tuple[Any, ...]], bool],
 ) -> dict[str, str]:
     """Whether the vehicle's recorded signals explain a window that fails its check:
@@ -428,7 +423,7 @@ def _signal_evidence(
     if not (choice.automatic and choice.discover):
         automatic = dataclasses.replace(choice, names=None, discover=True, source='auto')
         fitted = {c.name for c in terms.candidates}
-        terms = _terms(bag_path, sets, thinned, geometry, method, automatic, options)
+        terms = offer(automatic)  # the window's terms under automatic selection
         kept = [c.name for c in terms.candidates if c.name not in fitted]
         if kept and passes(terms.candidates):
             return {EXPLAINING: ', '.join(kept)}
