@@ -1,6 +1,6 @@
 # Two entry points for a fresh machine: `make demo` and `make test`.
 # Both run `setup` first; setup is idempotent (re-runs only when the pins change, and builds
-# the interface package tetra_gradiometer_msgs/ only when its files change).
+# the interface package ros/tetra_gradiometer_msgs/ only when its files change).
 # `make test` runs the gates (`make check`: ruff, mypy, module/function sizes) and then the tests.
 PYTHON ?= python3
 VENV   := .venv
@@ -8,11 +8,11 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-# The interface package tetra_gradiometer_msgs/ (ament_cmake, rosidl) built from the ros-jazzy-*
+# The interface package ros/tetra_gradiometer_msgs/ (ament_cmake, rosidl) built from the ros-jazzy-*
 # wheels with plain cmake and installed into the venv's prefix, where the venv's Python finds
 # it with no variables (docs/ros.md, *Our interfaces*). Rebuilt when its files or the pins
 # change; the build dir (git-ignored) is kept for incremental rebuilds.
-MSGS       := tetra_gradiometer_msgs
+MSGS       := ros/tetra_gradiometer_msgs
 MSGS_STAMP := $(VENV)/.msgs-installed
 MSGS_FILES := $(MSGS)/CMakeLists.txt $(MSGS)/package.xml $(wildcard $(MSGS)/msg/*.msg $(MSGS)/srv/*.srv)
 # per venv (target-specific below): MSGS_VENV, and its build dir MSGS_BUILD; the wheels'
@@ -31,11 +31,11 @@ browser:
 	  || (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) >/dev/null 2>&1 \
 	  || echo 'warning: apt-get install chromium failed: the survey report browser test will fail'
 
-$(STAMP): requirements.txt requirements-dev.txt constraints.txt setup.py setup.cfg package.xml
+$(STAMP): requirements.txt requirements-dev.txt constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt -r requirements-dev.txt -c constraints.txt
 	# The repo itself goes on the venv's path (an editable install without a build step;
-	# colcon builds the real package from setup.py).
+	# colcon builds the ROS packages from ros/).
 	$(PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
 	touch $(STAMP)
 
@@ -49,7 +49,7 @@ touch $@
 endef
 
 $(MSGS_STAMP): MSGS_VENV := $(VENV)
-$(MSGS_STAMP): MSGS_BUILD := build/$(MSGS)
+$(MSGS_STAMP): MSGS_BUILD := build/tetra_gradiometer_msgs
 $(MSGS_STAMP): $(STAMP) $(MSGS_FILES)
 	$(BUILD_MSGS)
 
@@ -80,7 +80,7 @@ NOBLE_PY    := $(NOBLE_VENV)/bin/python
 NOBLE_STAMP := $(NOBLE_VENV)/.installed
 NOBLE_MSGS_STAMP := $(NOBLE_VENV)/.msgs-installed
 
-$(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraints-noble.txt scripts/noble_pins.py setup.py setup.cfg package.xml
+$(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraints-noble.txt scripts/noble_pins.py
 	test -x $(NOBLE_PY) || $(PYTHON) -m venv $(NOBLE_VENV)
 	$(NOBLE_PY) scripts/noble_pins.py $(NOBLE_VENV)/pins
 	$(NOBLE_PY) -m pip install --quiet --disable-pip-version-check -r $(NOBLE_VENV)/pins/requirements.txt -c $(NOBLE_VENV)/pins/constraints.txt
@@ -89,7 +89,7 @@ $(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraint
 
 # the interface package, built against this venv's numpy in a build dir of its own
 $(NOBLE_MSGS_STAMP): MSGS_VENV := $(NOBLE_VENV)
-$(NOBLE_MSGS_STAMP): MSGS_BUILD := build/$(MSGS)-noble
+$(NOBLE_MSGS_STAMP): MSGS_BUILD := build/tetra_gradiometer_msgs-noble
 $(NOBLE_MSGS_STAMP): $(NOBLE_STAMP) $(MSGS_FILES)
 	$(BUILD_MSGS)
 

@@ -1,6 +1,7 @@
-"""The packaging the launch file and ``ros2 run`` rely on: setup.py (console scripts, data
-files, read with ast, never run), setup.cfg, package.xml, and the launch file read as text
-(its node executables, the packages it runs, its arguments against docs/ros.md).
+"""The packaging the launch file and ``ros2 run`` rely on: the two ROS packages colcon finds
+under ros/, setup.py (console scripts, data files, read with ast, never run), setup.cfg,
+package.xml, and the launch file read as text (its node executables, the packages it runs,
+its arguments against docs/ros.md).
 
 The launch file itself runs under the real ``ros2 launch`` in scripts/realros/run.sh (the
 unit suite has no launch/launch_ros): every node active, arguments, refusals, a replay.
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import ast
 import configparser
+import os
 import re
 import sys
 import xml.etree.ElementTree as ElementTree
@@ -20,6 +22,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO / 'launch' / 'tetra_gradiometer.launch.py'
 PACKAGE = 'tetra_gradiometer'
+#: The ROS package's description (package.xml, setup.py, setup.cfg); its data are links.
+ROS_PACKAGE = REPO / 'ros' / PACKAGE
 #: bringup's order (cli/bringup.create_nodes): the driver last.
 ORDER = ('tensor', 'calibrator', 'compensator', 'driver')
 ORDER_WITH_TARGET = ('tensor', 'calibrator', 'compensator', 'target', 'driver')
@@ -41,11 +45,41 @@ PYTHON_KEYS = {
 PIP_NAMES = {'dask': 'dask[distributed]'}
 
 
+# --------------------------------------------------------------------------- the layout
+
+
+def _colcon_packages(root: Path) -> dict[str, str]:
+    """Folder (relative to ``root``) -> package name of the packages colcon's recursive crawl
+    finds: a folder with package.xml (or setup.py) is a package and is not descended into;
+    links are followed, dot folders and the git-ignored build outputs skipped."""
+    ignored = {'build', 'install', 'log', 'out', 'mutants'}
+    found = {}
+    for folder, subfolders, files in os.walk(root, followlinks=True):
+        if 'package.xml' in files or 'setup.py' in files:
+            name = ElementTree.parse(Path(folder) / 'package.xml').getroot().findtext('name')
+            found[str(Path(folder).relative_to(root))] = name
+            subfolders[:] = []
+        subfolders[:] = [f for f in subfolders if not f.startswith('.') and f not in ignored]
+    return found
+
+
+def test_colcon_finds_the_python_package_and_its_interfaces_side_by_side():
+    """A ``colcon build`` over the checkout builds both: neither package lies inside the other
+    (colcon does not look inside a package)."""
+    assert _colcon_packages(REPO) == {
+        f'ros/{PACKAGE}': PACKAGE, 'ros/tetra_gradiometer_msgs': 'tetra_gradiometer_msgs'}
+    linked = {p.name: p.resolve() for p in ROS_PACKAGE.iterdir() if p.is_symlink()}
+    assert linked[PACKAGE] == REPO / PACKAGE                     # the module colcon installs
+    modules = (REPO / PACKAGE).rglob('__init__.py')
+    assert _setup_argument('packages') == sorted(
+        '.'.join(p.parent.relative_to(REPO).parts) for p in modules)
+
+
 # --------------------------------------------------------------------------- setup.py
 
 
 def _setup_call() -> tuple[ast.Call, dict[str, Any]]:
-    tree = ast.parse((REPO / 'setup.py').read_text(encoding='utf-8'))
+    tree = ast.parse((ROS_PACKAGE / 'setup.py').read_text(encoding='utf-8'))
     names: dict[str, Any] = {}
     for statement in tree.body:  # module-level constants such as package_name
         if isinstance(statement, ast.Assign) and isinstance(statement.value, ast.Constant):
@@ -63,7 +97,7 @@ def _setup_call() -> tuple[ast.Call, dict[str, Any]]:
 
 def _evaluate(node: ast.AST, names: dict[str, Any]) -> Any:
     """The value of a setup() argument built from literals, constants, ``+``, f-strings
-    and ``glob('pattern')`` (run in the repository, as colcon runs setup.py)."""
+    and ``glob('pattern')`` (run in the package's folder, as colcon runs setup.py)."""
     if isinstance(node, ast.Constant):
         return node.value
     if isinstance(node, ast.Name):
@@ -82,7 +116,12 @@ def _evaluate(node: ast.AST, names: dict[str, Any]) -> Any:
     if isinstance(node, ast.FormattedValue):
         return _evaluate(node.value, names)
     if isinstance(node, ast.Call) and getattr(node.func, 'id', None) == 'glob':
-        return sorted(glob(_evaluate(node.args[0], names), root_dir=REPO))
+        return sorted(glob(_evaluate(node.args[0], names), root_dir=ROS_PACKAGE))
+    if isinstance(node, ast.Call) and getattr(node.func, 'id', None) == 'find_packages':
+        from setuptools import find_packages
+
+        options = {k.arg: _evaluate(k.value, names) for k in node.keywords}
+        return sorted(find_packages(str(ROS_PACKAGE), **options))
     raise AssertionError(f'setup.py: cannot evaluate {ast.unparse(node)} here; extend _evaluate')
 
 
@@ -175,9 +214,9 @@ def test_the_launch_arguments_are_the_documented_ones():
 
 
 def test_the_package_name_agrees_everywhere():
-    name = ElementTree.parse(REPO / 'package.xml').getroot().findtext('name')
+    name = ElementTree.parse(ROS_PACKAGE / 'package.xml').getroot().findtext('name')
     assert _setup_argument('name') == name == _launch_constant('PACKAGE') == PACKAGE
-    assert (REPO / 'resource' / PACKAGE).is_file()
+    assert (ROS_PACKAGE / 'resource' / PACKAGE).is_file()
     assert installed_files()[f'share/ament_index/resource_index/packages/{PACKAGE}']
 
 
@@ -207,7 +246,7 @@ def test_documented_executables_are_console_scripts_and_launch_files_installed()
 
 def test_setup_cfg_puts_the_scripts_where_ros2_run_finds_them():
     config = configparser.ConfigParser(interpolation=None)
-    config.read(REPO / 'setup.cfg')
+    config.read(ROS_PACKAGE / 'setup.cfg')
     assert config['develop']['script_dir'] == SCRIPT_DIR
     assert config['install']['install_scripts'] == SCRIPT_DIR
 
@@ -231,7 +270,7 @@ def _top_level_imports(*roots: Path) -> dict[str, str]:
 
 def _package_xml() -> tuple[dict[str, set[str]], str]:
     root = ElementTree.parse(
-        REPO / 'package.xml',
+        ROS_PACKAGE / 'package.xml',
         ElementTree.XMLParser(target=ElementTree.TreeBuilder(insert_comments=True)),
     ).getroot()
     depends: dict[str, set[str]] = {}

@@ -123,12 +123,9 @@ else
   cp -r "$SRC" "$WS/src/tetra_gradiometer"; rm -rf "$WS/src/tetra_gradiometer/.venv"
 fi
 say "colcon build"
-# The interface package tetra_gradiometer_msgs/ lies inside the checkout's own package, where
-# colcon's crawl does not look (it stops at a package): named as a base path of its own.
+# Plain `colcon build`: its crawl finds both packages under the checkout's ros/.
 (cd "$WS" && PATH=$VENV/bin:$PATH AMENT_PREFIX_PATH=$UNDERLAY/install:$VENV \
-  colcon build --event-handlers console_direct- \
-    --base-paths src src/tetra_gradiometer/tetra_gradiometer_msgs \
-    --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$PY" > "$LOGS/colcon_build.log" 2>&1)
+  colcon build --event-handlers console_direct- > "$LOGS/colcon_build.log" 2>&1)
 rc=$?
 check "colcon build tetra_gradiometer and tetra_gradiometer_msgs" \
   "$([ $rc = 0 ] && grep -q '^Summary: 2 packages finished' "$LOGS/colcon_build.log"; echo $?)" \

@@ -221,7 +221,7 @@ def _failures(case: Case) -> list[str]:
 def test_the_console_scripts_are_the_entry_points_started_here():
     """``ros2 run`` and the launch file start ``process.main_<node>`` (setup.py), which
     handles signals before the node's imports, as the cases below start them."""
-    text = (REPO / 'setup.py').read_text(encoding='utf-8')
+    text = (REPO / 'ros' / 'tetra_gradiometer' / 'setup.py').read_text(encoding='utf-8')
     for node in NODES:
         assert f"'{node} = tetra_gradiometer.nodes.process:main_{node}'" in text, node
 

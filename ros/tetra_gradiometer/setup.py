@@ -1,4 +1,9 @@
-"""ament_python build description (colcon on a real ROS 2 Jazzy install, or pip)."""
+"""ament_python build description of the ROS package tetra_gradiometer (colcon).
+
+The Python package, config, launch, security and bags/ are the checkout's, reached by the
+symbolic links beside this file: the repository's root is no package, so colcon finds this
+one and ../tetra_gradiometer_msgs side by side.
+"""
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -8,7 +13,7 @@ package_name = 'tetra_gradiometer'
 setup(
     name=package_name,
     version='0.1.0',
-    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    packages=find_packages(include=[package_name, package_name + '.*']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
