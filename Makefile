@@ -1,6 +1,6 @@
 # Two entry points for a fresh machine: `make demo` and `make test`.
 # Both run `setup` first; setup is idempotent (re-runs only when the pins change, and builds
-# the interface package ros/tetra_gradiometer_msgs/ only when its files change).
+# the interface package tetra_gradiometer_msgs/ only when its files change).
 # `make test` runs the gates (`make check`: ruff, mypy, module/function sizes) and then the tests.
 PYTHON ?= python3
 VENV   := .venv
@@ -8,11 +8,11 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-# The interface package ros/tetra_gradiometer_msgs/ (ament_cmake, rosidl) built from the ros-jazzy-*
+# The interface package tetra_gradiometer_msgs/ (ament_cmake, rosidl) built from the ros-jazzy-*
 # wheels with plain cmake and installed into the venv's prefix, where the venv's Python finds
 # it with no variables (docs/ros.md, *Our interfaces*). Rebuilt when its files or the pins
 # change; the build dir (git-ignored) is kept for incremental rebuilds.
-MSGS       := ros/tetra_gradiometer_msgs
+MSGS       := tetra_gradiometer_msgs
 MSGS_STAMP := $(VENV)/.msgs-installed
 MSGS_FILES := $(MSGS)/CMakeLists.txt $(MSGS)/package.xml $(wildcard $(MSGS)/msg/*.msg $(MSGS)/srv/*.srv)
 # per venv (target-specific below): MSGS_VENV, and its build dir MSGS_BUILD; the wheels'
@@ -35,7 +35,7 @@ $(STAMP): requirements.txt requirements-dev.txt constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt -r requirements-dev.txt -c constraints.txt
 	# The repo itself goes on the venv's path (an editable install without a build step;
-	# colcon builds the ROS packages from ros/).
+	# colcon builds the ROS package from ros/tetra_gradiometer/).
 	$(PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
 	touch $(STAMP)
 

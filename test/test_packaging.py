@@ -1,5 +1,5 @@
 """The packaging the launch file and ``ros2 run`` rely on: the two ROS packages colcon finds
-under ros/, setup.py (console scripts, data files, read with ast, never run), setup.cfg,
+in the checkout, setup.py (console scripts, data files, read with ast, never run), setup.cfg,
 package.xml, and the launch file read as text (its node executables, the packages it runs,
 its arguments against docs/ros.md).
 
@@ -67,7 +67,7 @@ def test_colcon_finds_the_python_package_and_its_interfaces_side_by_side():
     """A ``colcon build`` over the checkout builds both: neither package lies inside the other
     (colcon does not look inside a package)."""
     assert _colcon_packages(REPO) == {
-        f'ros/{PACKAGE}': PACKAGE, 'ros/tetra_gradiometer_msgs': 'tetra_gradiometer_msgs'}
+        f'ros/{PACKAGE}': PACKAGE, 'tetra_gradiometer_msgs': 'tetra_gradiometer_msgs'}
     linked = {p.name: p.resolve() for p in ROS_PACKAGE.iterdir() if p.is_symlink()}
     assert linked[PACKAGE] == REPO / PACKAGE                     # the module colcon installs
     modules = (REPO / PACKAGE).rglob('__init__.py')

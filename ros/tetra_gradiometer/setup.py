@@ -2,7 +2,7 @@
 
 The Python package, config, launch, security and bags/ are the checkout's, reached by the
 symbolic links beside this file: the repository's root is no package, so colcon finds this
-one and ../tetra_gradiometer_msgs side by side.
+one and ../../tetra_gradiometer_msgs.
 """
 from glob import glob
 

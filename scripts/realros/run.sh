@@ -123,7 +123,7 @@ else
   cp -r "$SRC" "$WS/src/tetra_gradiometer"; rm -rf "$WS/src/tetra_gradiometer/.venv"
 fi
 say "colcon build"
-# Plain `colcon build`: its crawl finds both packages under the checkout's ros/.
+# Plain `colcon build`: its crawl finds both packages (ros/tetra_gradiometer, tetra_gradiometer_msgs).
 (cd "$WS" && PATH=$VENV/bin:$PATH AMENT_PREFIX_PATH=$UNDERLAY/install:$VENV \
   colcon build --event-handlers console_direct- > "$LOGS/colcon_build.log" 2>&1)
 rc=$?

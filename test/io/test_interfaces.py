@@ -175,7 +175,7 @@ def test_the_service_parts_round_trip_through_cdr():
 
 
 def test_the_definitions_are_found_in_an_installed_share_folder_when_not_beside_the_package(tmp_path, monkeypatch):
-    """A colcon install: no ros/tetra_gradiometer_msgs/ beside the Python package, the
+    """A colcon install: no tetra_gradiometer_msgs/ beside the Python package, the
     definitions under PREFIX/share/tetra_gradiometer_msgs of AMENT_PREFIX_PATH."""
     checkout = interfaces.candidate_dirs()[0]
     share = tmp_path / 'install' / 'share' / 'tetra_gradiometer_msgs'
@@ -184,7 +184,7 @@ def test_the_definitions_are_found_in_an_installed_share_folder_when_not_beside_
     monkeypatch.setenv('AMENT_PREFIX_PATH', f'{tmp_path / "elsewhere"}:{tmp_path / "install"}')
     monkeypatch.setattr(interfaces, '__file__', str(tmp_path / 'site-packages' / 'tetra_gradiometer' / 'io' / 'interfaces.py'))
     assert interfaces.candidate_dirs()[:3] == [
-        tmp_path / 'site-packages' / 'ros' / 'tetra_gradiometer_msgs',
+        tmp_path / 'site-packages' / 'tetra_gradiometer_msgs',
         tmp_path / 'elsewhere' / 'share' / 'tetra_gradiometer_msgs',
         share,
     ]

@@ -9,15 +9,15 @@ definitions are found: else the standard types alone, as before).
 
 Where the definitions are read from, the first that has them:
 
-1. the checkout: ``ros/tetra_gradiometer_msgs/`` beside this Python package (a source
-   tree, and the venv of ``make setup``, which puts the checkout on its path); the source
-   of truth, so an edited ``.msg`` is seen before it is rebuilt;
+1. the checkout: ``tetra_gradiometer_msgs/`` beside this Python package (a source tree,
+   and the venv of ``make setup``, which puts the checkout on its path); the source of
+   truth, so an edited ``.msg`` is seen before it is rebuilt;
 2. the installed interface package: ``share/tetra_gradiometer_msgs/{msg,srv}`` under each
    prefix of ``AMENT_PREFIX_PATH`` (a colcon install, a ROS install) and under
    ``sys.prefix`` (``make setup`` installs it into the venv's prefix).
 
 The Python package installed by colcon lies in ``install/.../site-packages``, with no
-``ros/tetra_gradiometer_msgs/`` beside it: there the second place answers. Nothing is copied into
+``tetra_gradiometer_msgs/`` beside it: there the second place answers. Nothing is copied into
 this package's data, so there is one set of definitions.
 """
 
@@ -45,7 +45,7 @@ class InterfacesNotFound(InputError):
 
 def candidate_dirs() -> list[Path]:
     """The folders searched for the package, in order (see the module docstring)."""
-    dirs = [Path(__file__).resolve().parents[2] / 'ros' / PACKAGE]
+    dirs = [Path(__file__).resolve().parents[2] / PACKAGE]
     prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
     dirs += [Path(p) / 'share' / PACKAGE for p in (*prefixes, sys.prefix)]
     return dirs
