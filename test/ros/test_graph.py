@@ -141,7 +141,7 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
         stamps, g_raw, g_comp, g_true = probe.paired()
         percent = probe.percent
         tensor_status = _diag(probe, 'tetra/tensor: matching')
-        compensator_status = _diag(probe, 'tetra/compensator: compensation')
+        compensator_status = [_diag(probe, f'tetra/compensator: {name}') for name in ('compensation', 'channels')]
         with probe.lock:
             received = {topic: len(tensors) for topic, tensors in probe.tensors.items()}
 
