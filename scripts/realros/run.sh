@@ -544,8 +544,9 @@ sed -n '/(a launch file for a ROS 2 install)/,/^```$/p' "$SRC/README.md" | sed '
         -e "s|'params_file'|'static_transforms': 'false', 'params_file'|" > "$WORK/auv1.launch.py"
 start_bg launch_auv1 ros2 launch "$WORK/auv1.launch.py"
 wait_state active 60 /tetra/tensor /tetra/calibrator /tetra/compensator; st=$?
-# Not the daemon's graph: it may still hold the /tetra/tensor of an earlier launch.
-out=$(timeout 30 ros2 node info --no-daemon /tetra/tensor 2>&1)
+# Not the daemon's graph: it may still hold the /tetra/tensor of an earlier launch. Without
+# the daemon, discovery gets --spin-time (its default, 0.5 s, found the launch process alone).
+out=$(timeout 30 ros2 node info --no-daemon --spin-time 5 /tetra/tensor 2>&1)
 check "README launch example: the nodes read the vehicle's topics (/auv1/mag_fwd/field ... /auv1/odom)" \
   "$([ $st = 0 ] && echo "$out" | grep -q '/auv1/mag_fwd/field: sensor_msgs/msg/MagneticField' \
      && echo "$out" | grep -q '/auv1/mag_top/field: sensor_msgs/msg/MagneticField'; echo $?)" \
