@@ -175,7 +175,8 @@ class GradientTensorCdr:
             at = start + 8 * _DOUBLES + 4  # after the state and its padding to 4
             if length >= 1 and at + 5 <= len(data):
                 (size,) = _U32.unpack_from(data, at)
-                if size >= 1 and at + 4 + size == len(data):
+                # Fast DDS pads a payload it carries between processes to 4 bytes.
+                if size >= 1 and 0 <= len(data) - (at + 4 + size) <= 3:
                     values = np.frombuffer(data, '<f8', _DOUBLES, start).astype(float)
                     ident = data[at + 4 : at + 3 + size].decode(errors='replace')
                     return sec * NS_PER_S + nanosec, values, data[at - 4], ident
