@@ -70,6 +70,14 @@ def test_the_live_history_gives_the_nearest_message_and_all_samples_at_the_end()
     np.testing.assert_allclose(history.at(sample), quats[40], rtol=0, atol=1e-15)  # normalized: 1 ulp
     samples = stamps[5:-5] + 13_000_000
     np.testing.assert_allclose(history.over(samples), orientation_at(stamps, quats, samples))
+    # A short span reads only the messages around it: the same attitudes as from all of them,
+    # at its edges, on a message, alone, and beyond the ends (held, then NaN).
+    for span in (stamps[50:60] + 7_000_000, stamps[70:71], stamps[:3] - 30_000_000,
+                 stamps[-2:] + np.array([0, NS // 2]), np.array([int(stamps[-1]) + 2 * NS]),
+                 np.array([int(stamps[0]) - 2 * NS])):
+        np.testing.assert_allclose(history.over(span), orientation_at(stamps, quats, span),
+                                   rtol=0, atol=1e-12)
+    assert history.over(stamps[:0]).shape == (0, 4)
     assert np.all(np.isnan(history.at(int(stamps[-1]) + 2 * NS)))
     history.add(int(stamps[0]), quats[0])  # time went back (a replay restarted): the rest is stale
     assert np.all(np.isnan(history.at(int(stamps[100]))))

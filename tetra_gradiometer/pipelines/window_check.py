@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import itertools
 import threading
 from collections import deque
 from dataclasses import dataclass
@@ -157,10 +158,17 @@ class AttitudeHistory:
             return self._quats[gaps[min(gaps)]]
 
     def over(self, stamps_ns: IntArray) -> FloatArray:
-        """The attitudes at ``stamps_ns`` (n,) ns, (n, 4) xyzw, NaN where unknown."""
+        """The attitudes at ``stamps_ns`` (n,) ns, (n, 4) xyzw, NaN where unknown. Only the
+        messages around the asked span are read (the slerp needs the neighbours alone): the
+        compensator's tracker asks for half a second of a minute's history at every block."""
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
         with self._lock:
-            stamps = np.array(self._stamps, dtype=np.int64)
-            quats = np.array(self._quats).reshape(-1, 4)
+            lo, hi = 0, len(self._stamps)
+            if len(stamps_ns) and hi:
+                lo = max(bisect.bisect_left(self._stamps, int(stamps_ns.min())) - 1, 0)
+                hi = min(bisect.bisect_right(self._stamps, int(stamps_ns.max())) + 1, hi)
+            stamps = np.fromiter(itertools.islice(self._stamps, lo, hi), np.int64, hi - lo)
+            quats = np.array(list(itertools.islice(self._quats, lo, hi))).reshape(-1, 4)
         return orientation_at(stamps, quats, stamps_ns)
 
 
