@@ -18,7 +18,7 @@ the pause between steps (and at the start) the resampler needs two earlier sampl
 sensor before it interpolates, so with offsets those sets are skipped by design.
 
     .venv/bin/python bench/bench_chain.py [--rates 100 200 300 400] [--seconds 5]
-        [--sync interpolate|nearest] [--offsets-ms 0 0.5 2.1 4.0] [--busy 2]
+        [--sync interpolate|nearest] [--offsets-ms 0 0.5 2.1 4.0] [--busy 2] [--json FILE]
 
 The ``diag`` column is the tensor node's worst ``/diagnostics`` level during the step, and
 below it what its WARN and ERROR statuses said: a chain that loses sets must say so.
@@ -26,6 +26,7 @@ below it what its WARN and ERROR statuses said: a chain that loses sets must say
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import subprocess
@@ -58,6 +59,8 @@ def parse_args() -> argparse.Namespace:
                         help="the tensor node's sensor_queue_depth")
     parser.add_argument('--busy', type=int, default=0,
                         help='processes spinning on the CPUs beside the chain (a busy machine)')
+    parser.add_argument('--json', default=None,
+                        help='write the rows here (bench/results/chain.json: the README table)')
     parser.add_argument('--offsets-ms', type=float, nargs=4, default=[0.0] * 4,
                         metavar=('O1', 'O2', 'O3', 'O4'),
                         help="each sensor's publication instant after the reference instant, ms")
@@ -267,6 +270,14 @@ def main() -> int:
             print(f'CPU per 1000 sets at {rate:.0f}/s: tensor {tensor:.2f} s, compensator '
                   f'{compensator:.2f} s, bench driver {bench:.2f} s (total '
                   f'{tensor + compensator + bench:.2f} s)')
+        if args.json:
+            rows = [{'rate': int(r[0]), 'sent': r[2], 'received': r[3], 'p50_ms': round(r[5], 2),
+                     'p99_ms': round(r[6], 2), 'max_ms': round(r[7], 2),
+                     'cpu_s_per_1000_sets': round(sum(c), 2)}
+                    for r, c in zip(results, cpu, strict=True)]
+            Path(args.json).write_text(json.dumps(
+                {'bench': 'bench/bench_chain.py ' + ' '.join(sys.argv[1:]), 'rows': rows},
+                indent=1) + '\n')
     finally:
         for process in busy:
             process.kill()
