@@ -49,7 +49,7 @@ touch $@
 endef
 
 $(MSGS_STAMP): MSGS_VENV := $(VENV)
-$(MSGS_STAMP): MSGS_BUILD := build/tetra_gradiometer_msgs
+$(MSGS_STAMP): MSGS_BUILD := build/$(MSGS)
 $(MSGS_STAMP): $(STAMP) $(MSGS_FILES)
 	$(BUILD_MSGS)
 
@@ -89,7 +89,7 @@ $(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraint
 
 # the interface package, built against this venv's numpy in a build dir of its own
 $(NOBLE_MSGS_STAMP): MSGS_VENV := $(NOBLE_VENV)
-$(NOBLE_MSGS_STAMP): MSGS_BUILD := build/tetra_gradiometer_msgs-noble
+$(NOBLE_MSGS_STAMP): MSGS_BUILD := build/$(MSGS)-noble
 $(NOBLE_MSGS_STAMP): $(NOBLE_STAMP) $(MSGS_FILES)
 	$(BUILD_MSGS)
 
