@@ -26,6 +26,7 @@ below it what its WARN and ERROR statuses said: a chain that loses sets must say
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import resource
@@ -61,6 +62,9 @@ def parse_args() -> argparse.Namespace:
                         help='processes spinning on the CPUs beside the chain (a busy machine)')
     parser.add_argument('--json', default=None,
                         help='write the rows here (bench/results/chain.json: the README table)')
+    parser.add_argument('--trace', default=None,
+                        help="write each counted set's stamp (ns) and latency (ms) here (.npz, "
+                             'one array per rate): where the tail lies in time')
     parser.add_argument('--offsets-ms', type=float, nargs=4, default=[0.0] * 4,
                         metavar=('O1', 'O2', 'O3', 'O4'),
                         help="each sensor's publication instant after the reference instant, ms")
@@ -117,6 +121,7 @@ class Driver:
         self.node = Node('bench', namespace='/tetra')
         self.mags = [self.node.create_publisher(MagneticField, t, 200) for t in cv.MAG_TOPICS]
         self.received: dict[int, int] = {}
+        self.trace: dict[float, np.ndarray] = {}  # rate -> (stamp ns, latency ms) per set
         self.lock = threading.Lock()
         self.node.create_subscription(gt.rclpy_class(), 'gradient/compensated', self._on_compensated,
                                       derived_qos(), raw=True)
@@ -184,7 +189,24 @@ class Driver:
         drops = n - len(latencies)
         p50, p99, worst = (np.percentile(latencies, [50, 99]).tolist() + [latencies.max()]
                            if len(latencies) else [float('nan')] * 3)
+        self.trace[rate] = np.array([(s, (self.received[s] - s) * 1e-6)
+                                     for s in sent if s in self.received]).reshape(-1, 2)
         return rate, achieved, n, len(latencies), drops, p50, p99, worst
+
+
+def gc_pauses() -> list[float]:
+    """This process's garbage collections from now on: their durations (s), appended."""
+    pauses: list[float] = []
+    started = [0.0]
+
+    def note(phase: str, info: dict) -> None:
+        if phase == 'start':
+            started[0] = time.perf_counter()
+        else:
+            pauses.append(time.perf_counter() - started[0])
+
+    gc.callbacks.append(note)
+    return pauses
 
 
 def session_cpu_s(session: int) -> float:
@@ -251,6 +273,11 @@ def main() -> int:
     try:
         driver.wait_for_chain()
         time.sleep(1.0)
+        # As the nodes do (nodes/process.spin_node): a full collection walking start-up's
+        # objects would pause the driver and its receipts, not the chain.
+        gc.collect()
+        gc.freeze()
+        pauses = gc_pauses()
         offsets = ' '.join(f'{o:g}' for o in args.offsets_ms)
         print(f'bench: ROS_DOMAIN_ID {domain}; tensor (sync {args.sync}) + compensator as '
               f'separate processes; sensor offsets {offsets} ms; {os.cpu_count()} CPUs (shared), '
@@ -266,10 +293,14 @@ def main() -> int:
             with driver.lock:
                 print_step(results[-1], dict(driver.statuses))
         print_result(results)
+        print(f'bench driver: {len(pauses)} garbage collections, longest '
+              f'{max(pauses, default=0.0) * 1e3:.2f} ms')
         for (rate, *_), (tensor, compensator, bench) in zip(results, cpu, strict=True):
             print(f'CPU per 1000 sets at {rate:.0f}/s: tensor {tensor:.2f} s, compensator '
                   f'{compensator:.2f} s, bench driver {bench:.2f} s (total '
                   f'{tensor + compensator + bench:.2f} s)')
+        if args.trace:
+            np.savez(args.trace, **{f'rate_{r:g}': t for r, t in driver.trace.items()})
         if args.json:
             rows = [{'rate': int(r[0]), 'sent': r[2], 'received': r[3], 'p50_ms': round(r[5], 2),
                      'p99_ms': round(r[6], 2), 'max_ms': round(r[7], 2),
