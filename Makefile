@@ -7,6 +7,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= out
+UV_VERSION := 0.9.30
 
 # The interface package tetra_gradiometer_msgs/ (ament_cmake, rosidl) built from the ros-jazzy-*
 # wheels with plain cmake and installed into the venv's prefix, where the venv's Python finds
@@ -33,7 +34,10 @@ browser:
 
 $(STAMP): requirements.txt requirements-dev.txt constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt -r requirements-dev.txt -c constraints.txt
+	# uv installs the pinned tree in ~10 s where pip took ~90 s (the same packages: pip freeze
+	# of both venvs is identical but for uv itself).
+	$(PY) -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
+	$(PY) -m uv pip install --quiet --python $(PY) -r requirements.txt -r requirements-dev.txt -c constraints.txt
 	# The repo itself goes on the venv's path (an editable install without a build step;
 	# colcon builds the ROS package from ros/tetra_gradiometer/).
 	$(PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
