@@ -172,8 +172,16 @@ def test_a_node_process_asked_for_an_invalid_transition_keeps_running():
         deactivate = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_DEACTIVATE))
         assert ask(change, deactivate, 15, None).success is True
         assert ask(get, GetState.Request(), 15, RESEND_S).current_state.label == 'inactive'
+        # Again from inactive: a burst of refusals left the valid request after it unserved
+        # in 3 of 8 graphs (nodes/process.py, _serve_waiting_lifecycle_requests).
+        for transition in (Transition.TRANSITION_DEACTIVATE, Transition.TRANSITION_CONFIGURE, 98):
+            change.call_async(ChangeState.Request(transition=Transition(id=transition)))
+        activate = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_ACTIVATE))
+        assert ask(change, activate, 15, None).success is True
+        assert ask(get, GetState.Request(), 15, RESEND_S).current_state.label == 'active'
         output = process.output()
         assert 'No transition matching 3 found for current state active' in output
         assert 'request refused: Failed to trigger lifecycle state machine transition' in output
         assert 'deactivate: active -> inactive' in output
+        assert 'activate: inactive -> active' in output
         assert 'Traceback' not in output

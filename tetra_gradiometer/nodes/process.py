@@ -97,6 +97,8 @@ def _rcl_reason(error: Exception) -> str:
 
 #: Longest wait of one spin call: bounds the reaction to a stop request or a shutdown, s.
 STOP_POLL_S = 0.1
+#: The lifecycle service whose refusals raise out of rclpy (the others only answer).
+LIFECYCLE_SERVICES = ('/change_state',)
 #: Time the stop of ``spin_node`` may take before its watchdog ends the process, s.
 STOP_DEADLINE_S = 2.5
 #: Time the replies and messages of the last callbacks get to reach their readers before the
@@ -216,8 +218,40 @@ def spin(
                 # A lifecycle request that is no transition from the node's state: refused by
                 # rcl_lifecycle (its WARN names both), raised out of rclpy's service callback.
                 rclpy.logging.get_logger('lifecycle').warning(f'request refused: {error}')
+                _serve_waiting_lifecycle_requests(executor)
     except ExternalShutdownException:  # the context shut down while waiting: done
         pass
+
+
+def _serve_waiting_lifecycle_requests(executor: Any) -> None:
+    """Serve the lifecycle requests already waiting in the middleware, after one raised.
+
+    The events executor drops the rest of a batch of service events when a callback raises:
+    the requests that came with the refused one stay in the middleware unserved, and every
+    later event of that service takes the oldest of them, so a valid transition asked after
+    a burst of invalid ones went unanswered and undone (measured: 3 of 8 graphs). Taken here
+    as rclpy's own executors take them (``service_take_request``, the service's callback,
+    ``send_response``), each refusal logged as above."""
+    import rclpy
+
+    for node in executor.get_nodes():
+        for service in node.services:
+            if not service.srv_name.endswith(LIFECYCLE_SERVICES):
+                continue
+            while True:
+                with service.handle:
+                    taken = service.handle.service_take_request(service.srv_type.Request)
+                request, header = taken if taken is not None else (None, None)
+                if header is None:
+                    break
+                try:
+                    response = service.callback(request, service.srv_type.Response())
+                except RuntimeError as error:
+                    if 'lifecycle' not in str(error):
+                        raise
+                    rclpy.logging.get_logger('lifecycle').warning(f'request refused: {error}')
+                    continue
+                service.send_response(response, header)
 
 
 def spin_node(
