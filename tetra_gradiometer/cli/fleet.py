@@ -47,12 +47,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from ..core import TetraGeometry
 from ..core.units import NT_PER_T
 from ..errors import AssumptionError, IdentifiabilityError, InputError, ParamsError, TetraError
-from ..io._yaml import read_yaml
+from ..io._yaml import loads, read_yaml
 from ..io.calibration import load_calibration, save_calibration
 from ..io.outputs import BATCH_BAG, BATCH_SUMMARY, atomic_output, atomic_write_text
 from ..io.params import earth_field_from_params, geometry_from_params, load_params, params_document
@@ -378,7 +377,7 @@ def _site(job: BagJob, tmp: Path, row: Row) -> tuple[TetraGeometry, np.ndarray |
             + text,
             encoding='utf-8',
         )
-        params = yaml.safe_load(text)['/**']['ros__parameters']  # as calibrate reads it
+        params = loads(text)['/**']['ros__parameters']  # as calibrate reads it
         row['params'] = str(job.out_dir / PARAMS_FILE)
     return geometry_from_params(params, str(source)), earth_field_from_params(params, str(source))
 

@@ -27,6 +27,7 @@ from ..core.effects import effect
 from ..core.model import SYMMETRIC_ENTRIES
 from ..core.units import T_PER_NT
 from ..errors import CalibrationFileError
+from ._yaml import dumps, loads
 from .calibration import CalibrationFile
 
 AXES = 'xyz'
@@ -80,7 +81,7 @@ def _provenance(diagnostics: dict[str, Any]) -> tuple[str, list[float]]:
 
 def _signature(text: str, source: str) -> Any:
     try:
-        return (yaml.safe_load(text) or {}).get('signature')
+        return (loads(text) or {}).get('signature')
     except (yaml.YAMLError, AttributeError):
         raise CalibrationFileError(f'{source} is not a tetra_gradiometer calibration') from None
 
@@ -117,7 +118,7 @@ def _fields(calibration: CalibrationFile, text: str, source: str) -> dict[str, A
         'created_utc': calibration.created_utc,
         'source': origin,
         'window_s': window,
-        'signature': '' if signature is None else yaml.safe_dump(signature, sort_keys=False),
+        'signature': '' if signature is None else dumps(signature),
         'document': text,
     }
 
@@ -125,7 +126,7 @@ def _fields(calibration: CalibrationFile, text: str, source: str) -> dict[str, A
 def _same(name: str, value: Any, expected: Any) -> bool:
     if name == 'signature':  # compared parsed: its YAML layout is the publisher's
         try:
-            return yaml.safe_load(value or '""') == yaml.safe_load(expected or '""')
+            return loads(value or '""') == loads(expected or '""')
         except yaml.YAMLError:
             return False
     if isinstance(expected, str):

@@ -15,13 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from ..core import TetraGeometry
 from ..core.effects import parse_declaration
 from ..core.plausibility import MAX_FIELD_T, plausible_readings
 from ..errors import InputError, ParamsError
-from ._yaml import read_yaml
+from ._yaml import dumps, read_yaml
 
 #: Every parameter the package's nodes declare (``config/tetra_gradiometer.yaml``'s names),
 #: and ROS 2's own ``use_sim_time``: the names a section of the package may hold.
@@ -173,4 +172,4 @@ def vehicle_signals_from_params(params: dict[str, Any], source: str = 'params') 
 
 def params_document(params: dict[str, Any]) -> str:
     """YAML text of a ``/**: ros__parameters:`` file holding ``params``."""
-    return yaml.safe_dump({'/**': {'ros__parameters': params}}, sort_keys=False)
+    return dumps({'/**': {'ros__parameters': params}})

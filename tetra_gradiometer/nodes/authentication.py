@@ -35,6 +35,7 @@ from typing import Any
 import yaml
 
 from ..errors import CalibrationFileError, ParamsError
+from ..io._yaml import dumps, loads
 from .common import ParamSpec, resolve_node_path
 from .publishers import UNKNOWN_NODE, InputPublishers
 
@@ -94,7 +95,7 @@ def _mac(document: dict[str, Any], key: bytes) -> str:
 
 def _document(text: str, source: str) -> dict[str, Any]:
     try:
-        document = yaml.safe_load(text)
+        document = loads(text)
     except yaml.YAMLError as error:
         raise CalibrationFileError(f'{source} is not valid YAML: {error}') from None
     if not isinstance(document, dict):
@@ -107,7 +108,7 @@ def sign(text: str, key: bytes) -> str:
     document = _document(text, 'the calibration to sign')
     signature = {'algorithm': ALGORITHM, 'key_id': key_id(key), 'value': _mac(document, key)}
     body = text if text.endswith('\n') else text + '\n'
-    return body + yaml.safe_dump({SIGNATURE_KEY: signature}, sort_keys=False)
+    return body + dumps({SIGNATURE_KEY: signature})
 
 
 def verify(text: str, key: bytes, source: str) -> None:
