@@ -402,41 +402,48 @@ class HealthMonitor:
     def _window_statistics(self, new: FloatArray, held: int) -> tuple[FloatArray, ...]:
         """For each new sample ``new`` (n, N_FEATURES), appended after ``held`` history rows:
         the largest statistic over the level tests and the jump tests, and the window's mean
-        shift and spread (n, 4) and its length in samples (negative: a jump test)."""
+        shift and spread (n, 4) and its length in samples (negative: a jump test). The tests
+        due are computed in one pass (a live call's few samples would cost a loop over the
+        windows mostly numpy's per-call time); ties go to the shorter window, level first."""
         n = len(new)
-        d = self._eigenvalues * new[:, NOISE_SCALE, None]  # (n, 4) at each window's end
-        level_var = self._eigenvalues / self._level_n + self._level_bias
         sums = self._history.sums  # prefix sums of the history and the new rows
         end = np.arange(held + 1, held + n + 1)  # exclusive window ends of the new samples
-        best = np.full(n, -np.inf)
-        shift, spread, length = np.zeros((n, 4)), np.ones((n, 4)), np.zeros(n, dtype=int)
+        # Each window is tested every w // WINDOW_TESTS samples (an alarm later by at most that).
+        steps = np.maximum(1, self._windows // WINDOW_TESTS)
+        rows, which = np.nonzero(end[:, None] % steps[None, :] == 0)  # by sample, then window
+        w, e = self._windows[which], end[rows]
+        start, before = np.maximum(e - w, 0), np.maximum(e - 2 * w, 0)
+        recent = (sums[e] - sums[start]) / w[:, None]
+        earlier = (sums[start] - sums[before]) / w[:, None]
+        d = (self._eigenvalues * new[rows, NOISE_SCALE, None]) / w[:, None]  # (p, 4)
         alpha2 = self._differencing**2
-        for w in self._windows:
-            # Tested every w // WINDOW_TESTS samples (an alarm later by at most that).
-            rows = np.flatnonzero(end % max(1, int(w) // WINDOW_TESTS) == 0)
-            if not len(rows):  # a few samples at a time (the live node): most windows wait
-                continue
-            e = end[rows]
-            recent = (sums[e] - sums[np.maximum(e - w, 0)]) / w
-            earlier = (sums[np.maximum(e - w, 0)] - sums[np.maximum(e - 2 * w, 0)]) / w
-            physical_sq = np.sum(recent[:, PHYSICAL] ** 2, axis=1)
-            # Level test: the mean against the accepted level.
-            level_spread = d[rows] / w + (recent[:, 4] + alpha2 * physical_sq)[:, None] + level_var
-            level_sum = np.sum(recent[:, :4] ** 2 / level_spread, axis=1)
-            level_stat = np.where(e >= w, level_sum, -np.inf)
-            # Jump test: the mean against the window before it (a smooth source barely moves).
-            jump = recent[:, :4] - earlier[:, :4]
-            change_sq = np.sum((recent[:, PHYSICAL] - earlier[:, PHYSICAL]) ** 2, axis=1)
-            jump_spread = 2 * d[rows] / w + (2 * recent[:, 4] + alpha2 * change_sq)[:, None]
-            jump_stat = np.where(e >= 2 * w, np.sum(jump**2 / jump_spread, axis=1), -np.inf)
-            for stat, mean, var, sign in (
-                (level_stat, recent[:, :4], level_spread, 1),
-                (jump_stat, jump, jump_spread, -1),
-            ):
-                better = stat > best[rows]
-                where = rows[better]
-                best[where], shift[where], spread[where] = stat[better], mean[better], var[better]
-                length[where] = sign * w
+        # Level test: the mean against the accepted level.
+        physical_sq = np.sum(recent[:, PHYSICAL] ** 2, axis=1)
+        level_var = self._eigenvalues / self._level_n + self._level_bias
+        level_spread = d + (recent[:, 4] + alpha2 * physical_sq)[:, None] + level_var
+        level_stat = np.where(e >= w, np.sum(recent[:, :4] ** 2 / level_spread, axis=1), -np.inf)
+        # Jump test: the mean against the window before it (a smooth source barely moves).
+        jump = recent[:, :4] - earlier[:, :4]
+        change_sq = np.sum((recent[:, PHYSICAL] - earlier[:, PHYSICAL]) ** 2, axis=1)
+        jump_spread = 2 * d + (2 * recent[:, 4] + alpha2 * change_sq)[:, None]
+        jump_stat = np.where(e >= 2 * w, np.sum(jump**2 / jump_spread, axis=1), -np.inf)
+        # The first largest statistic of each sample (level, jump of each window in turn).
+        stats = np.column_stack([level_stat, jump_stat]).ravel()
+        stats[np.isnan(stats)] = -np.inf  # never chosen
+        owner = np.repeat(rows, 2)  # ascending: each sample's candidates are contiguous
+        first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]]) if len(owner) else owner
+        largest = np.maximum.reduceat(stats, first) if len(owner) else stats
+        best = np.full(n, -np.inf)
+        best[owner[first]] = largest
+        top = np.flatnonzero((stats == np.repeat(largest, np.diff(np.r_[first, len(owner)])))
+                             & (stats > -np.inf))
+        top = top[np.r_[True, owner[top][1:] != owner[top][:-1]]] if len(top) else top
+        pair, is_jump = top // 2, (top % 2 == 1)[:, None]
+        sample = rows[pair]
+        shift, spread, length = np.zeros((n, 4)), np.ones((n, 4)), np.zeros(n, dtype=int)
+        shift[sample] = np.where(is_jump, jump[pair], recent[pair, :4])
+        spread[sample] = np.where(is_jump, jump_spread[pair], level_spread[pair])
+        length[sample] = np.where(is_jump[:, 0], -w[pair], w[pair])
         return best, shift, spread, length
 
     def _detect(
