@@ -141,3 +141,20 @@ def test_a_file_too_large_or_binary_is_refused_before_it_is_parsed(tmp_path):
     binary.write_bytes(bytes(range(256)) * 8)
     with pytest.raises(CalibrationFileError, match='not UTF-8 text'):
         load_calibration(binary)
+
+
+def test_a_calibration_nested_too_deeply_is_refused_not_a_crash(tmp_path):
+    """libyaml's parser recurses in C: 100 000 nested brackets (200 kB) would end the process,
+    in a file or in a calibration's text on the topic, before its signature is checked."""
+    from tetra_gradiometer.nodes.authentication import verify
+
+    deep = 'k_soft: ' + '[' * 100_000 + ']' * 100_000 + '\n'
+    path = tmp_path / 'deep.yaml'
+    path.write_text(deep)
+    with pytest.raises(CalibrationFileError, match='is not valid YAML: brackets nested deeper than 100'):
+        load_calibration(path)
+    with pytest.raises(CalibrationFileError, match='the topic is not valid YAML: brackets nested deeper than 100'):
+        verify(deep, b'k' * 32, 'the topic')
+    shallow = CalibrationFile.from_yaml(save_calibration(tmp_path / 'c.yaml', CalibrationFile(
+        InterferenceParameters.zero(), 'known_gradient_lstsq', False, GEOMETRY.to_flat())).read_text())
+    assert shallow.method == 'known_gradient_lstsq'

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 #: libyaml's parser and emitter where PyYAML has them (the pinned wheel does), else PyYAML's
@@ -18,9 +19,23 @@ SAFE_LOADER: type[yaml.SafeLoader] = getattr(yaml, 'CSafeLoader', yaml.SafeLoade
 SAFE_DUMPER: type[yaml.SafeDumper] = getattr(yaml, 'CSafeDumper', yaml.SafeDumper)
 
 
-def loads(stream: Any) -> Any:
-    """The document in ``stream`` (text or a text file), as ``yaml.safe_load``."""
-    return yaml.load(stream, Loader=SAFE_LOADER)
+#: libyaml's parser recurses in C: ~30 000 nested brackets (60 kB) overflow its stack and end
+#: the process (PyYAML's own parser stops at Python's recursion limit, ~1000). No document of
+#: ours nests brackets; text nested deeper than this is refused before it is parsed. (Block
+#: nesting that deep would take gigabytes of indentation.)
+MAX_FLOW_DEPTH = 100
+
+
+def loads(text: str) -> Any:
+    """The document in ``text``, as ``yaml.safe_load``; brackets nested deeper than
+    :data:`MAX_FLOW_DEPTH` are a ``yaml.YAMLError``."""
+    if text.count('[') + text.count('{') > MAX_FLOW_DEPTH:  # else it cannot be that deep
+        codes = np.frombuffer(text.encode(), np.uint8)
+        opened = (codes == ord('[')) | (codes == ord('{'))
+        closed = (codes == ord(']')) | (codes == ord('}'))
+        if np.cumsum(opened.astype(np.int64) - closed).max() > MAX_FLOW_DEPTH:
+            raise yaml.YAMLError(f'brackets nested deeper than {MAX_FLOW_DEPTH}')
+    return yaml.load(text, Loader=SAFE_LOADER)
 
 
 def dumps(document: Any) -> str:
