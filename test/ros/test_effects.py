@@ -330,9 +330,13 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
         _play(probe, graph, lambda: _received(probe, CALIBRATION, 'samples'), n_trim)
         assert _received(probe, CALIBRATION, 'samples') == n_trim, (_received(probe, CALIBRATION, 'samples'), n_trim)
         # Its channels (and odom) are served beside the samples (their own callback group).
-        wait_for(lambda: _received(probe, CALIBRATION, 'temperature messages') == n_trim
-                 and _received(probe, CALIBRATION, f'{BATTERY} messages') == n_trim, 20,
-                 "the calibrator to take the trim's channel messages", graph)
+        channels = ('temperature messages', f'{BATTERY} messages')
+        try:
+            wait_for(lambda: all(_received(probe, CALIBRATION, c) == n_trim for c in channels), 20,
+                     "the calibrator to take the trim's channel messages", graph)
+        except AssertionError as error:  # lost (best effort) or late: the counts tell which
+            counts = {c: _received(probe, CALIBRATION, c) for c in channels}
+            raise AssertionError(f'{counts} of {n_trim}\n{error}') from None
         assert probe.call('calibrator/stop').success
         reply = probe.call('calibrator/calibrate', timeout_s=60)
         assert reply.success, reply.message
