@@ -267,3 +267,15 @@ def test_every_node_exits_0_within_3_s_on_sigint_two_sigints_and_sigterm(tmp_pat
     for case in cases:
         case.log.close()
         os.unlink(case.log.name)
+
+
+def test_a_node_process_that_crashes_in_c_prints_where():
+    """After ``run_node``'s first step (the signal handlers, before any import of the node) a
+    fatal signal prints the Python stack: a crash leaves its place in the node's log."""
+    script = ('from tetra_gradiometer.nodes.process import _STOP; _STOP.install(); '
+              'import ctypes; ctypes.string_at(0)')
+    result = subprocess.run([sys.executable, '-c', script], cwd=REPO, capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == -signal.SIGSEGV
+    assert 'Fatal Python error: Segmentation fault' in result.stderr
+    assert 'line 1 in <module>' in result.stderr

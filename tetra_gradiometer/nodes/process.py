@@ -22,7 +22,8 @@ node's work stops, running callbacks finish, what they sent gets :data:`DELIVERY
 arrive, the node and the context go, in that order, and the process exits 0. Further
 signals are ignored from then on, and a watchdog ends the process (status 1, every thread's
 traceback on stderr) if that stop has not finished :data:`STOP_DEADLINE_S` after it began
-(docs/ros.md, test/ros/test_shutdown.py).
+(docs/ros.md, test/ros/test_shutdown.py). A crash in C code (SIGSEGV, SIGABRT) prints every
+thread's Python stack on stderr first (``faulthandler``).
 """
 
 from __future__ import annotations
@@ -121,6 +122,9 @@ class StopRequest:
     def install(self) -> StopRequest:
         signal.signal(signal.SIGINT, self._handle)
         signal.signal(signal.SIGTERM, self._handle)
+        # A crash in C (SIGSEGV, SIGABRT ...) prints every thread's Python stack on stderr:
+        # the node's log says where it died, not only launch's "exit code -11".
+        faulthandler.enable()
         return self
 
     def _handle(self, signum: int, frame: Any) -> None:
