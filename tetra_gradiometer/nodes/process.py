@@ -310,6 +310,9 @@ def spin_node(
         MultiThreadedExecutor(num_threads=threads) if threads > 1 else events_executor()
     )
     executor.add_node(node)
+    # numpy imports numpy.ma on the first np.median: 30-70 ms inside a callback, the sets of
+    # that moment held up behind it (the chain's worst latency, bench/bench_chain.py). Now.
+    import numpy.ma  # noqa: F401
     # The objects of start-up (rclpy, numpy, scipy, the node) will live as long as the
     # process: moved out of the collector's reach, a full collection no longer walks them
     # (a pause of several ms in the middle of the message stream: bench/bench_chain.py p99).
