@@ -4,7 +4,10 @@ and SIGTERM (launch's escalation, systemd) end every node with exit status 0 wit
 ``STOP_S`` and no traceback, active and unconfigured, and the calibrator while a solve runs,
 whose pending ``~/calibrate`` is answered before the node goes; a signal during start-up
 (while the node's modules are imported) stops the node once built, also when the process
-inherited SIGINT ignored (a background job of a script, as realros's ``start_bg``).
+inherited SIGINT ignored (a background job of a script, as realros's ``start_bg``). A node
+that ran leaves none of its participant's shared-memory segments in /dev/shm: the participant
+goes before the process ends (run_node ends it without the interpreter's exit, so a participant
+left alive there would leave its 0.5 MB segment for good).
 
 The nodes run as their console scripts do (setup.py: ``process.main_<node>`` under
 ``sys.exit``, what ``ros2 run`` and the launch file start), all at once, each in a namespace
@@ -177,8 +180,21 @@ def _start_solves(probe: Any, feeder: Any, solving: list[Case]) -> None:
         wait_for(lambda key=key: probe.status(key).get('state') == 'solving', 20, f'solving ({key})')
 
 
+def _own_segments(pid: int) -> list[Path]:
+    """The Fast DDS shared-memory segments of the participant of process ``pid``: those whose
+    lock file (``_el``) it holds open (it maps the segments of its peers too, not their locks)."""
+    found = []
+    for fd in Path(f'/proc/{pid}/fd').iterdir():
+        target = os.readlink(fd)
+        if target.startswith('/dev/shm/fastrtps_') and target.endswith('_el') and '_port' not in target:
+            found += [Path(target), Path(target[:-3])]
+    return found
+
+
 def _stop(case: Case) -> None:
-    """The case's signals to the node; its exit status, time and output."""
+    """The case's signals to the node; its exit status, time, output and the shared-memory
+    segments of its own it left behind."""
+    segments = [] if case.state.startswith('starting') else _own_segments(case.process.pid)
     kinds = [getattr(signal, f'SIG{kind}') for kind in case.signals.split()]
     started = time.monotonic()
     for i, kind in enumerate(kinds):
@@ -192,7 +208,8 @@ def _stop(case: Case) -> None:
         case.process.kill()
         case.process.wait(timeout=5)
     case.result = {'code': code, 'seconds': time.monotonic() - started,
-                   'output': Path(case.log.name).read_text()}
+                   'output': Path(case.log.name).read_text(),
+                   'segments': segments, 'left': [str(p) for p in segments if p.exists()]}
     if case.reply is not None:
         deadline = started + STOP_S
         while not case.reply.done() and time.monotonic() < deadline:
@@ -207,6 +224,10 @@ def _failures(case: Case) -> list[str]:
         found.append(f'exit status {r["code"]}')
     if r['seconds'] > (STARTING_S if case.state.startswith('starting') else STOP_S):
         found.append(f'{r["seconds"]:.2f} s to exit')
+    if not case.state.startswith('starting') and not r['segments']:
+        found.append('no shared-memory segment of its own found while it ran')
+    if r['left']:
+        found.append(f'its shared-memory segments left behind: {r["left"]}')
     if any(text in r['output'] for text in ('Traceback', 'KeyboardInterrupt', 'Exception in')):
         found.append('a traceback or a callback exception in its output')
     if case.state == 'solving':

@@ -23,7 +23,9 @@ arrive, the node and the context go, in that order, and the process exits 0. Fur
 signals are ignored from then on, and a watchdog ends the process (status 1, every thread's
 traceback on stderr) if that stop has not finished :data:`STOP_DEADLINE_S` after it began
 (docs/ros.md, test/ros/test_shutdown.py). A crash in C code (SIGSEGV, SIGABRT) prints every
-thread's Python stack on stderr first (``faulthandler``).
+thread's Python stack on stderr first (``faulthandler``). Once the node and the context are
+gone, ``run_node`` ends the process at once (``os._exit``): the C++ libraries' own teardown at
+exit, which crashed now and then, never runs.
 """
 
 from __future__ import annotations
@@ -31,11 +33,13 @@ from __future__ import annotations
 import faulthandler
 import gc
 import importlib
+import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NoReturn
 
 from ..errors import TetraError
 
@@ -140,15 +144,23 @@ class StopRequest:
 _STOP = StopRequest()
 
 
-def run_node(name: str, args: list[str] | None = None) -> int:
+def run_node(name: str, args: list[str] | None = None) -> NoReturn:
     """Run node ``name`` (``driver``, ``tensor``, ``calibrator``, ``compensator``,
-    ``target``) in this process, its exit status: SIGINT and SIGTERM are first made to
-    request the stop (:class:`StopRequest`), then the node's module is imported and its
-    ``main(args)`` called. This module imports nothing heavy, so only the interpreter's own
-    start precedes the handler."""
+    ``target``) in this process, then end the process with the exit status of its
+    ``main(args)``. SIGINT and SIGTERM are first made to request the stop
+    (:class:`StopRequest`), then the node's module is imported. This module imports nothing
+    heavy, so only the interpreter's own start precedes the handler."""
     _STOP.install()
     module = importlib.import_module(f'{__package__}.{name}')
-    return int(module.main(args) or 0)
+    status = int(module.main(args) or 0)
+    # The node, its endpoints and rclpy's context are gone (spin_node), the ROS log closed.
+    # What the interpreter's exit would still run is the teardown of the C++ libraries
+    # loaded (Fast DDS's singletons and threads), whose destructors at exit segfault now and
+    # then: exit -11 after a clean stop, past faulthandler's reach (rmw_fastrtps#761 has
+    # the same, quick_exit its workaround). The process ends here, with the node's status.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 # The console scripts (setup.py; ``ros2 run``, the launch file).
@@ -264,7 +276,7 @@ def spin_node(
     """The ``main()`` of every node (the ros2/demos pattern): init, build the node, spin until
     SIGINT or SIGTERM (or an external shutdown), then :func:`_stop_node`: stop its long work
     (``stop_work()``: nodes/managed.py), wait for its running callbacks, destroy the node,
-    ``rclpy.try_shutdown()``; 0.
+    ``rclpy.try_shutdown()``, free the participant (:func:`_release_ros`); 0.
 
     Signals only request that stop (:class:`StopRequest`, installed by :func:`run_node`
     before the imports, else here: a signal during start-up stops the node once built).
@@ -284,8 +296,6 @@ def spin_node(
     """
     stop = _STOP.install()  # already, when started by run_node
     import rclpy
-    from rclpy.exceptions import ParameterException
-    from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     logger = rclpy.logging.get_logger(name)
@@ -295,16 +305,29 @@ def spin_node(
         logger.error(f'cannot start: {_rcl_reason(error)}')
         return 1
     try:
+        return _build_and_spin(factory, logger, args, threads, stop)
+    finally:
+        _release_ros()
+
+
+def _build_and_spin(
+    factory: Callable[[], Any], logger: Any, args: list[str] | None, threads: int,
+    stop: StopRequest,
+) -> int:
+    """:func:`spin_node` from the node's construction to its stop; the node and the executor
+    are unreachable once it returns."""
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
+
+    try:
         node = factory()
     except (TetraError, ParameterException) as error:
         logger.error(f'cannot start: {error}')
-        rclpy.try_shutdown()
         return 1
     refusal = _start_refusal(node, args)
     if refusal:
         logger.error(f'cannot start: {refusal}')
         node.destroy_node()
-        rclpy.try_shutdown()
         return 1
     executor: Executor = (
         MultiThreadedExecutor(num_threads=threads) if threads > 1 else events_executor()
@@ -333,7 +356,6 @@ def _stop_node(node: Any, executor: Any) -> None:
     the interpreter's own exit either), and a watchdog ends the process with status 1 and
     every thread's traceback if all this and the exit take over :data:`STOP_DEADLINE_S`.
     What the last callbacks sent gets :data:`DELIVERY_S` before the node is destroyed."""
-    import rclpy
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -343,7 +365,23 @@ def _stop_node(node: Any, executor: Any) -> None:
     time.sleep(DELIVERY_S)
     executor.shutdown(timeout_sec=STOP_DEADLINE_S)
     node.destroy_node()
+
+
+def _release_ros() -> None:
+    """Shut rclpy down and free what it leaves to the interpreter's exit, the node's last
+    references gone:
+    rclpy 7.1.6's LifecycleNode never destroys its state machine, which holds the node's
+    handle, which holds the context's, so the participant (its threads, its shared-memory
+    segments) outlived ``destroy_node`` and ``try_shutdown`` and went in the interpreter's
+    finalization, in whatever order it freed them, past faulthandler's reach. Collected here
+    (out of ``gc.freeze``'s permanent generation), the state machine, the node and then the
+    participant go in order, while the interpreter is whole."""
+    import rclpy
+
     rclpy.try_shutdown()
+    gc.unfreeze()
+    gc.collect()
+    rclpy.get_default_context().destroy()
 
 
 def _finish_callbacks(executor: Any) -> None:
