@@ -1,38 +1,23 @@
 """The four nodes together (nodes/driver, tensor, calibrator, compensator) as separate
-processes over real DDS.
+processes over real DDS, the driver simulating.
 
 Truth is independent of the code under test: the simulator's ground truth (re-simulated
-here from the same scenario and seed), the scenario's exact compensation parameters, and
-the offline core path on the same bag.
+here from the same scenario and seed) and the scenario's exact compensation parameters. A
+recorded bag replayed through the chain against the offline commands is test_effects.py's.
 """
 from __future__ import annotations
 
 import time
 
 import numpy as np
-from ros_helpers import REPO, ros_graph, wait_connected, wait_for, wait_tensor_delivers
+from ros_helpers import ros_graph, wait_for, wait_tensor_delivers
 
 from tetra_gradiometer import core
-from tetra_gradiometer.cli._probe import TENSOR_TOPICS
-from tetra_gradiometer.io.bag import MagneticBag
 from tetra_gradiometer.io.calibration import load_calibration
-from tetra_gradiometer.io.scenario import load_scenario, load_scenario_or_default
+from tetra_gradiometer.io.scenario import load_scenario_or_default
 
 NT = 1e-9
 GEOMETRY = core.TetraGeometry.regular(0.5)
-#: The bags replay at rate 0: the driver paced by the tensor node (at most 4 sets ahead).
-#: Tried this session: at 40x real time (400 sets/s, unpaced) a fresh-clone CI run lost one
-#: survey set to the tensor node's stamp check (a sensor more than 10 s of sample time, 0.25 s
-#: of wall time at 40x, from the others: the node behind on some queues); at 8x the test took
-#: 48 s wall and 50 s CPU (rate 0: 16 s, 12 s). Paced by gradient/raw, rate 0 does not wait
-#: for the calibrator and compensator (docs/ros.md): under 3 parallel ROS runs and 4 busy
-#: processes (far beyond CI) the calibrator's 1000-set queue overflowed once; the survey is
-#: the survey's sets are counted as the compensator takes them (``wait_for``).
-REPLAY_RATE = 0.0
-#: The trim at 4x real time (80 sets/s), deep magnetometer queues (25 s) in the tensor node: at
-#: rate 0 the driver paces on the compensator, and the calibrator, off that path, stalled on a
-#: busy machine lost the oldest sets of its 1000-deep queue (one of five busy runs).
-TRIM_RATE = 4.0
 
 
 def _diag(probe, name: str) -> dict:
@@ -159,79 +144,3 @@ def test_sim_graph_calibrates_on_trim_and_compensates_the_survey_against_simulat
     assert core.rms_residual(g_comp, g_true) < 0.5 * NT              # ... and removed to the noise floor
     assert core.compensated_percent(core.epsilon(g_raw, g_comp, g_true)) > 99.0
     assert percent > 99.0                                            # the node's running eq. 24
-
-
-def test_replayed_bags_give_the_offline_core_tensors(tmp_path):
-    calibration_file = tmp_path / 'calibration.yaml'
-    with MagneticBag(REPO / 'bags' / 'survey') as bag:
-        bag_stamps, fields = bag.read_sets()
-    trim_scenario, _ = load_scenario(REPO / 'bags' / 'trim.yaml')
-    exact = trim_scenario.interference.effective_parameters()
-    with ros_graph() as (graph, probe, _):
-        graph.start('tensor', sensor_queue_depth=2000)
-        graph.start('calibrator', calibration_file=str(calibration_file))
-        # Against core.compensate with the calibration as fitted: frozen (the tracker's live
-        # equals offline is test/pipelines/test_tracking_bag.py's).
-        graph.start('compensator', calibration_file=str(calibration_file), track_calibration=False)
-        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'trim'), rate=TRIM_RATE,
-                    start_paused=True, min_subscribers=1)
-        _wait_discovered(probe, graph)
-        assert probe.call('calibrator/start').success
-        assert probe.call('driver/resume').success
-        wait_for(lambda: _diag(probe, 'tetra/driver: playback').get('state') == 'finished', 60, 'trim replay', graph)
-        # The calibrator (a process of its own, with its trim guidance) may still be working
-        # through its queue: let it, before stopping.
-        try:
-            wait_for(lambda: _diag(probe, 'tetra/calibrator: calibration').get('samples') == '1200', 20,
-                     'the calibrator to take every set', graph)
-        except AssertionError as error:  # lost (its queue overflowed) or slow: the counts tell which
-            samples = _diag(probe, 'tetra/calibrator: calibration').get('samples')
-            published = _diag(probe, 'tetra/tensor: matching').get('sets_published')
-            raise AssertionError(f'calibrator samples {samples}, tensor sets published {published}\n'
-                                 f'{error}') from None
-        assert probe.call('calibrator/stop').success
-        reply = probe.call('calibrator/calibrate', timeout_s=60)
-        assert reply.success, reply.message
-        assert '1200 samples' in reply.message                   # nothing dropped
-        saved = load_calibration(calibration_file)
-        assert np.abs(saved.parameters.k_soft - exact.k_soft).max() < 2e-5
-        assert np.abs(saved.parameters.b_hard - exact.b_hard).max() < 1.0 * NT
-        wait_for(lambda: _diag(probe, 'tetra/compensator: compensation').get('compensating') == 'True',
-                 10, 'compensator', graph)
-
-        graph.stop('driver')
-        with probe.lock:
-            probe.collecting = True
-        # Rate 0, paced by the tensor node (a compensator short of CPU, two other busy
-        # processes, dropped 335-368 of the 1500 sets from its queue in earlier runs).
-        graph.start('driver', mode='replay', bag=str(REPO / 'bags' / 'survey'), rate=REPLAY_RATE,
-                    min_subscribers=1, start_paused=True)
-        # The new driver's truth publisher must be known to the compensator and the probe first.
-        wait_for(lambda: probe.count_publishers('/tetra/gradient/truth') >= 1, 30, 'the new driver', graph)
-        wait_connected(probe, graph, 'driver', '/tetra/gradient/truth', 1)
-        wait_tensor_delivers(probe, graph, raw=3, readers=('compensator',))
-        assert probe.call('driver/resume').success
-        # Polled cheaply (paired() under the probe's lock every 20 ms slowed its thread until
-        # the replay outran it); the probe may still be taking the trim's last tensors when
-        # collecting starts: only the survey's stamps are compared.
-        wanted = set(bag_stamps.tolist())
-        try:
-            wait_for(lambda: all(wanted <= set(probe.tensors[t]) for t in TENSOR_TOPICS), 60,
-                     'all 1500 survey sets', graph)
-        except AssertionError as error:  # which topic lost which sets, and what the nodes counted
-            with probe.lock:
-                missing = {t: sorted(wanted - set(probe.tensors[t])) for t in TENSOR_TOPICS}
-            counts = {t: (len(m), [(s - int(bag_stamps[0])) / 1e9 for s in m[:5]]) for t, m in missing.items()}
-            nodes = {k: v for k, v in probe.diagnostics.items() if 'tensor' in k or 'compensator' in k}
-            raise AssertionError(f'missing (count, first s): {counts}\n{nodes}\n{error}') from None
-        stamps, g_raw, g_comp, g_true = probe.paired()
-
-    survey = np.isin(stamps, bag_stamps)
-    stamps, g_raw, g_comp, g_true = stamps[survey], g_raw[survey], g_comp[survey], g_true[survey]
-    np.testing.assert_array_equal(stamps, bag_stamps)
-    offline_raw = core.difference_tensor(fields, GEOMETRY)
-    offline_comp = core.compensate(offline_raw, fields[:, 0], saved.parameters, GEOMETRY)
-    scale = np.abs(offline_raw).max()
-    assert np.abs(g_raw - offline_raw).max() <= 1e-9 * scale
-    assert np.abs(g_comp - offline_comp).max() <= 1e-9 * np.abs(offline_comp).max()
-    assert core.rms_residual(g_comp, g_true) < 0.5 * NT  # against the recorded simulator truth
