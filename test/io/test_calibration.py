@@ -145,16 +145,22 @@ def test_a_file_too_large_or_binary_is_refused_before_it_is_parsed(tmp_path):
 
 def test_a_calibration_nested_too_deeply_is_refused_not_a_crash(tmp_path):
     """libyaml's parser recurses in C: 100 000 nested brackets (200 kB) would end the process,
-    in a file or in a calibration's text on the topic, before its signature is checked."""
+    in a file or in a calibration's text on the topic, before its signature is checked;
+    brackets inside a quoted string are text, however many."""
     from tetra_gradiometer.nodes.authentication import verify
 
     deep = 'k_soft: ' + '[' * 100_000 + ']' * 100_000 + '\n'
     path = tmp_path / 'deep.yaml'
     path.write_text(deep)
-    with pytest.raises(CalibrationFileError, match='is not valid YAML: brackets nested deeper than 100'):
+    refused = 'is not valid YAML: brackets nested deeper than the parser can follow'
+    with pytest.raises(CalibrationFileError, match=refused):
         load_calibration(path)
-    with pytest.raises(CalibrationFileError, match='the topic is not valid YAML: brackets nested deeper than 100'):
+    with pytest.raises(CalibrationFileError, match=f'the topic {refused}'):
         verify(deep, b'k' * 32, 'the topic')
+    written = save_calibration(tmp_path / 'brackets.yaml', CalibrationFile(
+        InterferenceParameters.zero(), 'known_gradient_lstsq', False, GEOMETRY.to_flat(),
+        {'note': '[' * 150 + '{' * 150}))
+    assert load_calibration(written).diagnostics['note'] == '[' * 150 + '{' * 150
     shallow = CalibrationFile.from_yaml(save_calibration(tmp_path / 'c.yaml', CalibrationFile(
         InterferenceParameters.zero(), 'known_gradient_lstsq', False, GEOMETRY.to_flat())).read_text())
     assert shallow.method == 'known_gradient_lstsq'

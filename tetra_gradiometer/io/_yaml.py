@@ -20,21 +20,25 @@ SAFE_DUMPER: type[yaml.SafeDumper] = getattr(yaml, 'CSafeDumper', yaml.SafeDumpe
 
 
 #: libyaml's parser recurses in C: ~30 000 nested brackets (60 kB) overflow its stack and end
-#: the process (PyYAML's own parser stops at Python's recursion limit, ~1000). No document of
-#: ours nests brackets; text nested deeper than this is refused before it is parsed. (Block
-#: nesting that deep would take gigabytes of indentation.)
+#: the process. Text whose brackets (counted in strings and comments too) may nest deeper than
+#: this goes to PyYAML's own parser, which recurses in Python: it reads brackets in strings
+#: as text, and a real nesting past Python's recursion limit (~1000) is refused. No document
+#: of ours nests brackets; block nesting that deep would take gigabytes of indentation.
 MAX_FLOW_DEPTH = 100
 
 
 def loads(text: str) -> Any:
-    """The document in ``text``, as ``yaml.safe_load``; brackets nested deeper than
-    :data:`MAX_FLOW_DEPTH` are a ``yaml.YAMLError``."""
+    """The document in ``text``, as ``yaml.safe_load``; brackets nested too deep for the
+    parser are a ``yaml.YAMLError``."""
     if text.count('[') + text.count('{') > MAX_FLOW_DEPTH:  # else it cannot be that deep
         codes = np.frombuffer(text.encode(), np.uint8)
         opened = (codes == ord('[')) | (codes == ord('{'))
         closed = (codes == ord(']')) | (codes == ord('}'))
         if np.cumsum(opened.astype(np.int64) - closed).max() > MAX_FLOW_DEPTH:
-            raise yaml.YAMLError(f'brackets nested deeper than {MAX_FLOW_DEPTH}')
+            try:
+                return yaml.load(text, Loader=yaml.SafeLoader)
+            except RecursionError:
+                raise yaml.YAMLError('brackets nested deeper than the parser can follow') from None
     return yaml.load(text, Loader=SAFE_LOADER)
 
 
