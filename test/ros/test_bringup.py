@@ -10,24 +10,30 @@ import subprocess
 import sys
 import time
 
+import pytest
 from ros_helpers import REPO, child_env, unique_domain
 
 PARAMS = REPO / 'config' / 'tetra_gradiometer.yaml'
 
 
-def _bringup(tmp_path, *options: str) -> subprocess.Popen:
-    calibration = tmp_path / 'calibration.yaml'
-    if not calibration.exists():
-        subprocess.run([sys.executable, '-m', 'tetra_gradiometer', 'calibrate', 'bags/trim', '--params',
-                        str(PARAMS), '--out', str(calibration)], cwd=REPO, check=True, capture_output=True)
+@pytest.fixture(scope='module')
+def calibration(tmp_path_factory):
+    """The shipped trim's calibration, as a user makes it."""
+    path = tmp_path_factory.mktemp('bringup') / 'calibration.yaml'
+    subprocess.run([sys.executable, '-m', 'tetra_gradiometer', 'calibrate', 'bags/trim', '--params',
+                    str(PARAMS), '--out', str(path)], cwd=REPO, check=True, capture_output=True)
+    return path
+
+
+def _bringup(calibration, *options: str) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, '-m', 'tetra_gradiometer', 'bringup', '--bag', 'bags/survey', '--rate', '0',
          '--params', str(PARAMS), '--calibration-file', str(calibration), *options],
         cwd=REPO, env=child_env(unique_domain()), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def test_bringup_of_a_bag_ends_once_played_with_a_summary(tmp_path):
-    process = _bringup(tmp_path)
+def test_bringup_of_a_bag_ends_once_played_with_a_summary(calibration):
+    process = _bringup(calibration)
     try:
         output, _ = process.communicate(timeout=240)
     finally:
@@ -40,8 +46,8 @@ def test_bringup_of_a_bag_ends_once_played_with_a_summary(tmp_path):
     assert 'Traceback' not in output
 
 
-def test_bringup_with_loop_plays_the_bag_again_until_ctrl_c(tmp_path):
-    process = _bringup(tmp_path, '--loop')
+def test_bringup_with_loop_plays_the_bag_again_until_ctrl_c(calibration):
+    process = _bringup(calibration, '--loop')
     lines: list[str] = []
     deadline = time.monotonic() + 240
     assert process.stdout is not None
