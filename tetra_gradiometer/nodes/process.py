@@ -356,7 +356,6 @@ def _stop_node(node: Any, executor: Any) -> None:
     the interpreter's own exit either), and a watchdog ends the process with status 1 and
     every thread's traceback if all this and the exit take over :data:`STOP_DEADLINE_S`.
     What the last callbacks sent gets :data:`DELIVERY_S` before the node is destroyed."""
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
@@ -368,14 +367,13 @@ def _stop_node(node: Any, executor: Any) -> None:
 
 
 def _release_ros() -> None:
-    """Shut rclpy down and free what it leaves to the interpreter's exit, the node's last
-    references gone:
-    rclpy 7.1.6's LifecycleNode never destroys its state machine, which holds the node's
-    handle, which holds the context's, so the participant (its threads, its shared-memory
-    segments) outlived ``destroy_node`` and ``try_shutdown`` and went in the interpreter's
-    finalization, in whatever order it freed them, past faulthandler's reach. Collected here
-    (out of ``gc.freeze``'s permanent generation), the state machine, the node and then the
-    participant go in order, while the interpreter is whole."""
+    """Shut rclpy down and free what it would leave to the exit, the node's last references
+    gone. rclpy 7.1.6's LifecycleNode never destroys its state machine, which holds the
+    node's handle, which holds the context's; with the node's objects in ``gc.freeze``'s
+    permanent generation nothing freed them, and the participant (its threads, its
+    shared-memory segments) went in Fast DDS's own destructors at the C exit, past
+    faulthandler's reach (gdb: ``rcl_context_fini`` was never called). Collected here, the
+    state machine, the node and the participant go in order, while the interpreter is whole."""
     import rclpy
 
     rclpy.try_shutdown()
