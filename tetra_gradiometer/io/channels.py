@@ -8,8 +8,11 @@ BatteryState topics the user names (one per thruster ESC, say); :data:`CHANNEL_K
 declares each kind's message type, field, staleness limit and unit. A channel is
 interpolated linearly between its messages (by header stamp) onto each set's stamp; a set
 further than its kind's ``max_gap_s`` from every message of the channel (a gap, or beyond
-the channel's ends) gets NaN there: **stale, never taken as zero**. The pipelines drop and
-count such sets, and say which channel and when. ``signal:TOPIC#FIELD`` is a declared
+the channel's ends) gets NaN there: **stale, never taken as zero**; so does a set between two
+messages of a channel that can step (a current, a signal) when a message was lost between
+them (:mod:`~tetra_gradiometer.core.effects.losses`: the interval is longer than the
+channel's usual one): a step there would be interpolated over. The pipelines drop and count
+such sets, and say which channel and when. ``signal:TOPIC#FIELD`` is a declared
 signal's field (:mod:`.signals`).
 """
 
@@ -22,6 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..core.effects import CURRENT_PREFIX, SIGNAL_PREFIX, TEMPERATURE, current_channel
+from ..core.effects.losses import after_loss
 from ..core.effects.recorded_signal import parse_channel
 from ..core.units import S_PER_NS
 from ..errors import BagError
@@ -36,18 +40,20 @@ class ChannelKind:
     """What a channel's messages are, declared as data: ``msgtype`` (``package/msg/Name``;
     '' for a signal: whatever the bag or the graph carries), ``field`` (the number in it, a
     :func:`~.signals.field_value` path), ``max_gap_s`` (the furthest a set may lie from the
-    channel's nearest message, s) and its ``unit``."""
+    channel's nearest message, s), its ``unit``, and whether it ``steps`` between messages
+    (then a set where a message was lost has no value: see the module)."""
 
     msgtype: str
     field: str
     max_gap_s: float
     unit: str
+    steps: bool = True
 
 
 #: The channels' kinds: a temperature changes slowly (sensors report at ~1 Hz or less), a
 #: current steps with the thrusters, a signal is held to a current's limit.
 CHANNEL_KINDS = {
-    TEMPERATURE: ChannelKind(cv.TEMPERATURE, 'temperature', 10.0, 'degC'),
+    TEMPERATURE: ChannelKind(cv.TEMPERATURE, 'temperature', 10.0, 'degC', steps=False),
     CURRENT_PREFIX: ChannelKind(cv.BATTERY_STATE, 'current', 2.0, 'A'),
     SIGNAL_PREFIX: ChannelKind('', '', 2.0, 'as recorded'),
 }
@@ -108,6 +114,9 @@ class ChannelSeries:
             np.abs(self.stamps_ns[after] - stamps), np.abs(self.stamps_ns[before] - stamps)
         )
         values[gap * S_PER_NS > max_gap_s(self.name)] = np.nan
+        if channel_kind(self.name).steps:
+            lost = after_loss(self.stamps_ns)[after] & (stamps > self.stamps_ns[before])
+            values[lost & (stamps < self.stamps_ns[after])] = np.nan
         return values
 
     def stale_spans(self, stamps_ns: np.ndarray, origin_ns: int) -> list[tuple[float, float]]:

@@ -12,7 +12,9 @@ A set's value of a channel is the offline one (:meth:`io.channels.ChannelSeries.
 messages received so far: linear between the messages on both sides of the set's stamp when
 both have arrived, else the nearest message; **unknown (NaN) when that message is further
 than its kind's** ``max_gap_s`` **from the set** (:data:`~..io.channels.CHANNEL_KINDS`:
-temperature 10 s, currents 2 s), or when there is none: never zero. A message whose stamp
+temperature 10 s, currents 2 s), or when there is none: never zero; and, for a channel that
+steps (a current, a signal), when a message was lost between the two (a lost best-effort
+message: the offline tools, which have it, give another value). A message whose stamp
 is earlier than the channel's last (a restarted replay) forgets the channel's earlier messages.
 
 * :class:`ChannelHistory` (calibrator): every channel's messages (thread-safe, bounded), as
@@ -43,6 +45,7 @@ import numpy.typing as npt
 
 from ..core import TetraGeometry
 from ..core.effects import REFERENCE_RATE, LiveTerms, Term
+from ..core.effects.losses import USUAL_INTERVALS, after_loss
 from ..core.identification import DEFAULT_METHOD
 from ..core.units import NS_PER_S, S_PER_NS
 from ..errors import InputError
@@ -87,6 +90,7 @@ class ChannelBuffer:
         self.name = name
         self.topic = channel_topic(name)
         self.max_gap_s = max_gap_s(name)
+        self.steps = channel_kind(name).steps
         self.capacity = capacity
         self.stamps: list[int] = []
         self.values: list[float] = []
@@ -118,8 +122,20 @@ class ChannelBuffer:
         gap = min(abs(self.stamps[after] - stamp_ns), abs(self.stamps[before] - stamp_ns))
         if gap * S_PER_NS > self.max_gap_s:
             return float('nan')
+        if self._lost_before(after, stamp_ns):
+            return float('nan')
         lo, hi = max(after - 1, 0), after + 1
         return float(np.interp(stamp_ns, self.stamps[lo:hi], self.values[lo:hi]))
+
+    def _lost_before(self, after: int, stamp_ns: int) -> bool:
+        """Whether ``stamp_ns`` lies strictly between message ``after`` and the one before,
+        with a message lost between them, on a channel that steps."""
+        if not self.steps or after == 0:
+            return False
+        if not self.stamps[after - 1] < stamp_ns < self.stamps[after]:
+            return False
+        recent = self.stamps[max(after - USUAL_INTERVALS - 1, 0) : after + 1]
+        return bool(after_loss(np.array(recent, dtype=np.int64))[-1])
 
     def gap_s(self, stamp_ns: int) -> float:
         """Distance from ``stamp_ns`` to the nearest message, s (inf: none)."""
@@ -142,6 +158,7 @@ class ChannelBuffer:
         """Forget the messages no set at or after ``stamp_ns`` can use (all but the last one
         more than the gap limit before it), in steps of :data:`PRUNE_STEP`."""
         cut = bisect.bisect_right(self.stamps, stamp_ns - int(self.max_gap_s * NS_PER_S)) - 1
+        cut -= USUAL_INTERVALS + 1  # the intervals that judge a loss (:meth:`at`)
         if cut >= PRUNE_STEP:
             del self.stamps[:cut], self.values[:cut]
 
@@ -155,6 +172,13 @@ class ChannelBuffer:
         what = f'{self.name} ({self.topic})'
         if not self.stamps:
             return f'{what}: no message yet'
+        after = min(bisect.bisect_left(self.stamps, stamp_ns), len(self.stamps) - 1)
+        if self.gap_s(stamp_ns) <= self.max_gap_s and self._lost_before(after, stamp_ns):
+            span_s = (self.stamps[after] - self.stamps[after - 1]) * S_PER_NS
+            return (
+                f'{what}: a message lost around the set (its neighbours {span_s:.3g} s apart, '
+                f'period {self.period_s():.3g} s)'
+            )
         if not np.isfinite(self.at(stamp_ns)) and self.gap_s(stamp_ns) <= self.max_gap_s:
             return f'{what}: the message near the set is NaN'
         return (

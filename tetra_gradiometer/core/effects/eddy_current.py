@@ -10,10 +10,14 @@ way offline and live: the slope at each sample of a least-squares quadratic thro
 samples of the last ``window_s`` seconds (the sample itself included), evaluated at the
 sample (no delay for a field whose rate changes linearly over the window; a centred
 difference would need the future, which a node does not have). With fewer than three
-samples in the window a line is used, with one the rate is unknown (NaN: the first sample
-of a recording, and the first after a gap longer than the window), and so is the rate of
-every sample whose window holds a jump: a change between two samples faster than the field
-can turn (:data:`MAX_TURN_RATE_RAD_S`; a recording joined from pieces, a glitch).
+samples in the window a line is used. The rate is unknown (NaN) where the window holds a
+**break**, the same offline and live: the first sample (a recording's, a restarted
+replay's), a sample after a loss (:mod:`.losses`: a node's lost set, a gap of the
+recording) and, for the reference reading, a jump (a change between two samples faster
+than the field can turn, :data:`MAX_TURN_RATE_RAD_S`: a recording joined from pieces, a
+glitch). So every rate is a full window's: a window short of its samples errs by
+``B'' h / 2`` from a line (2.5-9.6 noise floors on a 20 Hz trim after a lost set, and a
+live rate where the offline one had none).
 
 The window is fixed when the term is fitted (its reference value): :data:`WINDOW_PERIODS`
 sample periods of the calibration data, at least :data:`MIN_WINDOW_S`. It trades the fit's
@@ -32,6 +36,7 @@ import numpy as np
 
 from ..types import FloatArray
 from .base import Channels, Effect, LiveRegressor
+from .losses import LOSS_FACTOR, USUAL_INTERVALS, after_loss, usual_interval
 from .simulation import EffectSpec, Truth
 
 #: The pseudo-channel of the reference reading's rate (always available: it is computed).
@@ -52,10 +57,13 @@ def window_for(t_s: np.ndarray) -> float:
     return max(MIN_WINDOW_S, WINDOW_PERIODS * period)
 
 
-def causal_rate(t_s: np.ndarray, values: np.ndarray, window_s: float) -> FloatArray:
+def causal_rate(
+    t_s: np.ndarray, values: np.ndarray, window_s: float, breaks: np.ndarray | None = None
+) -> FloatArray:
     """The causal rate of ``values`` (N, k) at ``t_s`` (N,) s: the slope at each sample of
     the least-squares quadratic through the samples within ``window_s`` before it (itself
-    included); units of ``values`` per second; NaN where unknown (see the module)."""
+    included); units of ``values`` per second; NaN where the window holds a break (the first
+    sample, one after a loss, and where ``breaks`` (N,) is True: see the module)."""
     t_s = np.asarray(t_s, dtype=float)
     values = np.asarray(values, dtype=float)
     n = len(t_s)
@@ -74,7 +82,15 @@ def causal_rate(t_s: np.ndarray, values: np.ndarray, window_s: float) -> FloatAr
         powers = tau[:, None] ** np.arange(5)
         s[idx] += powers
         r[idx] += powers[:, :3, None] * y[:, None, :]
-    return _slopes(s, r, count)
+    rate = _slopes(s, r, count)
+    if n:
+        flagged = after_loss(t_s)
+        flagged[0] = True
+        if breaks is not None:
+            flagged |= np.asarray(breaks, dtype=bool)
+        last_break = np.maximum.accumulate(np.where(flagged, np.arange(n), -1))
+        rate[last_break >= start] = np.nan
+    return rate
 
 
 def _slopes(s: np.ndarray, r: np.ndarray, count: np.ndarray) -> FloatArray:
@@ -113,64 +129,70 @@ def jumps(t_s: np.ndarray, b_reference: np.ndarray) -> np.ndarray:
     return out
 
 
-def jump_free_rate(t_s: np.ndarray, b_reference: np.ndarray, window_s: float) -> FloatArray:
-    """:func:`causal_rate` of ``b_reference`` with NaN where the window holds a jump
-    (:func:`jumps`): the rate across it would be the jump's, not the vehicle's."""
-    rate = causal_rate(t_s, b_reference, window_s)
-    start = np.searchsorted(t_s, t_s - window_s, side='right')
-    flagged = np.concatenate([[0], np.cumsum(jumps(t_s, b_reference))])
-    # A jump at sample j lies in the window of n when start[n] < j <= n.
-    inside = flagged[np.arange(len(t_s)) + 1] - flagged[np.minimum(start + 1, len(t_s))] > 0
-    rate[inside] = np.nan
-    return rate
-
-
 class LiveRate:
     """:func:`causal_rate` one sample at a time (a node's path): the samples of the last
-    ``window_s`` seconds are kept."""
+    ``window_s`` seconds are kept, and the intervals that judge a loss."""
 
     def __init__(self, window_s: float) -> None:
         self.window_s = window_s
         self.history: deque[tuple[float, np.ndarray]] = deque()
+        self.intervals: deque[float] = deque(maxlen=USUAL_INTERVALS)
+        self.last_t: float | None = None
+        self.break_t = -np.inf  # the last break's time, s
 
-    def push(self, t_s: float, value: np.ndarray) -> FloatArray:
-        """The rate (k,) per second at ``t_s`` of ``value`` (k,), this sample included."""
+    def push(self, t_s: float, value: np.ndarray, brk: bool = False) -> FloatArray:
+        """The rate (k,) per second at ``t_s`` of ``value`` (k,), this sample included; NaN
+        while the window holds a break (``brk``: this sample is one besides a start or a
+        loss)."""
         value = np.asarray(value, dtype=float)
-        if self.history and t_s <= self.history[-1][0]:
-            self.history.clear()  # time went back: a restarted replay
+        if self.last_t is not None and t_s <= self.last_t:
+            self.reset()  # time went back: a restarted replay
+        if self.last_t is None:
+            brk = True
+        else:
+            interval = t_s - self.last_t
+            previous = np.full((1, USUAL_INTERVALS), np.nan)
+            previous[0, : len(self.intervals)] = self.intervals
+            brk = brk or bool(interval > LOSS_FACTOR * usual_interval(previous)[0])
+            self.intervals.append(interval)
+        self.last_t = t_s
+        if brk:
+            self.break_t = t_s
         self.history.append((t_s, value))
         while self.history and self.history[0][0] <= t_s - self.window_s:
             self.history.popleft()
-        t, values = self.window()
+        if self.break_t > t_s - self.window_s:
+            return np.full(len(value), np.nan)
+        t = np.array([item[0] for item in self.history])
         tau = t - t_s
         powers = tau[:, None] ** np.arange(5)
         s = powers.sum(axis=0)[None]
+        values = np.array([item[1] for item in self.history])
         r = (powers[:, :3, None] * (values - value)[:, None, :]).sum(axis=0)[None]
         return _slopes(s, r, np.array([len(t)]))[0]
 
-    def window(self) -> tuple[np.ndarray, np.ndarray]:
-        """The kept samples: times (n,) s and values (n, k)."""
-        return (
-            np.array([item[0] for item in self.history]),
-            np.array([item[1] for item in self.history]),
-        )
-
     def reset(self) -> None:
         self.history.clear()
+        self.intervals.clear()
+        self.last_t, self.break_t = None, -np.inf
 
 
 class _Live(LiveRegressor):
     def __init__(self, window_s: float) -> None:
         self.rate = LiveRate(window_s)
+        self.last: tuple[float, np.ndarray] | None = None
 
     def push(self, t_s: float, b_reference: np.ndarray, values: Mapping[str, float]) -> FloatArray:
-        rate = self.rate.push(t_s, b_reference)
-        if np.any(jumps(*self.rate.window())[1:]):
-            rate[:] = np.nan
-        return rate
+        b_reference = np.asarray(b_reference, dtype=float)
+        jump = self.last is not None and t_s > self.last[0] and bool(
+            jumps(np.array([self.last[0], t_s]), np.stack([self.last[1], b_reference]))[1]
+        )
+        self.last = (t_s, b_reference)
+        return self.rate.push(t_s, b_reference, jump)
 
     def reset(self) -> None:
         self.rate.reset()
+        self.last = None
 
 
 class EddyCurrent(Effect):
@@ -206,7 +228,8 @@ class EddyCurrent(Effect):
     def regressors(
         self, channels: Channels, inputs: tuple[str, ...], reference: tuple[float, ...]
     ) -> FloatArray:
-        return jump_free_rate(channels.t_s, channels.b_reference, reference[0])
+        t_s, b_reference = channels.t_s, channels.b_reference
+        return causal_rate(t_s, b_reference, reference[0], jumps(t_s, b_reference))
 
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         return _Live(reference[0])
