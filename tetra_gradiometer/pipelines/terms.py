@@ -34,6 +34,7 @@ from ..core.effects import (
     term_regressors,
     terms_channels,
 )
+from ..core.effects.losses import USUAL_INTERVALS
 from ..core.effects.recorded_signal import basis_for
 from ..core.geometry import TetraGeometry
 from ..core.identification.terms import (
@@ -508,8 +509,14 @@ class StreamRegressors:
                 + ', which the bag lacks: a channel is never taken as zero (record it, '
                 'calibrate with --effects none, or compensate with --allow-missing-channels)'
             )
+        # the differentiation windows: the eddy term's, a declared signal's rate
         self.history_s = max(
-            (term.reference[0] for term in terms if term.effect == 'eddy_current'), default=0.0
+            (
+                term.reference[0]
+                for term in terms
+                if term.effect == 'eddy_current' or term.effect.endswith(':rate')
+            ),
+            default=0.0,
         )
         self._tail: tuple[IntArray, FloatArray] | None = None
         self.origin_ns: int | None = None
@@ -536,7 +543,9 @@ class StreamRegressors:
         regressors = term_regressors(self.terms, Channels(t_s, b_all, every))[prefix:]
         if self.held is not None:
             regressors[:, self.held.columns] = self.held.values
+        # the eddy window's history, and the intervals that judge a loss (core.effects.losses)
         keep = (stamps_all[-1] - stamps_all) * S_PER_NS < self.history_s + 1e-9
+        keep[-(USUAL_INTERVALS + 1) :] = True
         self._tail = (stamps_all[keep], b_all[keep])
         self._count(stamps_ns, {name: v[prefix:] for name, v in on_sets.items()}, regressors)
         self.ranges.add(regressors)
