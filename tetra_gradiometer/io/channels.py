@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -115,9 +116,15 @@ class ChannelSeries:
         )
         values[gap * S_PER_NS > max_gap_s(self.name)] = np.nan
         if channel_kind(self.name).steps:
-            lost = after_loss(self.stamps_ns)[after] & (stamps > self.stamps_ns[before])
+            lost = self.after_loss[after] & (stamps > self.stamps_ns[before])
             values[lost & (stamps < self.stamps_ns[after])] = np.nan
         return values
+
+    @cached_property
+    def after_loss(self) -> np.ndarray:
+        """(m,) True at each message that follows a lost one (:func:`~tetra_gradiometer.core.
+        effects.losses.after_loss`; once: a compensation asks for every chunk)."""
+        return after_loss(self.stamps_ns)
 
     def stale_spans(self, stamps_ns: np.ndarray, origin_ns: int) -> list[tuple[float, float]]:
         """The runs of ``stamps_ns`` where the channel is stale, (t0, t1) s from

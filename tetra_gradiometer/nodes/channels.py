@@ -96,6 +96,7 @@ class ChannelBuffer:
         self.values: list[float] = []
         self.received = 0
         self.restarts = 0
+        self._judged = (-1, False)  # (a message's stamp, whether a message was lost before it)
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -105,6 +106,7 @@ class ChannelBuffer:
         if self.stamps and stamp_ns < self.stamps[-1]:
             self.stamps, self.values = [], []
             self.restarts += 1
+            self._judged = (-1, False)
         self.stamps.append(int(stamp_ns))
         self.values.append(float(value))
         self.received += 1
@@ -134,8 +136,10 @@ class ChannelBuffer:
             return False
         if not self.stamps[after - 1] < stamp_ns < self.stamps[after]:
             return False
-        recent = self.stamps[max(after - USUAL_INTERVALS - 1, 0) : after + 1]
-        return bool(after_loss(np.array(recent, dtype=np.int64))[-1])
+        if self._judged[0] != self.stamps[after]:  # the sets between two messages ask once
+            recent = self.stamps[max(after - USUAL_INTERVALS - 1, 0) : after + 1]
+            self._judged = (self.stamps[after], bool(after_loss(np.array(recent))[-1]))
+        return self._judged[1]
 
     def gap_s(self, stamp_ns: int) -> float:
         """Distance from ``stamp_ns`` to the nearest message, s (inf: none)."""
