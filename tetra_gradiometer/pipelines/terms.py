@@ -30,6 +30,7 @@ from ..core.effects import (
     SIGNAL_PREFIX,
     Channels,
     Term,
+    effect,
     parse_declaration,
     term_regressors,
     terms_channels,
@@ -509,14 +510,8 @@ class StreamRegressors:
                 + ', which the bag lacks: a channel is never taken as zero (record it, '
                 'calibrate with --effects none, or compensate with --allow-missing-channels)'
             )
-        # the differentiation windows: the eddy term's, a declared signal's rate
         self.history_s = max(
-            (
-                term.reference[0]
-                for term in terms
-                if term.effect == 'eddy_current' or term.effect.endswith(':rate')
-            ),
-            default=0.0,
+            (effect(term.effect).history_s(term.reference) for term in terms), default=0.0
         )
         self._tail: tuple[IntArray, FloatArray] | None = None
         self.origin_ns: int | None = None

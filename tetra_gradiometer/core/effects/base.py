@@ -155,6 +155,11 @@ class Effect(ABC):
     ) -> FloatArray:
         """Regressors (N, m) on every sample of ``channels``, SI; NaN where unknown."""
 
+    def history_s(self, reference: tuple[float, ...]) -> float:
+        """How far back, s, a sample's regressors reach into the samples before it (a
+        differentiation window; 0: the sample alone). A reader in chunks keeps that much."""
+        return 0.0
+
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         """The per-sample form of :meth:`regressors` (by default :meth:`regressors` on each
         sample alone: right for an effect without memory of earlier samples)."""

@@ -231,6 +231,9 @@ class EddyCurrent(Effect):
         t_s, b_reference = channels.t_s, channels.b_reference
         return causal_rate(t_s, b_reference, reference[0], jumps(t_s, b_reference))
 
+    def history_s(self, reference: tuple[float, ...]) -> float:
+        return reference[0]
+
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         return _Live(reference[0])
 

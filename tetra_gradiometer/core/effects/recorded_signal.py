@@ -210,5 +210,8 @@ class RecordedSignal(Effect):
             return causal_rate(channels.t_s, np.asarray(x, dtype=float)[:, None], reference[0])
         return basis_columns(self.declaration.basis, x, reference)
 
+    def history_s(self, reference: tuple[float, ...]) -> float:
+        return reference[0] if self.declaration.basis == 'rate' else 0.0
+
     def live(self, inputs: tuple[str, ...], reference: tuple[float, ...]) -> LiveRegressor:
         return _Live(self.declaration.channel, self.declaration.basis, reference)
