@@ -31,7 +31,6 @@ SLOW_FIRST = (
     'cli/test_docs_commands.py',
     'ros/test_effects.py',
     'cli/test_batch.py',
-    'ros/test_graph.py',
     'ros/test_shutdown.py',
     'ros/test_calibrator.py',
     'core/discrepancy/test_dipoles_survey.py',

@@ -1,5 +1,8 @@
-"""cli/demo.py end to end as a user runs it: the four nodes, calibrated and compensating, ending
-with one RESULT line whose numbers meet the noise floor computed here."""
+"""cli/demo.py end to end as a user runs it: the four nodes, the driver simulating, calibrated
+on the trim and compensating the survey, ending with one RESULT line whose numbers meet the
+noise floor computed here. The demo's figures are against the simulator's truth: its
+``gradient/truth`` tensors (test_record.py checks them against ``core.simulate``) and the
+scenario's exact effective parameters."""
 from __future__ import annotations
 
 import re
@@ -30,5 +33,10 @@ def test_demo_calibrates_compensates_and_ends_with_one_result_line(tmp_path):
     assert rms < 1.5 * noise_floor_nt
     assert ratio > 100
     assert 'calibrator/calibrate: known_gradient_lstsq' in result.stdout
+    errors = re.search(r'max \|k error\| (\S+) .*max \|b error\| (\S+) nT', result.stdout)
+    assert errors, result.stdout[-3000:]
+    k_error, b_error_nt = map(float, errors.groups())
+    assert k_error < 2e-5      # |k| up to ~7e-3
+    assert b_error_nt < 1.0    # |b| up to ~200 nT
     png = tmp_path / 'demo' / 'norms.png'
     assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 20_000
