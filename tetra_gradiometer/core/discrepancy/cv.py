@@ -53,11 +53,15 @@ class Fit:
 
 
 class Gram:
-    """Per-fold Gram matrices of ``Z`` (N, m, q): columns are normalised regressors, then
-    target and offset vectors (left unscaled). Blocks of ``block_s`` seconds are dealt to
-    ``n_folds`` folds in turn (:func:`~..identification._selection.held_out_blocks`)."""
+    """Per-fold Gram matrices of ``Z`` (N, m, q) with its first ``n_regressors`` columns
+    normalised to unit norm over all samples (``usable`` (n_regressors,): the columns not
+    all zero), the rest (target and offset vectors) left unscaled. Blocks of ``block_s``
+    seconds are dealt to ``n_folds`` folds in turn
+    (:func:`~..identification._selection.held_out_blocks`)."""
 
-    def __init__(self, z: Array, t: Array, block_s: float, n_folds: int) -> None:
+    def __init__(
+        self, z: Array, t: Array, block_s: float, n_folds: int, n_regressors: int
+    ) -> None:
         n, m, q = z.shape
         blocks = held_out_blocks(t, block_s, n_folds)
         n_folds = max(2, 1 + max(fold for _, _, fold in blocks))  # one block: one empty fold
@@ -69,6 +73,12 @@ class Gram:
             self.folds[fold] += zb.T @ zb
             self.fold_rows[fold] += zb.shape[0]
             self.fold_of_sample[lo:hi] = fold
+        # Normalised here, on the q x q matrices, not on Z (N m x q, 100s of MB for a long record).
+        norm = np.sqrt(self.folds.sum(axis=0).diagonal()[:n_regressors])
+        self.usable: NDArray[np.bool_] = norm > 0
+        scale = np.ones(q)
+        scale[:n_regressors] = 1.0 / np.where(self.usable, norm, 1.0)
+        self.folds *= scale[:, None] * scale[None, :]
         self.total = self.folds.sum(axis=0)
         self.n = float(n * m)
 

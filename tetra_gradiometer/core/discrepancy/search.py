@@ -308,23 +308,18 @@ def _round(
     n_cur = fit.cols.shape[-1]
     unit_off = _offsets(units, prep.sensors, extra, ty)
     active_off = _offsets(fit.active, prep.sensors, extra, ty)  # added back when taken out
-    # Z filled in place, normalised block by block: a long record's columns are 100s of MB.
+    # Z filled in place: a long record's columns are 100s of MB.
     z = np.empty((len(prep.t), 3 * len(prep.sensors), ty + len(extra)))
-    usable = np.zeros(ty, dtype=bool)
     start = 0
     for block in [fit.cols] + [u.cols for u in units] + extra:
         part = flat(block, prep.sensors) if block.ndim == 4 else block
-        stop = start + part.shape[-1]
-        z[..., start:stop] = part
-        if stop <= ty:
-            norm = np.sqrt(np.einsum('nmp,nmp->p', part, part))
-            usable[start:stop] = norm > 0
-            z[..., start:stop] /= np.where(norm > 0, norm, 1.0)
-        start = stop
+        z[..., start : start + part.shape[-1]] = part
+        start += part.shape[-1]
+    gram = Gram(z, prep.t, block_s, settings.n_folds, n_regressors=ty)
+    usable = gram.usable
     unit_cols = _column_ranges(usable, n_cur, [u.cols.shape[-1] for u in units])
     base_p = prep.base_cols.shape[-1]
     active_cols = _column_ranges(usable, base_p, [f.cols.shape[-1] for f in fit.active])
-    gram = Gram(z, prep.t, block_s, settings.n_folds)
     return _Round(
         gram=gram,
         ty=ty,
