@@ -2,8 +2,9 @@
 chi-square quantile of an even degree of freedom closed, in floats).
 
 ``scipy.stats`` costs about a second of import (1.3 s of the compensator node's 1.7 s on this
-machine; more on a vehicle's ARM board); its chi-square and F tails are one special function
-each. Tested against ``scipy.stats`` in test/core/test_distributions.py.
+machine; more on a vehicle's ARM board; 0.6 s of every ``discrepancy``, ``locate`` and
+``survey``); its chi-square and F tails are one special function each. Tested against
+``scipy.stats`` in test/core/test_distributions.py.
 """
 
 from __future__ import annotations
@@ -39,6 +40,13 @@ def f_ppf(q: float, dfn: float, dfd: float) -> float:
     """The F quantile: ``x`` with ``P(X <= x) = q``, ``X ~ F(dfn, dfd)``."""
     b = float(scipy.special.betaincinv(dfn / 2.0, dfd / 2.0, q))
     return dfd * b / (dfn * (1.0 - b))
+
+
+def f_isf(p: float, dfn: float, dfd: float) -> float:
+    """The F upper quantile: ``x`` with ``P(X > x) = p``, ``X ~ F(dfn, dfd)`` (from the
+    upper tail's own incomplete beta, so a small ``p`` keeps its digits)."""
+    y = float(scipy.special.betaincinv(dfd / 2.0, dfn / 2.0, p))
+    return dfd * (1.0 - y) / (dfn * y)
 
 
 def f_sf(x: float, dfn: float, dfd: float) -> float:

@@ -36,6 +36,8 @@ import scipy  # submodules load on first use: see core/__init__.py
 from numpy.typing import NDArray
 from scipy.ndimage import median_filter
 
+from .._distributions import chi2_isf
+
 Array = NDArray[np.float64]
 
 #: A step leaves at least this long a stretch on either side, s.
@@ -100,7 +102,7 @@ def find_steps(t: Array, residual: Array, alpha: float, sensor: int) -> list[Ste
     means = residual[: count * width].reshape(count, width, 3).mean(axis=1)
     spread = 1.4826 * np.median(np.abs(np.diff(means, axis=0)), axis=0) / np.sqrt(2.0)
     z = means / np.maximum(spread, 1e-12)
-    threshold = float(scipy.stats.chi2.isf(alpha / count, 3))
+    threshold = float(chi2_isf(alpha / count, 3))
     least = max(2, int(np.ceil(MIN_SEGMENT_S / (width * dt))))
     found: list[StepChange] = []
     segments = [(0, count)]

@@ -38,6 +38,7 @@ import numpy.typing as npt
 import scipy  # submodules load on first use: see core/__init__.py
 
 from ...errors import InputError
+from .._distributions import chi2_isf
 from .._validate import require_positive
 from ..geometry import to_world
 from ..types import FloatArray, IntArray
@@ -186,7 +187,7 @@ def detect(
     components = _background_removed(world, None, found, size)
     sigma = noise_sigma(components, found)
     q = np.sum((components / sigma) ** 2, axis=1)
-    low = float(scipy.stats.chi2.isf(QUIET_TAIL, 5 * window) / window)
+    low = float(chi2_isf(QUIET_TAIL, 5 * window) / window)
     averaged = scipy.ndimage.uniform_filter1d(q, window, mode='nearest')  # marks only
     quiet = scipy.ndimage.binary_erosion(
         averaged < low, np.ones(4 * window + 1, bool), border_value=1
@@ -364,7 +365,7 @@ class NoiseModel:
     def point(self, tail: float) -> float:
         """The window-averaged statistic's level exceeded with probability ``tail``."""
         mean, scale, nu = self._pearson()
-        return float((mean + scale * (scipy.stats.chi2.isf(tail, nu) - nu)) / self.window)
+        return float((mean + scale * (chi2_isf(tail, nu) - nu)) / self.window)
 
     def threshold(self, false_alarms_per_hour: float, rate_hz: float) -> float:
         """The window-averaged statistic's level crossed upwards ``false_alarms_per_hour``
@@ -388,7 +389,7 @@ class NoiseModel:
             rate = steps_per_hour * upcrossing(x, nu, swapped)
             return float(np.log(max(rate, 1e-300)) - np.log(false_alarms_per_hour))
 
-        low, high = nu, float(scipy.stats.chi2.isf(1e-16, nu))
+        low, high = nu, float(chi2_isf(1e-16, nu))
         if excess(low) <= 0.0:
             x = nu
         else:

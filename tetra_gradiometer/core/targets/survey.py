@@ -16,9 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy  # submodules load on first use: see core/__init__.py
 
 from ...errors import InputError
+from .._distributions import chi2_isf, f_isf
 from ..geometry import TetraGeometry, to_world
 from ..types import FloatArray
 from .detection import Detection, DetectionResult, DetectorSettings, detect
@@ -313,7 +313,7 @@ class _Catalogue:
             rest = [f.position for i, f in enumerate(fits) if i != j]
             fewer = fit_dipoles(pieces, self.geometry, sigma, rest)
             gain = (_rss(fewer[0], len(rest), len(pieces))[0] - rss) / 6 / (rss / dof)
-            if gain >= scipy.stats.f.isf(self.settings.significance, 6, dof):
+            if gain >= f_isf(self.settings.significance, 6, dof):
                 break
             dropped = members.pop(j)
             fits = fewer
@@ -420,7 +420,7 @@ def significant(fit: DipoleFit, probability: float) -> bool:
     """Whether the moment differs from zero at false-alarm ``probability`` (chi-square test
     of ``m^T C_m^-1 m`` with 3 degrees of freedom): a detection that a background alone
     explains (a blip of noise, a leg's end) is no target."""
-    return _moment_chi2(fit) > scipy.stats.chi2.isf(probability, 3)
+    return _moment_chi2(fit) > chi2_isf(probability, 3)
 
 
 def _moment_chi2(fit: DipoleFit) -> float:
