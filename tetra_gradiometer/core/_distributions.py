@@ -2,9 +2,9 @@
 chi-square quantile of an even degree of freedom closed, in floats).
 
 ``scipy.stats`` costs about a second of import (1.3 s of the compensator node's 1.7 s on this
-machine; more on a vehicle's ARM board; 0.6 s of every ``discrepancy``, ``locate`` and
-``survey``); its chi-square and F tails are one special function each. Tested against
-``scipy.stats`` in test/core/test_distributions.py.
+machine; more on a vehicle's ARM board; 0.6 s of every ``discrepancy``); its chi-square and
+F tails are one special function each. Tested against ``scipy.stats`` in
+test/core/test_distributions.py.
 """
 
 from __future__ import annotations
