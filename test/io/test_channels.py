@@ -1,10 +1,12 @@
-"""io/channels and the scalar channels' fast decode (io/bag_decode.decode_scalar)."""
+"""io/channels and the channels' fast decode (io/bag_decode.decode_channel): temperature,
+current and the odometry pose, against rosbags' deserializer."""
 import numpy as np
 import pytest
 
 from tetra_gradiometer.core import Scenario, TetraGeometry, TrimManoeuvre, simulate
 from tetra_gradiometer.io import conversions as cv
 from tetra_gradiometer.io.bag import MagneticBag
+from tetra_gradiometer.io.bag_decode import _UnsupportedEncoding, decode_channel
 from tetra_gradiometer.io.bag_skips import guarded_messages
 from tetra_gradiometer.io.channels import ChannelSeries, channel_topic, runs
 from tetra_gradiometer.io.recording import write_mission_bag
@@ -20,9 +22,15 @@ def bag(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize(('topic', 'field'), [(cv.BATTERY_TOPIC, 'current'),
-                                              (cv.TEMPERATURE_TOPIC, 'temperature')])
-def test_the_fast_scalar_decode_equals_rosbags(bag, topic, field):
+def _pose(msg):
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return [p.x, p.y, p.z, q.x, q.y, q.z, q.w]
+
+
+@pytest.mark.parametrize(('topic', 'value'), [(cv.BATTERY_TOPIC, lambda m: [m.current]),
+                                              (cv.TEMPERATURE_TOPIC, lambda m: [m.temperature]),
+                                              (cv.ODOM_TOPIC, _pose)])
+def test_the_fast_channel_decode_equals_rosbags(bag, topic, value):
     with MagneticBag(bag) as reader:
         series = reader.read_series(topic)
         connections = reader._connections(topic)
@@ -30,10 +38,39 @@ def test_the_fast_scalar_decode_equals_rosbags(bag, topic, field):
             (reader.reader.deserialize(raw, c.msgtype), log)
             for c, log, raw in guarded_messages(reader.reader, connections, lambda r: None)
         ]
-    values = np.array([getattr(m, field) for m, _ in slow])
+    values = np.array([value(m) for m, _ in slow])
     stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m, _ in slow])
-    np.testing.assert_array_equal(series.values[:, 0], values)
+    np.testing.assert_array_equal(series.values, values)
     np.testing.assert_array_equal(series.stamps_ns, stamps)
+
+
+@pytest.mark.parametrize('little_endian', [True, False])
+def test_the_odometry_decode_reads_any_frame_ids_in_either_byte_order(little_endian):
+    """Messages serialized by rosbags, with frame ids of every alignment; cut short they are
+    refused (rosbags' deserializer then names the fault)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    t = {name.rsplit('/', 1)[-1]: cls for name, cls in store.types.items()}
+    rng = np.random.default_rng(5)
+    frames = [('', ''), ('o', 'base_link'), ('odom', 'b'), ('abcdefg', 'hij'), ('x' * 9, '')]
+    for frame, child in frames:
+        pose = rng.normal(size=7)
+        msg = t['Odometry'](
+            header=t['Header'](stamp=t['Time'](sec=1_700_000_000, nanosec=123), frame_id=frame),
+            child_frame_id=child,
+            pose=t['PoseWithCovariance'](
+                pose=t['Pose'](position=t['Point'](*pose[:3]), orientation=t['Quaternion'](*pose[3:])),
+                covariance=rng.normal(size=36)),
+            twist=t['TwistWithCovariance'](
+                twist=t['Twist'](linear=t['Vector3'](1.0, 2.0, 3.0), angular=t['Vector3'](4.0, 5.0, 6.0)),
+                covariance=rng.normal(size=36)))
+        raw = bytes(store.serialize_cdr(msg, cv.ODOMETRY, little_endian=little_endian))
+        stamp, decoded = decode_channel(raw, cv.ODOMETRY)
+        assert stamp == 1_700_000_000 * 10**9 + 123
+        np.testing.assert_array_equal(decoded, pose)
+        with pytest.raises(_UnsupportedEncoding):
+            decode_channel(raw[:-1], cv.ODOMETRY)
 
 
 def test_a_channel_is_unknown_where_no_message_is_near():
