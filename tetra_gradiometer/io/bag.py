@@ -468,7 +468,8 @@ class MagneticBag:
                 f'{expected.get(topic, cv.BATTERY_STATE)}: not read'
             )
             return None
-        stamps, values = [], []
+        stamps: list[int] = []
+        values: list[Any] = []  # tuples (fast) or arrays (rosbags), rows of one length
         lost = [0]
 
         def on_skip(record: SkippedMessage) -> None:
