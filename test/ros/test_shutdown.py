@@ -8,6 +8,7 @@ inherited SIGINT ignored (a background job of a script, as realros's ``start_bg`
 that ran leaves none of its participant's shared-memory segments in /dev/shm: the participant
 goes before the process ends (run_node ends it without the interpreter's exit, so a participant
 left alive there would leave its 0.5 MB segment for good).
+A stop that hangs is ended by the watchdog with status 1 and every thread's stack.
 
 The nodes run as their console scripts do (setup.py: ``process.main_<node>`` under
 ``sys.exit``, what ``ros2 run`` and the launch file start), all at once, each in a namespace
@@ -300,3 +301,22 @@ def test_a_node_process_that_crashes_in_c_prints_where():
     assert result.returncode == -signal.SIGSEGV
     assert 'Fatal Python error: Segmentation fault' in result.stderr
     assert 'line 1 in <module>' in result.stderr
+
+
+def test_a_stop_that_hangs_ends_the_process_with_status_1_and_every_stack():
+    """The stop's watchdog (``_stop_node``; the deadline shortened from 8 s to 0.5 s here): a
+    node whose ``stop_work`` never returns is ended with status 1, its place printed."""
+    script = '\n'.join((
+        'import time',
+        'from tetra_gradiometer.nodes import process',
+        'process.STOP_DEADLINE_S = 0.5',
+        'class Hanging:',
+        '    def stop_work(self): time.sleep(60)',
+        'process._stop_node(Hanging(), None)',
+    ))
+    started = time.monotonic()
+    result = subprocess.run([sys.executable, '-c', script], cwd=REPO, capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 1, result.stderr
+    assert time.monotonic() - started < 30  # not the sleep's 60 s
+    assert 'Timeout (0:00:00.500000)!' in result.stderr and 'in stop_work' in result.stderr
