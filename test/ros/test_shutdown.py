@@ -36,7 +36,9 @@ from typing import Any
 import numpy as np
 from ros_helpers import PARAMS, REPO, child_env, interference_set, ros_graph, wait_for, wait_matched
 
-STOP_S = 3.0  # first signal to exit, the bound docs/ros.md states
+#: First signal to exit, the bound docs/ros.md states: before ``ros2 launch`` escalates to
+#: SIGTERM (5 s). Measured 0.5-0.8 s; a starved CI machine once stretched a stop past 2.5 s.
+STOP_S = 5.0
 STARTING_S = 60.0  # a signal during start-up: the rest of the start (a loaded machine), then STOP_S
 SECOND_SIGNAL_S = 0.1
 T0 = 1_700_000_000 * 10**9  # in the past: nodes refuse stamps ahead of their clock
@@ -248,7 +250,7 @@ def test_the_console_scripts_are_the_entry_points_started_here():
         assert f"'{node} = tetra_gradiometer.nodes.process:main_{node}'" in text, node
 
 
-def test_every_node_exits_0_within_3_s_on_sigint_two_sigints_and_sigterm(tmp_path):
+def test_every_node_exits_0_within_5_s_on_sigint_two_sigints_and_sigterm(tmp_path):
     cases = _cases()
     with ros_graph() as (graph, probe, feeder):
         try:
