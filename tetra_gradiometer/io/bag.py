@@ -56,7 +56,6 @@ from . import conversions as cv
 from . import gradient_tensor as gt
 from . import interfaces
 from .bag_decode import (  # noqa: F401  (decode_magnetic_field, _UnsupportedEncoding: re-exported)
-    CHANNEL_LAYOUTS,
     _UnsupportedEncoding,
     checked_stamp_ns,
     decode_channel,
@@ -476,17 +475,15 @@ class MagneticBag:
             n = self.record_skip(record)
             lost[0] += n if self.topic_of(record.topic) == topic else 0
 
-        fast = connections[0].msgtype in CHANNEL_LAYOUTS
         for connection, log_ns, raw in guarded_messages(self.reader, connections, on_skip):
-            try:
-                if fast:
-                    try:
-                        stamp, decoded = decode_channel(raw, connection.msgtype)
-                        stamps.append(stamp)
-                        values.append(decoded)
-                        continue
-                    except _UnsupportedEncoding:
-                        pass  # rosbags' deserializer names the fault below
+            try:  # every type of ``extract`` has a bag_decode.CHANNEL_LAYOUTS entry
+                try:
+                    stamp, decoded = decode_channel(raw, connection.msgtype)
+                    stamps.append(stamp)
+                    values.append(decoded)
+                    continue
+                except _UnsupportedEncoding:
+                    pass  # rosbags' deserializer names the fault below
                 msg: Any = self.reader.deserialize(raw, connection.msgtype)
                 stamp = checked_stamp_ns(msg.header.stamp)
                 value = extract(msg)
