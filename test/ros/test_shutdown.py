@@ -37,7 +37,7 @@ import numpy as np
 from ros_helpers import PARAMS, REPO, child_env, interference_set, ros_graph, wait_for, wait_matched
 
 #: First signal to exit, the bound docs/ros.md states: before ``ros2 launch`` escalates to
-#: SIGTERM (5 s). Measured 0.5-0.8 s; a starved CI machine once stretched a stop past 2.5 s.
+#: SIGTERM (5 s). Measured 0.5-0.8 s; a starved machine stretches a stop past 2.5 s.
 STOP_S = 5.0
 STARTING_S = 60.0  # a signal during start-up: the rest of the start (a loaded machine), then STOP_S
 SECOND_SIGNAL_S = 0.1

@@ -106,9 +106,9 @@ STOP_POLL_S = 0.1
 LIFECYCLE_SERVICES = ('/change_state',)
 #: Time the stop of ``spin_node`` may take before its watchdog ends the process, s: a hung
 #: stop's traceback before ``ros2 launch`` kills the process (SIGTERM at 5 s, ignored by
-#: then, SIGKILL at 10 s). A stop slowed by a starved machine is not a hang: at 2.5 s the
-#: watchdog ended a CI calibrator stopped while 18 nodes started beside it, in the
-#: participant's release (0.04 s of CPU).
+#: then, SIGKILL at 10 s). A stop slowed by a starved machine is not a hang: a calibrator
+#: stopped while 18 nodes start beside it on two cores can pass 2.5 s in the participant's
+#: release, which takes 0.04 s of CPU.
 STOP_DEADLINE_S = 8.0
 #: Time the replies and messages of the last callbacks get to reach their readers before the
 #: node's endpoints go, s: destroyed at once, a ~/calibrate reply sent by the stop itself was
