@@ -36,12 +36,6 @@ def chi2_isf(p: float, dof: float) -> float:
     return float(2.0 * scipy.special.gammainccinv(dof / 2.0, p))
 
 
-def f_ppf(q: float, dfn: float, dfd: float) -> float:
-    """The F quantile: ``x`` with ``P(X <= x) = q``, ``X ~ F(dfn, dfd)``."""
-    b = float(scipy.special.betaincinv(dfn / 2.0, dfd / 2.0, q))
-    return dfd * b / (dfn * (1.0 - b))
-
-
 def f_isf(p: float, dfn: float, dfd: float) -> float:
     """The F upper quantile: ``x`` with ``P(X > x) = p``, ``X ~ F(dfn, dfd)`` (from the
     upper tail's own incomplete beta, so a small ``p`` keeps its digits)."""

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import InputError
-from .._distributions import f_ppf
+from .._distributions import f_isf
 from .._validate import as_array, as_tensors, same_length
 from ..geometry import TetraGeometry
 from ..types import ArrayLike, FloatArray
@@ -273,7 +273,7 @@ def fit_consistency(
     nu2 = 9.0 * n_differences / OVERLAP_FACTOR
     noise2 = _difference_variance(whitened, valid)
     ratio = _ratio(float(np.sum(whitened**2)) / nu1, noise2)
-    threshold = tolerance * float(np.sqrt(f_ppf(1.0 - alpha, nu1, nu2)))
+    threshold = tolerance * float(np.sqrt(f_isf(alpha, nu1, nu2)))
     if block_s is None:
         median_dt = float(np.median(np.diff(t_s)))
         duration = float(t_s[-1] - t_s[0])
@@ -364,7 +364,7 @@ def _blocks(
     for k in np.flatnonzero(counts):
         nu1 = counts[k] * (9.0 - n_parameters / n)
         ratio = _ratio(float(sums[k]) / nu1, noise2)
-        threshold = tolerance * float(np.sqrt(f_ppf(1.0 - alpha, nu1, nu2)))
+        threshold = tolerance * float(np.sqrt(f_isf(alpha, nu1, nu2)))
         blocks.append(
             Block(
                 t0_s=float(start + k * block_s),
