@@ -3,7 +3,7 @@ effects (battery current, eddy currents, thermal drift) as ``calibrate`` and ``c
 do on the bag.
 
 One simulated bag (``simulate`` on a scenario with the three effects: a 60 s trim then a
-60 s line at 20 Hz, ``/battery_state`` and ``/tetra/temperature`` recorded) is calibrated
+20 s line at 20 Hz, ``/battery_state`` and ``/tetra/temperature`` recorded) is calibrated
 and compensated offline by the commands; then the calibrator and compensator nodes, in this
 process (test/ros/in_process.py), are handed the temperature and battery messages as
 recorded, the trim's sets (as the tensor node makes them of the bag: test_tensor_replay.py)
@@ -71,7 +71,7 @@ def _scenario() -> dict:
             {'trim': {'duration_s': 60, 'center_m': [3000.0, 3000.0, -50.0], 'heading_rate_deg_s': 6.0,
                       'roll_amplitude_deg': 25.0, 'roll_period_s': 11.0, 'pitch_amplitude_deg': 20.0,
                       'pitch_period_s': 17.0, 'speed_m_s': 1.0}},
-            {'line': {'start_m': [-60.0, 0.0, -50.0], 'end_m': [60.0, 0.0, -50.0], 'speed_m_s': 2.0,
+            {'line': {'start_m': [-20.0, 0.0, -50.0], 'end_m': [20.0, 0.0, -50.0], 'speed_m_s': 2.0,
                       'roll_amplitude_deg': 2.0, 'pitch_amplitude_deg': 1.0}},
         ],
     }
@@ -318,7 +318,7 @@ TRIM_RATE = 2.0
 #: s without a new set before a replay that has not delivered every set is taken as ended
 #: (a set the chain lost): at rate 0 the driver moves on after 0.5 s without a tensor, so on
 #: a loaded machine it finishes while the nodes still work through their queues, which then
-#: paused for over 3 s (2040 of 2396 sets counted, the rest still coming).
+#: paused for over 3 s (2040 of 2396 sets of a longer bag counted, the rest still coming).
 SETTLE_S = 15.0
 
 
@@ -398,7 +398,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
 
         # Paced by the compensator's output (the driver's pacing topic remapped: at most 4 sets
         # ahead of it): paced by the tensor node, a compensator short of CPU fell behind and its
-        # queues dropped sets (2102-2334 of 2390 arrived on loaded machines; a lost set also
+        # queues dropped sets (2102-2334 of 2390 of a longer bag arrived on loaded machines; a lost set also
         # drops the sets whose eddy window it breaks). The trim stays at a fixed rate: the
         # calibrator is not on the compensator's path, and paced by it at rate 0 its
         # best-effort channels lost messages (1 of 2 runs).
@@ -436,7 +436,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
     assert worst_parameter < 1e-4, worst_parameter
     assert saved.diagnostics['n_samples'] == reference.diagnostics['n_samples']
 
-    # Best-effort transport may lose sets under load (paced by the compensator, 2390 of 2390
+    # Best-effort transport may lose sets under load (paced by the compensator, 2390 of 2390 of a longer bag
     # arrived in 2 runs beside two busy processes): the property is that every set that arrives
     # is the offline one; at least 90 % must arrive.
     assert set(live) <= set(offline.stamps.tolist()), 'a live set the offline run does not have'
