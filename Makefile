@@ -20,7 +20,7 @@ MSGS_FILES := $(MSGS)/CMakeLists.txt $(MSGS)/package.xml $(wildcard $(MSGS)/msg/
 # ament index (rosidl_typesupport_c's lookup) and cmake packages are the venv's
 MSGS_ENV    = PATH="$(abspath $(MSGS_VENV))/bin:$$PATH" AMENT_PREFIX_PATH="$(abspath $(MSGS_VENV))"
 
-.PHONY: setup browser check demo test tests test-noble paper bench bags clean
+.PHONY: setup browser check demo test tests test-slow test-noble paper bench bags clean
 
 # The bytecode of this package and of the interface package too (compileall rewrites only what
 # changed): where PYTHONDONTWRITEBYTECODE is set, nothing else writes it, and every process
@@ -71,16 +71,22 @@ check: setup
 	$(VENV)/bin/mypy
 	$(PY) scripts/check_sizes.py tetra_gradiometer
 
-# The tests on one pytest-xdist worker per core plus two (TEST_WORKERS=0: one process, e.g.
+# The tests on one pytest-xdist worker per core plus one (TEST_WORKERS=0: one process, e.g.
 # for pdb); a whole test module goes to one worker (pytest.ini, docs/testing.md). The extra
-# workers run while others wait on wall-clock time (ROS replays, node start-up, discovery, a
-# Dask cluster), which keeps the cores busy.
-TEST_WORKERS ?= $(shell echo $$(($$(nproc) + 2)))
+# worker runs while others wait on wall-clock time (ROS replays, node start-up, discovery),
+# which keeps the cores busy; a second one cost more CPU (each worker collects the whole suite,
+# ~8 s) than it saved in waits.
+TEST_WORKERS ?= $(shell echo $$(($$(nproc) + 1)))
+# `make test` leaves out the tests marked slow (pytest.ini): `make test-slow` runs those, and CI
+# (.ci/run) runs both.
 test: setup
 	$(MAKE) --no-print-directory -j2 check tests
 
 tests: setup
-	$(PY) -m pytest -n $(TEST_WORKERS)
+	$(PY) -m pytest -n $(TEST_WORKERS) -m 'not slow'
+
+test-slow: setup
+	$(PY) -m pytest -n $(TEST_WORKERS) -m slow
 
 # The suite against Ubuntu Noble's numpy 1.26.4 and scipy 1.11.4 (what a ROS 2 Jazzy install
 # has): a second venv with the main pins but the deviations of constraints-noble.txt

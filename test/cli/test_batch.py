@@ -258,6 +258,7 @@ def _assert_row_is_the_single_bag_result(row, out, ref, calibrated, analysed, st
     assert float(row['raw_rms_nT_per_m']) > 100 * float(row['compensated_rms_nT_per_m'])
 
 
+@pytest.mark.slow
 def test_seven_bags_on_a_scheduler_and_two_workers(fleet_dir, scheduler, tmp_path, capsys):
     out = tmp_path / 'out'
     started = time.perf_counter()
@@ -330,6 +331,7 @@ def _assert_bitwise_with_one_blas_thread(bag: Path, params: Path, out: Path, ref
     assert ours == theirs
 
 
+@pytest.mark.slow
 def test_default_local_cluster_and_force(fleet_dir, tmp_path, capsys):
     small = tmp_path / 'small'
     small.mkdir()

@@ -81,7 +81,7 @@ def read_csv(path):
     return lines[0], np.array(stamps_ns, dtype=np.int64), values.reshape(-1, 3, 3)
 
 
-@pytest.mark.parametrize('storage,reference_clean', [('sqlite3', True), ('mcap', False)])
+@pytest.mark.parametrize('storage,reference_clean', [('sqlite3', True), pytest.param('mcap', False, marks=pytest.mark.slow)])
 def test_round_trip_reaches_the_noise_floor(tmp_path, storage, reference_clean):
     run = cli if storage == 'sqlite3' else cli_process  # mcap: the real entry point, as a user runs it
     scenario = tmp_path / 'mission.yaml'

@@ -27,7 +27,7 @@ def _bag(tmp_path, seed, effects, *, storage='sqlite3', earth=True, **topics):
 
 @pytest.mark.parametrize(
     'storage, effects',
-    [('sqlite3', ('time_skew',)), ('mcap', ('eddy_current', 'vehicle_current'))],
+    [('sqlite3', ('time_skew',)), pytest.param('mcap', ('eddy_current', 'vehicle_current'), marks=pytest.mark.slow)],
 )
 def test_cli_names_the_hidden_effects(tmp_path, capsys, storage, effects):
     case, bag, params = _bag(

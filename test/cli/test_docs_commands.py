@@ -92,6 +92,7 @@ def ran(tmp_path_factory):
 
 
 @pytest.mark.parametrize('name', sorted(_run_blocks()))
+@pytest.mark.slow
 def test_the_command_block_runs_as_written(ran, name):
     code, out, err, folder = ran[name]
     assert code == 0, f'{name} exit {code}\n{out[-2000:]}\n{err[-2000:]}'

@@ -63,7 +63,7 @@ def test_another_vehicles_calibration_is_named_without_being_asked(vehicles, tmp
     assert "this calibration is not this vehicle's as it is now" in err
 
 
-@pytest.mark.parametrize('command', ['locate', 'survey'])
+@pytest.mark.parametrize('command', ['locate', pytest.param('survey', marks=pytest.mark.slow)])
 def test_locate_and_survey_check_their_compensated_tensor_too(vehicles, tmp_path, capsys, command):
     """The same check in the commands that hand products to a client: the foreign
     calibration is named, the own one passes."""

@@ -185,7 +185,7 @@ def long_bag(scenarios):
     return scenarios / 'long_bag'
 
 
-@pytest.mark.parametrize('command', ['simulate', 'compensate'])
+@pytest.mark.parametrize('command', [pytest.param('simulate', marks=pytest.mark.slow), 'compensate'])
 def test_sigterm_removes_the_temporaries_and_keeps_the_previous_output(
         scenarios, long_bag, tmp_path, capsys, command):
     out = tmp_path / 'out'

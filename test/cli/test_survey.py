@@ -245,6 +245,7 @@ def test_the_command_reports_the_placement_the_grid_and_the_legs(surveyed):
         assert stage in out.stderr
 
 
+@pytest.mark.slow
 def test_batch_writes_the_same_survey_products_per_bag_when_asked(surveyed, tmp_path, monkeypatch):
     from tetra_gradiometer.cli import fleet
     from tetra_gradiometer.cli.fleet import FleetBag, make_job, process_bag
@@ -265,6 +266,7 @@ def test_batch_writes_the_same_survey_products_per_bag_when_asked(surveyed, tmp_
     assert [f['geometry'] for f in ours] == [f['geometry'] for f in command]
 
 
+@pytest.mark.slow
 def test_an_origin_given_as_lon_lat_is_refused_by_the_earth_field(surveyed, capsys):
     """IGRF at the place given against the params file's Earth field (that of Marseille to
     6 uT): LON,LAT is named and refused before any work; a place on another continent is a

@@ -112,7 +112,8 @@ def test_every_target_is_found_and_located_and_nothing_else(seed):
 PAIR = [-10000.0, 20000.0, -15000.0]
 
 
-@pytest.mark.parametrize('separation_m, ratio, seed', [(2.0, 1.0, 32), (5.0, 0.1, 33), (20.0, 1.0, 35)])
+@pytest.mark.parametrize('separation_m, ratio, seed', [
+    pytest.param(2.0, 1.0, 32, marks=pytest.mark.slow), (5.0, 0.1, 33), pytest.param(20.0, 1.0, 35, marks=pytest.mark.slow)])
 def test_a_close_pair_is_resolved_into_two_targets_fitted_together(separation_m, ratio, seed):
     """Two dipoles 2-20 m apart, 22 m under the lines, equal or 10:1 in moment: both found
     (each error within 4 of its sigma, which the joint fit makes larger than alone), nothing

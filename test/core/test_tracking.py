@@ -91,12 +91,14 @@ def test_the_published_sigma_is_honest_on_the_drifting_mission(drifting):
     assert 0.92 <= inside <= 0.98
 
 
+@pytest.mark.slow
 def test_geology_is_not_eaten(geology):
     mission, (_, _, _, frozen, tracked, _) = geology
     survey = np.ones(len(frozen), dtype=bool)
     assert _ratio(mission, tracked, survey) <= 1.05 * _ratio(mission, frozen, survey)
 
 
+@pytest.mark.slow
 def test_without_the_attitude_the_constraints_alone_never_touch_geology(geology):
     mission = geology[0]
     _, _, _, frozen, tracked, _ = _track(mission, with_world=False)
@@ -104,6 +106,7 @@ def test_without_the_attitude_the_constraints_alone_never_touch_geology(geology)
     assert _ratio(mission, tracked, survey) <= 1.05 * _ratio(mission, frozen, survey)
 
 
+@pytest.mark.slow
 def test_chunks_give_the_same_output_as_one_call(drifting):
     """Live (small chunks) equals offline (one call): the blocks and handovers do not
     depend on how the samples arrive."""
@@ -216,6 +219,7 @@ def test_one_sample_at_a_time_equals_a_chunk(with_world):
     assert asked == ([5] * (len(data.t) // 5 - 1) if with_world else [])
 
 
+@pytest.mark.slow
 def test_a_vehicle_that_does_not_change_stays_where_it_was_and_keeps_its_sigma():
     mission = build_mission(13, drift=False, step=False)
     _, _, fields, frozen, tracked, variance = _track(mission)

@@ -91,7 +91,7 @@ def _read(path, **options):
     return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]), counters
 
 
-@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+@pytest.mark.parametrize('storage', ['sqlite3', pytest.param('mcap', marks=pytest.mark.slow)])
 @pytest.mark.parametrize('sync', ['interpolate', 'nearest'])
 def test_fast_reading_equals_the_generic_path(tmp_path, storage, sync):
     streams = _irregular_streams(np.random.default_rng(11))

@@ -91,6 +91,7 @@ while True:
 '''
 
 
+@pytest.mark.slow
 def test_a_writer_killed_mid_write_never_leaves_a_truncated_calibration_file(tmp_path):
     target = tmp_path / 'calibration.yaml'
     rng = np.random.default_rng(11)
@@ -143,6 +144,7 @@ def test_a_file_too_large_or_binary_is_refused_before_it_is_parsed(tmp_path):
         load_calibration(binary)
 
 
+@pytest.mark.slow
 def test_a_calibration_nested_too_deeply_is_refused_not_a_crash(tmp_path):
     """libyaml's parser recurses in C: 100 000 nested brackets (200 kB) would end the process,
     in a file or in a calibration's text on the topic, before its signature is checked;

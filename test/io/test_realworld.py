@@ -59,7 +59,7 @@ def _run(tmp_path, scenario, seed):
     return residual, core.noise_floor(scenario.noise_t, scenario.geometry), result
 
 
-@pytest.mark.parametrize('seed', [1, 2])
+@pytest.mark.parametrize('seed', [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_sensors_on_their_own_clocks_reach_the_noise_floor(tmp_path, seed):
     clocks = core.SensorClocks(offset_s=[0.0, 0.5e-3, 2.1e-3, 4.0e-3], jitter_s=0.2e-3,
                                loss_fraction=0.005)
@@ -78,6 +78,7 @@ def test_an_irregular_array_at_25_hz_with_an_unclean_sensor_1(tmp_path):
     assert residual <= 1.2 * floor, (residual / NT, floor / NT)
 
 
+@pytest.mark.slow
 def test_pairing_nearest_stamps_is_what_failed(tmp_path):
     """The same async bag through stamp pairing with a 10 ms tolerance: tens of nT/m off."""
     from tetra_gradiometer.core.timebase import TimeBase
@@ -103,6 +104,7 @@ def test_pairing_nearest_stamps_is_what_failed(tmp_path):
     assert resampled.check.passed and not paired.check.passed
 
 
+@pytest.mark.slow
 def test_a_trim_inside_a_regional_gradient_is_calibrated_jointly(tmp_path):
     """4 nT/m of geology (symmetric, traceless, world frame): estimated with /odom within
     3 sigma, left in the compensated survey (signal), and the survey at the noise floor."""
@@ -119,6 +121,7 @@ def test_a_trim_inside_a_regional_gradient_is_calibrated_jointly(tmp_path):
     assert result.check.passed
 
 
+@pytest.mark.slow
 def test_a_window_over_a_target_is_refused_and_points_to_a_clean_part(tmp_path):
     """A window of the survey with a magnetic target in it: the residual is far above the
     noise; refused with the figures, and forced only with --force (warning in the file)."""
@@ -137,6 +140,7 @@ def test_a_window_over_a_target_is_refused_and_points_to_a_clean_part(tmp_path):
     assert calibrate_bag(tmp_path / 'bag', scenario.geometry, window=(0.0, TRIM_S - 1.0)).check.passed
 
 
+@pytest.mark.slow
 def test_a_window_without_attitude_excitation_is_refused_with_the_figures(tmp_path, capsys):
     """A straight survey leg (heading fixed, roll 3°, pitch 2°) does not excite the 36
     parameters (compensating with them: ~5x the floor): `calibrate` exits 1 with one error:

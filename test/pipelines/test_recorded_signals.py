@@ -149,6 +149,7 @@ def _survey_residual(capsys, root, mission, survey, params, *options, window='0:
     return float(np.sqrt(np.mean(error**2))), out
 
 
+@pytest.mark.slow
 def test_declared_signals_bring_a_vehicle_of_fins_and_cables_to_the_floor(capsys, vehicle, monkeypatch):
     root, mission, survey, floor, swing = vehicle
     assert swing > 20e-9  # the interference moves the readings by tens of nT
@@ -246,6 +247,7 @@ def test_a_clean_vehicle_recording_moving_fins_and_currents_selects_no_signal(ca
         assert 'signal:' not in yaml.safe_dump(terms), (params, out)
 
 
+@pytest.mark.slow
 def test_discrepancy_finds_the_recorded_signals_and_calibrate_takes_its_declaration(capsys, vehicle, monkeypatch):
     """Nothing declared: the search tries every numeric field the bag records beyond the
     contract, names the ones responsible by topic and field, and nothing else; the report's

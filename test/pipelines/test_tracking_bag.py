@@ -52,6 +52,7 @@ def _read(path):
     return header, np.loadtxt(path, delimiter=',', skiprows=1)
 
 
+@pytest.mark.slow
 def test_the_tracked_csv_is_at_the_floor_where_the_frozen_one_is_not(compensated):
     mission, folder, _ = compensated
     header, tracked = _read(folder / 'tracked.csv')
@@ -68,6 +69,7 @@ def test_the_tracked_csv_is_at_the_floor_where_the_frozen_one_is_not(compensated
         assert frozen_ratio > 4.0 and tracked_ratio <= 1.2, name
 
 
+@pytest.mark.slow
 def test_the_audit_trail_names_the_step_and_its_sensor(compensated):
     mission, folder, text = compensated
     document = json.loads((folder / 'report' / 'tracking.json').read_text())
@@ -133,6 +135,7 @@ def test_without_odom_the_constrained_combinations_are_tracked(tmp_path, monkeyp
     assert worst <= 0.01
 
 
+@pytest.mark.slow
 def test_live_with_odom_equals_offline(compensated, monkeypatch):
     """The compensator node, given the bag's ``/odom`` beside its sets (in stamp order, as a
     replay plays them), tracks with the attitude and publishes the offline tracked tensors."""

@@ -136,6 +136,7 @@ def test_the_discrepancy_figures_are_readable_for_one_round_and_for_many(search,
     assert not unreadable, unreadable
 
 
+@pytest.mark.slow
 def test_every_figure_of_the_commands_is_readable(checked_figures, tmp_path):
     calibration = str(tmp_path / 'cal.yaml')
     survey = str(REPO / 'bags' / 'survey')

@@ -147,6 +147,7 @@ def _drawn(pixels):
     return inked.mean(), int(magenta.sum())
 
 
+@pytest.mark.slow
 def test_the_screenshot_is_a_page_with_its_maps_and_targets_drawn(report, tmp_path):
     inked, targets = _drawn(_screenshot(tmp_path, report))
     # text, tables and two maps: the target disc on the overview and on the nine panels

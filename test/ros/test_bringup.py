@@ -32,6 +32,7 @@ def _bringup(calibration, *options: str) -> subprocess.Popen:
         cwd=REPO, env=child_env(unique_domain()), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+@pytest.mark.slow
 def test_bringup_of_a_bag_ends_once_played_with_a_summary(calibration):
     process = _bringup(calibration)
     try:
@@ -46,6 +47,7 @@ def test_bringup_of_a_bag_ends_once_played_with_a_summary(calibration):
     assert 'Traceback' not in output
 
 
+@pytest.mark.slow
 def test_bringup_with_loop_plays_the_bag_again_until_ctrl_c(calibration):
     process = _bringup(calibration, '--loop')
     lines: list[str] = []

@@ -241,6 +241,7 @@ def test_replayed_as_fast_as_the_chain_takes_it_the_tensors_are_the_offline_ones
           f'floor; clock offsets {np.round(offsets_ms, 3)} ms')
 
 
+@pytest.mark.slow
 def test_replayed_in_real_time_the_tensors_are_the_offline_ones_within_one_period(replay):
     """``rate: 1``: the same tensors, and the added latency (tensor published minus sensor 1's
     sample published at that instant) is within one sample period of the latest sensor: the

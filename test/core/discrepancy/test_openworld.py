@@ -65,7 +65,8 @@ def _with_step(seed, sensor, t_step, size_noise):
 
 
 @pytest.mark.parametrize(
-    'seed, sensor, t_step, size_noise', [(5, 3, 275.0, 150.0), (21, 2, 430.0, 20.0), (31, 1, 150.0, 11.0)]
+    'seed, sensor, t_step, size_noise',
+    [pytest.param(5, 3, 275.0, 150.0, marks=pytest.mark.slow), pytest.param(21, 2, 430.0, 20.0, marks=pytest.mark.slow), (31, 1, 150.0, 11.0)]
 )
 def test_a_magnetization_step_is_named_with_its_sensor_and_time(seed, sensor, t_step, size_noise):
     run, case = _with_step(seed, sensor, t_step, size_noise)
@@ -80,7 +81,8 @@ def test_a_magnetization_step_is_named_with_its_sensor_and_time(seed, sensor, t_
     assert report.gap_final_nT <= 1.5 * report.noise_floor_nT
 
 
-@pytest.mark.parametrize('seed, frequency_hz, sensors', [(6, 1.7, (2, 4)), (8, 0.25, (3,)), (9, 4.6, (1,))])
+@pytest.mark.parametrize('seed, frequency_hz, sensors', [
+    pytest.param(6, 1.7, (2, 4), marks=pytest.mark.slow), (8, 0.25, (3,)), pytest.param(9, 4.6, (1,), marks=pytest.mark.slow)])
 def test_a_rotating_magnet_is_named_at_its_frequency_on_its_sensors(seed, frequency_hz, sensors):
     case = make_case(seed, (), duration_s=600.0, far_target=False)
     run = case.recording()
@@ -100,6 +102,7 @@ def test_a_rotating_magnet_is_named_at_its_frequency_on_its_sensors(seed, freque
     assert report.gap_final_nT <= report.gap_initial_nT / 3 or at_floor
 
 
+@pytest.mark.slow
 def test_a_delay_beside_an_eddy_term_is_named_or_reported_as_confounded():
     case = make_case(7, ('eddy_current', 'time_skew', 'thermal_drift'), duration_s=300.0)
     report = analyze(case.recording(), case.scenario.geometry)
