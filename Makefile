@@ -37,12 +37,17 @@ browser:
 	  || echo 'warning: apt-get install chromium failed: the survey report browser test will fail'
 
 $(STAMP): requirements.txt requirements-dev.txt constraints.txt
-	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	# A venv without pip, and uv put in it by the interpreter's own pip (pip >= 22.3:
+	# --python): ~3 s, where ensurepip's pip first took ~8 s; where that pip cannot, the venv's
+	# ensurepip and pip do it.
+	test -x $(PY) || $(PYTHON) -m venv --without-pip $(VENV)
+	$(PY) -m uv --version 2> /dev/null | grep -q "^uv $(UV_VERSION)" \
+	  || $(PYTHON) -m pip --python $(PY) install --quiet --disable-pip-version-check uv==$(UV_VERSION) \
+	  || { $(PY) -m ensurepip --default-pip > /dev/null && $(PY) -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION); }
 	# uv installs the pinned tree in ~10 s where pip took ~90 s (the same packages: pip freeze
 	# of both venvs is identical but for uv itself). --compile-bytecode: uv writes no .pyc by
 	# default, and where PYTHONDONTWRITEBYTECODE is set nothing else does, so every process
 	# compiled numpy, scipy and rclpy from source (~0.8 s of CPU per node process).
-	$(PY) -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
 	$(PY) -m uv pip install --quiet --compile-bytecode --python $(PY) -r requirements.txt -r requirements-dev.txt -c constraints.txt
 	# The repo itself goes on the venv's path (an editable install without a build step;
 	# colcon builds the ROS package from ros/tetra_gradiometer/).
