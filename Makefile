@@ -71,9 +71,13 @@ $(MSGS_STAMP): $(STAMP) $(MSGS_FILES)
 demo: setup
 	$(PY) -m tetra_gradiometer demo --out $(OUT)/demo --force
 
+# mypy's cache lives beside uv's, outside the clone (its entries are checked against the files'
+# hashes): a fresh clone on a machine that ran the gates before checks what changed, ~0.5 s
+# instead of ~16 s of CPU beside the tests.
+MYPY_CACHE ?= $${XDG_CACHE_HOME:-$$HOME/.cache}/tetra_gradiometer/mypy
 check: setup
 	$(VENV)/bin/ruff check tetra_gradiometer
-	$(VENV)/bin/mypy
+	$(VENV)/bin/mypy --cache-dir "$(MYPY_CACHE)"
 	$(PY) scripts/check_sizes.py tetra_gradiometer
 
 # The tests on one pytest-xdist worker per core plus one (TEST_WORKERS=0: one process, e.g.

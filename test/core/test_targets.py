@@ -96,7 +96,7 @@ def _survey(seed: int, targets: list[dict], lines: int = 4, spacing: float = 16.
         scenario.geometry
 
 
-@pytest.mark.parametrize('seed', [11, 12])
+@pytest.mark.parametrize('seed', [11, pytest.param(12, marks=pytest.mark.slow)])
 def test_every_target_is_found_and_located_and_nothing_else(seed):
     survey, geometry = _survey(seed, TARGETS)
     targets, _ = locate(survey, geometry)

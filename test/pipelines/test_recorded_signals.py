@@ -233,7 +233,7 @@ def _silent_signals_are_named_live(monkeypatch, bag_path, calibration):
         assert f'signal:{name}' in status.message or name.split('#')[0] in status.message, status.message
 
 
-@pytest.mark.parametrize('seed', [21, 22, 23])
+@pytest.mark.parametrize('seed', [21, pytest.param(22, marks=pytest.mark.slow), pytest.param(23, marks=pytest.mark.slow)])
 def test_a_clean_vehicle_recording_moving_fins_and_currents_selects_no_signal(capsys, tmp_path, seed):
     """The same signals recorded, no interference from them: none is kept, declared or found
     in the bag (each would only fit noise)."""

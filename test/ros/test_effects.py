@@ -275,7 +275,7 @@ def test_a_replay_through_the_nodes_gives_the_offline_calibration_and_tensors(mo
     assert int(channel_status['replay_restarts']) == 0  # a new calibration: fresh history
 
 
-@pytest.mark.parametrize('seed', [1, 2])
+@pytest.mark.parametrize('seed', [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_sets_and_channel_messages_lost_in_bursts_leave_every_compensated_set_the_offline_one(
         monkeypatch, offline, seed):
     """What best-effort transport loses on a loaded machine: sets (the eddy rate's window short
