@@ -352,7 +352,7 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
     stamps = offline.sets[0]
     n_trim = int(np.sum(stamps - stamps[0] <= TRIM_S * 1e9))
     driver = dict(mode='replay', bag=str(offline.bag), start_paused=True, min_subscribers=1,
-                  diagnostics_period_s=0.2)
+                  diagnostics_period_s=0.5)
     with ros_graph() as (graph, probe, _):
         probe.create_subscription(gt.rclpy_class(), 'gradient/compensated', partial(_keep_sigma, sigmas),
                                   derived_qos(20_000))  # as the probe's: all of them may wait for this thread
@@ -360,9 +360,9 @@ def test_the_bag_replayed_by_the_driver_through_the_nodes_gives_the_offline_figu
         # queues of 2000 (100 s) ride out a stall of the loaded machine (at the default 50, 0.3 s,
         # a fresh-clone run lost 148 of the 1200 trim sets).
         graph.start('tensor', sensor_positions=GEOMETRY.positions.reshape(-1).tolist(),
-                    diagnostics_period_s=0.2, sensor_queue_depth=2000)
-        graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.2)
-        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.2, track_calibration=False)
+                    diagnostics_period_s=0.5, sensor_queue_depth=2000)
+        graph.start('calibrator', calibration_file=str(calibration_file), diagnostics_period_s=0.5)
+        graph.start('compensator', calibration_file=str(calibration_file), diagnostics_period_s=0.5, track_calibration=False)
         # The trim in real time (20 sets/s; the driver paces itself by the tensor node only).
         # A stalled calibrator loses best-effort channel messages, all topics alike, once Fast
         # DDS's shared-memory port of the process overflows (its samples are reliable): at 8x
