@@ -10,23 +10,23 @@ OUT    ?= out
 UV_VERSION := 0.9.30
 
 # The interface package tetra_gradiometer_msgs/ (ament_cmake, rosidl) built from the ros-jazzy-*
-# wheels with plain cmake and installed into the venv's prefix, where the venv's Python finds
-# it with no variables (docs/ros.md, *Our interfaces*). Rebuilt when its files or the pins
-# change; the build dir (git-ignored) is kept for incremental rebuilds.
+# wheels with plain cmake and installed into the venv's prefix (scripts/build_msgs.sh, which
+# caches what it installed). Rebuilt when its files or the pins change; the build dir
+# (git-ignored) is kept for incremental rebuilds.
 MSGS       := tetra_gradiometer_msgs
 MSGS_STAMP := $(VENV)/.msgs-installed
 MSGS_FILES := $(MSGS)/CMakeLists.txt $(MSGS)/package.xml $(wildcard $(MSGS)/msg/*.msg $(MSGS)/srv/*.srv)
-# per venv (target-specific below): MSGS_VENV, and its build dir MSGS_BUILD; the wheels'
-# ament index (rosidl_typesupport_c's lookup) and cmake packages are the venv's
-MSGS_ENV    = PATH="$(abspath $(MSGS_VENV))/bin:$$PATH" AMENT_PREFIX_PATH="$(abspath $(MSGS_VENV))"
 
 .PHONY: setup browser check demo test tests test-slow test-noble paper bench bags clean
 
-# The bytecode of this package and of the interface package too (compileall rewrites only what
-# changed): where PYTHONDONTWRITEBYTECODE is set, nothing else writes it, and every process
-# compiled the modules it imports (~0.4 s of CPU for a node's).
+# Every recipe's Python writes the bytecode of what it imports, on first import, so setup
+# compiles nothing: compiling the whole venv (~11 000 modules, the suite imports a fraction)
+# took ~20 s of a fresh clone's setup (37 s of CPU). Where PYTHONDONTWRITEBYTECODE is set (this
+# machine sets it) nothing is written and every process compiles numpy, scipy, rclpy and ours
+# from source: 1.6 s of CPU for the compensator node's modules, 0.8 s from bytecode.
+unexport PYTHONDONTWRITEBYTECODE
+
 setup: $(STAMP) $(MSGS_STAMP) browser
-	@$(PY) -m compileall -q tetra_gradiometer "$$($(PY) -c 'import tetra_gradiometer_msgs as m, pathlib; print(pathlib.Path(m.__file__).parent)')" > /dev/null
 
 # The survey report's browser test (test/reports/test_survey_report.py) loads report.html in
 # headless Chromium from Debian's packages: installed here when missing and we are root with
@@ -44,29 +44,18 @@ $(STAMP): requirements.txt requirements-dev.txt constraints.txt
 	$(PY) -m uv --version 2> /dev/null | grep -q "^uv $(UV_VERSION)" \
 	  || $(PYTHON) -m pip --python $(PY) install --quiet --disable-pip-version-check uv==$(UV_VERSION) \
 	  || { $(PY) -m ensurepip --default-pip > /dev/null && $(PY) -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION); }
-	# uv installs the pinned tree in ~10 s where pip took ~90 s (the same packages: pip freeze
-	# of both venvs is identical but for uv itself). --compile-bytecode: uv writes no .pyc by
-	# default, and where PYTHONDONTWRITEBYTECODE is set nothing else does, so every process
-	# compiled numpy, scipy and rclpy from source (~0.8 s of CPU per node process).
-	$(PY) -m uv pip install --quiet --compile-bytecode --python $(PY) -r requirements.txt -r requirements-dev.txt -c constraints.txt
+	# uv installs the pinned tree in ~5 s where pip took ~90 s (the same packages: pip freeze
+	# of both venvs is identical but for uv itself).
+	$(PY) -m uv pip install --quiet --python $(PY) -r requirements.txt -r requirements-dev.txt -c constraints.txt
 	# The repo itself goes on the venv's path (an editable install without a build step;
 	# colcon builds the ROS package from ros/tetra_gradiometer/).
 	$(PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
 	touch $(STAMP)
 
-define BUILD_MSGS
-$(MSGS_ENV) cmake -S $(MSGS) -B $(MSGS_BUILD) -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
-  -DCMAKE_PREFIX_PATH="$(abspath $(MSGS_VENV))" -DPython3_EXECUTABLE="$(abspath $(MSGS_VENV))/bin/python" > /dev/null
-$(MSGS_ENV) cmake --build $(MSGS_BUILD) -j $(shell nproc) > $(MSGS_BUILD)/make.log \
-  || { tail -n 30 $(MSGS_BUILD)/make.log; exit 1; }
-cmake --install $(MSGS_BUILD) --prefix "$(abspath $(MSGS_VENV))" > /dev/null
-touch $@
-endef
 
-$(MSGS_STAMP): MSGS_VENV := $(VENV)
-$(MSGS_STAMP): MSGS_BUILD := build/$(MSGS)
-$(MSGS_STAMP): $(STAMP) $(MSGS_FILES)
-	$(BUILD_MSGS)
+$(MSGS_STAMP): $(STAMP) $(MSGS_FILES) scripts/build_msgs.sh
+	scripts/build_msgs.sh $(VENV) build/$(MSGS)
+	touch $@
 
 demo: setup
 	$(PY) -m tetra_gradiometer demo --out $(OUT)/demo --force
@@ -91,14 +80,14 @@ TEST_WORKERS ?= $(shell echo $$(($$(nproc) + 1)))
 test: setup
 	$(MAKE) --no-print-directory -j2 check tests
 
-# PYTHONDONTWRITEBYTECODE emptied: pytest keeps the test modules as it rewrote their asserts
+# With bytecode written (above), pytest also keeps the test modules as it rewrote their asserts
 # (test/**/__pycache__), so a worker imports what another one rewrote: collecting the suite
 # took 7.4 s of CPU in a worker with nothing written, 5.2 s as the first one writing, 2.6 s after.
 tests: setup
-	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -n $(TEST_WORKERS) -m 'not slow'
+	$(PY) -m pytest -n $(TEST_WORKERS) -m 'not slow'
 
 test-slow: setup
-	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -n $(TEST_WORKERS) -m slow
+	$(PY) -m pytest -n $(TEST_WORKERS) -m slow
 
 # The suite against Ubuntu Noble's numpy 1.26.4 and scipy 1.11.4 (what a ROS 2 Jazzy install
 # has): a second venv with the main pins but the deviations of constraints-noble.txt
@@ -116,10 +105,9 @@ $(NOBLE_STAMP): requirements.txt requirements-dev.txt constraints.txt constraint
 	touch $(NOBLE_STAMP)
 
 # the interface package, built against this venv's numpy in a build dir of its own
-$(NOBLE_MSGS_STAMP): MSGS_VENV := $(NOBLE_VENV)
-$(NOBLE_MSGS_STAMP): MSGS_BUILD := build/$(MSGS)-noble
-$(NOBLE_MSGS_STAMP): $(NOBLE_STAMP) $(MSGS_FILES)
-	$(BUILD_MSGS)
+$(NOBLE_MSGS_STAMP): $(NOBLE_STAMP) $(MSGS_FILES) scripts/build_msgs.sh
+	scripts/build_msgs.sh $(NOBLE_VENV) build/$(MSGS)-noble
+	touch $@
 
 test-noble: $(NOBLE_STAMP) $(NOBLE_MSGS_STAMP)
 	$(NOBLE_PY) -c 'import numpy, scipy; print("numpy", numpy.__version__, "scipy", scipy.__version__)'
