@@ -25,7 +25,8 @@ key=$( {
 } | sha256sum | cut -c1-24 )
 tarball=$cache/$key.tar
 
-if [ -f "$tarball" ] && [ -f "$cache/$key.prefix" ]; then
+# A cached install that cannot be read whole is built again.
+if [ -f "$tarball" ] && [ -f "$cache/$key.prefix" ] && tar -tf "$tarball" > /dev/null 2>&1; then
   old=$(cat "$cache/$key.prefix")
   tar -xf "$tarball" -C "$venv"
   tar -tf "$tarball" | (cd "$venv" && xargs grep -lF "$old" 2>/dev/null || true) \
@@ -39,9 +40,9 @@ cmake -S "$msgs" -B "$build" -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
 cmake --build "$build" -j "$(nproc)" > "$build/make.log" || { tail -n 30 "$build/make.log"; exit 1; }
 cmake --install "$build" --prefix "$venv" > /dev/null
 
-# Into the cache: the installed files relative to the prefix, written whole then renamed.
-mkdir -p "$cache"
+# Into the cache (best effort: a cache that cannot be written costs the next clone a build):
+# the installed files relative to the prefix, written whole, then renamed.
 sed "s#^$venv/##" "$build/install_manifest.txt" > "$build/installed.txt"
-tar -cf "$tarball.$$" -C "$venv" -T "$build/installed.txt"
-echo "$venv" > "$cache/$key.prefix"
-mv "$tarball.$$" "$tarball"
+{ mkdir -p "$cache" && tar -cf "$tarball.$$" -C "$venv" -T "$build/installed.txt" \
+    && echo "$venv" > "$cache/$key.prefix" && mv "$tarball.$$" "$tarball"; } 2> /dev/null \
+  || { rm -f "$tarball.$$"; echo "warning: the interface package was not cached in $cache"; }
