@@ -123,8 +123,8 @@ BAD = [
     ('record', '--seed', '-2', ('-1 <= n <= 2147483647',)),
     ('record', '--rate', '0', ('0 < x <= 1000',)),
     ('record', '--rate', 'inf', ('0 < x <= 1000',)),
-    ('demo', '--rate', '0', ('0 < x <= 1000',)),
-    ('demo', '--rate', 'nan', ('0 < x <= 1000',)),
+    ('demo', '--rate', '-1', ('0 <= x <= 1000',)),
+    ('demo', '--rate', 'nan', ('0 <= x <= 1000',)),
 ]
 
 
@@ -228,7 +228,8 @@ def _parse(command, *options):
     ('bringup', [], 'rate', None),
     ('record', ['--seed', '-1', '--rate', '1000'], 'seed', -1),
     ('record', [], 'duration', 5.0),
-    ('demo', [], 'rate', 20.0),
+    ('demo', [], 'rate', 0.0),
+    ('demo', ['--rate', '20'], 'rate', 20.0),
 ])
 def test_in_range_values_parse(command, options, attribute, expected):
     assert getattr(_parse(command, *options), attribute) == expected
