@@ -52,7 +52,6 @@ $(STAMP): requirements.txt requirements-dev.txt constraints.txt
 	$(PY) -c 'import pathlib, site; pathlib.Path(site.getsitepackages()[0], "tetra_gradiometer.pth").write_text(str(pathlib.Path.cwd()))'
 	touch $(STAMP)
 
-
 $(MSGS_STAMP): $(STAMP) $(MSGS_FILES) scripts/build_msgs.sh
 	scripts/build_msgs.sh $(VENV) build/$(MSGS)
 	touch $@
