@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import resource
 from collections.abc import Generator
+from typing import Any
 
 import pytest  # neither pytest nor the two above load numpy
 
@@ -85,7 +86,36 @@ def dispatch_order(modules: list[str]) -> list[str]:
     return interleaved + ros[shorter:] + others[shorter:]
 
 
+class KeptCaseMissing(pytest.Item):
+    """Fails, naming a parametrized test every case of which its own parameters mark ``slow``
+    (``pytest.param(..., marks=pytest.mark.slow)``): ``make test`` would run none of them, where
+    the rule (pytest.ini) keeps the first or cheapest case of a class in it. A test marked slow
+    whole (on the function, class or module) is not one: its cases carry no mark of their own.
+    An item, not a collection error, so that it reads the same on xdist's workers."""
+
+    def runtest(self) -> None:
+        pytest.fail(f'every case of {self.name} is marked slow, so `make test` runs none: keep '
+                    'the first or cheapest unmarked (pytest.ini)', pytrace=False)
+
+    def reportinfo(self) -> tuple[Any, int, str]:
+        return self.path, 0, self.name
+
+
+def kept_cases_missing(items: list[pytest.Item]) -> list[pytest.Item]:
+    """A :class:`KeptCaseMissing` beside each parametrized test all of whose cases are slow."""
+    cases: dict[tuple[Any, str], list[bool]] = {}  # (module or class, test) -> slow per case
+    for item in items:
+        callspec = getattr(item, 'callspec', None)
+        if callspec is not None:
+            key = (item.parent, getattr(item, 'originalname', item.name))
+            cases.setdefault(key, []).append(any(m.name == 'slow' for m in callspec.marks))
+    return [KeptCaseMissing.from_parent(parent, name=name)
+            for (parent, name), slow in cases.items() if all(slow)]
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects the slow cases
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    items.extend(kept_cases_missing(items))
     test_dir = config.rootpath / 'test'
 
     def module_name(item: pytest.Item) -> str:
