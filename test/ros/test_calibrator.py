@@ -114,6 +114,34 @@ def test_calibrate_refuses_no_data_and_a_single_field_direction_with_the_conditi
     assert np.abs(np.trace(compensated, axis1=1, axis2=2)).max() < 1e-6 * np.abs(g).max()
 
 
+def test_calibrate_before_the_guidance_ticks_judges_the_excitation_of_every_sample(monkeypatch, tmp_path):
+    """The guidance's timer folds the samples once a second: a ~/calibrate right after the last
+    samples is judged on all of them, not on those of its last tick. Truth: the trim's first
+    30 samples share nearly one field direction (too few, as the tick says), all 300 are rich
+    and give the exact parameters."""
+    from tetra_gradiometer.io import conversions as cv
+    from tetra_gradiometer.io import gradient_tensor as gt
+
+    calibration_file = tmp_path / 'calibration.yaml'
+    g, b, exact = interference_set(300, np.random.default_rng(11), 'rich')
+    unit = b / np.linalg.norm(b, axis=1, keepdims=True)
+    order = np.argsort(-(unit @ unit[0]))  # the directions nearest the first one first
+    g, b = g[order], b[order]
+    types = cv.rclpy_types()
+    with _calibrator(monkeypatch, calibration_file) as (node, published):
+        assert _trigger(node._on_start).success
+        for i, stamp in enumerate(int(s) for s in _stamps(300)):
+            node._on_raw(gt.gradient_tensor_msg(types, gt.TensorSet(stamp, g[i], reference_field=b[i])))
+            if i == 29:
+                node._publish_guidance()  # the timer's tick after the first 30
+                assert _status(node, published)['guidance'] == 'not enough'
+        assert _trigger(node._on_stop).success
+        reply = _calibrate(node)
+        assert reply.success, reply.message
+    saved = load_calibration(calibration_file)
+    np.testing.assert_allclose(saved.parameters.k_soft, exact.k_soft, rtol=0, atol=1e-9)
+
+
 def test_calibrator_never_overwrites_a_file_that_is_not_a_calibration_and_its_path_is_read_only(monkeypatch, tmp_path):
     """Fault table rows: nobody on the ROS domain can turn ~/calibrate into a file writer."""
     precious = tmp_path / 'vehicle.conf'

@@ -14,8 +14,8 @@ Services (std_srvs/Trigger but ``~/calibrate``):
   ``calibrate`` does (:func:`~tetra_gradiometer.pipelines.window_check.identify_checked`):
   a regional world-frame gradient jointly when every sample has an ``odom`` attitude (else
   it is assumed zero, as the reply and the file's ``notes`` say), then the test of the fit's
-  assumption; samples that fail it (a target, a bad stretch), or whose last trim assessment
-  predicts more than 2x the noise floor (too little attitude excitation), answer
+  assumption; samples that fail it (a target, a bad stretch), or whose trim assessment (of
+  every sample) predicts more than 2x the noise floor (too little attitude excitation), answer
   success=false with the figures (the failing part in s after the first sample, a passing
   sub-window), and nothing is written, unless ``force`` (then the warning goes into the
   file's ``notes``). On success the parameters are written atomically to
@@ -62,11 +62,11 @@ the compensated tensor on a representative survey, the noise floor, the coverage
 number, the attitudes covered, whether that is *enough* (predicted sigma within 1.1x the
 floor) and else the next manoeuvre ("roll ±15° on heading 120–180°"); the key figures also go
 on ``/diagnostics``. Per sample it only appends (the sums and the attitude bin of the
-samples since the last tick are added in the timer, in its own callback group); a sample's
-attitude is the nearest ``odom`` message (nav_msgs/Odometry: the relative topic, the
-driver's ``/tetra/odom``; on a vehicle remap it to the navigation's, ``-r odom:=/odom``)
-within 0.5 s
-(:class:`~tetra_gradiometer.pipelines.window_check.AttitudeHistory`), else unknown (then the
+samples since the last tick are added in the timer, in its own callback group, or by a
+``~/calibrate`` before it); a sample's attitude is the nearest ``odom`` message
+(nav_msgs/Odometry: the relative topic, the driver's ``/tetra/odom``; on a vehicle remap it
+to the navigation's, ``-r odom:=/odom``) within 0.5 s
+(:class:`~tetra_gradiometer.pipelines.window_check.AttitudeHistory`), else unknown (the
 coverage is that of the body-frame field direction). The survey and the candidate
 manoeuvres are flown in ``earth_field_enu``; the sensor noise is ``sensor_noise_t`` (or
 0.1 nT) until the samples estimate their own.
@@ -123,14 +123,7 @@ from .channels import (
     sample_terms,
     subscribe_channels,
 )
-from .common import (
-    OK,
-    WARN,
-    derived_qos,
-    latched_qos,
-    resolve_node_path,
-    status,
-)
+from .common import OK, WARN, derived_qos, latched_qos, resolve_node_path, status
 from .managed import ManagedNode
 from .process import spin_node
 from .solve_worker import SolveWorker
@@ -197,6 +190,9 @@ class CalibratorNode(ManagedNode):
             )
         )
         self._epoch = 0  # counts ~/start: a tick that straddles one discards its work
+        # One fold of the guidance's sums at a time: its timer's, or a ~/calibrate's.
+        self._guidance_lock = threading.Lock()
+        self._assessed = (0, 0)  # (epoch, samples received) the assessment is of
         self._added: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (g, b, q)
         self._removed: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._statistics = TrimStatistics.empty()
@@ -287,14 +283,33 @@ class CalibratorNode(ManagedNode):
 
     def _publish_guidance(self) -> None:
         """Fold the new samples into the sums, assess, publish ``~/guidance`` (timer)."""
+        with self._guidance_lock:
+            assessment = self._fold()
+        if assessment is not None:
+            document = json.dumps(assessment.to_dict(), allow_nan=False)
+            self._guidance_pub.publish(String(data=document))
+
+    def _assessment_of(self, received: int) -> TrimAssessment | None:
+        """The guidance's assessment of the samples received up to ``received`` (a snapshot's),
+        folded now if its timer has not (else a ~/calibrate right after the last samples meets
+        the assessment of the first few); None when samples came after the snapshot."""
+        with self._guidance_lock:
+            self._fold()
+        with self._lock:
+            current = self._assessed == (self._epoch, received)
+            return self._assessment if current else None
+
+    def _fold(self) -> TrimAssessment | None:
+        """Fold the new samples into the sums and assess them: the new assessment, or None
+        (nothing new, or it failed); the caller holds the guidance lock."""
         with self._lock:
             added, removed, epoch = self._added, self._removed, self._epoch
             self._added, self._removed = [], []
             span_s = (self._last_stamp - (self._first_stamp or 0)) * S_PER_NS
             rate = (self._n_received - 1) / span_s if span_s > 0 else 1.0
-            statistics = self._statistics
+            statistics, received = self._statistics, self._n_received
         if not added and not removed:
-            return
+            return None
         statistics = statistics.plus(self._batch(added)).minus(self._batch(removed))
         try:
             assessment = assess(
@@ -311,11 +326,10 @@ class CalibratorNode(ManagedNode):
             assessment = None
         with self._lock:
             if epoch != self._epoch:  # a ~/start came meanwhile: these sums are stale
-                return
+                return None
             self._statistics, self._assessment = statistics, assessment
-        if assessment is not None:
-            document = json.dumps(assessment.to_dict(), allow_nan=False)
-            self._guidance_pub.publish(String(data=document))
+            self._assessed = (epoch, received)
+        return assessment
 
     def _guidance_values(self) -> dict[str, Any]:
         """The key figures of the last assessment, for /diagnostics."""
@@ -397,16 +411,17 @@ class CalibratorNode(ManagedNode):
         rest of a closed-form solve), so no worker outlives the configuration."""
         self._worker.shutdown()
 
-    def _snapshot(self, call: CalibrateCall) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The samples in ``call``'s window in stamp order, one per stamp: stamps (n,) ns,
-        ``G_m`` (n, 3, 3) T/m, ``B_1'`` (n, 3) T."""
+    def _snapshot(self, call: CalibrateCall) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """The samples received so far, and those in ``call``'s window in stamp order, one per
+        stamp: stamps (n,) ns, ``G_m`` (n, 3, 3) T/m, ``B_1'`` (n, 3) T."""
         with self._lock:
             t = np.array(self._t, dtype=np.int64)
             g = np.array(self._g).reshape(-1, 3, 3)
             b = np.array(self._b).reshape(-1, 3)
+            received = self._n_received
         _, first = np.unique(t, return_index=True)  # sorted; a repeated stamp counts once
         first = first[call.select(t[first])]
-        return t[first], g[first], b[first]
+        return received, t[first], g[first], b[first]
 
     def _options(self, method: str, stamps_ns: np.ndarray) -> tuple[Options, tuple[str, ...]]:
         """The solve's options; for the known-gradient methods the attitudes at the samples'
@@ -433,7 +448,7 @@ class CalibratorNode(ManagedNode):
             call = CalibrateCall.parse(request, self.get_parameter)
         except TetraError as error:
             return False, str(error)
-        t, g, b = self._snapshot(call)
+        received, t, g, b = self._snapshot(call)
         method = self.get_parameter('method').value
         minimum = int(self.get_parameter('min_samples').value)
         maximum = int(self.get_parameter('max_samples').value)
@@ -462,8 +477,8 @@ class CalibratorNode(ManagedNode):
                 force_name=FORCE_NAME,
                 sub_window=SUB_WINDOW,
                 notes=(*notes, *terms.notes),
-                # the guidance's at its last tick, of every sample: not of a narrower window
-                assessment=self._assessment if call.window_s is None else None,
+                # the guidance's, of every sample: not of a narrower window
+                assessment=None if call.window_s is not None else self._assessment_of(received),
                 lacking=terms.lacking,
             )
         except (TetraError, np.linalg.LinAlgError) as error:
