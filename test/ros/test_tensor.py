@@ -129,6 +129,28 @@ def test_a_silent_sensor_is_an_error_on_diagnostics_and_no_tensor_is_published_u
         assert _status(node, published, 'tetra/tensor: mag3')['level'] == 0
 
 
+def test_a_stall_of_the_node_between_the_readings_of_a_set_costs_no_set(monkeypatch):
+    """The node's clock jumps 2 s (> stale_timeout_s 1 s) between mag2's and mag3's readings
+    of one set, as when its process stalls on a loaded machine with the readings queued:
+    every set is still published, exact. Truth: the linear field's tensor G_KNOWN."""
+    from rclpy.serialization import serialize_message
+
+    from tetra_gradiometer.io import conversions as cv
+
+    types = cv.rclpy_types()
+    clock_ns = 1000 * 10**9
+    with _tensor_node(monkeypatch, stale_timeout_s=1.0, use_sim_time=True) as (node, published):
+        for i in range(30):
+            for s in range(4):
+                clock_ns += 2 * 10**9 if (i, s) == (15, 2) else 10**7
+                set_sim_time(node, clock_ns)
+                node._on_mag(s, serialize_message(cv.magnetic_field_msg(types, FIELDS[s], T0 + i * 10**8, cv.MAG_FRAMES[s])))
+        raw = _raw(published)
+    assert sorted(raw) == [T0 + i * 10**8 for i in range(30)]
+    tensors = np.array(list(raw.values()))
+    np.testing.assert_allclose(tensors, np.broadcast_to(G_KNOWN, tensors.shape), rtol=0, atol=1e-10 * NT)
+
+
 def test_a_bad_value_set_at_run_time_is_refused():
     with ros_graph() as (graph, probe, _):
         graph.start('tensor')

@@ -168,8 +168,8 @@ def played(nodes: Sequence[Any]) -> bool:
 
 def _counts(nodes: Sequence[Any]) -> tuple[int, ...]:
     tensor, _, compensator, _ = nodes
-    return (tensor.sets_published, tensor.sets_invalid, tensor.sets_stale,
-            compensator.published, compensator.dropped_non_finite)
+    return (tensor.sets_published, tensor.sets_invalid, compensator.published,
+            compensator.dropped_non_finite)
 
 
 def stop_when_played(nodes: Sequence[Any], stop: Any, poll_s: float = 0.1) -> None:
@@ -198,7 +198,7 @@ def summary(nodes: Sequence[Any]) -> str:
     passed = compensator.published - compensator.compensated
     lines = [
         f'bringup: played {played_sets} sets; tensor node: {tensor.sets_published} tensors, '
-        f'{tensor.sets_invalid} invalid, {tensor.sets_stale} stale;',
+        f'{tensor.sets_invalid} invalid;',
         f'compensator: {compensator.compensated} compensated ({share:.1f} % of the sets '
         f'played), {passed} passed through uncompensated (no calibration yet), '
         f'{tensor.sets_published - compensator.published} dropped (non-finite, or a '

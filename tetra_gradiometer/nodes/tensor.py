@@ -204,7 +204,6 @@ class TensorNode(ManagedNode):
         self._rate_mark: list[tuple[int | None, int]] = [(None, 0)] * 4
         self.sets_published = 0
         self.sets_invalid = 0
-        self.sets_stale = 0
 
         check_serialization()
         self._raw_cdr = gt.GradientTensorCdr(self._array_frame)
@@ -306,7 +305,10 @@ class TensorNode(ManagedNode):
 
     def _emit(self, stamp_ns: int, fields: np.ndarray, covariances: np.ndarray) -> None:
         """Check one matched set (4, 3) T and publish ``G_m`` (T/m) with its 1-sigma and
-        ``B_1'`` (T), from the readings' covariances (4, 9) T^2."""
+        ``B_1'`` (T), from the readings' covariances (4, 9) T^2. A formed set holds a reading
+        of every sensor at its stamp, so none of them is silent there: a silent sensor forms
+        no set (and is ERROR on /diagnostics), and the arrival times of a set's readings say
+        only how busy this node was (a 1 s stall of it dropped complete sets)."""
         bad = ~plausible_readings(fields, self._max_field)  # the offline tools' rule
         if bad.any():
             self.sets_invalid += 1
@@ -319,9 +321,6 @@ class TensorNode(ManagedNode):
                     f'|B| > {self._max_field:g} T on {", ".join(names)} '
                     f'({self.sets_invalid} sets dropped so far)'
                 )
-            return
-        if self._stale_sensors(max(self._last_arrival)):  # the arrival just stamped: now
-            self.sets_stale += 1
             return
         g = difference_tensor(fields[None], self._geometry)[0]
         if not np.all(np.isfinite(g)):  # cannot happen for finite fields; never publish non-finite
@@ -461,7 +460,6 @@ class TensorNode(ManagedNode):
                 {
                     'sets_published': self.sets_published,
                     'sets_dropped_invalid': self.sets_invalid,
-                    'sets_dropped_stale': self.sets_stale,
                     'sets_never_formed': never,
                     **{MATCHER_KEYS.get(k, f'matcher_{k}'): v for k, v in counts.items()},
                     'matcher_resets': self.resets,
