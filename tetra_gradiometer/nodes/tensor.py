@@ -308,7 +308,7 @@ class TensorNode(ManagedNode):
         ``B_1'`` (T), from the readings' covariances (4, 9) T^2. A formed set holds a reading
         of every sensor at its stamp, so none of them is silent there: a silent sensor forms
         no set (and is ERROR on /diagnostics), and the arrival times of a set's readings say
-        only how busy this node was (a 1 s stall of it dropped complete sets)."""
+        only how busy this node is: they judge no set."""
         bad = ~plausible_readings(fields, self._max_field)  # the offline tools' rule
         if bad.any():
             self.sets_invalid += 1
